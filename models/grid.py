@@ -1,0 +1,156 @@
+"""Spectral grids and resampling onto them.
+
+The project's default grid is 400-700 nm at 10 nm (31 samples), the range
+Wandell (1985) uses for the Munsell analysis of Fig. 5. Every data set in
+:mod:`models` is delivered as a plain ``numpy`` array sampled on a grid
+chosen by the caller.
+
+References
+----------
+Wandell, B. A. (1985). *The Synthesis and Analysis of Color Images*,
+NASA TM-86844 (``shared/seeds/002``), eq. 1 and 12: all quantities are
+sampled at wavelengths :math:`\\lambda_n`, :math:`n = 1..N`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "DEFAULT_WAVELENGTHS",
+    "wavelength_grid",
+    "wavelength_step",
+    "resample",
+]
+
+
+def wavelength_grid(start: float = 400.0, end: float = 700.0, step: float = 10.0) -> np.ndarray:
+    """Regular wavelength grid in nm, both ends included.
+
+    Parameters
+    ----------
+    start, end, step : float
+        Bounds and interval in nm.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` float64 wavelengths.
+
+    Examples
+    --------
+    >>> wavelength_grid(400, 700, 10).shape
+    (31,)
+    """
+    if step <= 0 or end < start:
+        raise ValueError(f"bad wavelength grid: start={start}, end={end}, step={step}")
+    n = int(round((end - start) / step)) + 1
+    return start + step * np.arange(n, dtype=np.float64)
+
+
+DEFAULT_WAVELENGTHS = wavelength_grid(400.0, 700.0, 10.0)
+
+
+def wavelength_step(wavelengths: np.ndarray) -> np.ndarray:
+    """Quadrature weights :math:`\\Delta\\lambda_n` for sums over wavelength.
+
+    For a regular grid every weight is the interval (Wandell 1985, eq. 1
+    with the interval made explicit); for an irregular grid the trapezoid
+    weights are used.
+
+    Examples
+    --------
+    >>> wavelength_step(wavelength_grid(400, 420, 10))
+    array([10., 10., 10.])
+    """
+    wl = np.asarray(wavelengths, dtype=np.float64)
+    if wl.ndim != 1 or wl.size < 2:
+        raise ValueError("need at least two wavelengths")
+    d = np.diff(wl)
+    if np.any(d <= 0):
+        raise ValueError("wavelengths must be strictly increasing")
+    if np.allclose(d, d[0], rtol=1e-9, atol=1e-9):
+        return np.full(wl.shape, d[0])
+    w = np.empty_like(wl)
+    w[0] = d[0] / 2
+    w[-1] = d[-1] / 2
+    w[1:-1] = (d[:-1] + d[1:]) / 2
+    return w
+
+
+def _is_regular(wl: np.ndarray) -> bool:
+    d = np.diff(wl)
+    return wl.size >= 2 and bool(np.allclose(d, d[0], rtol=1e-9, atol=1e-9))
+
+
+def resample(
+    wavelengths_src: np.ndarray,
+    values: np.ndarray,
+    wavelengths_dst: np.ndarray,
+) -> np.ndarray:
+    """Resample spectra from one wavelength list to another.
+
+    Uses colour-science's spectral alignment (Sprague or cubic spline
+    interpolation for regular data, constant extrapolation, as CIE 167:2005
+    recommends) when the destination is a regular grid, and linear
+    interpolation with constant extrapolation otherwise.
+
+    Parameters
+    ----------
+    wavelengths_src : array_like
+        ``(M,)`` source wavelengths in nm, increasing.
+    values : array_like
+        ``(M,)`` or ``(M, K)`` spectra on ``wavelengths_src``.
+    wavelengths_dst : array_like
+        ``(N,)`` destination wavelengths in nm.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` or ``(N, K)`` float64.
+
+    Examples
+    --------
+    >>> wl = wavelength_grid(400, 700, 10)
+    >>> resample(wl, wl * 2.0, wavelength_grid(400, 700, 5))[:3]
+    array([ 800.,  810.,  820.])
+    """
+    import colour
+
+    src = np.asarray(wavelengths_src, dtype=np.float64)
+    val = np.asarray(values, dtype=np.float64)
+    dst = np.asarray(wavelengths_dst, dtype=np.float64)
+    one_d = val.ndim == 1
+    v2 = val[:, None] if one_d else val
+    if v2.shape[0] != src.size:
+        raise ValueError(f"values have {v2.shape[0]} rows for {src.size} wavelengths")
+    # exact subset: no interpolation at all
+    idx = np.searchsorted(src, dst)
+    idx = np.clip(idx, 0, src.size - 1)
+    if np.allclose(src[idx], dst, atol=1e-9):
+        out = v2[idx]
+    elif _is_regular(dst) and _is_regular(src):
+        step = float(dst[1] - dst[0]) if dst.size > 1 else 1.0
+        shape = colour.SpectralShape(float(dst[0]), float(dst[-1]), step)
+        msds = colour.MultiSpectralDistributions(
+            v2, src, labels=[str(i) for i in range(v2.shape[1])]
+        )
+        # interpolate on the finer of the two grids, then pick
+        fine = colour.SpectralShape(
+            min(src[0], dst[0]), max(src[-1], dst[-1]), min(step, float(src[1] - src[0]))
+        )
+        with colour.utilities.suppress_warnings(colour_usage_warnings=True):
+            aligned = msds.copy().align(fine)
+        wl_f = aligned.wavelengths
+        vals = aligned.values
+        pick = np.searchsorted(wl_f, dst - 1e-9)
+        pick = np.clip(pick, 0, wl_f.size - 1)
+        if np.allclose(wl_f[pick], dst, atol=1e-6):
+            out = vals[pick]
+        else:  # grids not commensurate: linear from the fine grid
+            out = np.stack([np.interp(dst, wl_f, vals[:, k]) for k in range(vals.shape[1])], 1)
+        del shape
+    else:
+        out = np.stack([np.interp(dst, src, v2[:, k]) for k in range(v2.shape[1])], 1)
+    out = np.asarray(out, dtype=np.float64)
+    return out[:, 0] if one_d else out

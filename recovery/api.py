@@ -1,0 +1,529 @@
+"""The public Python API: :func:`estimate_illuminant`, :func:`analyze`,
+:func:`render` (contracts in ``shared/DESIGN.md``).
+
+References
+----------
+Wandell (1985), ``shared/seeds/002``: analysis eq. 26-36, synthesis eq.
+22-25, the camera-to-observer rendering of Fig. 6.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models import (LinearModel, daylight_model, fourier_model, illuminant_pca_model,
+                    surface_pca_model)
+from models import illuminant as get_illuminant
+
+from .camera import Camera
+from .errors import InputError, InsufficientSurfaceVariation, ModelDimensionError
+from .estimators import PEERS, maloney_wandell_pixels
+from .lighting import lighting_matrix, lighting_matrix_from_spectrum, lighting_tensor
+from .regions import LightMap, bilinear, estimate_light_map
+from .subspace import check_dimensions, surface_weights
+from .synthesis import adjust_light_for_gamut, encode, output_space, synthesis_matrix
+
+__all__ = ["IlluminantEstimate", "AnalysisResult", "estimate_illuminant", "analyze", "render",
+           "METHODS", "resolve_model", "angular_error"]
+
+METHODS = ("auto", "maloney-wandell") + tuple(PEERS)
+
+
+def angular_error(a, b) -> np.ndarray:
+    """Angle in degrees between vectors (last axis), computed as
+    ``2 atan2(|a^ - b^|, |a^ + b^|)``, accurate for tiny angles."""
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    an = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    bn = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.degrees(2 * np.arctan2(np.linalg.norm(an - bn, axis=-1), np.linalg.norm(an + bn, axis=-1)))
+
+
+# --------------------------------------------------------------------------- models
+def resolve_model(spec, kind: str, dimension: int | None, wavelengths: np.ndarray) -> LinearModel:
+    """A light or surface :class:`~models.LinearModel` on ``wavelengths``.
+
+    ``spec`` may be ``None`` (defaults: surface PCA through the origin of all
+    shipped reflectances; CIE daylight for lights up to 3 terms, PCA of
+    colour-science's illuminants beyond), a name (``"pca"``,
+    ``"fourier"``, ``"daylight"``, ``"illuminant-pca"``), an ``(N, D)``
+    array of basis functions (the user's own linear model, Wandell's
+    inspection-robot argument), or a :class:`~models.LinearModel`.
+    """
+    wl = np.asarray(wavelengths, float)
+    if isinstance(spec, LinearModel):
+        if spec.wavelengths.shape != wl.shape or not np.allclose(spec.wavelengths, wl):
+            raise InputError(f"{kind} model is on a different wavelength grid than the camera")
+        if spec.mean is not None:
+            raise InputError(f"{kind} model must pass through the origin (no mean term) for eq. 17-21")
+        return spec.truncate(dimension) if dimension else spec
+    if spec is None or isinstance(spec, str):
+        name = spec or ("pca" if kind == "surface" else ("daylight" if (dimension or 3) <= 3 else "illuminant-pca"))
+        d = dimension or 3
+        try:
+            if name in ("pca", "surface-pca") and kind == "surface":
+                return surface_pca_model(d, wl)
+            if name in ("pca", "illuminant-pca"):
+                return illuminant_pca_model(d, wl)
+            if name == "fourier":
+                return fourier_model(d, wl)
+            if name == "daylight":
+                return daylight_model(d, wl)
+        except ValueError as e:
+            raise ModelDimensionError(f"{kind} model {name!r}: {e}") from None
+        raise InputError(f"unknown {kind} model {name!r}; accepted: pca, fourier, daylight, illuminant-pca, "
+                         "or an (N, D) array")
+    basis = np.asarray(spec, dtype=np.float64)
+    if basis.ndim == 1:
+        basis = basis[:, None]
+    if basis.ndim != 2 or basis.shape[0] != wl.size:
+        raise InputError(f"{kind} basis must be (N={wl.size}, D), got {basis.shape}")
+    if not np.all(np.isfinite(basis)):
+        raise InputError(f"{kind} basis contains NaN or Inf")
+    if np.linalg.matrix_rank(basis) < basis.shape[1]:
+        raise InputError(f"{kind} basis functions are linearly dependent")
+    if dimension:
+        basis = basis[:, :dimension]
+    return LinearModel(wl, basis, None, "user", f"user-{kind}-{basis.shape[1]}")
+
+
+# --------------------------------------------------------------------------- estimate
+@dataclass
+class IlluminantEstimate:
+    """An estimate of the scene light.
+
+    Attributes
+    ----------
+    rgb : (C,) camera response to the light, unit norm
+    spectrum : (N,) relative spectral power on ``wavelengths``, unit mean
+    method : str, the estimator that produced the answer
+    diagnostics : dict of plain numbers and strings
+    warnings : list of str
+    light_weights : (D(E),) weights in ``light_model`` or None
+    light_map : :class:`~recovery.regions.LightMap` when the light varies
+    """
+
+    rgb: np.ndarray
+    spectrum: np.ndarray
+    wavelengths: np.ndarray
+    method: str
+    diagnostics: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+    light_weights: np.ndarray | None = None
+    light_model: LinearModel | None = None
+    light_map: LightMap | None = None
+
+    @property
+    def wb_multipliers(self) -> np.ndarray:
+        """Per-channel gains that make the light neutral, normalised so
+        channel 1 (green) is 1."""
+        return self.rgb[1] / self.rgb
+
+    def cct_duv(self) -> tuple[float | None, float | None]:
+        """Correlated colour temperature (K) and Duv of the spectrum by
+        Ohno (2013) through colour-science; ``(None, None)`` when the
+        spectrum is not physical or far from the Planckian locus (|Duv| >
+        0.05, where CCT is not meaningful)."""
+        import colour
+
+        from models import observer
+
+        spd = self.spectrum
+        if np.any(spd < -0.01 * np.max(np.abs(spd))) or not np.all(np.isfinite(spd)):
+            return None, None
+        cmfs = observer("XYZ", self.wavelengths)
+        XYZ = np.clip(spd, 0, None) @ cmfs
+        if XYZ[1] <= 0:
+            return None, None
+        uv = colour.UCS_to_uv(colour.XYZ_to_UCS(XYZ))
+        try:
+            cct, duv = colour.temperature.uv_to_CCT_Ohno2013(uv)
+        except Exception:
+            return None, None
+        if not (np.isfinite(cct) and np.isfinite(duv)) or abs(duv) > 0.05 or not 1000 <= cct <= 100000:
+            return None, None
+        return float(cct), float(duv)
+
+
+def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark_fraction):
+    img = np.asarray(image)
+    if img.ndim != 3:
+        raise InputError(f"image must be (H, W, C), got shape {img.shape}")
+    if img.shape[2] != camera.channels:
+        raise InputError(f"image has {img.shape[2]} channels, camera {camera.name!r} has {camera.channels}")
+    if img.shape[0] < 1 or img.shape[1] < 1:
+        raise InputError("image is empty")
+    if not np.issubdtype(img.dtype, np.number):
+        raise InputError(f"image dtype {img.dtype} is not numeric")
+    img = img.astype(np.float64, copy=False)
+    finite = np.all(np.isfinite(img), axis=2)
+    m = finite.copy()
+    if mask is not None:
+        mk = np.asarray(mask, bool)
+        if mk.shape != img.shape[:2]:
+            raise InputError(f"mask shape {mk.shape} does not match image {img.shape[:2]}")
+        m &= mk
+    vals = img[finite]
+    scale = float(np.max(vals)) if vals.size else 0.0
+    if not scale > 0:
+        raise InsufficientSurfaceVariation("the image has no positive finite values (black or invalid)")
+    img = np.where(finite[..., None], img, 0.0) / scale
+    info = {"pixels_total": int(finite.size), "pixels_nonfinite": int((~finite).sum()), "input_scale": scale}
+    sat = np.zeros_like(m)
+    if white_level is not None:
+        sat = np.any(img >= saturation_fraction * float(white_level) / scale, axis=2) & finite
+        m &= ~sat
+    dark = np.any(img <= dark_fraction, axis=2) & finite
+    m &= ~dark
+    info.update(pixels_saturated=int(sat.sum()), pixels_dark=int((dark & ~sat).sum()),
+                pixels_used=int(m.sum()))
+    return img, m, info
+
+
+def _spectrum_from_rgb(rgb, camera: Camera, model: LinearModel):
+    """Light weights whose camera response is ``rgb`` (least squares over
+    the light model; exact when D(E) = C)."""
+    A = camera.response(model.basis.T).T           # (C, D(E))
+    w, *_ = np.linalg.lstsq(A, rgb, rcond=None)
+    spd = model.basis @ w
+    mean = spd.mean()
+    if mean != 0:
+        w, spd = w / mean, spd / mean
+    return w, spd
+
+
+def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_map=None):
+    rgb = np.asarray(rgb, float)
+    n = np.linalg.norm(rgb)
+    if not (np.all(np.isfinite(rgb)) and n > 0):
+        raise InsufficientSurfaceVariation(f"{method}: no finite light estimate")
+    neg = float(np.mean(spectrum < -1e-3 * np.max(np.abs(spectrum))))
+    diag["nonphysical_light_fraction"] = neg
+    if neg > 0:
+        warns.append(f"estimated light spectrum is negative at {neg:.0%} of wavelengths (non-physical)")
+    return IlluminantEstimate(rgb / n, spectrum, camera.wavelengths, method, diag, warns,
+                              None if weights is None else np.asarray(weights, float), model, light_map)
+
+
+def estimate_illuminant(image, camera: Camera, method: str = "auto", *, surface_basis=None,
+                        light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
+                        mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
+                        dark_fraction: float = 1e-3, spatial: bool = False, region_size: int | None = None,
+                        overlap: float = 0.5, min_variation: float = 0.02, subspace_tolerance: float = 0.1,
+                        on_failure: str = "fallback", fallback: str = "shades-of-gray", p: float = 6.0,
+                        sigma: float = 1.0) -> IlluminantEstimate:
+    """Estimate the scene light from a linear camera image.
+
+    Parameters
+    ----------
+    image : (H, W, C) linear camera data (any scale)
+    camera : :class:`~recovery.Camera`
+    method : ``"auto"``, ``"maloney-wandell"``, ``"gray-world"``,
+        ``"white-patch"``, ``"shades-of-gray"`` or ``"gray-edge"``
+    surface_basis, light_basis : user linear models ((N, D) arrays on
+        ``camera.wavelengths``, names or :class:`~models.LinearModel`)
+    surface_dim, light_dim : D(S) (default C - 1) and D(E) (default D(S)+1)
+    white_level : sensor saturation level; pixels with a channel at or above
+        ``saturation_fraction * white_level`` are excluded
+    dark_fraction : pixels with a channel at or below this fraction of the
+        image maximum are excluded (relative, so the result is scale-free)
+    spatial : estimate a light map over overlapping regions (Fig. 1)
+    region_size, overlap : region side in pixels (default a quarter of the
+        shorter side) and fractional overlap
+    min_variation : a region is used only if ``s_D(S)/s_1`` exceeds this
+    subspace_tolerance : ``s_{D(S)+1}/s_D(S)`` above it warns that the data
+        are not confined to a subspace (the paper's first failure mode)
+    on_failure : ``"fallback"`` (declared in diagnostics) or ``"raise"``
+    fallback : the peer used when the subspace method cannot run
+
+    Returns
+    -------
+    IlluminantEstimate
+
+    Notes
+    -----
+    ``"maloney-wandell"`` is the literal method (Wandell 1985, eq. 30, 35).
+    ``"auto"`` currently runs the literal method and falls back, declared
+    in ``diagnostics["decision"]``, to ``fallback`` when the paper's own
+    failure tests fire (too little surface variation, data not confined to
+    a subspace, non-physical light).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from recovery import Camera, estimate_illuminant
+    >>> cam = Camera.named("Nikon 5100 (NPL)")
+    >>> img = np.random.default_rng(0).uniform(0.1, 1, (8, 8, 3))
+    >>> estimate_illuminant(img, cam, method="gray-world").method
+    'gray-world'
+    """
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; accepted: {list(METHODS)}")
+    if on_failure not in ("fallback", "raise"):
+        raise InputError("on_failure must be 'fallback' or 'raise'")
+    if fallback not in PEERS:
+        raise InputError(f"fallback must be one of {list(PEERS)}")
+    img, m, info = _prepare(image, camera, mask, white_level, saturation_fraction, dark_fraction)
+    C = camera.channels
+    d_s = surface_dim or (C - 1)
+    d_e = light_dim or min(d_s + 1, C)
+    if light_basis is not None and not isinstance(light_basis, str) and light_dim is None:
+        d_e = resolve_model(light_basis, "light", None, camera.wavelengths).dimension
+    if surface_basis is not None and not isinstance(surface_basis, str) and surface_dim is None:
+        d_s = resolve_model(surface_basis, "surface", None, camera.wavelengths).dimension
+        d_e = light_dim or (d_e if light_basis is not None and not isinstance(light_basis, str) else min(d_s + 1, C))
+    diag = dict(info)
+    warns: list[str] = []
+
+    def run_peer(name, why=None):
+        peer_model = resolve_model(None, "light", min(3, C), camera.wavelengths)
+        kw = {"p": p} if name == "shades-of-gray" else ({"p": p, "sigma": sigma} if name == "gray-edge" else {})
+        rgb = PEERS[name](img, m, **kw)
+        w, spd = _spectrum_from_rgb(rgb, camera, peer_model)
+        d = dict(diag)
+        d["light_model"] = peer_model.name + " (spectrum fitted to the rgb estimate)"
+        if why:
+            d["decision"] = f"fallback to {name}: {why}"
+        return _finish(rgb, spd, w, camera, peer_model, name, d, list(warns))
+
+    if method in PEERS:
+        return run_peer(method)
+
+    check_dimensions(C, d_s, d_e)
+    S = resolve_model(surface_basis, "surface", d_s, camera.wavelengths)
+    E = resolve_model(light_basis, "light", d_e, camera.wavelengths)
+    if S.dimension != d_s or E.dimension != d_e:
+        check_dimensions(C, S.dimension, E.dimension)
+        d_s, d_e = S.dimension, E.dimension
+    T = lighting_tensor(E.basis, S.basis, camera.sensitivities, camera.dlambda)
+    diag.update({"D(S)": d_s, "D(E)": d_e, "surface_model": S.name, "light_model": E.name})
+    try:
+        lm = None
+        if spatial:
+            size = region_size or max(8, min(img.shape[:2]) // 4)
+            lm, ldiag = estimate_light_map(img, m, T, E.basis, d_s, size, overlap, min_variation)
+            diag.update(ldiag)
+            w = np.average(lm.weights[lm.used], axis=0)
+            fit_ratio = float(np.nanmedian(lm.fit_ratio))
+            null_ratio = float("nan")
+        else:
+            px = img[m]
+            res = maloney_wandell_pixels(px, T, E.basis, d_s, min_variation)
+            w = res.weights
+            fit_ratio = res.fit_ratio
+            null_ratio = res.null_ratio
+            diag.update({"singular_values": [float(v) for v in res.data_singular_values],
+                         "surface_variation_ratio": res.variation_ratio,
+                         "pi_singular_values": [float(v) for v in res.pi_singular_values]})
+        diag["subspace_fit_ratio"] = fit_ratio
+        if np.isfinite(null_ratio):
+            diag["pi_null_ratio"] = null_ratio
+        spd = E.basis @ w
+        if spd.mean() != 0:
+            w, spd = w / spd.mean(), spd / spd.mean()
+        rgb = camera.response(spd)
+        L = lighting_matrix(w, T)
+        sig, cond = surface_weights(L, img[m][:: max(1, int(m.sum()) // 4096)])
+        diag["lighting_condition"] = cond
+        refl = sig @ S.basis.T
+        diag["nonphysical_reflectance_fraction"] = float(np.mean(np.any(refl < -1e-6, axis=1))) if refl.size else 0.0
+        if fit_ratio > subspace_tolerance:
+            warns.append(f"data not confined to a subspace: s_{d_s + 1}/s_{d_s} = {fit_ratio:.3g} "
+                         f"> {subspace_tolerance} (the surfaces need more than D(S)={d_s} dimensions "
+                         "for this camera; the light estimate is unreliable)")
+        if np.isfinite(null_ratio) and null_ratio > 0.5:
+            warns.append(f"light weights poorly determined: Pi null-space ratio {null_ratio:.3g}")
+        if not np.all(rgb > 0):
+            raise InsufficientSurfaceVariation("estimated light gives a non-positive camera response")
+        est = _finish(rgb, spd, w, camera, E, "maloney-wandell", diag, warns, lm)
+        if method == "auto":
+            bad = [s for s in est.warnings if s.startswith(("data not confined", "estimated light spectrum"))]
+            if bad:
+                return run_peer(fallback, "; ".join(bad))
+            est.diagnostics["decision"] = "maloney-wandell: subspace fit and light passed the paper's tests"
+        return est
+    except InsufficientSurfaceVariation as e:
+        if on_failure == "raise" and method == "maloney-wandell":
+            raise
+        warns.append(f"maloney-wandell could not run: {e}")
+        diag["failure"] = str(e)
+        return run_peer(fallback, str(e))
+
+
+# --------------------------------------------------------------------------- analyze
+@dataclass
+class AnalysisResult:
+    """Light (or light map) and surfaces of an image (eq. 26-36).
+
+    Surfaces use a model with as many terms as sensors once the light is
+    known (DESIGN.md), ``surface_model``. Reflectances are relative: scaled
+    so that the 99th percentile of the per-pixel maximum reflectance is 1
+    (the data fix reflectance only up to the light's scale, eq. 27-28);
+    ``reflectance_scale`` holds the factor.
+    """
+
+    illuminant: IlluminantEstimate
+    camera: Camera
+    surface_model: LinearModel
+    image: np.ndarray
+    reflectance_scale: float
+    diagnostics: dict = field(default_factory=dict)
+
+    def _lighting(self, rows, cols):
+        if self.illuminant.light_map is not None:
+            spd = self.illuminant.light_map.spectra_at(rows, cols)
+        else:
+            spd = np.broadcast_to(self.illuminant.spectrum, (len(rows), self.illuminant.spectrum.size))
+        return lighting_matrix_from_spectrum(spd, self.surface_model.basis, self.camera.sensitivities,
+                                             self.camera.dlambda)
+
+    def surface_weights(self, points) -> np.ndarray:
+        """Surface weights at ``[(row, col), ...]``, ``(P, D)``."""
+        pts = np.asarray(points, dtype=int).reshape(-1, 2)
+        h, w = self.image.shape[:2]
+        if np.any(pts < 0) or np.any(pts[:, 0] >= h) or np.any(pts[:, 1] >= w):
+            raise InputError(f"points must lie inside the {h}x{w} image")
+        rho = self.image[pts[:, 0], pts[:, 1]].astype(float)
+        L = self._lighting(pts[:, 0].astype(float), pts[:, 1].astype(float))
+        return np.einsum("pjk,pk->pj", np.linalg.pinv(L), rho) * self.reflectance_scale
+
+    def reflectance(self, points) -> np.ndarray:
+        """Reflectance spectra at ``[(row, col), ...]``, ``(P, N)`` on
+        ``camera.wavelengths`` (eq. 36, then eq. 11)."""
+        return self.surface_weights(points) @ self.surface_model.basis.T
+
+
+def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool = False,
+            surface_dim_render: int | None = None, **kwargs) -> AnalysisResult:
+    """Light (or light map with ``spatial=True``) and surfaces together.
+
+    Keyword arguments go to :func:`estimate_illuminant`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from recovery import Camera, analyze
+    >>> cam = Camera.named("Nikon 5100 (NPL)")
+    >>> img = np.random.default_rng(0).uniform(0.1, 1, (8, 8, 3))
+    >>> analyze(img, cam, method="gray-world").reflectance([(0, 0)]).shape
+    (1, 31)
+    """
+    est = estimate_illuminant(image, camera, method, spatial=spatial, **kwargs)
+    img = np.asarray(image, dtype=np.float64)
+    d = surface_dim_render or camera.channels
+    S = surface_pca_model(d, camera.wavelengths)
+    res = AnalysisResult(est, camera, S, img, 1.0)
+    finite = np.all(np.isfinite(img), axis=2)
+    ys, xs = np.nonzero(finite)
+    step = max(1, ys.size // 4096)
+    ys, xs = ys[::step], xs[::step]
+    refl = res.reflectance(np.stack([ys, xs], 1)) if ys.size else np.zeros((0, camera.wavelengths.size))
+    peak = np.percentile(refl.max(axis=1), 99) if refl.size else 0.0
+    res.reflectance_scale = float(1.0 / peak) if peak > 0 and np.isfinite(peak) else 1.0
+    refl = refl * res.reflectance_scale
+    L = lighting_matrix_from_spectrum(est.spectrum, S.basis, camera.sensitivities, camera.dlambda)
+    _, cond = surface_weights(L, np.zeros((1, camera.channels)))
+    res.diagnostics = {
+        "surface_model": S.name,
+        "lighting_condition": cond,
+        "nonphysical_reflectance_fraction": float(np.mean(np.any((refl < -0.02) | (refl > 1.02), axis=1)))
+        if refl.size else 0.0,
+        "negative_reflectance_fraction": float(np.mean(np.any(refl < -0.02, axis=1))) if refl.size else 0.0,
+        "reflectance_scale_convention": "99th percentile of per-pixel peak reflectance = 1",
+    }
+    return res
+
+
+# --------------------------------------------------------------------------- render
+def _target_spectrum(target, estimate: IlluminantEstimate) -> np.ndarray | None:
+    if isinstance(target, str):
+        if target in ("estimate", "as-seen"):
+            return None
+        try:
+            return get_illuminant(target, estimate.wavelengths)
+        except KeyError as e:
+            raise InputError(str(e)) from None
+    t = np.asarray(target, float)
+    if t.shape != estimate.wavelengths.shape or not np.all(np.isfinite(t)):
+        raise InputError(f"target spectrum must be finite with shape {estimate.wavelengths.shape}")
+    return t
+
+
+def render(image, camera: Camera, estimate: IlluminantEstimate, target="D65", output: str = "XYZ", *,
+           observer: str | None = None, gamut: str | None = None, surface_basis=None,
+           return_info: bool = False, chunk: int = 1 << 18):
+    """Render camera data as the scene would look under ``target``.
+
+    Surfaces are recovered with the estimated light (eq. 36) in a model with
+    as many terms as sensors, then synthesised for the observer under the
+    target light (eq. 22-24); for one light this is a single matrix per
+    pixel (Fig. 6), for a light map a smooth field of matrices.
+
+    Parameters
+    ----------
+    target : illuminant name (``"D65"``), ``"estimate"`` (as seen), or an
+        ``(N,)`` spectrum
+    output : ``"XYZ"`` (CIE 1931, white Y = 1 up to exposure),
+        ``"linear-sRGB"``, ``"sRGB"`` (encoded), or a display name (linear
+        gun intensities)
+    gamut : ``"clip"`` (per pixel), ``"adjust-light"`` (change the render
+        light for the whole image, then clip any residue) or ``"none"``;
+        default ``"none"`` for XYZ and ``"clip"`` for displays
+
+    Returns
+    -------
+    (H, W, K) float32, and with ``return_info`` a dict of diagnostics.
+    """
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != camera.channels:
+        raise InputError(f"image must be (H, W, {camera.channels}), got {img.shape}")
+    space = output_space(output, camera.wavelengths, observer)
+    gamut = gamut or ("none" if space.Gamma is None else "clip")
+    if gamut not in ("none", "clip", "adjust-light"):
+        raise InputError("gamut must be none, clip or adjust-light")
+    S = resolve_model(surface_basis, "surface", None if surface_basis is not None else camera.channels,
+                      camera.wavelengths).basis
+    tgt = _target_spectrum(target, estimate)
+    info = {"output": space.name, "gamut": gamut, "target": target if isinstance(target, str) else "spectrum"}
+    h, w, C = img.shape
+    flat = img.reshape(-1, C).astype(np.float64)
+    bad = ~np.all(np.isfinite(flat), axis=1)
+    flat = np.where(bad[:, None], 0.0, flat)
+    info["pixels_nonfinite"] = int(bad.sum())
+    lm = estimate.light_map
+    if lm is None:
+        light = estimate.spectrum
+        t = light if tgt is None else tgt
+        if gamut == "adjust-light":
+            t, ginfo = adjust_light_for_gamut(flat, camera.sensitivities, camera.wavelengths, light, t, S, space,
+                                              resolve_model("daylight", "light", 3, camera.wavelengths).basis)
+            info["gamut_adjustment"] = ginfo
+        M, cond = synthesis_matrix(camera.sensitivities, camera.wavelengths, light, t, S, space)
+        out = flat @ M.T
+        info["matrix"] = M.tolist()
+    else:
+        spectra = lm.weights @ lm.light_basis.T                      # (gr, gc, N)
+        t = spectra if tgt is None else np.broadcast_to(tgt, spectra.shape)
+        Mg, cond = synthesis_matrix(camera.sensitivities, camera.wavelengths, spectra, t, S, space)
+        K = Mg.shape[-2]
+        Mflat = Mg.reshape(Mg.shape[0], Mg.shape[1], -1)
+        out = np.empty((flat.shape[0], K))
+        rows = np.repeat(np.arange(h, dtype=float), w)
+        cols = np.tile(np.arange(w, dtype=float), h)
+        for i in range(0, flat.shape[0], chunk):
+            Mi = bilinear(Mflat, lm.centres_r, lm.centres_c, rows[i:i + chunk], cols[i:i + chunk])
+            out[i:i + chunk] = np.einsum("pkc,pc->pk", Mi.reshape(-1, K, C), flat[i:i + chunk])
+        if gamut == "adjust-light":
+            info["gamut_adjustment"] = {"adjusted": False, "reason": "light maps are clipped per pixel"}
+            gamut = "clip"
+    info["lighting_condition"] = cond
+    if space.Gamma is not None:
+        info["out_of_gamut_fraction"] = float(np.mean(np.any(out < 0, axis=1)))
+    if gamut in ("clip", "adjust-light"):
+        out = np.clip(out, 0.0, None)
+    out = np.where(np.isfinite(out), out, 0.0)
+    out = out.reshape(h, w, -1).astype(np.float32)
+    out = encode(out, space.encoding)
+    return (out, info) if return_info else out

@@ -1,0 +1,89 @@
+"""The camera: spectral sensitivities on a wavelength grid.
+
+References
+----------
+Wandell (1985), ``shared/seeds/002``, eq. 12: :math:`\\rho_k = \\sum_n
+E(\\lambda_n) S(\\lambda_n) R_k(\\lambda_n)` (here with :math:`\\Delta\\lambda`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models import camera_sensitivities, canonical_camera_name, wavelength_step
+from models.grid import DEFAULT_WAVELENGTHS
+
+from .errors import InputError
+
+__all__ = ["Camera"]
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A camera with ``C >= 3`` channels.
+
+    Parameters
+    ----------
+    wavelengths : (N,) array_like
+        nm, increasing.
+    sensitivities : (N, C) array_like
+        :math:`R_k(\\lambda_n)` as columns.
+    name : str
+    source : str
+        ``measured``, ``matrix-derived``, ``uploaded`` or ``generic``.
+
+    Examples
+    --------
+    >>> cam = Camera.named("Nikon 5100 (NPL)")
+    >>> cam.channels, cam.wavelengths.size
+    (3, 31)
+    """
+
+    wavelengths: np.ndarray
+    sensitivities: np.ndarray
+    name: str = "custom"
+    source: str = "uploaded"
+    notes: tuple = field(default=(), compare=False)
+
+    def __post_init__(self):
+        wl = np.asarray(self.wavelengths, dtype=np.float64)
+        r = np.asarray(self.sensitivities, dtype=np.float64)
+        if r.ndim != 2 or r.shape[0] != wl.size:
+            raise InputError(f"sensitivities must be (N={wl.size}, C), got {r.shape}")
+        if r.shape[1] < 3:
+            raise InputError(f"a camera needs at least 3 channels, got {r.shape[1]}")
+        if not np.all(np.isfinite(r)):
+            raise InputError("sensitivities contain NaN or Inf")
+        if np.any(np.abs(r).sum(axis=0) == 0):
+            raise InputError("a channel has zero sensitivity at every wavelength")
+        wavelength_step(wl)  # validates increasing grid
+        object.__setattr__(self, "wavelengths", wl)
+        object.__setattr__(self, "sensitivities", r)
+
+    @classmethod
+    def named(cls, name: str, wavelengths=None) -> "Camera":
+        """One of the measured cameras colour-science ships."""
+        wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
+        canon = canonical_camera_name(name)
+        if canon is None:
+            from models import camera_names
+
+            raise KeyError(f"unknown camera {name!r}; accepted: {camera_names()}")
+        return cls(wl, camera_sensitivities(canon, wl), canon, "measured")
+
+    @property
+    def channels(self) -> int:
+        """C, the number of sensor classes."""
+        return int(self.sensitivities.shape[1])
+
+    @property
+    def dlambda(self) -> np.ndarray:
+        """Quadrature weights over wavelength."""
+        return wavelength_step(self.wavelengths)
+
+    def response(self, spectra: np.ndarray) -> np.ndarray:
+        """Sensor responses to colour signals ``(..., N) -> (..., C)``
+        (eq. 1/12 with :math:`\\Delta\\lambda`)."""
+        return np.asarray(spectra, float) @ (self.sensitivities * self.dlambda[:, None])

@@ -1,0 +1,189 @@
+"""Synthesis: display gun intensities from surfaces and a light.
+
+References
+----------
+Wandell (1985), ``shared/seeds/002``:
+
+* eq. 22-24: :math:`\\Gamma I^x = \\Lambda'_{E'} \\sigma^x`, so
+  :math:`I^x = \\Gamma^{-1}\\Lambda'_{E'}\\sigma^x`, where :math:`\\Lambda'` uses the
+  observer :math:`R'` and :math:`E'` is the light to render under;
+* eq. 25 and 'Display gamut limitations': negative gun intensities are
+  handled either per pixel (clip) or for the whole image by adjusting the
+  light vector;
+* Fig. 6: the camera's sensors analyse (:math:`\\sigma = \\Lambda_E^+\\rho`,
+  eq. 36) and the observer synthesises, so everything collapses, for a
+  fixed light, to one matrix from camera responses to display values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize, spatial
+
+from models import display as get_display, observer as get_observer, wavelength_step
+from models.displays import Display
+
+from .lighting import display_matrix, lighting_matrix_from_spectrum, lighting_tensor
+
+__all__ = [
+    "output_space",
+    "OutputSpace",
+    "synthesis_matrix",
+    "display_intensities",
+    "adjust_light_for_gamut",
+    "encode",
+]
+
+
+@dataclass
+class OutputSpace:
+    """Where :func:`synthesis_matrix` lands: observer responses (``Gamma is
+    None``) or display intensities through ``Gamma`` (K x 3)."""
+
+    name: str
+    observer: np.ndarray
+    Gamma: np.ndarray | None = None
+    encoding: str | None = None
+    notes: list = field(default_factory=list)
+
+
+def output_space(output: str, wavelengths: np.ndarray, observer: str | None = None) -> OutputSpace:
+    """Resolve an output name: ``"XYZ"``, ``"linear-sRGB"``, ``"sRGB"``
+    (encoded), or a display name (``"Typical CRT Brainard 1997"``,
+    ``"Apple Studio Display"``, linear gun intensities).
+
+    :math:`\\Gamma` (eq. 4) is scaled so full-on white has the same second
+    observer response (Y for XYZ) as a perfect white under the render light,
+    i.e. display white = 1.
+    """
+    wl = np.asarray(wavelengths, float)
+    if output == "XYZ":
+        obs = get_observer(observer or "CIE 1931 2 Degree Standard Observer", wl)
+        return OutputSpace("XYZ", obs)
+    if output in ("linear-sRGB", "sRGB"):
+        if observer not in (None, "XYZ", "CIE 1931", "CIE 1931 2 Degree Standard Observer"):
+            raise ValueError("sRGB is defined for the CIE 1931 observer only")
+        d = get_display("sRGB")
+        obs = get_observer("CIE 1931 2 Degree Standard Observer", wl)
+        return OutputSpace(output, obs, d.primaries_XYZ, "sRGB" if output == "sRGB" else None)
+    try:
+        d: Display = get_display(output, wl)
+    except KeyError:
+        raise ValueError(f"unknown output {output!r}; accepted: XYZ, linear-sRGB, sRGB, "
+                         "Typical CRT Brainard 1997, Apple Studio Display") from None
+    obs = get_observer(observer or "CIE 1931 2 Degree Standard Observer", wl)
+    G = display_matrix(d.guns, obs, wavelength_step(wl))
+    G = G / G.sum(axis=1)[1]
+    return OutputSpace(output, obs, G)
+
+
+def synthesis_matrix(sensors: np.ndarray, wavelengths: np.ndarray, light: np.ndarray,
+                     target: np.ndarray, surface_basis: np.ndarray, space: OutputSpace
+                     ) -> tuple[np.ndarray, float]:
+    """The matrix from camera responses to output values for one light.
+
+    ``M = Gamma^{-1} k Lambda'_{E'} Lambda_E^{+}`` with
+    ``k = 1 / sum_n E'(l_n) R'_2(l_n) dl_n`` (a perfect white under E' has
+    second observer response 1). Also accepts stacks of lights
+    ``(..., N)`` and returns ``(..., K, C)``.
+
+    Returns
+    -------
+    M : (K, C) or (..., K, C)
+    condition : float, worst condition number of Lambda_E (eq. 36)
+    """
+    dl = wavelength_step(wavelengths)
+    L_E = lighting_matrix_from_spectrum(light, surface_basis, sensors, dl)       # (..., C, DS)
+    L_T = lighting_matrix_from_spectrum(target, surface_basis, space.observer, dl)  # (..., K, DS)
+    white = np.einsum("...n,n,n->...", np.asarray(target, float), space.observer[:, 1], dl)
+    s = np.linalg.svd(L_E, compute_uv=False)
+    cond = float(np.max(s[..., 0] / np.maximum(s[..., -1], np.finfo(float).tiny)))
+    M = (L_T / white[..., None, None]) @ np.linalg.pinv(L_E)
+    if space.Gamma is not None:
+        M = np.linalg.solve(space.Gamma, M) if M.ndim == 2 else np.linalg.inv(space.Gamma) @ M
+    return M, cond
+
+
+def display_intensities(sigma: np.ndarray, lighting_observer: np.ndarray, Gamma: np.ndarray) -> np.ndarray:
+    """Eq. 23: :math:`I^x = \\Gamma^{-1} \\Lambda'_{E'} \\sigma^x` for surface
+    weights ``(..., D(S))``; returns ``(..., 3)``."""
+    return np.asarray(sigma, float) @ np.linalg.solve(Gamma, lighting_observer).T
+
+
+def adjust_light_for_gamut(pixels: np.ndarray, sensors: np.ndarray, wavelengths: np.ndarray,
+                           light: np.ndarray, target: np.ndarray, surface_basis: np.ndarray,
+                           space: OutputSpace, light_basis: np.ndarray,
+                           max_points: int = 4000) -> tuple[np.ndarray, dict]:
+    """Wandell's second gamut option: change the render light for the whole
+    image so no gun intensity is negative.
+
+    Finds :math:`E' = E'_0 + B\\delta` (``B`` a light basis, e.g. CIE
+    daylight) with the smallest :math:`\\|\\delta\\|` such that
+    :math:`\\Gamma^{-1}\\Lambda'_{E'}\\sigma^x \\ge 0` for every pixel and
+    :math:`E' \\ge 0`. The constraints are linear in :math:`\\delta` for each
+    pixel and linear in :math:`\\sigma` for fixed :math:`\\delta`, so the
+    vertices of the convex hull of the pixels suffice.
+
+    Returns
+    -------
+    target : (N,) the adjusted render light (``target`` itself when no
+        pixel is out of gamut or no feasible light exists)
+    info : dict with ``out_of_gamut_fraction``, ``adjusted`` (bool),
+        ``delta`` and ``feasible``
+    """
+    px = np.asarray(pixels, float)
+    px = px[np.all(np.isfinite(px), axis=1)]
+    rng = np.random.default_rng(0)
+    if px.shape[0] > max_points:
+        px = px[rng.choice(px.shape[0], max_points, replace=False)]
+    if space.Gamma is None:
+        return target, {"adjusted": False, "reason": "no display gamut for observer output"}
+    M, _ = synthesis_matrix(sensors, wavelengths, light, target, surface_basis, space)
+    I0 = px @ M.T
+    frac = float(np.mean(np.any(I0 < 0, axis=1))) if px.size else 0.0
+    if frac == 0.0:
+        return target, {"adjusted": False, "out_of_gamut_fraction": 0.0, "feasible": True}
+    try:
+        hull = spatial.ConvexHull(px)
+        pts = px[hull.vertices]
+    except Exception:  # degenerate (coplanar) data: use the sample itself
+        pts = px
+    dl = wavelength_step(wavelengths)
+    L_E = lighting_matrix_from_spectrum(light, surface_basis, sensors, dl)
+    sig = pts @ np.linalg.pinv(L_E).T                                   # (Q, DS)
+    B = np.asarray(light_basis, float)
+    T = lighting_tensor(B, surface_basis, space.observer, dl)           # (DB, K, DS)
+    Ginv = np.linalg.inv(space.Gamma)
+    base = sig @ (Ginv @ lighting_matrix_from_spectrum(target, surface_basis, space.observer, dl)).T
+    J = np.einsum("gk,ikj,qj->qgi", Ginv, T, sig).reshape(-1, B.shape[1])
+    b = base.reshape(-1)
+    scale = float(np.abs(b).max()) or 1.0
+    tnorm = float(np.abs(target).max()) or 1.0
+    cons = [
+        {"type": "ineq", "fun": lambda d: (b + J @ d) / scale, "jac": lambda d: J / scale},
+        {"type": "ineq", "fun": lambda d: (target + B @ d) / tnorm, "jac": lambda d: B / tnorm},
+    ]
+    x0 = np.zeros(B.shape[1])
+    res = optimize.minimize(lambda d: float(d @ d), x0, jac=lambda d: 2 * d, constraints=cons,
+                            method="SLSQP", options={"maxiter": 200, "ftol": 1e-12})
+    d = res.x
+    feasible = bool(res.success and np.all(b + J @ d >= -1e-9 * scale)
+                    and np.all(target + B @ d >= -1e-9 * tnorm))
+    if not feasible:
+        return target, {"adjusted": False, "out_of_gamut_fraction": frac, "feasible": False,
+                        "reason": f"no light in the basis brings every pixel into gamut ({res.message})"}
+    return target + B @ d, {"adjusted": True, "out_of_gamut_fraction": frac, "feasible": True,
+                            "delta": [float(v) for v in d]}
+
+
+def encode(values: np.ndarray, encoding: str | None) -> np.ndarray:
+    """Apply a colourspace's transfer function (colour-science's
+    ``cctf_encoding``) to linear values clipped to [0, 1]."""
+    if encoding is None:
+        return values
+    import colour
+
+    return np.asarray(colour.RGB_COLOURSPACES[encoding].cctf_encoding(np.clip(values, 0, 1)),
+                      dtype=values.dtype)

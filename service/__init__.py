@@ -1,0 +1,1 @@
+"""The REST service: a thin shell around :mod:`recovery`."""
