@@ -66,6 +66,9 @@ def display(name: str = "sRGB", wavelengths=None) -> Display:
         return Display(name=name, guns=np.clip(guns, 0, None), wavelengths=wl)
     if name in _COLORIMETRIC:
         cs = colour.RGB_COLOURSPACES[_COLORIMETRIC[name]]
-        return Display(name=name, primaries_XYZ=np.asarray(cs.matrix_RGB_to_XYZ, float),
+        # Gamma^-1 is the colourspace's own XYZ -> RGB matrix (for sRGB the
+        # IEC 61966-2-1 matrix, which is not the exact inverse of the rounded
+        # RGB -> XYZ one), so synthesis agrees with colour-science's encoder.
+        return Display(name=name, primaries_XYZ=np.linalg.inv(np.asarray(cs.matrix_XYZ_to_RGB, float)),
                        encoding=cs.name)
     raise KeyError(f"unknown display {name!r}; accepted: {display_names()}")

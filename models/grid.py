@@ -60,8 +60,8 @@ def wavelength_step(wavelengths: np.ndarray) -> np.ndarray:
 
     Examples
     --------
-    >>> wavelength_step(wavelength_grid(400, 420, 10))
-    array([10., 10., 10.])
+    >>> wavelength_step(wavelength_grid(400, 420, 10)).tolist()
+    [10.0, 10.0, 10.0]
     """
     wl = np.asarray(wavelengths, dtype=np.float64)
     if wl.ndim != 1 or wl.size < 2:
@@ -112,8 +112,8 @@ def resample(
     Examples
     --------
     >>> wl = wavelength_grid(400, 700, 10)
-    >>> resample(wl, wl * 2.0, wavelength_grid(400, 700, 5))[:3]
-    array([ 800.,  810.,  820.])
+    >>> resample(wl, wl * 2.0, wavelength_grid(400, 700, 5))[:3].tolist()
+    [800.0, 810.0, 820.0]
     """
     import colour
 

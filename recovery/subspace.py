@@ -77,7 +77,8 @@ def tall_svd(data: np.ndarray, block: int = 65536) -> tuple[np.ndarray, np.ndarr
     if x.shape[0] > block:
         rs = [np.linalg.qr(x[i:i + block], mode="r") for i in range(0, x.shape[0], block)]
         x = np.linalg.qr(np.vstack(rs), mode="r")
-    _, s, vt = np.linalg.svd(x, full_matrices=True)
+    # full U only when P < C (then vt must still be C x C); never a P x P U
+    _, s, vt = np.linalg.svd(x, full_matrices=x.shape[0] < x.shape[1])
     if s.size < vt.shape[0]:
         s = np.concatenate([s, np.zeros(vt.shape[0] - s.size)])
     return s, vt

@@ -1,0 +1,33 @@
+"""Shared fixtures: in-model scenes with known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models import DEFAULT_WAVELENGTHS
+
+
+def gaussian_sensors(centres, width=30.0, wavelengths=DEFAULT_WAVELENGTHS):
+    """Sensors with Gaussian sensitivities, one column per centre (nm)."""
+    wl = np.asarray(wavelengths, float)[:, None]
+    return np.exp(-0.5 * ((wl - np.asarray(centres, float)[None]) / width) ** 2)
+
+
+def in_model_scene(rng, camera, surface_basis, light_weights, light_basis, n_pixels=4096, shape=None):
+    """Pixels generated exactly by eq. 26: rho = Lambda_E sigma, with random
+    surface weights (first weight positive and dominant, as for real
+    surfaces). Returns image (H, W, C) and the true surface weights."""
+    d_s = surface_basis.shape[1]
+    sig = rng.normal(scale=0.3, size=(n_pixels, d_s))
+    sig[:, 0] = 1.0 + np.abs(sig[:, 0])
+    spd = light_basis @ light_weights
+    refl = sig @ surface_basis.T
+    rho = camera.response(refl * spd)
+    shape = shape or (64, n_pixels // 64)
+    return rho.reshape(*shape, camera.channels), sig
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(20261121)
