@@ -18,6 +18,7 @@ import os
 import numpy as np
 
 from ._colour import sd_to_array
+from .grid import DEFAULT_WAVELENGTHS
 
 __all__ = ["CAMERAS", "camera_names", "camera_sensitivities", "canonical_camera_name"]
 
@@ -48,7 +49,9 @@ def canonical_camera_name(name: str) -> str | None:
 
 def camera_sensitivities(name: str, wavelengths=None) -> np.ndarray:
     """Spectral sensitivities ``(N, 3)`` (columns R, G, B), each channel
-    scaled to a maximum of 1.
+    scaled to a maximum of 1 on the default grid (400-700 nm at 10 nm); the
+    same gains are used on every grid, so the maximum on another grid may
+    differ slightly from 1.
 
     Examples
     --------
@@ -69,4 +72,8 @@ def camera_sensitivities(name: str, wavelengths=None) -> np.ndarray:
     else:
         msds = colour.MSDS_CAMERA_SENSITIVITIES[canon]
     arr = np.clip(sd_to_array(msds, wavelengths), 0.0, None)
-    return arr / arr.max(axis=0, keepdims=True)
+    # the gains come from one reference grid, so a camera has the same
+    # channel balance on every grid (normalising on the requested grid made
+    # the gains, hence white balance, depend on the sampling step)
+    ref = np.clip(sd_to_array(msds, DEFAULT_WAVELENGTHS), 0.0, None).max(axis=0)
+    return arr / ref
