@@ -17,6 +17,7 @@ RMSE against number of terms); section "Principal Components Analysis"
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -181,17 +182,38 @@ def daylight_model(dimension: int = 3, wavelengths=None) -> LinearModel:
 def illuminant_pca_model(dimension: int = 3, wavelengths=None, names=None) -> LinearModel:
     """PCA (through the origin) of colour-science's illuminants, each first
     normalised to unit mean power."""
+    wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
+    return _illuminant_pca_cached(int(dimension), tuple(wl.tolist()), None if names is None else tuple(names))
+
+
+def _frozen(m: LinearModel) -> LinearModel:
+    for a in (m.wavelengths, m.basis, m.mean, m.explained_variance):
+        if a is not None:
+            a.flags.writeable = False
+    return m
+
+
+@lru_cache(maxsize=64)
+def _illuminant_pca_cached(dimension, wl, names):
     from .illuminants import illuminants
 
-    wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
-    return pca_model(illuminants(names, wl), dimension, wl, name=f"illuminant-pca-{dimension}")
+    wl = np.asarray(wl)
+    return _frozen(pca_model(illuminants(names, wl), dimension, wl, name=f"illuminant-pca-{dimension}"))
+
+
+@lru_cache(maxsize=64)
+def _surface_pca_cached(dimension, wl, set_name, centred):
+    from .reflectances import reflectance_set
+
+    wl = np.asarray(wl)
+    return _frozen(pca_model(reflectance_set(set_name, wl), dimension, wl, centred=centred,
+                             name=f"surface-pca-{set_name}-{dimension}"))
 
 
 def surface_pca_model(dimension: int = 3, wavelengths=None, reflectance_set_name: str = "all",
                       centred: bool = False) -> LinearModel:
-    """PCA of one of colour-science's reflectance sets (default: all)."""
-    from .reflectances import reflectance_set
+    """PCA of one of colour-science's reflectance sets (default: all).
 
+    Cached per grid (the returned arrays are read-only)."""
     wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
-    return pca_model(reflectance_set(reflectance_set_name, wl), dimension, wl, centred=centred,
-                     name=f"surface-pca-{reflectance_set_name}-{dimension}")
+    return _surface_pca_cached(int(dimension), tuple(wl.tolist()), reflectance_set_name, bool(centred))
