@@ -141,15 +141,18 @@ def fourier_basis(wavelengths=None, dimension: int = 3) -> np.ndarray:
     """DC plus sine/cosine pairs over the range of ``wavelengths``, ``(N, D)``.
 
     Term 1 is constant; terms 2 and 3 are the sine and cosine of one cycle
-    across the range, terms 4 and 5 two cycles, and so on (Wandell 1985,
-    Fig. 4b). Columns are scaled to unit norm; they are exactly orthogonal
-    on a regular grid whose period is the range plus one step.
+    across the range (period = last minus first wavelength), terms 4 and 5
+    two cycles, and so on (Wandell 1985, Fig. 4b). The functions are fixed
+    functions of wavelength, so the model spans the same space whatever the
+    sampling step; the columns are then orthonormalised in order
+    (Gram-Schmidt by QR), which keeps that span and keeps term 1 constant.
     """
     wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
     if dimension < 1:
         raise ValueError("dimension must be >= 1")
-    step = (wl[-1] - wl[0]) / max(wl.size - 1, 1)
-    period = wl[-1] - wl[0] + step
+    if dimension > wl.size:
+        raise ValueError(f"at most {wl.size} Fourier terms on {wl.size} wavelengths")
+    period = wl[-1] - wl[0]
     t = (wl - wl[0]) / period
     cols = [np.ones_like(wl)]
     k = 1
@@ -158,8 +161,8 @@ def fourier_basis(wavelengths=None, dimension: int = 3) -> np.ndarray:
         if len(cols) < dimension:
             cols.append(np.cos(2 * np.pi * k * t))
         k += 1
-    b = np.stack(cols, 1)
-    return b / np.linalg.norm(b, axis=0, keepdims=True)
+    q, r = np.linalg.qr(np.stack(cols, 1))
+    return q * np.sign(np.diag(r))[None, :]
 
 
 def fourier_model(dimension: int = 3, wavelengths=None) -> LinearModel:

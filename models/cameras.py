@@ -48,10 +48,10 @@ def canonical_camera_name(name: str) -> str | None:
 
 
 def camera_sensitivities(name: str, wavelengths=None) -> np.ndarray:
-    """Spectral sensitivities ``(N, 3)`` (columns R, G, B), each channel
-    scaled to a maximum of 1 on the default grid (400-700 nm at 10 nm); the
-    same gains are used on every grid, so the maximum on another grid may
-    differ slightly from 1.
+    """Spectral sensitivities ``(N, 3)`` (columns R, G, B) with the measured
+    balance between channels, scaled together so the largest value on the
+    default grid (400-700 nm at 10 nm) is 1; the same gain is used on every
+    grid.
 
     Examples
     --------
@@ -72,8 +72,8 @@ def camera_sensitivities(name: str, wavelengths=None) -> np.ndarray:
     else:
         msds = colour.MSDS_CAMERA_SENSITIVITIES[canon]
     arr = np.clip(sd_to_array(msds, wavelengths), 0.0, None)
-    # the gains come from one reference grid, so a camera has the same
-    # channel balance on every grid (normalising on the requested grid made
-    # the gains, hence white balance, depend on the sampling step)
-    ref = np.clip(sd_to_array(msds, DEFAULT_WAVELENGTHS), 0.0, None).max(axis=0)
+    # one gain for all channels, taken on one reference grid: the measured
+    # balance between channels is what a real RAW file records, and the
+    # camera is the same on every sampling grid
+    ref = np.clip(sd_to_array(msds, DEFAULT_WAVELENGTHS), 0.0, None).max()
     return arr / ref

@@ -396,10 +396,13 @@ class AnalysisResult:
 
 
 def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool = False,
-            surface_dim_render: int | None = None, **kwargs) -> AnalysisResult:
+            surface_dim_render: int | None = None, synthesis_basis=None, **kwargs) -> AnalysisResult:
     """Light (or light map with ``spatial=True``) and surfaces together.
 
-    Keyword arguments go to :func:`estimate_illuminant`.
+    Once the light is known the surfaces use a model with as many terms as
+    sensors (``surface_dim_render``, default C) of ``synthesis_basis``
+    (a model name or an (N, D) array; default PCA of the shipped
+    reflectances). Other keyword arguments go to :func:`estimate_illuminant`.
 
     Examples
     --------
@@ -413,7 +416,8 @@ def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool = Fals
     est = estimate_illuminant(image, camera, method, spatial=spatial, **kwargs)
     img = np.asarray(image, dtype=np.float64)
     d = surface_dim_render or camera.channels
-    S = surface_pca_model(d, camera.wavelengths)
+    S = resolve_model(synthesis_basis, "surface", None if isinstance(synthesis_basis, np.ndarray) else d,
+                      camera.wavelengths)
     res = AnalysisResult(est, camera, S, img, 1.0)
     finite = np.all(np.isfinite(img), axis=2)
     ys, xs = np.nonzero(finite)

@@ -1,22 +1,32 @@
-"""FastAPI application (``service.app:app``).
-
-For now: ``GET /health``. The analysis endpoints of DESIGN.md come with
-issue 3.
-"""
+"""FastAPI application (``service.app:app``): a thin shell around
+:mod:`recovery`. OpenAPI at ``/docs``."""
 
 from __future__ import annotations
 
-from fastapi import Depends, FastAPI
+from fastapi import FastAPI, Request
 
 from . import __doc__ as _doc
-from .settings import Settings, get_settings
+from .errors import error_response, install_error_handlers
+from .routers import analysis, info
+from .settings import get_settings
 
 app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=_doc)
+install_error_handlers(app)
+app.include_router(info.router)
+app.include_router(analysis.router)
 
 
-@app.get("/health")
-def health(settings: Settings = Depends(get_settings)) -> dict:
-    """Liveness: the service is up and the numerical core imports."""
-    import recovery  # noqa: F401
-
-    return {"status": "ok", "version": app.version, "max_upload_bytes": settings.max_upload_bytes}
+@app.middleware("http")
+async def limit_body_size(request: Request, call_next):
+    """Refuse a declared body over the upload limit before reading it (413)."""
+    limit = get_settings().max_upload_bytes
+    length = request.headers.get("content-length")
+    if length is not None:
+        try:
+            n = int(length)
+        except ValueError:
+            return error_response(400, "bad_content_length", "Content-Length is not an integer")
+        if n > limit + 1024 * 1024:  # multipart framing on top of the file
+            return error_response(413, "file_too_large", f"request body of {n} bytes exceeds the upload "
+                                  f"limit of {limit} bytes")
+    return await call_next(request)

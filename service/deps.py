@@ -1,0 +1,89 @@
+"""Request dependencies: settings, size-limited upload reading, options."""
+
+from __future__ import annotations
+
+import json
+
+from fastapi import UploadFile
+
+from recovery import METHODS
+
+from .errors import ApiError
+from .settings import Settings
+
+
+async def read_upload(file: UploadFile | None, settings: Settings, field: str = "file") -> bytes:
+    """The upload's bytes, refusing more than the configured limit (413)."""
+    if file is None:
+        raise ApiError(422, "missing_file", f"multipart field {field!r} is required")
+    data = await file.read(settings.max_upload_bytes + 1)
+    if len(data) > settings.max_upload_bytes:
+        raise ApiError(413, "file_too_large",
+                       f"{field} exceeds the upload limit of {settings.max_upload_bytes} bytes")
+    return data
+
+
+SURFACE_MODELS = ("pca", "fourier")
+LIGHT_MODELS = ("daylight", "illuminant-pca", "fourier")
+
+
+def estimate_options(method: str, surface_dim: int | None, light_dim: int | None, region_size: int | None,
+                     spatial: bool, surface_model: str | None = None, light_model: str | None = None) -> dict:
+    """Validated keyword options for :func:`recovery.estimate_illuminant`."""
+    if method not in METHODS:
+        raise ApiError(422, "invalid_parameter", f"method {method!r} unknown; accepted: {list(METHODS)}")
+    opts: dict = {"white_level": 1.0}
+    if surface_model is not None:
+        if surface_model not in SURFACE_MODELS:
+            raise ApiError(422, "invalid_parameter",
+                           f"surface_model {surface_model!r} unknown; accepted: {list(SURFACE_MODELS)}")
+        opts["surface_basis"] = surface_model
+    if light_model is not None:
+        if light_model not in LIGHT_MODELS:
+            raise ApiError(422, "invalid_parameter",
+                           f"light_model {light_model!r} unknown; accepted: {list(LIGHT_MODELS)}")
+        opts["light_basis"] = light_model
+    if surface_dim is not None:
+        if not 1 <= surface_dim <= 16:
+            raise ApiError(422, "invalid_parameter", "surface_dim must be in 1..16")
+        opts["surface_dim"] = surface_dim
+    if light_dim is not None:
+        if not 1 <= light_dim <= 16:
+            raise ApiError(422, "invalid_parameter", "light_dim must be in 1..16")
+        opts["light_dim"] = light_dim
+    if region_size is not None:
+        if not 8 <= region_size <= 100000:
+            raise ApiError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")
+        opts["region_size"] = region_size
+    if spatial:
+        opts["spatial"] = True
+    return opts
+
+
+def parse_json_list(text: str | None, name: str, width: int) -> list:
+    """A JSON list of ``width``-integer lists (points or rectangles)."""
+    if not text:
+        return []
+    try:
+        val = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ApiError(422, "invalid_parameter", f"{name} is not valid JSON: {e.msg}") from None
+    if not isinstance(val, list) or not all(
+            isinstance(v, list) and len(v) == width and all(isinstance(x, int) for x in v) for v in val):
+        raise ApiError(422, "invalid_parameter", f"{name} must be a JSON list of [{width} integers] lists")
+    if len(val) > 10000:
+        raise ApiError(422, "invalid_parameter", f"{name}: at most 10000 entries")
+    return val
+
+
+def parse_grid(text: str | None) -> tuple[int, int] | None:
+    """``"8x6"`` -> (8, 6) rows x columns."""
+    if not text:
+        return None
+    try:
+        a, b = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise ApiError(422, "invalid_parameter", f"grid must look like 8x6 (rows x columns), got {text!r}") from None
+    if not (1 <= a <= 100 and 1 <= b <= 100):
+        raise ApiError(422, "invalid_parameter", "grid dimensions must be in 1..100")
+    return a, b

@@ -1,0 +1,59 @@
+"""Error responses: every failure the client caused is a 4xx with a JSON body
+``{"error": code, "detail": text}`` (DESIGN.md); nothing else escapes as a
+500 with an HTML page."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from recovery.errors import RecoveryError
+
+log = logging.getLogger("service")
+
+
+class ApiError(Exception):
+    """A client error with an HTTP status, a machine-readable code and a
+    human-readable detail."""
+
+    def __init__(self, status: int, code: str, detail: str):
+        super().__init__(detail)
+        self.status, self.code, self.detail = status, code, detail
+
+
+def error_response(status: int, code: str, detail) -> JSONResponse:
+    return JSONResponse(status_code=status, content={"error": code, "detail": detail})
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Map every exception type to its JSON error body."""
+
+    @app.exception_handler(ApiError)
+    async def _api(_: Request, exc: ApiError):
+        return error_response(exc.status, exc.code, exc.detail)
+
+    @app.exception_handler(RecoveryError)
+    async def _recovery(_: Request, exc: RecoveryError):
+        return error_response(422, exc.code, str(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_: Request, exc: RequestValidationError):
+        parts = []
+        for e in exc.errors():
+            loc = ".".join(str(x) for x in e.get("loc", ()) if x not in ("body", "query", "form"))
+            parts.append(f"{loc}: {e.get('msg')}")
+        return error_response(422, "invalid_parameter", "; ".join(parts) or "invalid request")
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_: Request, exc: StarletteHTTPException):
+        code = {404: "not_found", 405: "method_not_allowed", 413: "too_large"}.get(exc.status_code, "http_error")
+        return error_response(exc.status_code, code, str(exc.detail))
+
+    @app.exception_handler(Exception)
+    async def _internal(_: Request, exc: Exception):  # a bug, never a bad upload
+        log.exception("internal error")
+        return error_response(500, "internal_error", f"{type(exc).__name__}: the service failed; please report")

@@ -1,0 +1,258 @@
+"""The service's glue: decoded upload -> estimate -> JSON / corrected image.
+
+Thin by design: every number comes from :mod:`recovery`; this module only
+chooses resolutions, applies the one 3x3 matrix per pixel (Wandell 1985,
+Fig. 6: for a fixed light camera RGB to display RGB is one matrix) in
+chunks, and encodes.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models import illuminant as get_illuminant
+from recovery import Camera, IlluminantEstimate, analyze, angular_error, estimate_illuminant
+from recovery.api import resolve_model
+from recovery.synthesis import output_space, synthesis_matrix
+
+from .errors import ApiError
+
+#: Estimation runs on at most this many pixels (block-averaged; the
+#: subspace method is unchanged by averaging because mixtures of surfaces
+#: under one light stay in the same subspace, eq. 29).
+ANALYSIS_PIXELS = 500_000
+
+
+def block_average(img: np.ndarray, mask: np.ndarray | None, max_pixels: int):
+    """Average ``f x f`` blocks so that the image has at most ``max_pixels``
+    (OpenCV's area resampling, which for an integer factor is the exact block
+    mean); a block is masked out if any of its pixels is."""
+    import cv2
+
+    h, w = img.shape[:2]
+    f = int(np.ceil(np.sqrt(h * w / max_pixels))) if h * w > max_pixels else 1
+    if f == 1:
+        return img, mask, 1
+    hh, ww = h // f, w // f
+    src = np.ascontiguousarray(img[: hh * f, : ww * f], dtype=np.float32)
+    out = cv2.resize(src, (ww, hh), interpolation=cv2.INTER_AREA)
+    m = None
+    if mask is not None:
+        mk = np.ascontiguousarray(mask[: hh * f, : ww * f], dtype=np.float32)
+        m = cv2.resize(mk, (ww, hh), interpolation=cv2.INTER_AREA) > 1 - 1e-6
+    return out, m, f
+
+
+@dataclass
+class EstimateRun:
+    estimate: IlluminantEstimate
+    camera: Camera
+    camera_warnings: list
+    timings_ms: dict = field(default_factory=dict)
+    factor: int = 1
+
+
+def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,
+                 analysis_pixels: int = ANALYSIS_PIXELS) -> EstimateRun:
+    """Estimate the light on the (block-averaged) estimation image of an
+    upload, saturated cells excluded."""
+    t0 = time.perf_counter()
+    img, mask, f = block_average(decoded.estimation, ~decoded.saturated, analysis_pixels)
+    est = estimate_illuminant(img, camera, method, mask=mask, **options)
+    t1 = time.perf_counter()
+    return EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f)
+
+
+def illuminant_json(est: IlluminantEstimate) -> dict:
+    cct, duv = est.cct_duv()
+    return {
+        "camera_rgb": est.rgb.tolist(),
+        "wb_multipliers": est.wb_multipliers.tolist(),
+        "wavelengths": est.wavelengths.tolist(),
+        "spectrum": est.spectrum.tolist(),
+        "cct": cct,
+        "duv": duv,
+    }
+
+
+def camera_json(camera: Camera) -> dict:
+    return {"name": camera.name, "source": camera.source, "channels": camera.channels,
+            "approximate": camera.source in ("matrix-derived", "generic"), "notes": list(camera.notes)}
+
+
+def analysis_json(run: EstimateRun, decoded) -> dict:
+    est = run.estimate
+    out = {
+        "illuminant": illuminant_json(est),
+        "camera": camera_json(run.camera),
+        "method": est.method,
+        "diagnostics": dict(est.diagnostics, analysis_block_factor=run.factor),
+        "warnings": run.camera_warnings + list(decoded.warnings) + list(est.warnings),
+        "timings_ms": dict(run.timings_ms),
+        "image": {"kind": decoded.kind, "width": decoded.full_shape[1], "height": decoded.full_shape[0],
+                  "make": decoded.make, "model": decoded.model},
+    }
+    if decoded.as_shot_neutral is not None and np.all(np.isfinite(decoded.as_shot_neutral)):
+        asn = np.asarray(decoded.as_shot_neutral, float)
+        out["as_shot"] = {"camera_rgb": (asn / np.linalg.norm(asn)).tolist(),
+                          "angle_to_estimate_deg": float(angular_error(asn, est.rgb))}
+    return out
+
+
+def correction_matrix(run: EstimateRun, target: str, output: str, surface_model: str | None = None
+                      ) -> tuple[np.ndarray, dict]:
+    """Camera RGB (1.0 = saturation) -> linear display values.
+
+    ``M = Gamma^{-1} Lambda'_{E'} Lambda_E^{-1}`` (eq. 23 and 36 with a
+    surface model of as many terms as sensors), scaled so that the
+    brightest neutral the sensor records unclipped (the light's own camera
+    RGB with its largest channel at saturation) renders with luminance 1:
+    a fixed exposure, no auto-brightening. The surface model has C terms
+    of ``surface_model`` (default PCA of the shipped reflectances).
+    """
+    cam, est = run.camera, run.estimate
+    try:
+        space = output_space(output, cam.wavelengths)
+    except (ValueError, KeyError) as e:
+        raise ApiError(422, "invalid_parameter", f"output: {e}") from None
+    try:
+        tgt = est.spectrum if target in ("estimate", "as-seen") else get_illuminant(target, cam.wavelengths)
+    except KeyError as e:
+        raise ApiError(422, "invalid_parameter", f"target: {e.args[0]}") from None
+    S = resolve_model(surface_model, "surface", cam.channels, cam.wavelengths).basis
+    M, cond = synthesis_matrix(cam.sensitivities, cam.wavelengths, est.spectrum, tgt, S, space)
+    white = est.rgb / np.max(est.rgb)
+    y = (M @ white)
+    lum = float(y[1]) if space.Gamma is None else float((space.Gamma @ y)[1])
+    if not (np.isfinite(lum) and lum > 0):
+        raise ApiError(422, "unrenderable", "the estimated light renders white with no luminance")
+    return M / lum, {"lighting_condition": cond, "encoding": space.encoding}
+
+
+_LUT_BITS = 20
+
+
+def _encoding_lut(encoding: str | None, bits: int) -> np.ndarray:
+    """Linear [0, 1] sampled at 2**20 + 1 points -> encoded integer codes.
+
+    2**20 steps keep the sRGB toe (slope 12.92) below one 16-bit output
+    code per step, so the table adds no banding over direct evaluation.
+    The encoding is colour-science's ``cctf_encoding`` for the colourspace.
+    """
+    import colour
+
+    x = np.linspace(0.0, 1.0, (1 << _LUT_BITS) + 1)
+    y = x if encoding is None else np.asarray(colour.RGB_COLOURSPACES[encoding].cctf_encoding(x), float)
+    top = 65535.0 if bits == 16 else 255.0
+    return np.rint(np.clip(y, 0, 1) * top).astype(np.uint16 if bits == 16 else np.uint8)
+
+
+def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None, bits: int,
+                         rows_per_chunk: int = 128) -> np.ndarray:
+    """Apply ``M`` to a uint16 (H, W, 3) image whose 65535 is saturation, clip
+    to [0, 1] per pixel (Wandell's first gamut option), encode through a
+    lookup table, and write ``bits``-bit integers, chunk by chunk. uint16
+    output reuses the input buffer (memory stays at one image)."""
+    lut = _encoding_lut(encoding, bits)
+    h = rgb16.shape[0]
+    out = rgb16 if bits == 16 else np.empty(rgb16.shape, np.uint8)
+    Mt = (M.T * ((1 << _LUT_BITS) / 65535.0)).astype(np.float32)
+    hi = np.float32(1 << _LUT_BITS)
+    for r in range(0, h, rows_per_chunk):
+        chunk = rgb16[r:r + rows_per_chunk].astype(np.float32) @ Mt
+        np.clip(chunk, 0.0, hi, out=chunk)
+        chunk += np.float32(0.5)
+        out[r:r + rows_per_chunk] = lut[chunk.astype(np.int32)]
+    return out
+
+
+FORMATS = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg"}
+
+
+def encode_image(img: np.ndarray, fmt: str, path: str | None = None) -> bytes | None:
+    """PNG (8-bit or 16-bit), 16-bit TIFF or 8-bit JPEG of an RGB image, as
+    bytes, or written to ``path`` (TIFF straight from the array, no copy)."""
+    if fmt == "tiff":
+        import tifffile
+
+        if path is not None:
+            tifffile.imwrite(path, img, photometric="rgb")
+            return None
+        buf = io.BytesIO()
+        tifffile.imwrite(buf, img, photometric="rgb")
+        return buf.getvalue()
+    import cv2
+
+    bgr = np.ascontiguousarray(img[..., ::-1])
+    ok, enc = cv2.imencode(".png" if fmt == "png" else ".jpg", bgr,
+                           [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise ApiError(422, "encode_failed", f"could not encode {fmt}")
+    if path is not None:
+        enc.tofile(path)
+        return None
+    return enc.tobytes()
+
+
+def surfaces_at(decoded, run: EstimateRun, points, rects, grid, method: str, options: dict) -> dict:
+    """Reflectance spectra (eq. 36 with a C-term surface model) at full-
+    resolution pixel points, rectangle means, or a coarse grid."""
+    img = decoded.estimation
+    h, w = img.shape[:2]
+    H, W = decoded.full_shape
+    sy, sx = h / H, w / W
+    res = analyze(img, run.camera, method, mask=~decoded.saturated,
+                  synthesis_basis=options.get("surface_basis"), **options)
+    entries = []
+
+    def add(kind, where, pts):
+        pts = np.asarray(pts, int)
+        refl = res.reflectance(pts)
+        if kind != "point":
+            refl = refl.mean(axis=0, keepdims=True)
+        r = refl[0]
+        warns = []
+        if np.any(r < -0.02):
+            warns.append(f"non-physical: reflectance below 0 (min {r.min():.3f})")
+        if np.any(r > 1.02):
+            warns.append(f"non-physical: reflectance above 1 (max {r.max():.3f}); the scale is relative")
+        if decoded.saturated[pts[:, 0], pts[:, 1]].any():
+            warns.append("saturated pixels: the estimate is clipped")
+        fit = res.illuminant.diagnostics.get("subspace_fit_ratio")
+        if fit is not None and fit > 0.1:
+            warns.append("poor subspace fit for the scene (see diagnostics)")
+        entries.append({"kind": kind, "where": where, "reflectance": r.tolist(), "warnings": warns})
+
+    def to_est(r, c):
+        if not (0 <= r < H and 0 <= c < W):
+            raise ApiError(422, "invalid_parameter", f"point ({r}, {c}) outside the {H}x{W} image")
+        return min(int(r * sy), h - 1), min(int(c * sx), w - 1)
+
+    for r, c in points:
+        add("point", [r, c], [to_est(r, c)])
+    for r0, c0, r1, c1 in rects:
+        if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
+            raise ApiError(422, "invalid_parameter", f"rectangle {[r0, c0, r1, c1]} must satisfy "
+                           f"0 <= r0 < r1 <= {H} and 0 <= c0 < c1 <= {W}")
+        a0, b0 = to_est(r0, c0)
+        a1, b1 = to_est(r1 - 1, c1 - 1)
+        rr, cc = np.mgrid[a0:a1 + 1, b0:b1 + 1]
+        pts = np.stack([rr.ravel(), cc.ravel()], 1)
+        if pts.shape[0] > 4096:
+            pts = pts[:: pts.shape[0] // 4096]
+        add("rect", [r0, c0, r1, c1], pts)
+    if grid:
+        gr, gc = grid
+        for i in range(gr):
+            for j in range(gc):
+                r = int((i + 0.5) * H / gr)
+                c = int((j + 0.5) * W / gc)
+                add("grid", [r, c], [to_est(r, c)])
+    return {"wavelengths": run.camera.wavelengths.tolist(), "surfaces": entries,
+            "surface_model": res.diagnostics.get("surface_model"),
+            "reflectance_scale_convention": res.diagnostics.get("reflectance_scale_convention"),
+            "diagnostics": res.diagnostics}

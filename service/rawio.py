@@ -1,0 +1,1320 @@
+"""Uploaded images to linear camera RGB, and the camera model to analyse them.
+
+Two jobs, both at the service's edge (parse and validate; the numbers come
+from :mod:`recovery` and :mod:`models`):
+
+1. :func:`decode_upload` turns the bytes of an upload into a
+   :class:`DecodedImage`: a half-size, black-subtracted, saturation-scaled
+   *estimation image* made by binning each 2x2 Bayer cell (no demosaic), a
+   mask of saturated cells, the metadata that says which camera took it
+   (Make/Model, colour matrix, as-shot neutral, black and white levels), and
+   a method that demosaics the full-resolution image on the same scale when
+   (and only when) it is needed.
+2. :func:`resolve_camera` chooses the sensor functions :math:`R_k(\\lambda)`
+   of Wandell (1985), eq. 12, for that image: an uploaded CSV, a named
+   measured camera, the measured camera matching Make/Model, sensitivities
+   derived from the file's XYZ -> camera matrix (:func:`camera_from_matrix`),
+   or a generic camera (:func:`generic_camera`), in that order, saying which
+   and how approximate.
+
+Scale of the estimation image. For a CFA site of colour ``c`` with digital
+number :math:`d`, black level :math:`b_c` and white level :math:`w`,
+
+.. math::
+
+    v = \\frac{d - b_c}{w - b_c},
+
+so 1.0 is saturation in every channel; a cell's red and blue are its red and
+blue sites, its green the mean of its two green sites. The full-resolution
+image of :meth:`DecodedImage.full_linear` is LibRaw's demosaic of the same
+numbers with ``value / 65535`` equal to :math:`v` (LibRaw subtracts the
+per-channel black and scales by ``65535 / (w - min_c b_c)``; the per-channel
+user white balance :math:`(w - \\min_c b_c)/(w - b_c)` makes its scale exactly
+the one above).
+
+What LibRaw 0.22 (``rawpy`` 0.28) does with our files is measured in
+``tests/test_dngwriter.py`` and ``tests/test_rawio.py`` (see also
+:mod:`service.dngwriter`): ``raw.sizes`` is read without unpacking the pixels
+(so the pixel-count limit is enforced before any pixel buffer exists), a
+truncated file fails only when the pixels are unpacked, and a file one byte
+short decodes silently from memory, which is why the strip/tile extents of a
+TIFF-structured file are checked against its length here.
+
+References
+----------
+Wandell (1985), ``shared/seeds/002``, eq. 12 and Fig. 6.
+Adobe, *Digital Negative (DNG) Specification* 1.4.0.0, chapter 6 (ColorMatrix
+maps XYZ to the camera's reference space).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import struct
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "UploadError",
+    "DecodedImage",
+    "decode_upload",
+    "camera_from_matrix",
+    "camera_from_csv",
+    "resolve_camera",
+    "generic_camera",
+    "SATURATION_FRACTION",
+]
+
+#: A CFA sample at or above this fraction of ``white - black`` (above its
+#: channel's black) marks its 2x2 cell as saturated.
+SATURATION_FRACTION = 0.98
+
+#: File extensions that promise a RAW or TIFF; an unreadable file so named is
+#: reported as corrupt (422) rather than as an unknown format (415).
+RAW_EXTENSIONS = frozenset({
+    ".dng", ".nef", ".nrw", ".cr2", ".cr3", ".crw", ".arw", ".srf", ".sr2", ".raf", ".orf",
+    ".rw2", ".rwl", ".pef", ".srw", ".x3f", ".3fr", ".fff", ".iiq", ".mos", ".mef", ".mrw",
+    ".erf", ".kdc", ".dcr", ".raw", ".gpr", ".tif", ".tiff",
+})
+
+#: Orientation LibRaw applies for each ``sizes.flip`` code (EXIF Orientation
+#: 1..8 -> flip 0, 1, 3, 2, 4, 6, 7, 5), as numpy operations on (H, W, ...)
+#: arrays; measured against LibRaw's own output in ``tests/test_rawio.py``.
+_FLIP_OPS = {
+    0: lambda a: a,
+    1: lambda a: a[:, ::-1],
+    2: lambda a: a[::-1],
+    3: lambda a: a[::-1, ::-1],
+    4: lambda a: np.swapaxes(a, 0, 1),
+    5: lambda a: np.rot90(a, 1),
+    6: lambda a: np.rot90(a, 3),
+    7: lambda a: np.swapaxes(a[::-1, ::-1], 0, 1),
+}
+
+_MAX_CSV_ROWS = 100_000
+
+
+# ---------------------------------------------------------------------------
+# Errors and the decoded image
+# ---------------------------------------------------------------------------
+
+class UploadError(Exception):
+    """An upload the service cannot use, with the HTTP status to answer.
+
+    Parameters
+    ----------
+    status : int
+        413 (too large), 415 (a format the service does not read) or 422
+        (readable format, unusable content).
+    code : str
+        Machine-readable error code (``empty_file``, ``unsupported_format``,
+        ``not_linear``, ``corrupt_file``, ``too_many_pixels``, ``non_finite``,
+        ``bad_csv``, ``unknown_camera``, ``no_color_matrix``,
+        ``bad_color_matrix``).
+    detail : str
+        What was wrong, in words a user can act on.
+    """
+
+    def __init__(self, status: int, code: str, detail: str):
+        super().__init__(detail)
+        self.status = int(status)
+        self.code = str(code)
+        self.detail = str(detail)
+
+    def __repr__(self) -> str:
+        return f"UploadError({self.status}, {self.code!r}, {self.detail!r})"
+
+
+@dataclass
+class DecodedImage:
+    """An upload decoded to linear camera RGB, with its camera metadata.
+
+    Attributes
+    ----------
+    kind : {"raw", "tiff", "png"}
+    estimation : (h, w, 3) float32
+        Linear camera RGB, black subtracted, 1.0 = saturation. RAW: half size,
+        each 2x2 CFA cell binned (red, mean of the greens, blue), no
+        demosaic; may dip slightly below 0 in the dark (noise around black is
+        kept, not clipped). TIFF/PNG: the image itself, full size.
+    saturated : (h, w) bool
+        RAW: a CFA sample of the cell at or above
+        :data:`SATURATION_FRACTION` of its channel's range; 16-bit TIFF/PNG:
+        a channel at 65535; float TIFF: a channel at or above 1.0.
+    full_shape : (H, W)
+        Shape of :meth:`full_linear` (the file's orientation applied, as it
+        is to ``estimation``).
+    make, model : str or None
+        TIFF tags 271/272 (RAWs with a TIFF structure: DNG, NEF, CR2, ARW...).
+    color_matrix : (3, 3) float64 or None
+        XYZ -> camera: the DNG's ColorMatrix (the D65-calibrated one when
+        the file has two), else LibRaw's built-in matrix for the camera.
+    as_shot_neutral : (3,) float64 or None
+        Camera RGB of the as-shot white, green = 1 (``1 / camera_whitebalance``).
+    black_level, white_level : float or None
+        Mean of the per-channel black levels, and the white level, in
+        digital numbers (0 and 65535, or 0 and 1.0, for TIFF/PNG).
+    warnings : list of str
+        Things the user should know about the decode.
+    """
+
+    kind: str
+    estimation: np.ndarray
+    saturated: np.ndarray
+    full_shape: tuple
+    make: str | None = None
+    model: str | None = None
+    color_matrix: np.ndarray | None = None
+    as_shot_neutral: np.ndarray | None = None
+    black_level: float | None = None
+    white_level: float | None = None
+    warnings: list = field(default_factory=list)
+    #: RAW: the file's bytes, to demosaic again on demand (never the pixels).
+    _source: bytes | None = field(default=None, repr=False, compare=False)
+    #: RAW: LibRaw postprocessing parameters giving the estimation scale.
+    _postprocess: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def binning(self) -> float:
+        """Full-resolution pixels per estimation pixel along a side (2 for
+        a Bayer RAW, 1 for TIFF/PNG)."""
+        return self.full_shape[0] / max(1, self.estimation.shape[0])
+
+    def full_linear(self, out: str = "uint16", *, demosaic: str | None = None) -> np.ndarray:
+        """The full-resolution linear camera RGB image on the estimation scale.
+
+        RAW: demosaiced by LibRaw from the file's bytes (the handle is closed
+        before returning, so only the result stays in memory) with a linear
+        curve, no auto-brightening, no white balance or colour conversion
+        (``output_color=raw``), the file's orientation, the data maximum not
+        adjusted and per-channel gains such that ``value / 65535`` equals
+        the estimation image's :math:`(d - b_c)/(w - b_c)` (clipped to
+        [0, 65535] by LibRaw). TIFF/PNG: the input, scaled the same way.
+
+        Parameters
+        ----------
+        out : {"uint16", "float32"}
+            ``uint16``: 65535 = saturation. ``float32``: 1.0 = saturation
+            (for float TIFF input, values outside [0, 1] are kept).
+        demosaic : str, optional
+            ``"fast"`` (the default: OpenCV's edge-aware interpolation of
+            the Bayer mosaic) or a ``rawpy.DemosaicAlgorithm`` name
+            (``AHD``, ``LINEAR``, ``DCB``, ``PPG``, ``VNG``...). RAW only.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(H, W, 3)`` of ``full_shape``; a new array on every call.
+
+        Raises
+        ------
+        UploadError
+            422 ``corrupt_file`` if LibRaw fails on the pixels.
+        """
+        if out not in ("uint16", "float32"):
+            raise ValueError(f"out must be 'uint16' or 'float32', not {out!r}")
+        if self.kind == "raw":
+            rgb = _raw_full_linear(self, demosaic)
+            if out == "uint16":
+                return rgb
+            return _uint16_to_unit_float(rgb)
+        est = self.estimation
+        if out == "float32":
+            return est.copy()
+        res = np.empty(est.shape, np.uint16)
+        for r in range(0, est.shape[0], 256):
+            chunk = est[r:r + 256] * np.float32(65535.0)
+            np.clip(chunk, 0.0, 65535.0, out=chunk)
+            res[r:r + 256] = np.rint(chunk)
+        return res
+
+
+def _uint16_to_unit_float(rgb: np.ndarray) -> np.ndarray:
+    res = np.empty(rgb.shape, np.float32)
+    inv = np.float32(1.0 / 65535.0)
+    for r in range(0, rgb.shape[0], 256):
+        np.multiply(rgb[r:r + 256], inv, out=res[r:r + 256], dtype=np.float32)
+    return res
+
+
+# ---------------------------------------------------------------------------
+# Format sniffing
+# ---------------------------------------------------------------------------
+
+def _sniff(data: bytes) -> str:
+    """Name of the format the first bytes announce (``"unknown"`` if none)."""
+    head = bytes(data[:16])
+    if head[:4] in (b"II*\x00", b"MM\x00*"):
+        return "TIFF"
+    if head[:4] in (b"II+\x00", b"MM\x00+"):
+        return "BigTIFF"
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "PNG"
+    if head.startswith(b"\xff\xd8\xff"):
+        return "JPEG"
+    if head.startswith((b"GIF87a", b"GIF89a")):
+        return "GIF"
+    if head.startswith(b"BM"):
+        return "BMP"
+    if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
+        return "WebP"
+    if head[4:8] == b"ftyp":
+        brand = head[8:12]
+        if brand == b"crx ":
+            return "Canon CR3"
+        if brand in (b"heic", b"heix", b"mif1", b"msf1", b"hevc"):
+            return "HEIF"
+        if brand in (b"avif", b"avis"):
+            return "AVIF"
+        return "ISO media (" + brand.decode("latin-1").strip() + ")"
+    if head.startswith(b"\x00\x00\x00\x0cjP  "):
+        return "JPEG 2000"
+    if head.startswith(b"v/1\x01"):
+        return "OpenEXR"
+    if head.startswith(b"%PDF"):
+        return "PDF"
+    if head.startswith(b"PK\x03\x04"):
+        return "ZIP"
+    if head.startswith(b"\x93NUMPY"):
+        return "NumPy .npy"
+    if head.startswith(b"FUJIFILM"):
+        return "Fujifilm RAF"
+    if head[:4] in (b"IIRO", b"IIRS", b"MMOR"):
+        return "Olympus ORF"
+    if head[:4] == b"IIU\x00":
+        return "Panasonic RW2"
+    if head.startswith(b"FOVb"):
+        return "Sigma X3F"
+    if head[:2] == b"II" and head[6:14] == b"HEAPCCDR":
+        return "Canon CRW"
+    if head.startswith(b"\x00MRM"):
+        return "Minolta MRW"
+    return "unknown"
+
+
+#: Formats that are certainly not RAW: refused without asking LibRaw.
+_NOT_RAW = {"JPEG", "GIF", "BMP", "WebP", "HEIF", "AVIF", "JPEG 2000", "OpenEXR", "PDF", "ZIP",
+            "NumPy .npy"}
+
+
+def _extension(filename: str | None) -> str:
+    return os.path.splitext(filename or "")[1].lower()
+
+
+# ---------------------------------------------------------------------------
+# decode_upload
+# ---------------------------------------------------------------------------
+
+def decode_upload(data: bytes, filename: str | None, *, max_pixels: int) -> DecodedImage:
+    """Decode an uploaded RAW, 16-bit/float TIFF or 16-bit PNG.
+
+    The format is recognised from the content (the file name only decides
+    whether an unreadable file is called corrupt or of unknown format).
+    Files with a TIFF structure go to LibRaw first (DNG, NEF, CR2, ARW...);
+    a TIFF LibRaw does not take is read with ``tifffile`` as a linear image;
+    any other content LibRaw reads (CR3, RAF, RW2, ORF...) is a RAW.
+
+    Parameters
+    ----------
+    data : bytes
+        The whole file.
+    filename : str or None
+        As uploaded (used in messages and for the extension).
+    max_pixels : int
+        Largest declared pixel count accepted; checked from the headers
+        before any pixel buffer is allocated.
+
+    Returns
+    -------
+    DecodedImage
+
+    Raises
+    ------
+    UploadError
+        422 ``empty_file``; 415 ``unsupported_format`` (JPEG, GIF, ...,
+        anything LibRaw cannot read, grey or non-RGB images, unsupported
+        sample types); 415 ``not_linear`` (8-bit TIFF/PNG, which are gamma
+        encoded); 413 ``too_many_pixels``; 422 ``corrupt_file`` (truncated or
+        damaged); 422 ``non_finite`` (NaN/Inf in a float TIFF). Nothing else
+        escapes: an unexpected failure while decoding is a 422
+        ``corrupt_file``.
+    """
+    if data is None or len(data) == 0:
+        raise UploadError(422, "empty_file", "the uploaded file is empty")
+    if not isinstance(data, bytes):
+        data = bytes(data)
+    max_pixels = int(max_pixels)
+    fmt = _sniff(data)
+    label = f"{filename!r}" if filename else "the upload"
+    try:
+        if fmt == "PNG":
+            return _decode_png(data, max_pixels)
+        if fmt in _NOT_RAW:
+            raise UploadError(415, "unsupported_format",
+                              f"{label} is a {fmt} file; send a camera RAW (DNG, NEF, CR2, ARW, ...) or a "
+                              "linear 16-bit/float TIFF or 16-bit PNG")
+        return _decode_raw_or_tiff(data, fmt, filename, max_pixels)
+    except UploadError:
+        raise
+    except MemoryError:
+        raise UploadError(413, "too_many_pixels",
+                          f"not enough memory to decode {label}; send a smaller image") from None
+    except Exception as exc:  # malformed data must never escape as a 500
+        raise UploadError(422, "corrupt_file",
+                          f"{label} ({fmt}) could not be decoded: {type(exc).__name__}: {exc}") from None
+
+
+def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels: int) -> DecodedImage:
+    import rawpy
+
+    label = f"{filename!r}" if filename else "the upload"
+    try:
+        raw = rawpy.imread(io.BytesIO(data))
+    except rawpy.LibRawFileUnsupportedError:
+        if fmt in ("TIFF", "BigTIFF"):
+            return _decode_tiff(data, filename, max_pixels)
+        if data[:2] in (b"II", b"MM") or _extension(filename) in RAW_EXTENSIONS:
+            what = "a TIFF-like header" if data[:2] in (b"II", b"MM") else f"a {_extension(filename)} name"
+            raise UploadError(422, "corrupt_file",
+                              f"{label} has {what} but neither LibRaw nor tifffile can read it "
+                              "(damaged or truncated header?)") from None
+        raise UploadError(415, "unsupported_format",
+                          f"{label} is not a format the service reads (detected: {fmt}, first bytes "
+                          f"{data[:8].hex()}); send a camera RAW LibRaw reads, or a linear 16-bit/float "
+                          "TIFF or 16-bit PNG") from None
+    except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError) as exc:
+        raise UploadError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None
+    except rawpy.LibRawError as exc:
+        if fmt == "unknown" and data[:2] not in (b"II", b"MM") and _extension(filename) not in RAW_EXTENSIONS:
+            raise UploadError(415, "unsupported_format",
+                              f"{label} is not a format the service reads (detected: {fmt}, first bytes "
+                              f"{data[:8].hex()}); send a camera RAW LibRaw reads, or a linear 16-bit/float "
+                              "TIFF or 16-bit PNG") from None
+        raise UploadError(422, "corrupt_file",
+                          f"{label} could not be read as a RAW file ({type(exc).__name__}: "
+                          f"{_librawmsg(exc)}); it is truncated or damaged") from None
+    try:
+        info, info_error = None, None
+        if fmt in ("TIFF", "BigTIFF"):
+            try:
+                info = _tiff_info(data)
+            except Exception as exc:  # LibRaw read it; tifffile is only a second opinion
+                info_error = exc
+            if info is not None and info.plain_multisample:
+                # LibRaw reads any 16-bit TIFF without camera tags as a mosaic,
+                # even one of 2 or 4 samples per pixel: not a RAW
+                raw.close()
+                return _decode_tiff(data, filename, max_pixels)
+        return _decode_raw(raw, data, fmt, filename, max_pixels, info, info_error)
+    except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError) as exc:
+        raise UploadError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None
+    except rawpy.LibRawError as exc:
+        raise UploadError(422, "corrupt_file",
+                          f"{label}: LibRaw failed on the pixel data ({type(exc).__name__}: "
+                          f"{_librawmsg(exc)}); the file is truncated or damaged") from None
+    finally:
+        raw.close()
+
+
+def _librawmsg(exc) -> str:
+    msg = exc.args[0] if exc.args else ""
+    return msg.decode("utf-8", "replace") if isinstance(msg, bytes) else str(msg)
+
+
+# ---------------------------------------------------------------------------
+# TIFF structure: tags and strip extents
+# ---------------------------------------------------------------------------
+
+@dataclass
+class _TiffInfo:
+    make: str | None = None
+    model: str | None = None
+    color_matrix: np.ndarray | None = None
+    is_dng: bool = False
+    grey_guess: bool = False       # a plain grey TIFF LibRaw takes for an RGGB mosaic
+    plain_multisample: bool = False  # a plain TIFF of 2+ samples LibRaw misreads as a mosaic
+    problem: str | None = None     # strips/tiles beyond the end of the file
+
+
+def _tag(page, code):
+    t = page.tags.get(code)
+    return None if t is None else t.value
+
+
+def _ascii_tag(page, code) -> str | None:
+    v = _tag(page, code)
+    if v is None:
+        return None
+    if isinstance(v, bytes):
+        v = v.decode("latin-1")
+    v = str(v).replace("\x00", " ").strip()
+    return v or None
+
+
+def _srational_matrix(value) -> np.ndarray | None:
+    """A 3x3 matrix from a (S)RATIONAL tag value as tifffile gives it
+    (9 numerator/denominator pairs, flat, or 9 floats); ``None`` if not."""
+    if value is None:
+        return None
+    v = np.asarray(value, dtype=np.float64).ravel()
+    if v.size == 18:
+        num, den = v[0::2], v[1::2]
+        if np.any(den == 0):
+            return None
+        v = num / den
+    if v.size != 9 or not np.all(np.isfinite(v)):
+        return None
+    m = v.reshape(3, 3)
+    return None if not np.any(m) else m
+
+
+def _iter_ifds(pages, depth=0, seen=None, limit=64):
+    """Pages and their SubIFDs, at most ``limit`` in all, each IFD once: a
+    damaged next-IFD offset can make the chain circular, and tifffile would
+    follow it for ever."""
+    seen = set() if seen is None else seen
+    i = 0
+    while len(seen) < limit:
+        try:
+            page = pages[i]
+        except (IndexError, KeyError):
+            return
+        off = getattr(page, "offset", None)
+        if off is None or off in seen:
+            return
+        seen.add(off)
+        yield page
+        if depth < 2 and getattr(page, "subifds", None):
+            try:
+                sub = page.pages
+            except Exception:
+                sub = None
+            if sub is not None:
+                yield from _iter_ifds(sub, depth + 1, seen, limit)
+        i += 1
+
+
+def _tiff_info(data: bytes) -> _TiffInfo:
+    """Make, Model, the XYZ -> camera matrix and the strip/tile check of a
+    TIFF-structured file (IFD0 and SubIFDs of every page)."""
+    import tifffile
+
+    info = _TiffInfo()
+    size = len(data)
+    with tifffile.TiffFile(io.BytesIO(data)) as tf:
+        p0 = tf.pages.first if hasattr(tf.pages, "first") else tf.pages[0]
+        info.make = _ascii_tag(p0, 271)
+        info.model = _ascii_tag(p0, 272)
+        info.is_dng = _tag(p0, 50706) is not None
+        if info.make is None and info.model is None:
+            info.model = _ascii_tag(p0, 50708)        # DNG UniqueCameraModel
+        # LibRaw reads a 1-sample 16-bit TIFF without camera tags as an RGGB
+        # mosaic (what ``dcraw -D -T`` writes): right for such a dump, wrong
+        # for a monochrome picture, so the user is told
+        plain = not info.is_dng and info.make is None and _tag(p0, 33422) is None
+        spp = int(getattr(p0, "samplesperpixel", 1) or 1)
+        info.grey_guess = plain and spp == 1 and int(getattr(p0, "photometric", 1) or 0) in (0, 1)
+        info.plain_multisample = plain and spp > 1
+        cm1, cm2 = _srational_matrix(_tag(p0, 50721)), _srational_matrix(_tag(p0, 50722))
+        ci1, ci2 = _tag(p0, 50778), _tag(p0, 50779)
+        # prefer the D65-calibrated matrix (EXIF LightSource 21) of a dual-
+        # illuminant DNG; the usual pair is Standard A (17) and D65 (21)
+        if cm2 is not None and ci2 is not None and int(ci2) == 21 and (ci1 is None or int(ci1) != 21):
+            info.color_matrix = cm2
+        else:
+            info.color_matrix = cm1 if cm1 is not None else cm2
+        for page in _iter_ifds(tf.pages):
+            offs = getattr(page, "dataoffsets", ()) or ()
+            cnts = getattr(page, "databytecounts", ()) or ()
+            for off, cnt in zip(offs, cnts):
+                if off < 0 or cnt < 0 or off + cnt > size:
+                    info.problem = (f"image data at bytes {off}..{off + cnt} lies beyond the end of the "
+                                    f"{size}-byte file (truncated?)")
+                    return info
+    return info
+
+
+# ---------------------------------------------------------------------------
+# RAW
+# ---------------------------------------------------------------------------
+
+def _oriented_shape(h: int, w: int, flip: int, pixel_aspect: float = 1.0) -> tuple[int, int]:
+    if pixel_aspect and abs(pixel_aspect - 1.0) > 1e-6:
+        # LibRaw's stretch(): non-square pixels are resampled to square ones
+        if pixel_aspect < 1:
+            h = int(h / pixel_aspect + 0.5)
+        else:
+            w = int(w * pixel_aspect + 0.5)
+    return (w, h) if flip & 4 else (h, w)
+
+
+def _bayer_channels(raw, sizes) -> list[tuple[int, int, int, int]] | None:
+    """``[(dy, dx, colour index, channel 0/1/2), ...]`` for the four sites of
+    the 2x2 cell at the visible origin, or ``None`` if the sensor is not a
+    2x2 R, G, G, B Bayer."""
+    pattern = raw.raw_pattern
+    if pattern is None or pattern.shape != (2, 2):
+        return None
+    desc = raw.color_desc.decode("latin-1")
+    sites = []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            idx = int(pattern[(dy + sizes.top_margin) % 2, (dx + sizes.left_margin) % 2])
+            if idx >= len(desc) or desc[idx] not in "RGB":
+                return None
+            sites.append((dy, dx, idx, "RGB".index(desc[idx])))
+    if sorted(s[3] for s in sites) != [0, 1, 1, 2]:
+        return None
+    return sites
+
+
+def _bin_bayer(img: np.ndarray, sites, blacks, white: float, rows_per_chunk: int | None = None):
+    """Bin 2x2 CFA cells: ``(d - b_c) / (w - b_c)`` per site, greens
+    averaged, and the cell's saturation flag, in row chunks (temporaries
+    stay small whatever the image size)."""
+    H, W = img.shape
+    h2, w2 = H // 2, W // 2
+    est = np.empty((h2, w2, 3), np.float32)
+    sat = np.zeros((h2, w2), bool)
+    rows = rows_per_chunk or max(1, (1 << 19) // max(1, w2))
+    plan = []
+    for dy, dx, idx, ch in sites:
+        b = float(blacks[idx])
+        scale = np.float32(1.0 / (white - b))
+        thr = math.ceil(b + SATURATION_FRACTION * (white - b))
+        plan.append((img[dy:2 * h2:2, dx:2 * w2:2], ch, np.float32(b), scale, thr))
+    for r0 in range(0, h2, rows):
+        r1 = min(h2, r0 + rows)
+        green = None
+        for view, ch, b, scale, thr in plan:
+            v = view[r0:r1]
+            sat[r0:r1] |= v >= thr
+            a = v.astype(np.float32)
+            a -= b
+            a *= scale
+            if ch == 1:
+                if green is None:
+                    green = a
+                else:
+                    green += a
+                    green *= np.float32(0.5)
+            else:
+                est[r0:r1, :, ch] = a
+        est[r0:r1, :, 1] = green
+    return est, sat
+
+
+def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: int,
+                info: _TiffInfo | None = None, info_error: Exception | None = None) -> DecodedImage:
+    import rawpy
+
+    label = f"{filename!r}" if filename else "the upload"
+    warnings: list[str] = []
+    s = raw.sizes                         # header only: no pixel buffer yet
+    declared = max(int(s.raw_height) * int(s.raw_width), int(s.height) * int(s.width))
+    if declared > max_pixels:
+        raise UploadError(413, "too_many_pixels",
+                          f"{label} declares {s.width}x{s.height} pixels ({declared:,} with margins); "
+                          f"the limit is {max_pixels:,}")
+    if s.height < 2 or s.width < 2:
+        raise UploadError(422, "corrupt_file", f"{label} declares an image of {s.width}x{s.height} pixels")
+
+    make = model = color_matrix = None
+    if fmt in ("TIFF", "BigTIFF"):
+        if info is None:
+            warnings.append(f"TIFF tags unreadable ({type(info_error).__name__}); camera make/model unknown")
+        else:
+            if info.problem:
+                raise UploadError(422, "corrupt_file", f"{label}: {info.problem}")
+            make, model, color_matrix = info.make, info.model, info.color_matrix
+            if info.grey_guess:
+                warnings.append("a single-channel TIFF without camera tags, read by LibRaw as an RGGB Bayer mosaic "
+                                "(as dcraw -D writes); if it is a monochrome picture the colours are meaningless")
+    else:
+        warnings.append(f"{fmt} file: camera make/model are not read for this format; "
+                        "give camera=... to use measured sensitivities")
+
+    # -- pixels (unpacks; LibRawIOError etc. on truncated data)
+    num_colors = int(raw.num_colors)
+    if num_colors < 3:
+        raise UploadError(415, "unsupported_format",
+                          f"{label} is a monochrome RAW ({num_colors} colour); colour analysis needs R, G, B")
+    blacks = [float(b) for b in raw.black_level_per_channel]
+    white = float(raw.white_level)
+    if not white > max(blacks):
+        raise UploadError(422, "corrupt_file",
+                          f"{label}: white level {white:g} is not above the black levels {blacks}")
+    flip = int(s.flip) if int(s.flip) in _FLIP_OPS else 0
+    bmin = min(blacks)
+    user_wb = [(white - bmin) / (white - b) for b in blacks]
+    post = dict(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=False, use_auto_wb=False,
+                user_wb=user_wb, output_color=rawpy.ColorSpace.raw, adjust_maximum_thr=0.0, bright=1.0,
+                highlight_mode=rawpy.HighlightMode.Clip, user_flip=flip)
+
+    sites = _bayer_channels(raw, s)
+    if sites is not None:
+        if raw.raw_type != rawpy.RawType.Flat:
+            sites = None
+    if sites is not None:
+        img = raw.raw_image_visible
+        est, sat = _bin_bayer(img, sites, blacks, white)
+        del img
+        if s.height % 2 or s.width % 2:
+            warnings.append("odd image size: the last row/column is not in the half-size estimation image")
+        if flip:
+            est = np.ascontiguousarray(_FLIP_OPS[flip](est))
+            sat = np.ascontiguousarray(_FLIP_OPS[flip](sat))
+    else:
+        desc = raw.color_desc.decode("latin-1")[:num_colors]
+        if sorted(desc[:3]) != ["B", "G", "R"]:
+            raise UploadError(415, "unsupported_format",
+                              f"{label}: a sensor with colours {desc!r} is not supported (needs R, G, B)")
+        # X-Trans, linear (demosaiced) DNG, Foveon...: LibRaw's half-size output
+        rgb = raw.postprocess(half_size=True, **post)
+        est = _uint16_to_unit_float(rgb[..., :3])
+        sat = (rgb[..., :3] >= math.ceil(SATURATION_FRACTION * 65535)).any(axis=-1)
+        del rgb
+        kind = "demosaiced (linear) DNG" if raw.raw_type != rawpy.RawType.Flat else "not a 2x2 Bayer sensor"
+        warnings.append(f"{kind}: the estimation image is LibRaw's own half-size output (full size for "
+                        "demosaiced data), clipped at 0, saturation judged after interpolation")
+
+    if color_matrix is None:
+        m = np.asarray(raw.rgb_xyz_matrix, dtype=np.float64)[:3]
+        if m.shape == (3, 3) and np.all(np.isfinite(m)) and np.any(m):
+            color_matrix = m
+    neutral = None
+    wb = np.asarray(raw.camera_whitebalance, dtype=np.float64)[:3]
+    if np.all(np.isfinite(wb)) and np.all(wb > 0):
+        neutral = (1.0 / wb) / (1.0 / wb[1])
+    full_shape = _oriented_shape(int(s.height), int(s.width), flip, float(s.pixel_aspect))
+    if abs(float(s.pixel_aspect) - 1.0) > 1e-6:
+        warnings.append(f"non-square pixels (aspect {float(s.pixel_aspect):.4g}): the full-resolution image "
+                        "is resampled by LibRaw, the estimation image is not")
+    frac = float(sat.mean()) if sat.size else 0.0
+    if frac > 0.01:
+        warnings.append(f"{100 * frac:.1f} % of the image is saturated (those cells are flagged)")
+    return DecodedImage(
+        kind="raw", estimation=est, saturated=sat, full_shape=full_shape, make=make, model=model,
+        color_matrix=None if color_matrix is None else np.array(color_matrix, dtype=np.float64),
+        as_shot_neutral=neutral, black_level=float(np.mean(blacks)), white_level=white,
+        warnings=warnings, _source=data, _postprocess=post,
+    )
+
+
+#: OpenCV conversion codes for each 2x2 Bayer cell (measured: a constant
+#: colour mosaicked with each pattern comes back unchanged).
+_OPENCV_BAYER = {"RGGB": "COLOR_BayerBG2RGB_EA", "BGGR": "COLOR_BayerRG2RGB_EA",
+                 "GRBG": "COLOR_BayerGB2RGB_EA", "GBRG": "COLOR_BayerGR2RGB_EA"}
+
+#: Demosaicking choices: ``fast`` (OpenCV's edge-aware bilinear on the
+#: black-subtracted mosaic) or a LibRaw algorithm name.
+DEMOSAIC_DEFAULT = "fast"
+
+
+def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
+    """Full-resolution linear RGB by OpenCV's edge-aware Bayer interpolation.
+
+    Each CFA site is scaled ``(d - b_c) / (w - b_c) * 65535`` (the
+    estimation image's scale) into one uint16 mosaic, then demosaicked and
+    oriented like LibRaw's output. ``None`` when the sensor is not a plain
+    2x2 Bayer with square pixels (then LibRaw demosaics)."""
+    import cv2
+    import rawpy
+
+    try:
+        with rawpy.imread(io.BytesIO(img._source)) as raw:
+            s = raw.sizes
+            sites = _bayer_channels(raw, s)
+            if sites is None or raw.raw_type != rawpy.RawType.Flat or abs(float(s.pixel_aspect) - 1) > 1e-6:
+                return None
+            flip = int(s.flip) if int(s.flip) in _FLIP_OPS else 0
+            blacks = [float(b) for b in raw.black_level_per_channel]
+            white = float(raw.white_level)
+            cfa = raw.raw_image_visible
+            H, W = cfa.shape
+            mos = np.empty((H, W), np.uint16)
+            letters = [""] * 4
+            rows = max(1, (1 << 20) // max(1, W))
+            for dy, dx, idx, ch in sites:
+                letters[dy * 2 + dx] = "RGB"[ch]
+                b = np.float32(blacks[idx])
+                k = np.float32(65535.0 / (white - blacks[idx]))
+                src, dst = cfa[dy::2, dx::2], mos[dy::2, dx::2]
+                for r in range(0, src.shape[0], rows):
+                    a = src[r:r + rows].astype(np.float32)
+                    a -= b
+                    a *= k
+                    np.clip(a, 0, 65535, out=a)
+                    dst[r:r + rows] = a + np.float32(0.5)
+            del cfa
+    except rawpy.LibRawError as exc:
+        raise UploadError(422, "corrupt_file",
+                          f"LibRaw failed to read the pixels ({type(exc).__name__}: {_librawmsg(exc)})") from None
+    code = _OPENCV_BAYER.get("".join(letters))
+    if code is None:
+        return None
+    rgb = cv2.cvtColor(mos, getattr(cv2, code))
+    del mos
+    if flip:
+        rgb = np.ascontiguousarray(_FLIP_OPS[flip](rgb))
+    return rgb
+
+
+def _raw_full_linear(img: DecodedImage, demosaic: str | None) -> np.ndarray:
+    import rawpy
+
+    demosaic = demosaic or DEMOSAIC_DEFAULT
+    if str(demosaic).lower() == "fast":
+        rgb = _opencv_full_linear(img)
+        if rgb is not None:
+            return rgb
+        demosaic = "AHD"
+        img.warnings.append("not a plain Bayer sensor: demosaicked by LibRaw (AHD) instead of the fast path")
+    params = dict(img._postprocess)
+    if demosaic is not None:
+        try:
+            params["demosaic_algorithm"] = rawpy.DemosaicAlgorithm[str(demosaic).upper()]
+        except KeyError:
+            names = [a.name for a in rawpy.DemosaicAlgorithm]
+            raise ValueError(f"unknown demosaic algorithm {demosaic!r}; accepted: {names}") from None
+    try:
+        with rawpy.imread(io.BytesIO(img._source)) as raw:
+            rgb = raw.postprocess(**params)
+    except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError, MemoryError) as exc:
+        raise UploadError(413, "too_many_pixels", f"not enough memory to demosaic the image ({exc})") from None
+    except rawpy.LibRawError as exc:
+        raise UploadError(422, "corrupt_file",
+                          f"LibRaw failed to demosaic the file ({type(exc).__name__}: {_librawmsg(exc)})") from None
+    if rgb.shape[2] != 3:
+        rgb = np.ascontiguousarray(rgb[..., :3])
+    if tuple(rgb.shape[:2]) != tuple(img.full_shape):
+        img.warnings.append(f"LibRaw's full-resolution image is {rgb.shape[1]}x{rgb.shape[0]}, not the declared "
+                            f"{img.full_shape[1]}x{img.full_shape[0]}")
+        img.full_shape = tuple(int(v) for v in rgb.shape[:2])
+    return rgb
+
+
+# ---------------------------------------------------------------------------
+# Linear TIFF and PNG
+# ---------------------------------------------------------------------------
+
+_LINEAR_NOTE = ("linear camera RGB assumed (black level 0, no camera metadata); gamma-encoded images "
+                "give wrong estimates")
+_NOT_LINEAR = ("8-bit images are gamma encoded (sRGB-like) and have lost the linear sensor data the "
+               "analysis needs; send the camera RAW, or a linear 16-bit or float image")
+
+
+def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedImage:
+    import tifffile
+
+    label = f"{filename!r}" if filename else "the upload"
+    try:
+        tf = tifffile.TiffFile(io.BytesIO(data))
+    except Exception as exc:
+        raise UploadError(422, "corrupt_file",
+                          f"{label} has a TIFF header but its structure cannot be read "
+                          f"({type(exc).__name__}: {exc})") from None
+    with tf:
+        if not tf.pages:
+            raise UploadError(422, "corrupt_file", f"{label} is a TIFF without images")
+        page = tf.pages[0]
+        photometric = int(getattr(page, "photometric", 0) or 0)
+        if _tag(page, 50706) is not None or photometric in (32803, 34892):
+            shape = tuple(page.shape[:2])
+            sane = len(shape) == 2 and all(isinstance(v, (int, np.integer)) and v > 0 for v in shape)
+            if sane and min(shape) < 22:
+                raise UploadError(415, "unsupported_format",
+                                  f"{label} is a DNG/CFA image of {shape[1]}x{shape[0]} pixels; LibRaw "
+                                  "refuses images under 22 pixels on a side")
+            raise UploadError(422, "corrupt_file",
+                              f"{label} is a DNG (or CFA TIFF) that LibRaw cannot decode: damaged, or a "
+                              "variant LibRaw does not support")
+        axes = page.axes
+        shape = page.shape
+        dtype = np.dtype(page.dtype) if page.dtype is not None else None
+        if "Y" not in axes or "X" not in axes or not all(int(v) > 0 for v in shape):
+            raise UploadError(422, "corrupt_file", f"{label}: TIFF without a readable image (shape {shape}, "
+                              f"axes {axes!r})")
+        h, w = shape[axes.index("Y")], shape[axes.index("X")]
+        channels = shape[axes.index("S")] if "S" in axes else 1
+        if dtype is None:
+            raise UploadError(415, "unsupported_format", f"{label}: TIFF sample format not supported")
+        if dtype == np.uint8 or (dtype.kind == "u" and int(getattr(page, "bitspersample", 16)) <= 8):
+            raise UploadError(415, "not_linear", f"{label} is an 8-bit TIFF: {_NOT_LINEAR}")
+        if not (dtype == np.uint16 or dtype.kind == "f"):
+            raise UploadError(415, "unsupported_format",
+                              f"{label}: TIFF samples are {dtype}; need 16-bit unsigned integers or float32")
+        if channels not in (3, 4) or axes.replace("S", "") != "YX":
+            raise UploadError(415, "unsupported_format",
+                              f"{label}: TIFF with {channels} channel(s) (axes {axes!r}); need an H x W x 3 "
+                              "linear RGB image")
+        if h * w > max_pixels:
+            raise UploadError(413, "too_many_pixels",
+                              f"{label} declares {w}x{h} = {h * w:,} pixels; the limit is {max_pixels:,}")
+        size = len(data)
+        for off, cnt in zip(page.dataoffsets or (), page.databytecounts or ()):
+            if off + cnt > size:
+                raise UploadError(422, "corrupt_file",
+                                  f"{label}: image data at bytes {off}..{off + cnt} lies beyond the end of the "
+                                  f"{size}-byte file (truncated?)")
+        make, model = _ascii_tag(page, 271), _ascii_tag(page, 272)
+        try:
+            arr = page.asarray()
+        except ValueError as exc:
+            if "imagecodecs" in str(exc):
+                raise UploadError(415, "unsupported_format",
+                                  f"{label}: TIFF compression {page.compression!r} is not supported; send it "
+                                  "uncompressed, or deflate/LZW compressed") from None
+            raise
+    if "S" in axes and axes.index("S") == 0:
+        arr = np.moveaxis(arr, 0, -1)
+    warnings = [_LINEAR_NOTE]
+    if channels == 4:
+        arr = arr[..., :3]
+        warnings.append("fourth (alpha) channel ignored")
+    return _linear_image("tiff", arr, warnings, make, model)
+
+
+def _png_chunks(data: bytes):
+    """``(type, offset of data, length)`` of every chunk, checking lengths
+    and CRCs; raises ``UploadError(422)`` on damage."""
+    pos, n = 8, len(data)
+    seen_end = False
+    while pos < n:
+        if pos + 12 > n:
+            raise UploadError(422, "corrupt_file", "PNG truncated inside a chunk header")
+        length, ctype = struct.unpack(">I4s", data[pos:pos + 8])
+        end = pos + 12 + length
+        if end > n:
+            raise UploadError(422, "corrupt_file",
+                              f"PNG truncated: chunk {ctype!r} needs {length} bytes, the file ends first")
+        crc = struct.unpack(">I", data[end - 4:end])[0]
+        if zlib.crc32(data[pos + 4:end - 4]) & 0xFFFFFFFF != crc:
+            raise UploadError(422, "corrupt_file", f"PNG chunk {ctype!r} at byte {pos} fails its CRC (damaged)")
+        yield ctype, pos + 8, length
+        pos = end
+        if ctype == b"IEND":
+            seen_end = True
+            break
+    if not seen_end:
+        raise UploadError(422, "corrupt_file", "PNG truncated: no IEND chunk")
+
+
+def _decode_png(data: bytes, max_pixels: int) -> DecodedImage:
+    import cv2
+
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise UploadError(422, "corrupt_file", "PNG without a valid IHDR header")
+    width, height, depth, ctype = struct.unpack(">IIBB", data[16:26])
+    kinds = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
+    if ctype == 3 or depth <= 8:
+        raise UploadError(415, "not_linear", f"the PNG is {depth}-bit {kinds.get(ctype, '?')}: {_NOT_LINEAR}")
+    if ctype not in (2, 6):
+        raise UploadError(415, "unsupported_format",
+                          f"the PNG is {kinds.get(ctype, f'colour type {ctype}')}; need 16-bit RGB")
+    if width * height > max_pixels:
+        raise UploadError(413, "too_many_pixels",
+                          f"the PNG declares {width}x{height} = {width * height:,} pixels; the limit is "
+                          f"{max_pixels:,}")
+    warnings = [_LINEAR_NOTE]
+    for ctype_, off, length in _png_chunks(data):
+        if ctype_ == b"sRGB" or ctype_ == b"iCCP":
+            warnings.append(f"the PNG carries an {ctype_.decode()} chunk (colour-managed, probably "
+                            "gamma-encoded); it is treated as linear camera RGB")
+        elif ctype_ == b"gAMA" and length == 4:
+            gamma = struct.unpack(">I", data[off:off + 4])[0] / 100000.0
+            if abs(gamma - 1.0) > 0.01:
+                warnings.append(f"the PNG declares gamma {gamma:.4g} (encoded, not linear); it is treated "
+                                "as linear camera RGB")
+    arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise UploadError(422, "corrupt_file", "OpenCV could not decode the PNG (damaged data)")
+    if arr.dtype != np.uint16 or arr.ndim != 3 or arr.shape[2] not in (3, 4):
+        raise UploadError(415, "unsupported_format",
+                          f"the PNG decoded to {arr.dtype} {arr.shape}; need 16-bit RGB")
+    if arr.shape[2] == 4:
+        warnings.append("fourth (alpha) channel ignored")
+    rgb = arr[..., 2::-1]          # BGR(A) -> RGB
+    return _linear_image("png", rgb, warnings, None, None)
+
+
+def _linear_image(kind: str, arr: np.ndarray, warnings: list, make, model) -> DecodedImage:
+    h, w = arr.shape[:2]
+    est = np.empty((h, w, 3), np.float32)
+    sat = np.empty((h, w), bool)
+    if arr.dtype == np.uint16:
+        white = 65535.0
+        inv = np.float32(1.0 / 65535.0)
+        for r in range(0, h, 256):
+            np.multiply(arr[r:r + 256], inv, out=est[r:r + 256], dtype=np.float32)
+            sat[r:r + 256] = (arr[r:r + 256] == 65535).any(axis=-1)
+    else:
+        white = 1.0
+        for r in range(0, h, 256):
+            est[r:r + 256] = arr[r:r + 256]
+        if not np.all(np.isfinite(est)):
+            bad = int((~np.isfinite(est)).any(axis=-1).sum())
+            raise UploadError(422, "non_finite", f"the float image has {bad} pixel(s) with NaN or Inf")
+        np.greater_equal(est, 1.0).any(axis=-1, out=sat)
+    frac = float(sat.mean()) if sat.size else 0.0
+    if frac > 0.01:
+        warnings.append(f"{100 * frac:.1f} % of the image is saturated (those pixels are flagged)")
+    return DecodedImage(kind=kind, estimation=est, saturated=sat, full_shape=(int(h), int(w)), make=make,
+                        model=model, color_matrix=None, as_shot_neutral=None, black_level=0.0,
+                        white_level=white, warnings=warnings)
+
+
+# ---------------------------------------------------------------------------
+# Cameras
+# ---------------------------------------------------------------------------
+
+def _grid(wavelengths) -> np.ndarray:
+    from models import DEFAULT_WAVELENGTHS
+
+    return DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, dtype=np.float64)
+
+
+def camera_from_matrix(color_matrix: np.ndarray, wavelengths=None, name: str = "matrix-derived"):
+    """Sensitivities implied by an XYZ -> camera matrix.
+
+    If the camera were colorimetric, :math:`c = M\\,XYZ` for every colour
+    signal, i.e. :math:`R_k(\\lambda) = \\sum_j M_{kj}\\,\\bar{x}_j(\\lambda)`
+    with the CIE 1931 2° colour matching functions; as arrays
+    ``R = cmfs @ M.T`` (``(N, 3)``). No real camera is colorimetric, so this
+    is an approximation (Wandell 1985, Fig. 6: analysis needs the camera's
+    own sensors): negative lobes, which no sensor has, are clipped to 0 and
+    the amount removed is reported in ``Camera.notes``. The channel balance
+    of the matrix is kept; the whole is scaled so the largest value is 1.
+
+    Parameters
+    ----------
+    color_matrix : (3, 3) array_like
+        XYZ -> camera (rows camera R, G, B), e.g. DNG ColorMatrix1.
+    wavelengths : array_like, optional
+        Grid in nm; default 400-700 nm at 10 nm.
+    name : str
+
+    Returns
+    -------
+    recovery.Camera
+        ``source="matrix-derived"``.
+
+    Raises
+    ------
+    UploadError
+        422 ``bad_color_matrix`` for a matrix that is not 3x3, finite and
+        invertible, or that leaves a channel with no positive sensitivity.
+
+    Examples
+    --------
+    >>> cam = camera_from_matrix(np.eye(3))
+    >>> cam.source, cam.sensitivities.shape
+    ('matrix-derived', (31, 3))
+    """
+    from models import observer
+    from recovery import Camera
+
+    m = np.asarray(color_matrix, dtype=np.float64)
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        raise UploadError(422, "bad_color_matrix", f"colour matrix must be a finite 3x3 array, got {m.shape}")
+    if abs(np.linalg.det(m)) < 1e-12 * max(1.0, float(np.abs(m).max()) ** 3):
+        raise UploadError(422, "bad_color_matrix", "colour matrix is singular")
+    wl = _grid(wavelengths)
+    cmfs = observer("CIE 1931 2 Degree Standard Observer", wl)
+    r = cmfs @ m.T
+    pos = np.clip(r, 0.0, None)
+    if np.any(pos.max(axis=0) <= 0):
+        raise UploadError(422, "bad_color_matrix",
+                          "colour matrix gives a channel with no positive sensitivity anywhere")
+    removed = np.abs(r - pos).sum(axis=0) / np.maximum(np.abs(r).sum(axis=0), 1e-300)
+    pos = pos / pos.max()
+    notes = (
+        "sensitivities derived from an XYZ->camera colour matrix and the CIE 1931 2 degree CMFs "
+        "(R = cmfs @ M.T); approximate: real cameras are not colorimetric",
+        "negative lobes clipped to 0 (fraction of each channel's absolute area removed: "
+        + ", ".join(f"{c} {100 * f:.1f} %" for c, f in zip("RGB", removed)) + ")",
+    )
+    return Camera(wl, pos, name, "matrix-derived", notes)
+
+
+def generic_camera(wavelengths=None):
+    """A generic RGB camera: the mean of the three measured cameras.
+
+    :math:`R_k = \\frac{1}{3}\\sum_{cam} R_k^{cam}` with each measured
+    camera's channels as :func:`models.camera_sensitivities` gives them
+    (peak 1 per channel on the default grid): Nikon 5100 (NPL), Sigma
+    SDMerill (NPL), Canon EOS 5D Mark II. Used when nothing says what camera
+    took the image; estimates with it are approximate.
+
+    Parameters
+    ----------
+    wavelengths : array_like, optional
+        Grid in nm; default 400-700 nm at 10 nm.
+
+    Returns
+    -------
+    recovery.Camera
+        ``name="generic"``, ``source="generic"``.
+
+    Examples
+    --------
+    >>> generic_camera().sensitivities.shape
+    (31, 3)
+    """
+    from models import camera_names, camera_sensitivities
+    from recovery import Camera
+
+    wl = _grid(wavelengths)
+    names = camera_names()
+    r = np.mean([camera_sensitivities(n, wl) for n in names], axis=0)
+    return Camera(wl, r, "generic", "generic",
+                  (f"generic camera: channel-wise mean of the measured sensitivities of {', '.join(names)} "
+                   "(each channel peak-normalised); approximate for any real camera",))
+
+
+def _parse_csv_text(data) -> str:
+    if isinstance(data, str):
+        return data
+    if not data:
+        raise UploadError(422, "bad_csv", "the sensitivities CSV is empty")
+    try:
+        return bytes(data).decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise UploadError(422, "bad_csv",
+                          f"the sensitivities CSV is not UTF-8 text (byte {exc.start}); send a plain CSV") from None
+
+
+def _split(line: str) -> list[str]:
+    """Fields of a CSV line: ``;`` or tab separated (then ``,`` is a decimal
+    comma), else ``,``, else whitespace."""
+    for delim in (";", "\t"):
+        if delim in line:
+            return [f.strip().replace(",", ".") for f in line.split(delim)]
+    if "," in line:
+        return [f.strip() for f in line.split(",")]
+    return line.split()
+
+
+def camera_from_csv(data: bytes, wavelengths=None, name: str = "uploaded"):
+    """A camera from an uploaded CSV of spectral sensitivities.
+
+    Format: one row per wavelength, first column the wavelength in nm
+    (strictly increasing, covering the analysis grid, default 400-700 nm),
+    then one column per channel (at least 3); an optional header row of
+    names; separators ``,``, ``;`` (decimal commas allowed then), tab or
+    spaces; blank lines and lines starting with ``#`` are skipped. The
+    columns are resampled to the grid (``models.resample``), negative values
+    (noise) clipped to 0, and the whole scaled so the largest value is 1
+    (the channel balance is kept).
+
+    Parameters
+    ----------
+    data : bytes or str
+    wavelengths : array_like, optional
+        Grid in nm; default 400-700 nm at 10 nm.
+    name : str
+
+    Returns
+    -------
+    recovery.Camera
+        ``source="uploaded"``.
+
+    Raises
+    ------
+    UploadError
+        422 ``bad_csv`` naming the line and column at fault: not text,
+        non-numeric values, fewer than 3 channels, ragged rows, NaN/Inf,
+        wavelengths not strictly increasing or not covering the grid, a
+        channel zero everywhere on the grid.
+
+    Examples
+    --------
+    >>> rows = ["nm,r,g,b"] + [f"{w},{max(0, 1 - abs(w - 600) / 100)},{max(0, 1 - abs(w - 530) / 100)},"
+    ...                        f"{max(0, 1 - abs(w - 450) / 100)}" for w in range(380, 790, 10)]
+    >>> camera_from_csv("\\n".join(rows).encode()).channels
+    3
+    """
+    from models import resample
+    from recovery import Camera
+
+    text = _parse_csv_text(data)
+    wl_grid = _grid(wavelengths)
+    header = None
+    rows: list[list[float]] = []
+    ncols = None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        fields = _split(s)
+        values = []
+        bad = None
+        for col, f in enumerate(fields, start=1):
+            try:
+                values.append(float(f))
+            except ValueError:
+                bad = (col, f)
+                break
+        if bad is not None:
+            if header is None and not rows:
+                header = fields
+                ncols = len(fields)
+                continue
+            raise UploadError(422, "bad_csv", f"line {lineno}, column {bad[0]}: {bad[1]!r} is not a number")
+        if ncols is None:
+            ncols = len(values)
+        if len(values) != ncols:
+            raise UploadError(422, "bad_csv",
+                              f"line {lineno} has {len(values)} columns, expected {ncols} "
+                              f"({'as the header' if header else 'as the first row'})")
+        if not all(math.isfinite(v) for v in values):
+            col = next(i for i, v in enumerate(values, 1) if not math.isfinite(v))
+            raise UploadError(422, "bad_csv", f"line {lineno}, column {col}: {fields[col - 1]!r} is NaN or Inf")
+        rows.append(values)
+        if len(rows) > _MAX_CSV_ROWS:
+            raise UploadError(422, "bad_csv", f"more than {_MAX_CSV_ROWS} rows")
+    if not rows:
+        raise UploadError(422, "bad_csv", "the sensitivities CSV has no numeric rows")
+    arr = np.asarray(rows, dtype=np.float64)
+    if arr.shape[1] < 4:
+        raise UploadError(422, "bad_csv",
+                          f"need a wavelength column and at least 3 channel columns; found {arr.shape[1] - 1} "
+                          "channel column(s)")
+    if arr.shape[0] < 2:
+        raise UploadError(422, "bad_csv", "need at least two wavelengths")
+    wl = arr[:, 0]
+    d = np.diff(wl)
+    if np.any(d <= 0):
+        i = int(np.argmax(d <= 0))
+        raise UploadError(422, "bad_csv",
+                          f"wavelengths must be strictly increasing: {wl[i + 1]:g} nm follows {wl[i]:g} nm "
+                          f"(data row {i + 2})")
+    lo, hi = float(wl_grid[0]), float(wl_grid[-1])
+    if wl[0] > lo + 1e-9 or wl[-1] < hi - 1e-9:
+        hint = " (micrometres? give nanometres)" if wl[-1] < 10 else ""
+        raise UploadError(422, "bad_csv",
+                          f"wavelengths span {wl[0]:g}-{wl[-1]:g} nm{hint}; they must cover {lo:g}-{hi:g} nm")
+    sens = arr[:, 1:]
+    labels = (header[1:] if header and len(header) == arr.shape[1]
+              else [f"channel {k + 1}" for k in range(sens.shape[1])])
+    notes = []
+    if np.any(sens < 0):
+        notes.append(f"{int((sens < 0).sum())} negative value(s) clipped to 0")
+    clipped = np.clip(sens, 0.0, None)
+    if arr.shape[0] >= 6:      # colour-science's Sprague/spline interpolation needs 6 points
+        on_grid = resample(wl, clipped, wl_grid)
+    else:
+        on_grid = np.stack([np.interp(wl_grid, wl, clipped[:, k]) for k in range(clipped.shape[1])], 1)
+    on_grid = np.clip(on_grid, 0.0, None)
+    zero = [labels[k] for k in range(sens.shape[1]) if not np.any(on_grid[:, k] > 0)]
+    if zero:
+        raise UploadError(422, "bad_csv",
+                          f"channel(s) {', '.join(map(str, zero))} are zero at every wavelength in {lo:g}-{hi:g} nm")
+    on_grid = on_grid / on_grid.max()
+    notes.insert(0, f"uploaded sensitivities: {sens.shape[1]} channels ({', '.join(map(str, labels))}), "
+                    f"{wl[0]:g}-{wl[-1]:g} nm, {arr.shape[0]} rows, resampled to {wl_grid.size} wavelengths")
+    return Camera(wl_grid, on_grid, name, "uploaded", tuple(notes))
+
+
+def resolve_camera(decoded: DecodedImage | None, camera: str | None = None,
+                   sensitivities_csv: bytes | None = None, wavelengths=None):
+    """Choose the camera model for an image, and say how approximate it is.
+
+    Priority:
+
+    1. ``sensitivities_csv`` (:func:`camera_from_csv`), ``source="uploaded"``;
+    2. ``camera``: a measured camera name (``models.camera_names()`` or an
+       alias), ``"generic"`` or ``"matrix"`` (needs a colour matrix in the
+       file); ``"auto"``, ``""`` or ``None`` mean choose automatically;
+    3. the measured camera matching the file's Make + Model
+       (``models.canonical_camera_name``);
+    4. sensitivities derived from the file's colour matrix
+       (:func:`camera_from_matrix`), with the warning
+       ``"approximate: derived from colour matrix"``;
+    5. :func:`generic_camera`, with a warning.
+
+    Parameters
+    ----------
+    decoded : DecodedImage or None
+    camera : str, optional
+    sensitivities_csv : bytes, optional
+    wavelengths : array_like, optional
+        Grid in nm; default 400-700 nm at 10 nm.
+
+    Returns
+    -------
+    (recovery.Camera, list of str)
+        The camera and the warnings to show the user.
+
+    Raises
+    ------
+    UploadError
+        422 ``unknown_camera`` (the detail lists the accepted names),
+        ``no_color_matrix`` (``camera="matrix"`` for a file without one),
+        ``bad_csv``, ``bad_color_matrix``.
+    """
+    from models import camera_names, canonical_camera_name
+    from recovery import Camera
+
+    wl = _grid(wavelengths)
+    warnings: list[str] = []
+    make = getattr(decoded, "make", None)
+    model = getattr(decoded, "model", None)
+    ident = " ".join(x for x in (make, model) if x) or None
+    file_canon = None
+    if ident:
+        file_canon = canonical_camera_name(ident) or (canonical_camera_name(model) if model else None)
+    cm = getattr(decoded, "color_matrix", None)
+    choice = (camera or "").strip()
+
+    if sensitivities_csv is not None and len(sensitivities_csv) > 0:
+        cam = camera_from_csv(sensitivities_csv, wl)
+        if choice and choice.lower() != "auto":
+            warnings.append(f"camera {choice!r} ignored: the uploaded sensitivities take precedence")
+        return cam, warnings
+
+    if choice and choice.lower() != "auto":
+        low = choice.lower()
+        if low == "generic":
+            warnings.append("approximate: generic camera (mean of the measured cameras' sensitivities)")
+            return generic_camera(wl), warnings
+        if low == "matrix":
+            if cm is None:
+                raise UploadError(422, "no_color_matrix",
+                                  "camera='matrix' needs an XYZ->camera colour matrix, and this image has none "
+                                  "(DNG ColorMatrix, or a camera model LibRaw knows)")
+            cam = camera_from_matrix(cm, wl, _matrix_name(ident))
+            warnings.append("approximate: derived from colour matrix")
+            return cam, warnings
+        canon = canonical_camera_name(choice)
+        if canon is None:
+            accepted = camera_names() + ["generic", "matrix", "auto"]
+            raise UploadError(422, "unknown_camera",
+                              f"unknown camera {choice!r}; accepted: {', '.join(accepted)} (or upload a "
+                              "sensitivities CSV)")
+        if ident and file_canon != canon:
+            warnings.append(f"camera {canon!r} was requested but the file says {ident!r}")
+        return Camera.named(canon, wl), warnings
+
+    if file_canon is not None:
+        return Camera.named(file_canon, wl), warnings
+    if cm is not None:
+        try:
+            cam = camera_from_matrix(cm, wl, _matrix_name(ident))
+        except UploadError as exc:
+            warnings.append(f"the file's colour matrix is unusable ({exc.detail})")
+        else:
+            warnings.append("approximate: derived from colour matrix")
+            return cam, warnings
+    who = repr(ident) if ident else "this image (no make/model)"
+    warnings.append(f"approximate: no measured sensitivities or colour matrix for {who}; using a generic camera "
+                    "(mean of the measured cameras' sensitivities); give camera=... or upload sensitivities")
+    return generic_camera(wl), warnings
+
+
+def _matrix_name(ident: str | None) -> str:
+    return f"{ident} (matrix-derived)" if ident else "matrix-derived"

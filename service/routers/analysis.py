@@ -1,0 +1,183 @@
+"""``POST /v1/analyze``, ``/v1/white-balance``, ``/v1/surfaces``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import tempfile
+import time
+
+from fastapi import APIRouter, Depends, File, Form, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, JSONResponse, Response
+from starlette.background import BackgroundTask
+
+from .. import pipeline
+from ..deps import estimate_options, parse_grid, parse_json_list, read_upload
+from ..errors import ApiError
+from ..jsonsafe import clean
+from ..settings import Settings, get_settings
+
+router = APIRouter(prefix="/v1")
+
+_FILE = File(..., description="RAW file (DNG, CR2, NEF, ARW, ... anything LibRaw reads) or linear 16-bit TIFF/PNG")
+_SENS = File(None, description="optional camera sensitivities CSV: wavelength, one column per channel")
+
+
+def _decode(data: bytes, filename: str | None, sens: bytes | None, camera: str | None, settings: Settings):
+    from .. import rawio
+
+    t0 = time.perf_counter()
+    try:
+        decoded = rawio.decode_upload(data, filename, max_pixels=settings.max_pixels)
+        cam, cam_warn = rawio.resolve_camera(decoded, camera, sens)
+    except rawio.UploadError as e:
+        raise ApiError(e.status, e.code, e.detail) from None
+    return decoded, cam, cam_warn, (time.perf_counter() - t0) * 1e3
+
+
+async def _inputs(file, sensitivities, settings):
+    data = await read_upload(file, settings)
+    sens = await read_upload(sensitivities, settings, "sensitivities") if sensitivities is not None else None
+    return data, sens
+
+
+def _analyze_sync(data, filename, sens, camera, method, opts, settings):
+    decoded, cam, cam_warn, t_dec = _decode(data, filename, sens, camera, settings)
+    run = pipeline.run_estimate(decoded, cam, cam_warn, method=method, options=opts)
+    run.timings_ms["decode"] = t_dec
+    return decoded, run
+
+
+@router.post("/analyze")
+async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
+                  camera: str | None = Form(None, description="measured camera name, 'matrix' or 'generic'"),
+                  method: str = Form("auto"), surface_dim: int | None = Form(None),
+                  light_dim: int | None = Form(None), region_size: int | None = Form(None),
+                  spatial: bool = Form(False), surface_model: str | None = Form(None, description="pca or fourier"),
+                  light_model: str | None = Form(None, description="daylight, illuminant-pca or fourier"),
+                  settings: Settings = Depends(get_settings)):
+    """Estimate the scene light: camera RGB, white-balance multipliers,
+    relative spectrum, CCT/Duv, the method that ran, diagnostics, timings."""
+    t0 = time.perf_counter()
+    opts = estimate_options(method, surface_dim, light_dim, region_size, spatial, surface_model, light_model)
+    data, sens = await _inputs(file, sensitivities, settings)
+    decoded, run = await run_in_threadpool(_analyze_sync, data, file.filename, sens, camera, method, opts, settings)
+    body = pipeline.analysis_json(run, decoded)
+    body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
+    return JSONResponse(clean(body))
+
+
+def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, bits, settings):
+    decoded, run = _analyze_sync(data, filename, sens, camera, method, opts, settings)
+    del data
+    M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"))
+    t0 = time.perf_counter()
+    rgb16 = decoded.full_linear("uint16")
+    t1 = time.perf_counter()
+    out = pipeline.apply_matrix_inplace(rgb16, M, info["encoding"], bits)
+    del rgb16
+    t2 = time.perf_counter()
+    fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt)
+    os.close(fd)
+    try:
+        pipeline.encode_image(out, fmt, path)
+    except BaseException:
+        os.unlink(path)
+        raise
+    t3 = time.perf_counter()
+    del out
+    run.timings_ms.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3, encode=(t3 - t2) * 1e3)
+    return decoded, run, M, path
+
+
+@router.post("/white-balance")
+async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
+                        camera: str | None = Form(None), method: str = Form("auto"),
+                        target: str = Form("D65", description="light to render under, or 'estimate'"),
+                        output: str = Form("sRGB", description="sRGB, linear-sRGB or a display name"),
+                        format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16, jpeg"),
+                        response: str = Form("image", description="image, or json for the estimate only"),
+                        surface_dim: int | None = Form(None), light_dim: int | None = Form(None),
+                        region_size: int | None = Form(None), surface_model: str | None = Form(None),
+                        light_model: str | None = Form(None), settings: Settings = Depends(get_settings)):
+    """The corrected image at full resolution (one 3x3 matrix per pixel
+    from camera RGB to the display), with the estimate in the
+    ``X-Illuminant`` header (JSON)."""
+    t0 = time.perf_counter()
+    fmts = {"tiff": ("tiff", 16), "png": ("png", 8), "png16": ("png", 16), "jpeg": ("jpeg", 8), "jpg": ("jpeg", 8)}
+    if format not in fmts:
+        raise ApiError(422, "invalid_parameter", f"format {format!r} unknown; accepted: {sorted(fmts)}")
+    if response not in ("image", "json"):
+        raise ApiError(422, "invalid_parameter", "response must be image or json")
+    if output not in ("sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display"):
+        raise ApiError(422, "invalid_parameter",
+                       "output must be one of sRGB, linear-sRGB, Typical CRT Brainard 1997, Apple Studio Display")
+    opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model)
+    data, sens = await _inputs(file, sensitivities, settings)
+    await file.close()
+    fmt, bits = fmts[format]
+    if response == "json":
+        decoded, run = await run_in_threadpool(_analyze_sync, data, file.filename, sens, camera, method, opts,
+                                               settings)
+        M, _ = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"))
+        body = pipeline.analysis_json(run, decoded)
+        body["correction_matrix"] = M.tolist()
+        return JSONResponse(clean(body))
+    decoded, run, M, path = await run_in_threadpool(_white_balance_sync, data, file.filename, sens, camera,
+                                                       method, opts, target, output, fmt, bits, settings)
+    body = pipeline.analysis_json(run, decoded)
+    body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
+    header = {k: body[k] for k in ("method", "camera", "warnings", "timings_ms")}
+    header["illuminant"] = {k: v for k, v in body["illuminant"].items() if k not in ("wavelengths", "spectrum")}
+    header["correction_matrix"] = M.tolist()
+    headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
+               "Content-Disposition": f'inline; filename="corrected.{"tif" if fmt == "tiff" else fmt}"'}
+    # streamed from a temporary file (deleted after sending): the encoded
+    # image never sits in memory next to the decoded one
+    return FileResponse(path, media_type=pipeline.FORMATS[fmt], headers=headers,
+                        background=BackgroundTask(os.unlink, path))
+
+
+@router.post("/surfaces")
+async def surfaces(file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
+                   camera: str | None = Form(None), method: str = Form("auto"),
+                   points: str | None = Form(None, description='JSON [[row, col], ...] in full-resolution pixels'),
+                   rects: str | None = Form(None, description="JSON [[r0, c0, r1, c1], ...] (end exclusive)"),
+                   grid: str | None = Form(None, description="coarse grid, e.g. 8x6"),
+                   format: str = Form("json", description="json or csv"),
+                   surface_model: str | None = Form(None, description="pca or fourier (C terms)"),
+                   settings: Settings = Depends(get_settings)):
+    """Reflectance spectra at points, rectangle means or a coarse grid, with
+    per-estimate warnings."""
+    pts = parse_json_list(points, "points", 2)
+    rcs = parse_json_list(rects, "rects", 4)
+    grd = parse_grid(grid)
+    if not (pts or rcs or grd):
+        raise ApiError(422, "invalid_parameter", "give at least one of points, rects or grid")
+    if format not in ("json", "csv"):
+        raise ApiError(422, "invalid_parameter", "format must be json or csv")
+    opts = estimate_options(method, None, None, None, False, surface_model)
+    data, sens = await _inputs(file, sensitivities, settings)
+
+    def work():
+        decoded, run = _analyze_sync(data, file.filename, sens, camera, method, opts, settings)
+        res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, method, opts)
+        res["illuminant"] = pipeline.illuminant_json(run.estimate)
+        res["method"] = run.estimate.method
+        res["camera"] = pipeline.camera_json(run.camera)
+        res["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
+        return res
+
+    res = await run_in_threadpool(work)
+    if format == "csv":
+        buf = io.StringIO()
+        w = csv.writer(buf)
+        w.writerow(["kind", "where", "warnings"] + [f"{x:g}" for x in res["wavelengths"]])
+        for s in res["surfaces"]:
+            w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
+                       + [f"{v:.6g}" for v in s["reflectance"]])
+        return Response(buf.getvalue(), media_type="text/csv")
+    return JSONResponse(clean(res))

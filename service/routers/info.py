@@ -1,0 +1,55 @@
+"""``GET /health``, ``/v1/cameras``, ``/v1/models``."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+
+import models
+from recovery import METHODS
+
+from ..settings import Settings, get_settings
+
+router = APIRouter()
+
+
+@router.get("/health")
+def health(settings: Settings = Depends(get_settings)) -> dict:
+    """Liveness: the service is up and the numerical core imports."""
+    import recovery  # noqa: F401
+
+    return {"status": "ok", "version": "0.1.0", "max_upload_bytes": settings.max_upload_bytes,
+            "max_pixels": settings.max_pixels}
+
+
+@router.get("/v1/cameras")
+def cameras() -> dict:
+    """Cameras the service knows, and how it knows them."""
+    measured = [{"name": n, "source": "measured", "channels": 3,
+                 "matches": list(models.cameras.CAMERAS[n])} for n in models.camera_names()]
+    return {
+        "cameras": measured,
+        "other_sources": {
+            "matrix-derived": "any camera LibRaw has a colour matrix for (or a DNG ColorMatrix1): "
+                              "sensitivities = CIE 1931 CMFs through the XYZ->camera matrix; approximate",
+            "uploaded": "multipart field 'sensitivities': CSV with wavelength and one column per channel",
+            "generic": "mean of the measured cameras, used with a warning when nothing else is known",
+        },
+    }
+
+
+@router.get("/v1/models")
+def linear_models() -> dict:
+    """Linear models (bases) and their dimensions; estimation methods."""
+    return {
+        "surface_models": {"pca": "PCA through the origin of colour-science's reflectances (up to 31 terms)",
+                           "fourier": "DC plus sine/cosine pairs (Wandell 1985, Fig. 4b)"},
+        "light_models": {"daylight": "CIE daylight S0, S1, S2 (up to 3 terms; default for D(E) <= 3)",
+                         "illuminant-pca": "PCA of colour-science's illuminants (default for D(E) > 3)"},
+        "rules": ["D(S) < C (number of camera channels)", "D(E) <= D(S) + 1"],
+        "defaults": {"D(S)": "C - 1", "D(E)": "D(S) + 1"},
+        "methods": list(METHODS),
+        "wavelengths": models.DEFAULT_WAVELENGTHS.tolist(),
+        "reflectance_sets": models.reflectance_set_names(),
+        "illuminants": models.illuminant_names(),
+        "displays": models.display_names(),
+    }
