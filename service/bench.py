@@ -3,59 +3,68 @@
 ``python -m service.bench [--height 4000 --width 6000] [--repeat 3]``
 
 Writes a 24-megapixel DNG with the fixture code (:mod:`service.dngwriter`),
-then measures, side by side in one run:
+starts the real service (uvicorn, as the README starts it) on a free
+loopback port, and measures side by side in one run:
 
-* rawpy's own default ``postprocess()`` of the file (imread + postprocess),
-* the full ``POST /v1/white-balance`` request through the real FastAPI app
-  and its ASGI stack (decode, estimate, correct, encode 16-bit TIFF),
-* the estimate alone (``POST /v1/analyze``),
+* rawpy's own default ``postprocess()`` of the file (imread +
+  postprocess) in a fresh worker process,
+* the full ``POST /v1/white-balance`` request over HTTP (upload, decode,
+  estimate, demosaic, correct, encode a 16-bit TIFF, download),
+* the estimate alone: ``POST /v1/analyze`` over HTTP, and the estimation
+  step inside the server (half-size decode + estimate, from the response's
+  ``timings_ms``).
 
-and prints the ratios. Peak memory is the resident-set high-water mark
-(``VmHWM``, reset through ``/proc/self/clear_refs``) above the process's
-resident size just before the step, against the size of the decoded 16-bit
-image (H x W x 3 x 2 bytes).
+Peak memory is the resident-set high-water mark (``VmHWM``, reset through
+``/proc/<pid>/clear_refs``) of the process doing the work, above its
+resident size just before the step, against the decoded 16-bit image
+(H x W x 3 x 2 bytes).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import socket
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 
 
-def _rss_kb(field: str) -> int:
-    with open("/proc/self/status") as f:
+def _status_kb(pid: int, field: str) -> int:
+    with open(f"/proc/{pid}/status") as f:
         for line in f:
             if line.startswith(field + ":"):
                 return int(line.split()[1])
     return 0
 
 
-def _reset_peak() -> bool:
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
+def _reset_peak(pid: int) -> None:
+    with open(f"/proc/{pid}/clear_refs", "w") as f:
+        f.write("5")
 
 
-def measure(fn, repeat: int):
-    """Median wall time (s) and peak extra resident memory (MB) of ``fn``."""
-    times, peaks = [], []
-    for _ in range(repeat):
-        import gc
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
-        gc.collect()
-        base = _rss_kb("VmRSS")
-        _reset_peak()
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-        peaks.append((_rss_kb("VmHWM") - base) / 1024)
-    return statistics.median(times), max(peaks)
+
+_RAWPY_WORKER = r"""
+import sys, time, rawpy
+path = sys.argv[1]
+with rawpy.imread(path) as raw:   # warm-up: library loaded, file in page cache
+    raw.postprocess(half_size=True)
+print("ready", flush=True)
+for line in sys.stdin:
+    t0 = time.perf_counter()
+    with rawpy.imread(path) as raw:
+        rgb = raw.postprocess()
+    del rgb
+    print(time.perf_counter() - t0, flush=True)
+"""
 
 
 def main(argv=None) -> None:
@@ -67,10 +76,8 @@ def main(argv=None) -> None:
     ap.add_argument("--illuminant", default="A")
     args = ap.parse_args(argv)
 
-    import rawpy
-    from fastapi.testclient import TestClient
+    import httpx
 
-    from service.app import app
     from service.dngwriter import scene_dng
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -78,40 +85,73 @@ def main(argv=None) -> None:
         t0 = time.perf_counter()
         scene_dng(path, args.camera, args.illuminant, args.height, args.width, seed=1, layout="mondrian",
                   surfaces="all", n_surfaces=24)
-        print(f"wrote {args.width}x{args.height} DNG ({os.path.getsize(path) / 1e6:.0f} MB) "
-              f"in {time.perf_counter() - t0:.1f} s")
-        data = open(path, "rb").read()
+        size_mb = os.path.getsize(path) / 1e6
+        print(f"wrote {args.width}x{args.height} DNG ({size_mb:.0f} MB) in {time.perf_counter() - t0:.1f} s")
         decoded_mb = args.height * args.width * 3 * 2 / 2**20
 
-        def rawpy_default():
-            with rawpy.imread(path) as raw:
-                raw.postprocess()
+        worker = subprocess.Popen([sys.executable, "-c", _RAWPY_WORKER, path], stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, text=True)
+        port = _free_port()
+        server = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
+                                   "--port", str(port), "--log-level", "warning"])
+        try:
+            assert worker.stdout.readline().strip() == "ready"
+            base = f"http://127.0.0.1:{port}"
+            client = httpx.Client(timeout=600)
+            for _ in range(200):
+                try:
+                    if client.get(base + "/health").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    time.sleep(0.1)
 
-        client = TestClient(app)
-        files = {"file": ("bench.dng", data, "application/octet-stream")}
+            def post(endpoint, fields):
+                with open(path, "rb") as fh:
+                    r = client.post(base + endpoint, files={"file": ("bench.dng", fh, "image/x-adobe-dng")},
+                                    data=fields)
+                assert r.status_code == 200, r.text[:500]
+                return r
 
-        def white_balance():
-            r = client.post("/v1/white-balance", files=files, data={"format": "tiff"})
-            assert r.status_code == 200, r.text
-            return r
+            def timed(pid, fn):
+                times, peaks, extra = [], [], []
+                for _ in range(args.repeat):
+                    before = _status_kb(pid, "VmRSS")
+                    _reset_peak(pid)
+                    t0 = time.perf_counter()
+                    out = fn()
+                    times.append(time.perf_counter() - t0)
+                    peaks.append((_status_kb(pid, "VmHWM") - before) / 1024)
+                    extra.append(out)
+                return statistics.median(times), max(peaks), extra
 
-        def analyze():
-            r = client.post("/v1/analyze", files=files)
-            assert r.status_code == 200, r.text
+            def rawpy_once():
+                worker.stdin.write("go\n")
+                worker.stdin.flush()
+                return float(worker.stdout.readline())
 
-        white_balance()  # warm-up: imports, colour-science data, caches
-        rows = [("rawpy postprocess() default", *measure(rawpy_default, args.repeat)),
-                ("POST /v1/white-balance (16-bit TIFF)", *measure(white_balance, args.repeat)),
-                ("POST /v1/analyze (estimate only)", *measure(analyze, args.repeat))]
-        base_t = rows[0][1]
-        print(f"\n{'step':40s} {'median s':>9s} {'x rawpy':>8s} {'peak MB':>8s} {'x image':>8s}")
-        for name, t, mem in rows:
-            print(f"{name:40s} {t:9.2f} {t / base_t:8.2f} {mem:8.0f} {mem / decoded_mb:8.2f}")
-        print(f"\ndecoded 16-bit image: {decoded_mb:.0f} MB; targets: white-balance <= 1.20 x rawpy, "
-              f"estimate <= 0.10 x rawpy, peak <= 3.00 x image")
-        r = white_balance()
-        print("last request timings (ms):", r.headers.get("X-Illuminant", "")[:0] or
-              __import__("json").loads(r.headers["X-Illuminant"])["timings_ms"])
+            post("/v1/white-balance", {"format": "tiff"})  # warm-up: imports, data, caches
+            t_raw, m_raw, _ = timed(worker.pid, rawpy_once)
+            t_wb, m_wb, wb_resp = timed(server.pid, lambda: post("/v1/white-balance", {"format": "tiff"}))
+            t_an, m_an, an_resp = timed(server.pid, lambda: post("/v1/analyze", {}))
+            inner = [r.json()["timings_ms"] for r in an_resp]
+            t_est = statistics.median((t["decode"] + t["estimate"]) / 1e3 for t in inner)
+            wb_t = json.loads(wb_resp[-1].headers["X-Illuminant"])["timings_ms"]
+            assert len(wb_resp[-1].content) > decoded_mb * 2**20
+        finally:
+            server.terminate()
+            worker.kill()
+            server.wait()
+
+    rows = [("rawpy postprocess() default", t_raw, m_raw),
+            ("POST /v1/white-balance (16-bit TIFF)", t_wb, m_wb),
+            ("POST /v1/analyze over HTTP", t_an, m_an),
+            ("estimation in the server (decode+estimate)", t_est, float("nan"))]
+    print(f"\n{'step':44s} {'median s':>9s} {'x rawpy':>8s} {'peak MB':>8s} {'x image':>8s}")
+    for name, t, mem in rows:
+        print(f"{name:44s} {t:9.2f} {t / t_raw:8.2f} {mem:8.0f} {mem / decoded_mb:8.2f}")
+    print(f"\ndecoded 16-bit image: {decoded_mb:.0f} MB; targets: white-balance <= 1.20 x rawpy, "
+          "estimate <= 0.10 x rawpy, peak <= 3.00 x image")
+    print("white-balance server timings (ms):", {k: round(v) for k, v in wb_t.items()})
 
 
 if __name__ == "__main__":

@@ -309,7 +309,8 @@ def _extension(filename: str | None) -> str:
 # decode_upload
 # ---------------------------------------------------------------------------
 
-def decode_upload(data: bytes, filename: str | None, *, max_pixels: int) -> DecodedImage:
+def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
+                  estimation_pixels: int | None = None) -> DecodedImage:
     """Decode an uploaded RAW, 16-bit/float TIFF or 16-bit PNG.
 
     The format is recognised from the content (the file name only decides
@@ -327,6 +328,10 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int) -> Deco
     max_pixels : int
         Largest declared pixel count accepted; checked from the headers
         before any pixel buffer is allocated.
+    estimation_pixels : int, optional
+        For a Bayer RAW, bin ``2f x 2f`` CFA blocks (OpenCV area averaging
+        of each CFA plane) with the smallest ``f`` that gives at most this
+        many estimation pixels; default: half size (``f = 1``).
 
     Returns
     -------
@@ -357,7 +362,7 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int) -> Deco
             raise UploadError(415, "unsupported_format",
                               f"{label} is a {fmt} file; send a camera RAW (DNG, NEF, CR2, ARW, ...) or a "
                               "linear 16-bit/float TIFF or 16-bit PNG")
-        return _decode_raw_or_tiff(data, fmt, filename, max_pixels)
+        return _decode_raw_or_tiff(data, fmt, filename, max_pixels, estimation_pixels)
     except UploadError:
         raise
     except MemoryError:
@@ -368,7 +373,8 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int) -> Deco
                           f"{label} ({fmt}) could not be decoded: {type(exc).__name__}: {exc}") from None
 
 
-def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels: int) -> DecodedImage:
+def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels: int,
+                        estimation_pixels: int | None = None) -> DecodedImage:
     import rawpy
 
     label = f"{filename!r}" if filename else "the upload"
@@ -409,7 +415,7 @@ def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels:
                 # even one of 2 or 4 samples per pixel: not a RAW
                 raw.close()
                 return _decode_tiff(data, filename, max_pixels)
-        return _decode_raw(raw, data, fmt, filename, max_pixels, info, info_error)
+        return _decode_raw(raw, data, fmt, filename, max_pixels, info, info_error, estimation_pixels)
     except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError) as exc:
         raise UploadError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None
     except rawpy.LibRawError as exc:
@@ -608,8 +614,33 @@ def _bin_bayer(img: np.ndarray, sites, blacks, white: float, rows_per_chunk: int
     return est, sat
 
 
+def _bin_bayer_area(img: np.ndarray, sites, blacks, white: float, f: int):
+    """Bin ``2f x 2f`` CFA blocks: each CFA plane averaged over ``f x f``
+    sites (OpenCV ``INTER_AREA``, the exact block mean for an integer
+    factor, rounded to whole digital numbers), then ``(d - b_c)/(w - b_c)``,
+    greens averaged; a block is saturated if any of its sites is."""
+    import cv2
+
+    H, W = img.shape
+    hh, ww = (H // 2) // f, (W // 2) // f
+    est = np.zeros((hh, ww, 3), np.float32)
+    sat = np.zeros((hh, ww), bool)
+    for dy, dx, idx, ch in sites:
+        b = float(blacks[idx])
+        plane = np.ascontiguousarray(img[dy:2 * hh * f:2, dx:2 * ww * f:2])
+        mean = cv2.resize(plane, (ww, hh), interpolation=cv2.INTER_AREA).astype(np.float32)
+        thr = math.ceil(b + SATURATION_FRACTION * (white - b))
+        hit = cv2.resize(cv2.compare(plane, min(thr, 65535), cv2.CMP_GE), (ww, hh), interpolation=cv2.INTER_AREA)
+        sat |= hit > 0
+        mean -= np.float32(b)
+        mean *= np.float32(1.0 / (white - b))
+        est[..., ch] += mean * np.float32(0.5 if ch == 1 else 1.0)
+    return est, sat
+
+
 def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: int,
-                info: _TiffInfo | None = None, info_error: Exception | None = None) -> DecodedImage:
+                info: _TiffInfo | None = None, info_error: Exception | None = None,
+                estimation_pixels: int | None = None) -> DecodedImage:
     import rawpy
 
     label = f"{filename!r}" if filename else "the upload"
@@ -661,7 +692,14 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
             sites = None
     if sites is not None:
         img = raw.raw_image_visible
-        est, sat = _bin_bayer(img, sites, blacks, white)
+        h2, w2 = img.shape[0] // 2, img.shape[1] // 2
+        f = 1
+        if estimation_pixels and h2 * w2 > estimation_pixels:
+            f = int(math.ceil(math.sqrt(h2 * w2 / estimation_pixels)))
+        if f > 1 and h2 // f >= 1 and w2 // f >= 1:
+            est, sat = _bin_bayer_area(img, sites, blacks, white, f)
+        else:
+            est, sat = _bin_bayer(img, sites, blacks, white)
         del img
         if s.height % 2 or s.width % 2:
             warnings.append("odd image size: the last row/column is not in the half-size estimation image")

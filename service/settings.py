@@ -16,6 +16,8 @@ class Settings:
     port: int = 8000
     max_upload_bytes: int = 200 * 1024 * 1024
     max_pixels: int = 120_000_000
+    #: RAW files are binned to at most this many pixels for estimation
+    estimation_pixels: int = 1_000_000
 
 
 @lru_cache
@@ -27,4 +29,5 @@ def get_settings() -> Settings:
         port=int(env.get("WANDELL_PORT", Settings.port)),
         max_upload_bytes=int(env.get("WANDELL_MAX_UPLOAD_BYTES", Settings.max_upload_bytes)),
         max_pixels=int(env.get("WANDELL_MAX_PIXELS", Settings.max_pixels)),
+        estimation_pixels=int(env.get("WANDELL_ESTIMATION_PIXELS", Settings.estimation_pixels)),
     )

@@ -257,3 +257,27 @@ def test_size_and_pixel_limits_are_413(good_dng, monkeypatch):
             assert c.get("/health").status_code == 200
     finally:
         app.dependency_overrides.clear()
+
+
+def test_linear_16bit_tiff_and_png_uploads(client):
+    """A linear 16-bit image (no RAW metadata) goes through the same path;
+    the camera must then be named (or a generic one is used, with a warning)."""
+    import cv2
+
+    from service.dngwriter import spectral_scene
+
+    s = spectral_scene("Canon EOS 5D Mark II", "D65", 60, 90, seed=8)
+    img16 = np.rint(np.clip(s.image, 0, 1) * 65535).astype(np.uint16)
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, img16, photometric="rgb")
+    r = client.post("/v1/analyze", files={"file": ("x.tif", buf.getvalue())},
+                    data={"camera": "Canon EOS 5D Mark II", "method": "white-patch"})
+    assert r.status_code == 200, r.text
+    assert r.json()["camera"]["source"] == "measured"
+    assert angular_error(r.json()["illuminant"]["camera_rgb"], s.light_rgb) < 2.0
+    png = cv2.imencode(".png", np.ascontiguousarray(img16[..., ::-1]))[1].tobytes()
+    r = client.post("/v1/analyze", files={"file": ("x.png", png)})
+    assert r.status_code == 200, r.text
+    assert r.json()["camera"]["source"] == "generic" and any("generic" in w for w in r.json()["warnings"])
+    wb = client.post("/v1/white-balance", files={"file": ("x.png", png)}, data={"format": "png"})
+    assert wb.status_code == 200 and wb.headers["content-type"] == "image/png"

@@ -31,7 +31,8 @@ def _decode(data: bytes, filename: str | None, sens: bytes | None, camera: str |
 
     t0 = time.perf_counter()
     try:
-        decoded = rawio.decode_upload(data, filename, max_pixels=settings.max_pixels)
+        decoded = rawio.decode_upload(data, filename, max_pixels=settings.max_pixels,
+                                      estimation_pixels=settings.estimation_pixels)
         cam, cam_warn = rawio.resolve_camera(decoded, camera, sens)
     except rawio.UploadError as e:
         raise ApiError(e.status, e.code, e.detail) from None
