@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._colour import sd_to_array
-from .grid import DEFAULT_WAVELENGTHS
+from .grid import DEFAULT_WAVELENGTHS, resample_box
 
 __all__ = [
     "illuminant",
@@ -24,6 +24,17 @@ __all__ = [
     "daylight",
     "blackbody",
 ]
+
+
+def light_to_array(sd, wavelengths=None) -> np.ndarray:
+    """A light (or a light basis) on ``wavelengths``: interpolated where the
+    grid is at least as fine as the data, box-averaged where it is coarser
+    (:func:`models.grid.resample_box`: narrow lines keep their energy)."""
+    wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
+    src = np.asarray(sd.wavelengths, float)
+    if wl.size > 1 and float(np.min(np.diff(wl))) > float(np.min(np.diff(src))) * 1.01:
+        return resample_box(src, np.asarray(sd.values, float), wl)
+    return sd_to_array(sd, wl)
 
 
 def illuminant_names(kind: str = "all") -> list[str]:
@@ -54,6 +65,10 @@ def illuminant(name: str, wavelengths=None, normalise: bool = True) -> np.ndarra
     (e.g. ``"D93"``, ``"D5000"``) gives the CIE daylight at that CCT, and
     ``"BB<cct>"`` (e.g. ``"BB3200"``) a blackbody.
 
+    On a grid coarser than the data the spectrum is resampled with
+    :func:`models.grid.resample_box` (each value is the mean over its
+    interval), so narrow emission lines keep their energy.
+
     Parameters
     ----------
     normalise : bool
@@ -67,7 +82,7 @@ def illuminant(name: str, wavelengths=None, normalise: bool = True) -> np.ndarra
     import colour
 
     if name in colour.SDS_ILLUMINANTS:
-        spd = sd_to_array(colour.SDS_ILLUMINANTS[name], wavelengths)
+        spd = light_to_array(colour.SDS_ILLUMINANTS[name], wavelengths)
     elif name.startswith("BB") and name[2:].replace(".", "", 1).isdigit():
         spd = blackbody(float(name[2:]), wavelengths)
     elif name.startswith("D") and name[1:].isdigit():
@@ -97,7 +112,7 @@ def daylight_basis(wavelengths=None) -> np.ndarray:
     """
     from colour.colorimetry import SDS_BASIS_FUNCTIONS_CIE_ILLUMINANT_D_SERIES as B
 
-    return np.stack([sd_to_array(B[k], wavelengths) for k in ("S0", "S1", "S2")], 1)
+    return np.stack([light_to_array(B[k], wavelengths) for k in ("S0", "S1", "S2")], 1)
 
 
 def daylight(cct: float, wavelengths=None) -> np.ndarray:
@@ -106,7 +121,7 @@ def daylight(cct: float, wavelengths=None) -> np.ndarray:
     import colour
 
     xy = colour.temperature.CCT_to_xy_CIE_D(cct)
-    return sd_to_array(colour.sd_CIE_illuminant_D_series(xy), wavelengths)
+    return light_to_array(colour.sd_CIE_illuminant_D_series(xy), wavelengths)
 
 
 def blackbody(temperature: float, wavelengths=None) -> np.ndarray:

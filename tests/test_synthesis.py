@@ -16,10 +16,11 @@ WL = models.DEFAULT_WAVELENGTHS
 
 def _colour_linear_srgb(refl, wl):
     """colour-science's own path: sd_to_XYZ (integration) then XYZ to
-    linear sRGB with the colourspace matrix."""
+    linear sRGB with the colourspace matrix, with the same D65 samples
+    (models.illuminant box-averages 5 nm data onto the 10 nm grid)."""
     shape = colour.SpectralShape(wl[0], wl[-1], wl[1] - wl[0])
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
-    d65 = colour.SDS_ILLUMINANTS["D65"].copy().align(shape)
+    d65 = colour.SpectralDistribution(models.illuminant("D65", wl), wl)
     out = []
     for r in refl:
         sd = colour.SpectralDistribution(r, wl)
@@ -59,7 +60,8 @@ def test_render_of_observer_camera_matches_colour():
     shape = colour.SpectralShape(400, 700, 10)
     XYZ_ref = colour.sd_to_XYZ(colour.SpectralDistribution(refl[7], WL),
                                colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape),
-                               colour.SDS_ILLUMINANTS["D65"].copy().align(shape), method="Integration") / 100
+                               colour.SpectralDistribution(models.illuminant("D65", WL), WL),
+                               method="Integration") / 100
     assert np.allclose(xyz.reshape(-1, 3)[7], XYZ_ref, atol=1e-6)
     enc = render(img, cam, est, output="sRGB")
     ref_enc = colour.cctf_encoding(np.clip(ref, 0, 1), "sRGB")
