@@ -26,7 +26,7 @@ from .subspace import check_dimensions, surface_weights
 from .synthesis import adjust_light_for_gamut, encode, output_space, synthesis_matrix
 
 __all__ = ["IlluminantEstimate", "AnalysisResult", "estimate_illuminant", "analyze", "render",
-           "METHODS", "resolve_model", "angular_error"]
+           "METHODS", "QUALITY_PRESETS", "resolve_model", "angular_error"]
 
 METHODS = ("auto", "maloney-wandell") + tuple(PEERS)
 
@@ -207,7 +207,7 @@ def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_ma
                               None if weights is None else np.asarray(weights, float), model, light_map)
 
 
-def estimate_illuminant(image, camera: Camera, method: str = "auto", *, surface_basis=None,
+def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
                         light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
                         mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
                         dark_fraction: float = 1e-3, spatial: bool = False, region_size: int | None = None,
@@ -350,6 +350,94 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, surface_
         warns.append(f"maloney-wandell could not run: {e}")
         diag["failure"] = str(e)
         return run_peer(fallback, str(e))
+
+
+#: The ``quality`` presets: points of the measured speed/accuracy trade
+#: (``python -m recovery.tradeoff``; figures in the README). Each sets the
+#: analysis resolution (block-averaged pixels) and the wavelength grid.
+QUALITY_PRESETS = {
+    "fast": {"analysis_pixels": 4096, "wavelength_step": 20.0},
+    "balanced": {"analysis_pixels": 65536, "wavelength_step": 10.0},
+    "accurate": {"analysis_pixels": None, "wavelength_step": 5.0},
+}
+
+
+def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality: str | None = None,
+                        analysis_pixels: int | None = None, wavelength_step: float | None = None,
+                        **kwargs) -> IlluminantEstimate:
+    """Estimate the scene light from a linear camera image.
+
+    Parameters
+    ----------
+    image : (H, W, C) linear camera data (any scale)
+    camera : :class:`~recovery.Camera`
+    method : one of :data:`METHODS`
+    quality : ``"fast"``, ``"balanced"`` or ``"accurate"`` (see
+        :data:`QUALITY_PRESETS`); explicit knobs override the preset
+    analysis_pixels : estimate on the image block-averaged to at most this
+        many pixels (:func:`recovery.resolution.block_average`)
+    wavelength_step : analyse on a 5, 10 or 20 nm grid (the camera is
+        resampled; the returned spectrum is on ``camera.wavelengths``)
+    **kwargs
+        Options of the estimators: ``surface_basis``, ``light_basis``,
+        ``surface_dim``, ``light_dim``, ``mask``, ``white_level``,
+        ``saturation_fraction``, ``dark_fraction``, ``spatial``,
+        ``region_size``, ``overlap``, ``min_variation``,
+        ``subspace_tolerance``, ``on_failure``, ``fallback``, ``p``,
+        ``sigma`` (see :func:`_estimate_core`).
+
+    Returns
+    -------
+    IlluminantEstimate
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from recovery import Camera, estimate_illuminant
+    >>> cam = Camera.named("Nikon 5100 (NPL)")
+    >>> img = np.random.default_rng(0).uniform(0.1, 1, (8, 8, 3))
+    >>> estimate_illuminant(img, cam, method="gray-world").method
+    'gray-world'
+    """
+    from .resolution import block_average
+
+    knobs = {}
+    if quality is not None:
+        if quality not in QUALITY_PRESETS:
+            raise InputError(f"quality must be one of {list(QUALITY_PRESETS)}, not {quality!r}")
+        knobs.update(QUALITY_PRESETS[quality])
+    if analysis_pixels is not None:
+        knobs["analysis_pixels"] = analysis_pixels
+    if wavelength_step is not None:
+        knobs["wavelength_step"] = wavelength_step
+    img = image
+    f = 1
+    if knobs.get("analysis_pixels"):
+        arr = np.asarray(image)
+        if arr.ndim == 3:
+            img, mk, f = block_average(arr, kwargs.get("mask"), int(knobs["analysis_pixels"]))
+            if f > 1 and "mask" in kwargs:
+                kwargs["mask"] = mk
+    cam = camera
+    step = knobs.get("wavelength_step")
+    if step:
+        if step not in (5, 10, 20, 5.0, 10.0, 20.0):
+            raise InputError(f"wavelength_step must be 5, 10 or 20 nm, not {step}")
+        cam = camera.on_grid(float(step))
+    est = _estimate_core(img, cam, method, **kwargs)
+    if cam is not camera:
+        from models.grid import resample
+
+        est.spectrum = resample(cam.wavelengths, est.spectrum, camera.wavelengths)
+        est.spectrum = est.spectrum / (est.spectrum.mean() or 1.0)
+        est.wavelengths = camera.wavelengths
+        est.light_weights = None
+        if est.light_map is not None:  # its basis back on the camera's grid
+            est.light_map.light_basis = resample(cam.wavelengths, est.light_map.light_basis, camera.wavelengths)
+    est.diagnostics.update({"analysis_block_factor": f, "analysis_wavelength_step":
+                            float(step) if step else float(np.diff(camera.wavelengths).min()),
+                            "quality": quality})
+    return est
 
 
 # --------------------------------------------------------------------------- analyze

@@ -73,6 +73,20 @@ class Camera:
             raise KeyError(f"unknown camera {name!r}; accepted: {camera_names()}")
         return cls(wl, camera_sensitivities(canon, wl), canon, "measured")
 
+    def on_grid(self, step: float, start: float | None = None, end: float | None = None) -> "Camera":
+        """The same camera on a regular grid of ``step`` nm (box-averaged
+        when coarser, interpolated when finer), same range by default."""
+        from models.grid import resample, resample_box, wavelength_grid
+
+        start = self.wavelengths[0] if start is None else start
+        end = self.wavelengths[-1] if end is None else end
+        wl = wavelength_grid(start, end, step)
+        if wl.size == self.wavelengths.size and np.allclose(wl, self.wavelengths):
+            return self
+        coarser = step > float(np.min(np.diff(self.wavelengths))) * 1.01
+        sens = (resample_box if coarser else resample)(self.wavelengths, self.sensitivities, wl)
+        return Camera(wl, np.clip(sens, 0, None), self.name, self.source, self.notes)
+
     @property
     def channels(self) -> int:
         """C, the number of sensor classes."""

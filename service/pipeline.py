@@ -17,6 +17,7 @@ import numpy as np
 from models import illuminant as get_illuminant
 from recovery import Camera, IlluminantEstimate, analyze, angular_error, estimate_illuminant
 from recovery.api import resolve_model
+from recovery.resolution import block_average
 from recovery.synthesis import output_space, synthesis_matrix
 
 from .errors import ApiError
@@ -25,26 +26,6 @@ from .errors import ApiError
 #: subspace method is unchanged by averaging because mixtures of surfaces
 #: under one light stay in the same subspace, eq. 29).
 ANALYSIS_PIXELS = 250_000
-
-
-def block_average(img: np.ndarray, mask: np.ndarray | None, max_pixels: int):
-    """Average ``f x f`` blocks so that the image has at most ``max_pixels``
-    (OpenCV's area resampling, which for an integer factor is the exact block
-    mean); a block is masked out if any of its pixels is."""
-    import cv2
-
-    h, w = img.shape[:2]
-    f = int(np.ceil(np.sqrt(h * w / max_pixels))) if h * w > max_pixels else 1
-    if f == 1:
-        return img, mask, 1
-    hh, ww = h // f, w // f
-    src = np.ascontiguousarray(img[: hh * f, : ww * f], dtype=np.float32)
-    out = cv2.resize(src, (ww, hh), interpolation=cv2.INTER_AREA)
-    m = None
-    if mask is not None:
-        mk = np.ascontiguousarray(mask[: hh * f, : ww * f], dtype=np.float32)
-        m = cv2.resize(mk, (ww, hh), interpolation=cv2.INTER_AREA) > 1 - 1e-6
-    return out, m, f
 
 
 @dataclass
