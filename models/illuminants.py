@@ -11,6 +11,8 @@ CIE 015:2018, daylight series.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from ._colour import sd_to_array
@@ -59,6 +61,17 @@ def illuminant_names(kind: str = "all") -> list[str]:
 
 
 def illuminant(name: str, wavelengths=None, normalise: bool = True) -> np.ndarray:
+    """See :func:`_illuminant` (cached per grid; returns a new array)."""
+    wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
+    return _illuminant_cached(name, tuple(wl.tolist()), bool(normalise)).copy()
+
+
+@lru_cache(maxsize=512)
+def _illuminant_cached(name, wl, normalise):
+    return _illuminant(name, np.asarray(wl), normalise)
+
+
+def _illuminant(name: str, wavelengths=None, normalise: bool = True) -> np.ndarray:
     """One illuminant's relative spectral power, ``(N,)``.
 
     Besides colour-science's names, ``"D<cct>"`` with any CCT in 4000-25000 K

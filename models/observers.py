@@ -11,6 +11,8 @@ the cones Wandell used.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from ._colour import sd_to_array
@@ -38,6 +40,21 @@ def observer_names() -> list[str]:
 
 
 def observer(name: str = "CIE 1931 2 Degree Standard Observer", wavelengths=None) -> np.ndarray:
+    """See :func:`_observer` (cached per grid; returns a read-only array)."""
+    from .grid import DEFAULT_WAVELENGTHS
+
+    wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
+    return _observer_cached(name, tuple(wl.tolist()))
+
+
+@lru_cache(maxsize=128)
+def _observer_cached(name, wl):
+    out = _observer(name, np.asarray(wl))
+    out.flags.writeable = False
+    return out
+
+
+def _observer(name: str = "CIE 1931 2 Degree Standard Observer", wavelengths=None) -> np.ndarray:
     """Colour matching functions or cone fundamentals, ``(N, 3)``.
 
     Parameters
