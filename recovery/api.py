@@ -155,8 +155,8 @@ def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark
         raise InputError(f"image has {img.shape[2]} channels, camera {camera.name!r} has {camera.channels}")
     if img.shape[0] < 1 or img.shape[1] < 1:
         raise InputError("image is empty")
-    if not np.issubdtype(img.dtype, np.number):
-        raise InputError(f"image dtype {img.dtype} is not numeric")
+    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise InputError(f"image dtype {img.dtype} is not real-valued (integers or floats)")
     img = img.astype(np.float64, copy=False)
     finite = np.all(np.isfinite(img), axis=2)
     m = finite.copy()
@@ -203,6 +203,16 @@ def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_ma
     diag["nonphysical_light_fraction"] = neg
     if neg > 0:
         warns.append(f"estimated light spectrum is negative at {neg:.0%} of wavelengths (non-physical)")
+    # condition of Lambda_E for the C-term surface model used once the light
+    # is known (eq. 36): the synthesis side's sensitivity to camera noise
+    S = surface_pca_model(camera.channels, camera.wavelengths).basis
+    sv = np.linalg.svd(lighting_matrix_from_spectrum(spectrum, S, camera.sensitivities, camera.dlambda),
+                       compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    diag["surface_lighting_condition"] = cond if np.isfinite(cond) else 1e300
+    if not cond < 1e4:
+        warns.append(f"ill-conditioned: Lambda_E has condition number {cond:.3g} (nearly collinear camera "
+                     "channels or a near-monochromatic light); surfaces and renderings amplify noise")
     return IlluminantEstimate(rgb / n, spectrum, camera.wavelengths, method, diag, warns,
                               None if weights is None else np.asarray(weights, float), model, light_map)
 
@@ -415,8 +425,9 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
     if knobs.get("analysis_pixels"):
         arr = np.asarray(image)
         if arr.ndim == 3:
+            nonfinite = int((~np.all(np.isfinite(arr), axis=2)).sum()) if arr.size else 0
             img, mk, f = block_average(arr, kwargs.get("mask"), int(knobs["analysis_pixels"]))
-            if f > 1 and "mask" in kwargs:
+            if f > 1 and mk is not None:
                 kwargs["mask"] = mk
     cam = camera
     step = knobs.get("wavelength_step")
@@ -434,6 +445,8 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
         est.light_weights = None
         if est.light_map is not None:  # its basis back on the camera's grid
             est.light_map.light_basis = resample(cam.wavelengths, est.light_map.light_basis, camera.wavelengths)
+    if f > 1:
+        est.diagnostics["pixels_nonfinite"] = nonfinite
     est.diagnostics.update({"analysis_block_factor": f, "analysis_wavelength_step":
                             float(step) if step else float(np.diff(camera.wavelengths).min()),
                             "quality": quality})
@@ -474,6 +487,9 @@ class AnalysisResult:
         if np.any(pts < 0) or np.any(pts[:, 0] >= h) or np.any(pts[:, 1] >= w):
             raise InputError(f"points must lie inside the {h}x{w} image")
         rho = self.image[pts[:, 0], pts[:, 1]].astype(float)
+        bad = ~np.all(np.isfinite(rho), axis=1)
+        if bad.any():
+            raise InputError(f"non-finite pixel values at points {pts[bad].tolist()[:10]}: no reflectance there")
         L = self._lighting(pts[:, 0].astype(float), pts[:, 1].astype(float))
         return np.einsum("pjk,pk->pj", np.linalg.pinv(L), rho) * self.reflectance_scale
 
@@ -571,6 +587,8 @@ def render(image, camera: Camera, estimate: IlluminantEstimate, target="D65", ou
     img = np.asarray(image)
     if img.ndim != 3 or img.shape[2] != camera.channels:
         raise InputError(f"image must be (H, W, {camera.channels}), got {img.shape}")
+    if not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise InputError(f"image dtype {img.dtype} is not real-valued (integers or floats)")
     space = output_space(output, camera.wavelengths, observer)
     gamut = gamut or ("none" if space.Gamma is None else "clip")
     if gamut not in ("none", "clip", "adjust-light"):
@@ -616,6 +634,9 @@ def render(image, camera: Camera, estimate: IlluminantEstimate, target="D65", ou
     if gamut in ("clip", "adjust-light"):
         out = np.clip(out, 0.0, None)
     out = np.where(np.isfinite(out), out, 0.0)
-    out = out.reshape(h, w, -1).astype(np.float32)
+    if out.size and np.max(np.abs(out)) > np.finfo(np.float32).max:
+        raise InputError("rendered values exceed the float32 range (image values near 1e38 or more); "
+                         "scale the image down (the analysis is scale-free)")
+    out = out.reshape(h, w, out.shape[-1] if out.ndim == 2 else 3).astype(np.float32)
     out = encode(out, space.encoding)
     return (out, info) if return_info else out

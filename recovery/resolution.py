@@ -33,7 +33,8 @@ def block_average(img: np.ndarray, mask: np.ndarray | None, max_pixels: int | No
 
     Returns
     -------
-    image : (H // f, W // f, C) float32 (the input itself when ``f == 1``)
+    image : (H // f, W // f, C) float32, float64 for float64 input (the
+        input itself when ``f == 1``)
     mask : (H // f, W // f) bool or None
     f : int
 
@@ -51,10 +52,12 @@ def block_average(img: np.ndarray, mask: np.ndarray | None, max_pixels: int | No
         return img, mask, 1
     h, w = img.shape[:2]
     hh, ww = h // f, w // f
-    src = np.asarray(img[: hh * f, : ww * f], dtype=np.float32)
+    arr = np.asarray(img[: hh * f, : ww * f])
+    dtype = np.float64 if arr.dtype == np.float64 else np.float32  # no float32 overflow of float64 data
+    src = arr.astype(dtype, copy=False)
     finite = np.all(np.isfinite(src), axis=2)
     if not finite.all():
-        src = np.where(finite[..., None], src, 0.0).astype(np.float32)
+        src = np.where(finite[..., None], src, 0.0).astype(dtype)
         mask = finite if mask is None else (np.asarray(mask)[: hh * f, : ww * f] & finite)
     src = np.ascontiguousarray(src)
     c = src.shape[2]

@@ -100,7 +100,9 @@ def synthesis_matrix(sensors: np.ndarray, wavelengths: np.ndarray, light: np.nda
     white = np.einsum("...n,n,n->...", np.asarray(target, float), space.observer[:, 1], dl)
     s = np.linalg.svd(L_E, compute_uv=False)
     cond = float(np.max(s[..., 0] / np.maximum(s[..., -1], np.finfo(float).tiny)))
-    M = (L_T / white[..., None, None]) @ np.linalg.pinv(L_E)
+    # singular values below 1e-6 of the largest are noise for any camera
+    # data (their directions are cut, not amplified a million-fold)
+    M = (L_T / white[..., None, None]) @ np.linalg.pinv(L_E, rcond=1e-6)
     if space.Gamma is not None:
         M = np.linalg.solve(space.Gamma, M) if M.ndim == 2 else np.linalg.inv(space.Gamma) @ M
     return M, cond
@@ -145,11 +147,14 @@ def adjust_light_for_gamut(pixels: np.ndarray, sensors: np.ndarray, wavelengths:
     frac = float(np.mean(np.any(I0 < 0, axis=1))) if px.size else 0.0
     if frac == 0.0:
         return target, {"adjusted": False, "out_of_gamut_fraction": 0.0, "feasible": True}
-    try:
-        hull = spatial.ConvexHull(px)
-        pts = px[hull.vertices]
-    except Exception:  # degenerate (coplanar) data: use the sample itself
-        pts = px
+    pts = px
+    if px.shape[1] <= 4:  # qhull's cost grows like n^(C/2): beyond 4 channels use the sample
+        try:
+            pts = px[spatial.ConvexHull(px).vertices]
+        except Exception:  # degenerate (coplanar) data: use the sample itself
+            pts = px
+    elif px.shape[0] > 1000:
+        pts = px[rng.choice(px.shape[0], 1000, replace=False)]
     dl = wavelength_step(wavelengths)
     L_E = lighting_matrix_from_spectrum(light, surface_basis, sensors, dl)
     sig = pts @ np.linalg.pinv(L_E).T                                   # (Q, DS)
