@@ -4,11 +4,11 @@ Maloney & Wandell). Knows nothing of HTTP.
 >>> from recovery import Camera, estimate_illuminant, analyze, render
 """
 
-from .api import (METHODS, AnalysisResult, IlluminantEstimate, analyze, angular_error,
+from .api import (METHODS, QUALITY_PRESETS, AnalysisResult, IlluminantEstimate, analyze, angular_error,
                   estimate_illuminant, render, resolve_model)
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation, ModelDimensionError, RecoveryError
 
 __all__ = ["Camera", "estimate_illuminant", "analyze", "render", "IlluminantEstimate",
-           "AnalysisResult", "METHODS", "angular_error", "resolve_model", "RecoveryError",
+           "AnalysisResult", "METHODS", "QUALITY_PRESETS", "angular_error", "resolve_model", "RecoveryError",
            "ModelDimensionError", "InsufficientSurfaceVariation", "InputError"]

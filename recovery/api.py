@@ -234,7 +234,8 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         ``"white-patch"``, ``"shades-of-gray"`` or ``"gray-edge"``
     surface_basis, light_basis : user linear models ((N, D) arrays on
         ``camera.wavelengths``, names or :class:`~models.LinearModel`)
-    surface_dim, light_dim : D(S) (default C - 1) and D(E) (default D(S)+1)
+    surface_dim, light_dim : D(S) (default C - 1) and D(E) (default D(S)+1);
+        ``"auto"`` chooses them by BIC (:func:`recovery.model_order.select_dimensions`)
     white_level : sensor saturation level; pixels with a channel at or above
         ``saturation_fraction * white_level`` are excluded
     dark_fraction : pixels with a channel at or below this fraction of the
@@ -277,6 +278,10 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         raise InputError(f"fallback must be one of {list(PEERS)}")
     img, m, info = _prepare(image, camera, mask, white_level, saturation_fraction, dark_fraction)
     C = camera.channels
+    order_auto = surface_dim == "auto" or light_dim == "auto"
+    if order_auto:
+        surface_dim = None if surface_dim == "auto" else surface_dim
+        light_dim = None if light_dim == "auto" else light_dim
     d_s = surface_dim or (C - 1)
     d_e = light_dim or min(d_s + 1, C)
     if light_basis is not None and not isinstance(light_basis, str) and light_dim is None:
@@ -300,6 +305,25 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
 
     if method in PEERS:
         return run_peer(method)
+
+    if order_auto:
+        from .model_order import select_dimensions
+
+        px = img[m]
+        if px.shape[0] > 20000:
+            px = px[:: px.shape[0] // 20000]
+        cands = [(ds, de) for ds in range(1, C) for de in range(1, min(ds + 1, C) + 1)
+                 if (surface_dim in (None, ds)) and (light_dim in (None, de))
+                 and (de <= 3 or not isinstance(light_basis, str) or light_basis != "daylight")]
+        try:
+            (d_s, d_e), rows = select_dimensions(
+                px, camera, lambda d: resolve_model(light_basis, "light", d, camera.wavelengths).basis,
+                lambda d: resolve_model(surface_basis, "surface", d, camera.wavelengths).basis, cands,
+                min_variation)
+            diag["model_order"] = {f"D(S)={r['D(S)']},D(E)={r['D(E)']}": r["bic"] for r in rows}
+            diag["model_order_rule"] = "BIC over (D(S), D(E)) of the subspace residual (recovery.model_order)"
+        except InsufficientSurfaceVariation as e:
+            diag["model_order"] = f"not selected: {e}"
 
     check_dimensions(C, d_s, d_e)
     S = resolve_model(surface_basis, "surface", d_s, camera.wavelengths)

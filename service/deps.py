@@ -6,7 +6,7 @@ import json
 
 from fastapi import UploadFile
 
-from recovery import METHODS
+from recovery import METHODS, QUALITY_PRESETS
 
 from .errors import ApiError
 from .settings import Settings
@@ -27,8 +27,9 @@ SURFACE_MODELS = ("pca", "fourier")
 LIGHT_MODELS = ("daylight", "illuminant-pca", "fourier")
 
 
-def estimate_options(method: str, surface_dim: int | None, light_dim: int | None, region_size: int | None,
-                     spatial: bool, surface_model: str | None = None, light_model: str | None = None) -> dict:
+def estimate_options(method: str, surface_dim, light_dim, region_size: int | None,
+                     spatial: bool, surface_model: str | None = None, light_model: str | None = None,
+                     quality: str | None = None) -> dict:
     """Validated keyword options for :func:`recovery.estimate_illuminant`."""
     if method not in METHODS:
         raise ApiError(422, "invalid_parameter", f"method {method!r} unknown; accepted: {list(METHODS)}")
@@ -43,14 +44,25 @@ def estimate_options(method: str, surface_dim: int | None, light_dim: int | None
             raise ApiError(422, "invalid_parameter",
                            f"light_model {light_model!r} unknown; accepted: {list(LIGHT_MODELS)}")
         opts["light_basis"] = light_model
-    if surface_dim is not None:
-        if not 1 <= surface_dim <= 16:
-            raise ApiError(422, "invalid_parameter", "surface_dim must be in 1..16")
-        opts["surface_dim"] = surface_dim
-    if light_dim is not None:
-        if not 1 <= light_dim <= 16:
-            raise ApiError(422, "invalid_parameter", "light_dim must be in 1..16")
-        opts["light_dim"] = light_dim
+    for name, val in (("surface_dim", surface_dim), ("light_dim", light_dim)):
+        if val is None or val == "":
+            continue
+        if str(val) == "auto":
+            opts[name] = "auto"
+            continue
+        try:
+            iv = int(val)
+        except (TypeError, ValueError):
+            raise ApiError(422, "invalid_parameter", f"{name} must be an integer in 1..16 or 'auto', "
+                           f"not {val!r}") from None
+        if not 1 <= iv <= 16:
+            raise ApiError(422, "invalid_parameter", f"{name} must be in 1..16 or 'auto'")
+        opts[name] = iv
+    if quality is not None:
+        if quality not in QUALITY_PRESETS:
+            raise ApiError(422, "invalid_parameter",
+                           f"quality {quality!r} unknown; accepted: {list(QUALITY_PRESETS)}")
+        opts["quality"] = quality
     if region_size is not None:
         if not 8 <= region_size <= 100000:
             raise ApiError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")

@@ -281,3 +281,16 @@ def test_linear_16bit_tiff_and_png_uploads(client):
     assert r.json()["camera"]["source"] == "generic" and any("generic" in w for w in r.json()["warnings"])
     wb = client.post("/v1/white-balance", files={"file": ("x.png", png)}, data={"format": "png"})
     assert wb.status_code == 200 and wb.headers["content-type"] == "image/png"
+
+
+def test_quality_and_model_order_options(client, good_dng):
+    for q in ("fast", "balanced", "accurate"):
+        r = _post(client, "/v1/analyze", good_dng, quality=q)
+        assert r.status_code == 200, r.text
+        assert r.json()["diagnostics"]["quality"] == q
+    r = _post(client, "/v1/analyze", good_dng, quality="best")
+    assert r.status_code == 422 and "balanced" in r.json()["detail"]
+    r = _post(client, "/v1/analyze", good_dng, method="maloney-wandell", surface_dim="auto", light_dim="auto")
+    assert r.status_code == 200, r.text
+    d = r.json()["diagnostics"]
+    assert isinstance(d["model_order"], dict) and d["D(S)"] in (1, 2)

@@ -55,15 +55,18 @@ def _analyze_sync(data, filename, sens, camera, method, opts, settings):
 @router.post("/analyze")
 async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                   camera: str | None = Form(None, description="measured camera name, 'matrix' or 'generic'"),
-                  method: str = Form("auto"), surface_dim: int | None = Form(None),
-                  light_dim: int | None = Form(None), region_size: int | None = Form(None),
+                  method: str = Form("auto"),
+                  quality: str | None = Form(None, description="fast, balanced or accurate (measured trade-off)"),
+                  surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"),
+                  light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"), region_size: int | None = Form(None),
                   spatial: bool = Form(False), surface_model: str | None = Form(None, description="pca or fourier"),
                   light_model: str | None = Form(None, description="daylight, illuminant-pca or fourier"),
                   settings: Settings = Depends(get_settings)):
     """Estimate the scene light: camera RGB, white-balance multipliers,
     relative spectrum, CCT/Duv, the method that ran, diagnostics, timings."""
     t0 = time.perf_counter()
-    opts = estimate_options(method, surface_dim, light_dim, region_size, spatial, surface_model, light_model)
+    opts = estimate_options(method, surface_dim, light_dim, region_size, spatial, surface_model, light_model,
+                            quality)
     data, sens = await _inputs(file, sensitivities, settings)
     decoded, run = await run_in_threadpool(_analyze_sync, data, file.filename, sens, camera, method, opts, settings)
     body = pipeline.analysis_json(run, decoded)
@@ -97,11 +100,12 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
 @router.post("/white-balance")
 async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                         camera: str | None = Form(None), method: str = Form("auto"),
+                        quality: str | None = Form(None, description="fast, balanced or accurate"),
                         target: str = Form("D65", description="light to render under, or 'estimate'"),
                         output: str = Form("sRGB", description="sRGB, linear-sRGB or a display name"),
                         format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16, jpeg"),
                         response: str = Form("image", description="image, or json for the estimate only"),
-                        surface_dim: int | None = Form(None), light_dim: int | None = Form(None),
+                        surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"), light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"),
                         region_size: int | None = Form(None), surface_model: str | None = Form(None),
                         light_model: str | None = Form(None), settings: Settings = Depends(get_settings)):
     """The corrected image at full resolution (one 3x3 matrix per pixel
@@ -116,7 +120,8 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
     if output not in ("sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display"):
         raise ApiError(422, "invalid_parameter",
                        "output must be one of sRGB, linear-sRGB, Typical CRT Brainard 1997, Apple Studio Display")
-    opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model)
+    opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model,
+                            quality)
     data, sens = await _inputs(file, sensitivities, settings)
     await file.close()
     fmt, bits = fmts[format]
