@@ -71,6 +71,9 @@ __all__ = ["METHODS_BENCHED", "MondrianScene", "kd_partition", "mondrian_scene",
 #: Estimators run on every scene, in table order (``true-light`` is added).
 METHODS_BENCHED = ("maloney-wandell", "auto", "gray-world", "white-patch", "shades-of-gray", "gray-edge")
 TRUE_LIGHT = "true-light"
+#: The usual RAW pipeline with the true light: diagonal white balance, then
+#: a fixed camera-to-XYZ matrix fitted under D65.
+TRUE_LIGHT_DIAGONAL = "true-light diag+matrix"
 SUBSPACE_METHODS = ("maloney-wandell", "auto")
 
 
@@ -291,8 +294,31 @@ def summarise_angles(errors) -> dict:
             "p95": float(np.percentile(e, 95)), "worst25": float(e[-n_worst:].mean())}
 
 
-def delta_e00_scene(scene: MondrianScene, camera: Camera, estimate: IlluminantEstimate,
-                    erode: int = 1) -> tuple[np.ndarray, float]:
+@lru_cache(maxsize=None)
+def _d65_camera_matrix(camera_name: str) -> np.ndarray:
+    """The usual RAW pipeline's fixed camera-to-XYZ matrix: least squares
+    from white-balanced camera RGB to XYZ of colour-science's reflectances
+    under D65 (white Y = 1), on the camera's 10 nm grid."""
+    cam = _camera(camera_name)
+    d65 = models.illuminant("D65", cam.wavelengths)
+    refl = models.reflectance_set("all", cam.wavelengths)
+    cmf = models.observer("XYZ", cam.wavelengths)
+    rgb = cam.response(refl * d65)
+    white = cam.response(d65)
+    xyz = (refl * d65) @ cmf / (d65 @ cmf[:, 1])
+    M, *_ = np.linalg.lstsq(rgb / white, xyz, rcond=None)
+    return M.T
+
+
+def diagonal_pipeline_xyz(scene: MondrianScene, camera: Camera, light_rgb: np.ndarray) -> np.ndarray:
+    """XYZ under D65 by the usual RAW pipeline: divide by the light's camera
+    RGB (a diagonal white balance), then the fixed matrix fitted under D65."""
+    M = _d65_camera_matrix(scene.camera_name)
+    return (scene.image.astype(np.float64) / np.asarray(light_rgb, float)) @ M.T
+
+
+def delta_e00_scene(scene: MondrianScene, camera: Camera, estimate: IlluminantEstimate | None,
+                    erode: int = 1, xyz: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """CIEDE2000 of each surface, rendered under D65 with ``estimate``.
 
     ``render(image, camera, estimate, target="D65", output="XYZ")`` is
@@ -308,7 +334,8 @@ def delta_e00_scene(scene: MondrianScene, camera: Camera, estimate: IlluminantEs
     """
     import colour
 
-    xyz = render(scene.image, camera, estimate, target="D65", output="XYZ").astype(np.float64)
+    if xyz is None:
+        xyz = render(scene.image, camera, estimate, target="D65", output="XYZ").astype(np.float64)
     k = scene.reflectances.shape[0]
     got = np.empty((k, 3))
     for j in range(k):
@@ -353,11 +380,19 @@ def evaluate_scene(scene: MondrianScene, methods=METHODS_BENCHED, with_true_ligh
     """Run every method on one scene; angle, time, fallback and ΔE00 per method."""
     cam = _camera(scene.camera_name)
     out = {}
-    runs = list(methods) + ([TRUE_LIGHT] if with_true_light else [])
+    runs = list(methods) + ([TRUE_LIGHT, TRUE_LIGHT_DIAGONAL] if with_true_light else [])
     for m in runs:
         rec = {"method_ran": None, "angle": float("nan"), "ms": float("nan"), "fallback": False,
                "fallback_reason": None, "de00": [], "error": None}
         try:
+            if m == TRUE_LIGHT_DIAGONAL:
+                est = _true_estimate(scene, cam)
+                de, scale = delta_e00_scene(scene, cam, None, xyz=diagonal_pipeline_xyz(
+                    scene, cam, cam.response(est.spectrum)))
+                rec.update(method_ran=m, angle=float(angular_error(est.rgb, scene.rgb_true)),
+                           de00=[float(x) for x in de], exposure_scale=scale)
+                out[m] = rec
+                continue
             if m == TRUE_LIGHT:
                 est = _true_estimate(scene, cam)
             else:
@@ -462,7 +497,7 @@ def run_benchmark(scenes: int = 100, size: int = 64, seed: int = 0, ks=(4, 8, 16
             if progress:
                 progress(task[1], len(done[task[1]]), scenes)
     summary, per_scene = {}, {}
-    runs = list(methods) + [TRUE_LIGHT]
+    runs = list(methods) + [TRUE_LIGHT, TRUE_LIGHT_DIAGONAL]
     for k in ks:
         per_scene[str(k)] = done[k]
         summary[str(k)] = [_summary([r["results"] for r in done[k]], m) for m in runs]
@@ -487,7 +522,7 @@ _COLS = [("angle_mean", "mean", "{:7.2f}"), ("angle_median", "median", "{:7.2f}"
 def format_tables(result: dict) -> str:
     """One plain-text table per K (and one pooled over K): rows are methods."""
     lines = []
-    head = f"{'method':<16}" + "".join(f"{lab:>{len(fmt.format(0.0))+1}}" for _, lab, fmt in _COLS) \
+    head = f"{'method':<23}" + "".join(f"{lab:>{len(fmt.format(0.0))+1}}" for _, lab, fmt in _COLS) \
         + f"{'fallback':>9}{'failed':>7}"
     for key, rows in result["summary"].items():
         n = rows[0]["n_scenes"]
@@ -499,7 +534,7 @@ def format_tables(result: dict) -> str:
             cells = "".join(" " + (fmt.format(r[c]) if math.isfinite(r[c]) else f"{'-':>{len(fmt.format(0.0))}}")
                             for c, _, fmt in _COLS)
             fb = "" if r["fallback_rate"] is None else f"{100 * r['fallback_rate']:.0f}%"
-            lines.append(f"{r['method']:<16}{cells}{fb:>9}{r['n_failed']:>7}")
+            lines.append(f"{r['method']:<23}{cells}{fb:>9}{r['n_failed']:>7}")
         for r in rows:
             if r["fallback_reasons"]:
                 why = ", ".join(f"{v} {k}" for k, v in sorted(r["fallback_reasons"].items(), key=lambda x: -x[1]))
