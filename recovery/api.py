@@ -28,7 +28,7 @@ from .synthesis import adjust_light_for_gamut, encode, output_space, synthesis_m
 __all__ = ["IlluminantEstimate", "AnalysisResult", "estimate_illuminant", "analyze", "render",
            "METHODS", "QUALITY_PRESETS", "resolve_model", "angular_error"]
 
-METHODS = ("auto", "maloney-wandell") + tuple(PEERS)
+METHODS = ("auto", "bayes", "maloney-wandell") + tuple(PEERS)
 
 
 def angular_error(a, b) -> np.ndarray:
@@ -90,6 +90,66 @@ def resolve_model(spec, kind: str, dimension: int | None, wavelengths: np.ndarra
 
 
 # --------------------------------------------------------------------------- estimate
+def _run_bayes(img, m, camera, diag, warns, run_peer):
+    """The default estimator: the posterior over physically plausible lights
+    (:func:`recovery.bayes.estimate_bayes`), with a declared fallback."""
+    from .bayes import estimate_bayes
+
+    px = img[m]
+    if px.shape[0] == 0:
+        return run_peer("shades-of-gray", "no usable pixels for the light posterior")
+    rgb, spd, bdiag = estimate_bayes(img, m, camera)
+    d = dict(diag)
+    d.update({k: v for k, v in bdiag.items() if isinstance(v, (int, float, str, bool)) or v is None})
+    if bdiag.get("method", "bayes") != "bayes" or spd is None:
+        return run_peer("shades-of-gray", str(bdiag.get("fallback_reason") or bdiag.get("decided_by")))
+    spd = np.asarray(spd, float)
+    spd = spd / (spd.mean() or 1.0)
+    d["decision"] = "bayes: " + str(bdiag.get("decided_by", "posterior over plausible lights"))
+    return _finish(rgb, spd, None, camera, None, "bayes", d, list(warns))
+
+
+def _maybe_light_map(img, m, camera, est, region_size, overlap, force: bool):
+    """One light or a light map (BIC, :func:`recovery.model_order.select_spatial`):
+    the posterior estimate in each of a grid of regions against the single
+    estimate; a map is kept when it explains the data better after paying
+    for its extra lights, or when ``force``."""
+    from .bayes import estimate_bayes
+    from .model_order import select_spatial
+    from .regions import LightMap, tile_regions
+
+    h, w = img.shape[:2]
+    size = region_size or max(8, min(h, w) // 3)
+    rs, cs, sr, sc = tile_regions((h, w), size, overlap if force else 0.0)
+    spectra, slices, used = [], [], []
+    for r0 in rs:
+        for c0 in cs:
+            sl = (slice(r0, r0 + sr), slice(c0, c0 + sc))
+            mm = m[sl]
+            ok = False
+            if mm.sum() >= 16:
+                _, spd, bd = estimate_bayes(img[sl], mm, camera)
+                ok = spd is not None and bd.get("method", "bayes") == "bayes"
+            spectra.append(np.asarray(spd, float) / np.mean(spd) if ok else est.spectrum)
+            slices.append(sl)
+            used.append(ok)
+    spectra = np.array(spectra)
+    S = surface_pca_model(camera.channels - 1, camera.wavelengths).basis
+    test = select_spatial(img, m, camera, est.spectrum, spectra, slices, S, 3)
+    est.diagnostics["spatial_test"] = {k: v for k, v in test.items() if not isinstance(v, np.ndarray)}
+    if not (test.get("spatial") or force):
+        est.diagnostics["light_map"] = "one light: the light map did not pay for its extra lights (BIC)"
+        return est
+    gr, gc = len(rs), len(cs)
+    basis = np.eye(camera.wavelengths.size)
+    lm = LightMap(rs + (sr - 1) / 2.0, cs + (sc - 1) / 2.0, spectra.reshape(gr, gc, -1),
+                  np.array(used).reshape(gr, gc), np.full((gr, gc), np.nan), np.full((gr, gc), np.nan), basis)
+    est.light_map = lm
+    est.diagnostics["light_map"] = (f"light map of {gr}x{gc} regions ({sum(used)} estimated): "
+                                    + ("requested" if force else "BIC prefers it over one light"))
+    return est
+
+
 @dataclass
 class IlluminantEstimate:
     """An estimate of the scene light.
@@ -210,6 +270,7 @@ def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_ma
                        compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     diag["surface_lighting_condition"] = cond if np.isfinite(cond) else 1e300
+    diag.setdefault("lighting_condition", diag["surface_lighting_condition"])
     if not cond < 1e4:
         warns.append(f"ill-conditioned: Lambda_E has condition number {cond:.3g} (nearly collinear camera "
                      "channels or a near-monochromatic light); surfaces and renderings amplify noise")
@@ -305,6 +366,18 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
 
     if method in PEERS:
         return run_peer(method)
+
+    if method in ("auto", "bayes") and any(v is not None for v in (surface_dim, light_dim, surface_basis,
+                                                                    light_basis)):
+        # a pinned linear model must obey the paper's rules whichever estimator decides
+        S_ = resolve_model(surface_basis, "surface", d_s, camera.wavelengths)
+        E_ = resolve_model(light_basis, "light", d_e, camera.wavelengths)
+        check_dimensions(C, S_.dimension, E_.dimension)
+    if method in ("auto", "bayes") and not (spatial is True and method == "bayes"):
+        est = _run_bayes(img, m, camera, diag, warns, run_peer)
+        if method == "auto" and spatial in (True, "auto") and est.method == "bayes":
+            est = _maybe_light_map(img, m, camera, est, region_size, overlap, spatial is True)
+        return est
 
     if order_auto:
         from .model_order import select_dimensions

@@ -1,25 +1,140 @@
-"""Bayesian illuminant estimation over physically plausible lights (prototype)."""
+"""Bayesian illuminant estimation over physically plausible lights.
+
+The estimator keeps the ingredients of Wandell (1985) -- linear camera
+responses (eq. 12), lighting matrices (eq. 16-17), the fact that under one
+light the data of low-dimensional surfaces fill a low-dimensional subspace
+(eq. 29-31), surfaces by pseudo-inverse (eq. 36) and the paper's own
+failure tests (the data may not sit in a subspace; the implied surfaces may
+not be realisable) -- but turns the single null vector of eq. 30-35 into a
+likelihood over a set of candidate lights, as the noise and model-error
+analysis of the paper (eq. 37-39) asks for: *the distribution of the error
+vector depends upon the surfaces in the image as well as the ambient light*,
+and can be specified once the class of materials is known.
+
+Model
+-----
+Let ``R`` (N x C) be the camera (with the quadrature weights), ``E_m`` a
+candidate light (:mod:`recovery.illuminant_prior`), ``S_i`` the measured
+reflectances shipped with colour-science (plus convex mixtures of pairs of
+them: a mixture of two realisable reflectances is realisable). Under light
+``m`` a surface gives ``rho = s R^T (E_m * S)`` (eq. 12 and 16, with an
+unknown scale ``s``: shading times exposure). Two scale-free quantities are
+used:
+
+* chromaticity, as the centred log-ratio ``u = H log rho`` with ``H`` the
+  (C-1) x C Helmert basis of the sum-zero subspace (for C = 3 a rotation of
+  ``(log R/G, log B/G)``). A light change by a diagonal matrix is a shift of
+  ``u`` (the diagonal model, Drew & Finlayson, seed ``003``), so distances
+  in ``u`` have the same meaning under every light;
+* relative lightness ``y = mean_k log(rho_k / e_k)`` with ``e = R^T E_m``
+  the light's own response, i.e. the geometric mean of the implied
+  per-channel reflectance, which is at most 0 for a realisable surface
+  (reflectance <= 1) up to the one global scale.
+
+For every candidate ``m`` the densities ``p_m(u)`` and ``q(y | u - u_m)``
+are kernel density estimates over the shipped reflectances computed
+*spectrally* under that light (so fluorescent and LED lights, for which the
+diagonal model is poor, get their own surface gamut). The kernel is
+Gaussian with covariance ``h^2 Sigma_surf + sigma_n^2 I`` (``Sigma_surf``
+the within-light covariance of the surfaces' ``u``, ``h`` a bandwidth
+chosen by leave-one-reflectance-set-out likelihood, ``sigma_n`` sensor noise
+and model error). Everything is computed in the coordinates ``z = A u`` in
+which this kernel is the unit Gaussian (for C = 3 as a grid table per
+candidate, built once per camera and candidate set and cached). The density
+is the smoothed version of the Maloney-Wandell subspace: for C = 3 the
+D(S) = 2 plane spanned by the columns of ``Lambda_E`` (eq. 29) is a line in
+``u``; the density's long axis lies along it and its width across it is the
+distribution of the subspace residual of eq. 37-39.
+
+The image is summarised by its *distinct* chromaticities: pixels are
+binned in ``z`` (cells of half the kernel width); each cell with enough
+pixels counts once, whatever its area (colour by correlation, Finlayson,
+Hordley & Hubel 2001), so that a large wall does not outvote a small
+patch. The log-likelihood of light ``m`` is
+
+    L(m) = sum_cells w_c log p_m(z_c)
+           + log integral dt prod_cells q(y_c - t | z_c - z_m)^{w_c}
+
+where the second term (evaluated for the most probable lights only) uses
+the brightest pixel of each cell and integrates the unknown global scale
+``t`` with a flat prior, so only *relative* lightness matters: under the
+right light bright surfaces are the ones that can be bright (near-neutral,
+reflectance at most 1; Forsyth's gamut constraint and the white-patch
+idea, as a likelihood). Shading is uniform in log on ``[1/shade_range, 1]``.
+
+The prior (:func:`recovery.illuminant_prior.default_candidates`) is spread
+over colour-science's illuminants, the CIE daylight locus, blackbody
+radiators and mixtures; optionally lights *off* the set (``off_set_prior``)
+are admitted on a grid in ``u`` around it, with a prior that decays with
+the distance to the nearest candidate, each taking the surface density of
+its nearest candidate shifted by the diagonal model. The posterior mean in
+chromaticity (``rgb / sum``) is the estimate; its spread is the confidence.
+Because the mean of lights is a light (mixtures are physical) the estimate
+comes with a spectrum: the posterior mixture of the candidate spectra,
+each scaled to unit camera response sum, whose camera response is exactly
+the reported chromaticity.
+
+References
+----------
+Wandell (1985), ``shared/seeds/002``: eq. 12, 16-17 (sensor responses and
+lighting matrices), eq. 26-31 (the subspace of one light), eq. 36
+(surfaces by pseudo-inverse), eq. 37-39 (noise and model errors), and the
+two failure modes (data not in a subspace; non-realisable surfaces).
+Brainard & Freeman (1997), Bayesian color constancy, JOSA A 14(7).
+Finlayson, Hordley & Hubel (2001), Color by correlation, IEEE PAMI 23(11).
+Forsyth (1990), A novel algorithm for color constancy, IJCV 5(1).
+Drew & Finlayson (2003), seed ``003`` (diagonal models of light change).
+Land & McCann (1971) (white patch); Finlayson & Trezzi (2004) (shades of
+gray, the fallback).
+"""
 
 from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
+from scipy import fft as sfft
 from scipy import ndimage
 
 import models
 
 from .camera import Camera
+from .estimators import shades_of_gray
 from .illuminant_prior import CandidateLights, default_candidates
 
-__all__ = ["estimate_bayes", "chromaticity_model", "helmert"]
+__all__ = ["estimate_bayes", "BayesModel", "bayes_model", "helmert", "DEFAULTS"]
+
+#: Default settings of the model (see :func:`bayes_model`) and of the
+#: image summary (see :func:`estimate_bayes`).
+DEFAULTS = {
+    "bandwidth": 0.25,       # h: kernel = h^2 Sigma_surf + noise^2 I (leave-one-set-out likelihood)
+    "adaptive": 0.5,         # Abramson square-root law for local bandwidths
+    "noise": 0.02,           # sigma_n in log units: 1-2 % sensor noise and model error
+    "mixtures": 1000,        # convex pair mixtures of the reflectances
+    "mixture_weight": 0.3,   # their share of the surface density
+    "outlier": 0.02,         # probability that a colour is from no modelled surface
+    "lightness_bandwidth": 0.1,
+    "shade_range": 3.0,      # shading uniform in log on [1/3, 1]
+}
 
 
 def helmert(c: int) -> np.ndarray:
-    """Orthonormal basis of the sum-zero subspace of R^C, ``(C-1, C)``."""
+    """Orthonormal basis of the sum-zero subspace of R^C, ``(C-1, C)``.
+
+    ``H @ log(rho)`` is the centred log-ratio chromaticity: invariant to
+    the scale of ``rho``, and a diagonal change of light is a shift of it.
+
+    Examples
+    --------
+    >>> h = helmert(3)
+    >>> np.allclose(h @ h.T, np.eye(2)), np.allclose(h.sum(axis=1), 0)
+    (True, True)
+    """
+    if c < 2:
+        raise ValueError("need at least two channels")
     h = np.zeros((c - 1, c))
     for i in range(1, c):
         h[i - 1, :i] = 1.0
@@ -28,9 +143,9 @@ def helmert(c: int) -> np.ndarray:
     return h
 
 
-def _digest(*arrays) -> str:
+def _digest(*parts) -> str:
     h = hashlib.sha1()
-    for a in arrays:
+    for a in parts:
         if isinstance(a, str):
             h.update(a.encode())
         else:
@@ -40,75 +155,148 @@ def _digest(*arrays) -> str:
     return h.hexdigest()
 
 
+# --------------------------------------------------------------------------- the model
 @dataclass
-class ChromaticityModel:
-    """Per camera + candidate set + surface set statistics."""
+class BayesModel:
+    """Statistics of one camera, one candidate set and one surface set.
 
-    H: np.ndarray                 # (d, C)
-    A: np.ndarray                 # (d, d) whitening of the kernel
-    light_rgb: np.ndarray         # (M, C)
-    light_chroma: np.ndarray      # (M, C) rgb / sum
-    light_z: np.ndarray           # (M, d)
-    z_train: np.ndarray           # (M, n, d)
-    w_train: np.ndarray           # (n,)
-    grid_lo: np.ndarray | None
-    grid_step: float
-    log_table: np.ndarray | None  # (M, G1, G2) log density (d == 2)
+    Attributes
+    ----------
+    H : (d, C) Helmert basis, d = C - 1
+    A : (d, d) whitening: ``z = A u`` makes the kernel the unit Gaussian
+    light_rgb : (M, C) camera response to each candidate (eq. 12)
+    light_z : (M, d) the candidates' own chromaticity in ``z``
+    z_train : (M, n, d) the training surfaces under every candidate
+    y_train : (M, n) their relative lightness ``mean_k log(rho_k / e_k)``
+    w_train : (n,) their weights (measured surfaces, then mixtures)
+    table_lo, table_step, log_table : for C = 3 the log density of every
+        candidate on a grid in ``z`` ((M, G1, G2), float32)
+    lightness : dict, the conditional lightness table (C = 3)
+    log_floor : log density of the outlier component
+    settings : the settings it was built with
+    build_ms : time to build (ms)
+    """
+
+    H: np.ndarray
+    A: np.ndarray
+    light_rgb: np.ndarray
+    light_z: np.ndarray
+    z_train: np.ndarray
+    y_train: np.ndarray
+    w_train: np.ndarray
+    table_lo: np.ndarray | None
+    table_step: float
+    log_table: np.ndarray | None
     log_floor: float
-    gw_mean: np.ndarray           # (M, d) expected mean z of surfaces minus light z
-    gw_cov: np.ndarray            # (d, d) covariance of one surface's z about the mean
+    settings: dict
     build_ms: float
+    lightness: dict | None = None
+    cache: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def light_chroma(self) -> np.ndarray:
+        """(M, C) rgb / sum of every candidate."""
+        return self.light_rgb / self.light_rgb.sum(axis=1, keepdims=True)
+
+    def to_u(self, z: np.ndarray) -> np.ndarray:
+        """Back from whitened ``z`` to log-ratio ``u``."""
+        return z @ np.linalg.inv(self.A).T
 
 
-_MODELS: dict = {}
+_MODEL_CACHE: dict = {}
+_MODEL_CACHE_MAX = 16
 
 
-def _reflectance_array(reflectances, wl):
-    if reflectances is None:
-        reflectances = "all"
-    if isinstance(reflectances, str):
-        return models.reflectance_set(reflectances, wl)
-    if isinstance(reflectances, (list, tuple)) and all(isinstance(s, str) for s in reflectances):
-        return np.concatenate([models.reflectance_set(s, wl) for s in reflectances])
-    r = np.atleast_2d(np.asarray(reflectances, float))
-    if r.shape[1] != wl.size:
-        raise ValueError(f"reflectances must be (n, {wl.size})")
-    return r
+@lru_cache(maxsize=32)
+def _named_reflectances(names: tuple, wl: tuple) -> np.ndarray:
+    w = np.asarray(wl)
+    out = np.concatenate([models.reflectance_set(s, w) for s in names])
+    out.flags.writeable = False
+    return out
 
 
-def chromaticity_model(camera: Camera, candidates: CandidateLights, reflectances=None, *, bandwidth: float = 0.35,
-                       noise: float = 0.02, n_mix: int = 600, mix_weight: float = 0.3, grid_step: float = 0.2,
-                       outlier: float = 0.02, seed: int = 0) -> ChromaticityModel:
+def _reflectances(spec, wl: np.ndarray) -> tuple[np.ndarray, str]:
+    """The surface set as an array and a cache key for it."""
+    if spec is None:
+        spec = "all"
+    if isinstance(spec, str):
+        spec = [spec]
+    if isinstance(spec, (list, tuple)) and spec and all(isinstance(s, str) for s in spec):
+        return _named_reflectances(tuple(spec), tuple(np.asarray(wl, float).tolist())), "sets:" + ",".join(spec)
+    r = np.atleast_2d(np.asarray(spec, dtype=np.float64))
+    if r.ndim != 2 or r.shape[1] != wl.size:
+        raise ValueError(f"reflectances must be (n, {wl.size}) on the camera's wavelengths, got {r.shape}")
+    if not np.all(np.isfinite(r)) or r.shape[0] < 3:
+        raise ValueError("reflectances must be finite, at least 3 of them")
+    return r, _digest(r)
+
+
+def bayes_model(camera: Camera, candidates: CandidateLights | None = None, reflectances=None, *,
+                bandwidth: float = DEFAULTS["bandwidth"], noise: float = DEFAULTS["noise"],
+                mixtures: int = DEFAULTS["mixtures"], mixture_weight: float = DEFAULTS["mixture_weight"],
+                outlier: float = DEFAULTS["outlier"], grid_step: float = 0.2, seed: int = 0,
+                adaptive: float = DEFAULTS["adaptive"]) -> BayesModel:
+    """Build (or fetch from the cache) the statistics the estimator needs.
+
+    Parameters
+    ----------
+    camera : :class:`~recovery.Camera`, any number of channels C >= 3
+    candidates : :class:`~recovery.illuminant_prior.CandidateLights` on
+        ``camera.wavelengths`` (default :func:`default_candidates`)
+    reflectances : surfaces whose statistics define "plausible": ``None``
+        (every reflectance set shipped, :func:`models.reflectance_set`),
+        a set name, a list of names, or an ``(n, N)`` array on
+        ``camera.wavelengths``
+    bandwidth : kernel width as a fraction of the surfaces' own spread
+    noise : added kernel standard deviation in log units (sensor noise and
+        model error, eq. 37-39)
+    mixtures, mixture_weight : number of random convex pair mixtures of the
+        reflectances added, and their share of the density
+    outlier : weight of a broad (uniform) component, so that a surface
+        unlike any modelled one costs a bounded amount
+    grid_step : table resolution in kernel units (C = 3)
+
+    Returns
+    -------
+    BayesModel
+    """
     wl = camera.wavelengths
-    refl = np.clip(_reflectance_array(reflectances, wl), 1e-4, None)
-    key = _digest(camera.sensitivities, wl, candidates.spectra, refl, np.array([bandwidth, noise, n_mix, mix_weight,
-                                                                                 grid_step, outlier, seed]))
-    if key in _MODELS:
-        return _MODELS[key]
+    cands = candidates if candidates is not None else default_candidates(wl)
+    if cands.wavelengths.shape != wl.shape or not np.allclose(cands.wavelengths, wl):
+        raise ValueError("candidate lights must be on the camera's wavelengths")
+    refl, refl_key = _reflectances(reflectances, wl)
+    settings = {"bandwidth": float(bandwidth), "noise": float(noise), "mixtures": int(mixtures),
+                "mixture_weight": float(mixture_weight), "outlier": float(outlier), "grid_step": float(grid_step),
+                "seed": int(seed), "adaptive": float(adaptive)}
+    key = _digest(camera.sensitivities, wl, cands.key, refl_key, str(sorted(settings.items())))
+    hit = _MODEL_CACHE.get(key)
+    if hit is not None:
+        return hit
+    refl = np.clip(refl, 1e-4, None)
     t0 = time.perf_counter()
     C = camera.channels
     d = C - 1
     H = helmert(C)
     R = camera.sensitivities * camera.dlambda[:, None]
-    E = candidates.spectra
+    E = cands.spectra
     light_rgb = E @ R
-    light_rgb = np.maximum(light_rgb, 1e-12 * light_rgb.max())
+    tiny = 1e-12 * max(float(light_rgb.max()), 1e-300)
+    light_rgb = np.maximum(light_rgb, tiny)
     n0 = refl.shape[0]
-    rng = np.random.default_rng(seed)
-    if n_mix > 0:
-        ia = rng.integers(n0, size=n_mix)
-        ib = rng.integers(n0, size=n_mix)
-        al = rng.uniform(0, 1, size=(n_mix, 1))
-        mix = al * refl[ia] + (1 - al) * refl[ib]
-        train = np.concatenate([refl, mix])
-        w = np.concatenate([np.full(n0, (1 - mix_weight) / n0), np.full(n_mix, mix_weight / n_mix)])
+    if mixtures > 0 and mixture_weight > 0:
+        rng = np.random.default_rng(seed)
+        ia, ib = rng.integers(n0, size=mixtures), rng.integers(n0, size=mixtures)
+        al = rng.uniform(0.0, 1.0, size=(mixtures, 1))
+        train = np.concatenate([refl, al * refl[ia] + (1 - al) * refl[ib]])
+        w = np.concatenate([np.full(n0, (1 - mixture_weight) / n0), np.full(mixtures, mixture_weight / mixtures)])
     else:
-        train = refl
-        w = np.full(n0, 1.0 / n0)
-    rgb = np.einsum("mn,sn,nc->msc", E, train, R, optimize=True)
-    rgb = np.maximum(rgb, 1e-9 * rgb.max())
-    u = np.log(rgb) @ H.T                                               # (M, n, d)
-    ul = np.log(light_rgb) @ H.T                                        # (M, d)
+        train, w = refl, np.full(n0, 1.0 / n0)
+    rgb = np.einsum("mn,sn,nc->msc", E, train, R, optimize=True)          # eq. 12 per light and surface
+    rgb = np.maximum(rgb, 1e-9 * max(float(rgb.max()), 1e-300))
+    lrgb = np.log(rgb)
+    u = lrgb @ H.T                                                         # (M, n, d)
+    ul = np.log(light_rgb) @ H.T
+    y = np.mean(lrgb - np.log(light_rgb)[:, None, :], axis=-1)            # (M, n)
     mu = np.einsum("n,mnd->md", w, u)
     dev = u - mu[:, None, :]
     cov = np.einsum("n,mnd,mne->de", w, dev, dev) / E.shape[0]
@@ -117,122 +305,546 @@ def chromaticity_model(camera: Camera, candidates: CandidateLights, reflectances
     A = (evec / np.sqrt(ev)) @ evec.T
     z = u @ A.T
     zl = ul @ A.T
-    gw_mean = (mu - ul) @ A.T
-    gw_cov = A @ cov @ A.T
-    log_table = None
-    lo = None
-    log_floor = 0.0
+    log_table, lo, log_floor = None, None, float(np.log(outlier) - 10.0)
     if d == 2:
         lo = z.reshape(-1, 2).min(0) - 5.0
         hi = z.reshape(-1, 2).max(0) + 5.0
-        shape = np.ceil((hi - lo) / grid_step).astype(int) + 2
+        shape = np.array([sfft.next_fast_len(int(n), True) for n in np.ceil((hi - lo) / grid_step).astype(int) + 2])
         M = E.shape[0]
         f = (z - lo) / grid_step
         i0 = np.floor(f).astype(int)
         fr = f - i0
-        tab = np.zeros((M, shape[0] * shape[1]))
-        base = np.arange(M)[:, None] * (shape[0] * shape[1])
-        for dx in (0, 1):
-            for dy in (0, 1):
-                wx = fr[..., 0] if dx else 1 - fr[..., 0]
-                wy = fr[..., 1] if dy else 1 - fr[..., 1]
-                idx = base + (i0[..., 0] + dx) * shape[1] + (i0[..., 1] + dy)
-                tab.ravel()[:] += np.bincount(idx.ravel(), (wx * wy * w[None, :]).ravel(), minlength=tab.size)
-        tab = tab.reshape(M, shape[0], shape[1])
-        tab = ndimage.gaussian_filter(tab, (0, 1.0 / grid_step, 1.0 / grid_step), mode="constant", truncate=5.0)
+        size = int(shape[0] * shape[1])
+        base = np.arange(M)[:, None] * size
+        # local bandwidth factors (Abramson's square-root law): narrower
+        # kernels where surfaces crowd (e.g. the many neutrals), wider in
+        # the sparse saturated fringe; classes of equal factor share a filter
+        lam = np.ones(w.size)
+        if adaptive > 0:
+            ref = int(np.argmin(np.abs(np.arange(M) - M // 2)))
+            zr = z[ref]
+            d2 = np.sum((zr[:, None, :] - zr[None, :, :]) ** 2, axis=-1)
+            pilot = np.exp(-0.5 * d2) @ w
+            g = np.exp(np.sum(w * np.log(pilot)) / w.sum())
+            lam = np.clip((pilot / g) ** (-adaptive), 0.5, 2.0)
+        classes = np.round(np.log2(lam) * 2) / 2
+        # Gaussian smoothing in the Fourier domain (the grid's 5-unit margin
+        # keeps the periodic wrap-around below 1e-5 of the peak)
+        fx = sfft.fftfreq(int(shape[0]))[:, None]
+        fy = sfft.rfftfreq(int(shape[1]))[None, :]
+        spec = np.zeros((M, int(shape[0]), fy.size), dtype=complex)
+        for cl in np.unique(classes):
+            sel = classes == cl
+            part = np.zeros(M * size)
+            for dx in (0, 1):
+                for dy in (0, 1):
+                    wgt = (fr[:, sel, 0] if dx else 1 - fr[:, sel, 0]) * (fr[:, sel, 1] if dy else 1 - fr[:, sel, 1])
+                    idx = base + (i0[:, sel, 0] + dx) * shape[1] + (i0[:, sel, 1] + dy)
+                    part += np.bincount(idx.ravel(), (wgt * w[None, sel]).ravel(), minlength=part.size)
+            sd = float(2.0 ** cl) / grid_step
+            spec += sfft.rfft2(part.reshape(M, shape[0], shape[1])) * np.exp(-2 * np.pi ** 2 * sd ** 2
+                                                                                 * (fx ** 2 + fy ** 2))
+        tab = np.maximum(sfft.irfft2(spec, s=(int(shape[0]), int(shape[1]))), 0.0)
         tab /= tab.sum(axis=(1, 2), keepdims=True)
-        dens = tab / grid_step ** 2
-        area = shape[0] * shape[1] * grid_step ** 2
+        area = float(shape[0] * shape[1]) * grid_step ** 2
         log_floor = float(np.log(outlier / area))
-        log_table = np.log((1 - outlier) * dens + outlier / area).astype(np.float32)
-    model = ChromaticityModel(H, A, light_rgb, light_rgb / light_rgb.sum(1, keepdims=True), zl, z, w, lo, grid_step,
-                              log_table, log_floor, gw_mean, gw_cov, (time.perf_counter() - t0) * 1000)
-    _MODELS[key] = model
+        log_table = np.log((1 - outlier) * tab / grid_step ** 2 + outlier / area).astype(np.float32)
+    else:
+        area = float(np.prod(z.reshape(-1, d).max(0) - z.reshape(-1, d).min(0) + 10.0))
+        log_floor = float(np.log(outlier / area))
+    model = BayesModel(H, A, light_rgb, zl, z, y, w, lo, float(grid_step), log_table, log_floor, settings,
+                       (time.perf_counter() - t0) * 1000.0)
+    if log_table is not None:     # the default lightness table, so that the first estimate is not slow
+        _lightness_table(model, DEFAULTS["shade_range"], DEFAULTS["lightness_bandwidth"])
+        model.build_ms = (time.perf_counter() - t0) * 1000.0
+    if len(_MODEL_CACHE) >= _MODEL_CACHE_MAX:
+        _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))
+    _MODEL_CACHE[key] = model
     return model
 
 
-def _summarise(px: np.ndarray, model: ChromaticityModel, cell: float, min_count_frac: float):
-    """Distinct chromaticities of the pixels: cells of side ``cell`` (kernel
-    units) in whitened log-chromaticity; mean z and weight per cell."""
-    u = np.log(px) @ model.H.T
-    z = u @ model.A.T
-    q = np.floor(z / cell).astype(np.int64)
-    qmin = q.min(0)
-    q -= qmin
-    dims = q.max(0) + 1
-    if np.prod(dims.astype(float)) < 5e6:
-        key = np.ravel_multi_index(q.T, dims)
-        cnt = np.bincount(key)
-        nz = np.flatnonzero(cnt)
-        inv = np.searchsorted(nz, key)
-        cnt = cnt[nz]
-    else:
-        _, inv, cnt = np.unique(q, axis=0, return_inverse=True, return_counts=True)
-        inv = inv.ravel()
-    B = cnt.size
-    zs = np.stack([np.bincount(inv, z[:, k], minlength=B) for k in range(z.shape[1])], 1) / cnt[:, None]
-    c0 = max(2.0, min_count_frac * px.shape[0])
-    wgt = np.minimum(1.0, cnt / c0)
-    return zs, wgt, cnt
+# --------------------------------------------------------------------------- likelihoods
+def _bilinear(tab: np.ndarray, lo: np.ndarray, step: float, rows, z: np.ndarray) -> np.ndarray:
+    """``tab[rows, z]`` with bilinear interpolation; ``rows`` broadcast
+    against ``z[..., 0]`` (points outside the grid take the edge, i.e.
+    the outlier floor)."""
+    f = (z - lo) / step
+    G = np.array(tab.shape[1:]) - 1.001
+    f = np.clip(f, 0.0, G)
+    i0 = f.astype(np.intp)
+    fr = f - i0
+    a, b = i0[..., 0], i0[..., 1]
+    fx, fy = fr[..., 0], fr[..., 1]
+    return ((tab[rows, a, b] * (1 - fy) + tab[rows, a, b + 1] * fy) * (1 - fx)
+            + (tab[rows, a + 1, b] * (1 - fy) + tab[rows, a + 1, b + 1] * fy) * fx)
 
 
-def _loglik(model: ChromaticityModel, zs: np.ndarray) -> np.ndarray:
-    """(M, B) log density of each cell mean under each candidate."""
+def _chroma_loglik(model: BayesModel, idx: np.ndarray, z: np.ndarray, points=None) -> np.ndarray:
+    """``log p_{idx[i]}(z[i, b])`` for light rows ``idx`` (V,) and points
+    ``z`` (V, B, d) or (B, d) (the same points for every light)."""
+    if z.ndim == 2:
+        z = np.broadcast_to(z[None], (idx.size,) + z.shape)
     if model.log_table is not None:
-        tab = model.log_table
-        f = (zs - model.grid_lo) / model.grid_step
-        G = np.array(tab.shape[1:])
-        f = np.clip(f, 0, G - 1.001)
-        i0 = np.floor(f).astype(int)
-        fr = f - i0
-        out = 0.0
-        for dx in (0, 1):
-            for dy in (0, 1):
-                wgt = (fr[:, 0] if dx else 1 - fr[:, 0]) * (fr[:, 1] if dy else 1 - fr[:, 1])
-                out = out + tab[:, i0[:, 0] + dx, i0[:, 1] + dy] * wgt[None, :]
-        return out
-    d = zs.shape[1]
-    zt = model.z_train
-    d2 = (np.sum(zt ** 2, -1)[:, :, None] + np.sum(zs ** 2, -1)[None, None, :]
-          - 2 * np.einsum("mnd,bd->mnb", zt, zs, optimize=True))
-    dens = np.einsum("n,mnb->mb", model.w_train, np.exp(-0.5 * np.maximum(d2, 0))) / (2 * np.pi) ** (d / 2)
-    return np.log(0.98 * dens + 1e-6)
+        return _bilinear(model.log_table, model.table_lo, model.table_step, idx[:, None], z)
+    # C > 3: the kernel density evaluated directly (unit Gaussian in z),
+    # optionally on a fixed subsample of the training surfaces
+    d = z.shape[-1]
+    out = np.empty(z.shape[:2])
+    sub = slice(None) if points is None else points
+    zt = model.z_train[:, sub]
+    wt = model.w_train[sub]
+    wt = wt / wt.sum()
+    norm = (2 * np.pi) ** (-d / 2)
+    out_w = 1.0 - model.settings["outlier"]
+    for j, m in enumerate(idx):
+        d2 = (np.sum(zt[m] ** 2, 1)[:, None] + np.sum(z[j] ** 2, 1)[None, :] - 2 * zt[m] @ z[j].T)
+        dens = wt @ np.exp(-0.5 * np.maximum(d2, 0.0)) * norm
+        out[j] = np.log(out_w * dens + np.exp(model.log_floor))
+    return out
 
 
-def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *, candidates: CandidateLights | None = None,
-                   reflectances=None, white_level=None, dark_fraction: float = 0.02, cell: float = 0.5,
-                   min_count_frac: float = 0.002, temperature: float = 1.0, gray_world_weight: float = 0.0,
-                   model_kw: dict | None = None):
-    t0 = time.perf_counter()
-    x = np.asarray(image_or_pixels, dtype=np.float64)
-    C = camera.channels
-    px = x.reshape(-1, C)
-    ok = np.all(np.isfinite(px), axis=1)
+def _lightness_table(model: BayesModel, shade_range: float, h_y: float, step_z: float = 0.25,
+                     step_y: float = 0.05, floor: float = 0.02) -> dict:
+    """log q(y | dz): the density of relative lightness given the
+    chromaticity relative to the light, pooled over candidates (C = 3)."""
+    key = ("lightness", float(shade_range), float(h_y), step_z, step_y, floor)
+    hit = model.cache.get(key)
+    if hit is not None:
+        return hit
+    M = model.z_train.shape[0]
+    dz = (model.z_train - model.light_z[:, None, :]).reshape(-1, 2)
+    y = model.y_train.reshape(-1)
+    w = np.tile(model.w_train, M) / M
+    lo = np.array([*(dz.min(0) - 4.0), -9.0])
+    hi = np.array([*(dz.max(0) + 4.0), 1.5])
+    step = np.array([step_z, step_z, step_y])
+    shape = np.ceil((hi - lo) / step).astype(int) + 1
+    idx = np.clip(np.round((np.column_stack([dz, y]) - lo) / step).astype(int), 0, shape - 1)
+    tab = np.bincount(np.ravel_multi_index(idx.T, shape), w, minlength=int(np.prod(shape))).reshape(shape)
+    tab = ndimage.gaussian_filter(tab, (1.0 / step_z, 1.0 / step_z, h_y / step_y), mode="constant", truncate=4.0)
+    nbox = max(1, int(round(np.log(max(shade_range, 1.0)) / step_y)))
+    if nbox > 1:  # y_obs = y + log(shade), log(shade) uniform on [-log(shade_range), 0]
+        tab = ndimage.convolve1d(tab, np.ones(nbox) / nbox, axis=2, mode="constant", origin=(nbox - 1) // 2)
+    marg = tab.sum(axis=2, keepdims=True)
+    ny = shape[2]
+    reg = floor * float(marg.max())
+    cond = (tab + reg / ny) / (marg + reg)      # towards a flat lightness density where colours are rare
+    out = {"lo": lo, "step": step, "shape": shape, "log": np.log(cond / step_y).astype(np.float32).ravel()}
+    model.cache[key] = out
+    return out
+
+
+def _lightness_loglik(model: BayesModel, light_z: np.ndarray, light_logmean: np.ndarray, z: np.ndarray,
+                      ybar: np.ndarray, wgt: np.ndarray, shade_range: float, h_y: float) -> np.ndarray:
+    """``log integral dt prod_c q(y_c - t | z_c - z_m)^{w_c}`` for each light,
+    with a flat prior on the global log scale ``t``."""
+    tb = _lightness_table(model, shade_range, h_y)
+    lo, step, shape, logc = tb["lo"], tb["step"], tb["shape"], tb["log"]
+    dz = z[None, :, :] - light_z[:, None, :]                         # (N, B, 2)
+    iz = np.clip(np.round((dz - lo[:2]) / step[:2]).astype(np.intp), 0, shape[:2] - 1)
+    base = (iz[..., 0] * shape[1] + iz[..., 1]) * shape[2]           # (N, B)
+    y0 = ybar[None, :] - light_logmean[:, None]
+    ref = y0.max(axis=1, keepdims=True)
+    taus = np.arange(-1.0, 4.0, step[2])
+    iy = np.round(((y0 - ref)[:, :, None] - taus[None, None, :] - lo[2]) / step[2]).astype(np.intp)
+    np.clip(iy, 0, shape[2] - 1, out=iy)
+    vals = logc[base[:, :, None] + iy]                               # (N, B, T)
+    L = np.einsum("nbt,b->nt", vals, wgt)
+    mx = L.max(axis=1, keepdims=True)
+    return mx[:, 0] + np.log(np.mean(np.exp(L - mx), axis=1))
+
+
+# --------------------------------------------------------------------------- off-set lights
+def _off_set_lights(model: BayesModel, step_u: float, radius_u: float, tau_u: float):
+    """Lights on a grid in ``u`` within ``radius_u`` of the candidates, each
+    tied to its nearest candidate (diagonal model), with a prior
+    ``exp(-d^2 / 2 tau^2)`` in the distance ``d`` to it (cached)."""
+    key = ("offset", step_u, radius_u, tau_u)
+    hit = model.cache.get(key)
+    if hit is not None:
+        return hit
+    H = model.H
+    ul = np.log(model.light_rgb) @ H.T
+    lo, hi = ul.min(0) - radius_u, ul.max(0) + radius_u
+    axes = [np.arange(a, b + step_u / 2, step_u) for a, b in zip(lo, hi)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, ul.shape[1])
+    nn = np.empty(g.shape[0], dtype=np.intp)
+    dmin = np.empty(g.shape[0])
+    for i in range(0, g.shape[0], 4096):
+        dd = np.linalg.norm(g[i:i + 4096, None, :] - ul[None], axis=-1)
+        nn[i:i + 4096] = np.argmin(dd, axis=1)
+        dmin[i:i + 4096] = dd[np.arange(dd.shape[0]), nn[i:i + 4096]]
+    sel = (dmin <= radius_u) & (dmin > 0.5 * step_u)
+    g, nn, dmin = g[sel], nn[sel], dmin[sel]
+    rgb = np.exp(g @ H)                        # log rgb = H^T u up to a common scale
+    rgb *= (model.light_rgb[nn].sum(1) / rgb.sum(1))[:, None]
+    out = {"u": g, "nearest": nn, "shift_z": (g - ul[nn]) @ model.A.T, "z": g @ model.A.T, "rgb": rgb,
+           "log_prior": -0.5 * (dmin / tau_u) ** 2}
+    model.cache[key] = out
+    return out
+
+
+def _modulated_spectrum(spd: np.ndarray, camera: Camera, target_rgb: np.ndarray) -> np.ndarray:
+    """``spd`` times a smooth non-negative modulation so its camera response
+    is ``target_rgb`` (diagonal model made spectral: the modulation is a
+    combination of the channels' shares of sensitivity)."""
+    R = camera.sensitivities * camera.dlambda[:, None]
+    tot = camera.sensitivities.sum(axis=1, keepdims=True)
+    share = np.where(tot > 0, camera.sensitivities / np.where(tot > 0, tot, 1.0), 1.0 / camera.channels)
+    G = (spd[:, None, None] * share[:, None, :] * R[:, :, None]).sum(axis=0)      # (C, C)
+    try:
+        c = np.linalg.solve(G, target_rgb)
+    except np.linalg.LinAlgError:
+        c = np.linalg.lstsq(G, target_rgb, rcond=None)[0]
+    c = np.clip(c, 0.0, None)
+    out = spd * (share @ c)
+    return out if np.any(out > 0) else spd
+
+
+# --------------------------------------------------------------------------- the image
+def _rowmin(x: np.ndarray) -> np.ndarray:
+    out = x[:, 0].copy()
+    for k in range(1, x.shape[1]):
+        np.minimum(out, x[:, k], out=out)
+    return out
+
+
+def _rowmax(x: np.ndarray) -> np.ndarray:
+    out = x[:, 0].copy()
+    for k in range(1, x.shape[1]):
+        np.maximum(out, x[:, k], out=out)
+    return out
+
+
+def _pixels(image_or_pixels, mask, channels: int):
+    x = np.asarray(image_or_pixels)
+    if not np.issubdtype(x.dtype, np.number) or np.issubdtype(x.dtype, np.complexfloating):
+        raise ValueError(f"image dtype {x.dtype} is not real numeric")
+    if x.ndim < 1 or x.shape[-1] != channels:
+        raise ValueError(f"expected (..., {channels}) data, got shape {x.shape}")
+    px = x.reshape(-1, channels).astype(np.float64, copy=False)
+    with np.errstate(invalid="ignore", over="ignore"):
+        ok = np.isfinite(px @ np.ones(channels))
     if mask is not None:
-        ok &= np.asarray(mask, bool).reshape(-1)
-    px = px[ok]
-    scale = px.max()
-    px = px / scale
-    keep = np.all(px > dark_fraction, axis=1)
-    if white_level is not None:
-        keep &= np.all(px * scale < 0.98 * white_level, axis=1)
-    px = px[keep]
-    cands = candidates or default_candidates(camera.wavelengths)
-    model = chromaticity_model(camera, cands, reflectances, **(model_kw or {}))
-    zs, wgt, cnt = _summarise(px, model, cell, min_count_frac)
-    ll = _loglik(model, zs)                      # (M, B)
-    L = ll @ wgt
-    logpost = np.log(cands.prior) + temperature * L
-    if gray_world_weight > 0:
-        zbar = (wgt @ zs) / wgt.sum()
-        neff = wgt.sum()
-        r = zbar[None, :] - model.light_z - model.gw_mean
-        S = model.gw_cov / max(neff, 1.0) + np.eye(zs.shape[1]) * 1e-3
-        Si = np.linalg.inv(S)
-        logpost = logpost - gray_world_weight * 0.5 * np.einsum("md,de,me->m", r, Si, r)
-    logpost -= logpost.max()
-    post = np.exp(logpost)
-    post /= post.sum()
-    chroma = post @ model.light_chroma
-    return chroma, post, {"ms": (time.perf_counter() - t0) * 1000, "n_cells": int(zs.shape[0]),
-                          "n_eff": float(wgt.sum()), "best": cands.names[int(np.argmax(post))]}
+        mk = np.asarray(mask, bool)
+        if mk.size != px.shape[0]:
+            raise ValueError(f"mask has {mk.size} entries for {px.shape[0]} pixels")
+        ok &= mk.reshape(-1)
+    return px, ok
+
+
+def _cells(q: np.ndarray):
+    """Integer cell coordinates -> (inverse index, counts)."""
+    q = q - np.array([c.min() for c in q.T])
+    dims = np.array([c.max() for c in q.T]) + 1
+    if float(np.prod(dims.astype(float))) < 4e7:
+        key = np.ravel_multi_index(q.T, dims)
+        cnt_all = np.bincount(key)
+        occ = cnt_all > 0
+        lut = np.cumsum(occ) - 1
+        return lut[key], cnt_all[occ]
+    _, inv, cnt = np.unique(q, axis=0, return_inverse=True, return_counts=True)
+    return inv.ravel(), cnt
+
+
+def _summary(px: np.ndarray, model: BayesModel, cell: float, min_count_frac: float, max_cells: int = 1024,
+             max_distinct: float = 100.0, coarse: float | None = None):
+    """Distinct chromaticities of the pixels.
+
+    Pixels are binned in ``z`` (cells of side ``cell`` kernel units; the
+    side doubles until at most ``max_cells`` remain). Per cell: the mean
+    ``z``, the largest ``mean_k log rho_k`` (the least shaded instance), the
+    pixel count and a weight ``min(1, n / n0)`` with ``n0 =
+    min_count_frac`` of the pixels (at least 2): a colour counts once,
+    whatever its area. The weights are scaled down if they add up to more
+    than ``max_distinct`` (textures and gradients are not independent
+    surfaces)."""
+    C = px.shape[1]
+    lg = np.log(px)
+    z = lg @ (model.A @ model.H).T
+    yl = lg @ np.full(C, 1.0 / C)
+    inv, cnt = _cells(np.floor(z / cell).astype(np.int64))
+    B = cnt.size
+    zsum = np.stack([np.bincount(inv, z[:, k], minlength=B) for k in range(z.shape[1])], 1)
+    ybar = np.full(B, -np.inf)
+    np.maximum.at(ybar, inv, yl)
+    side = cell
+    while B > max_cells:
+        side *= 2.0
+        inv2, _ = _cells(np.floor((zsum / cnt[:, None]) / side).astype(np.int64))
+        B = int(inv2.max()) + 1
+        zsum = np.stack([np.bincount(inv2, zsum[:, k], minlength=B) for k in range(zsum.shape[1])], 1)
+        cnt = np.bincount(inv2, cnt, minlength=B)
+        yb = np.full(B, -np.inf)
+        np.maximum.at(yb, inv2, ybar)
+        ybar = yb
+    zs = zsum / cnt[:, None]
+    n0 = max(2.0, min_count_frac * px.shape[0])
+    if coarse:
+        # a distinct colour: cells within ``coarse`` kernel units of a more
+        # populous cell join its cluster (greedy, most populous first); a
+        # cluster weighs min(1, pixels / n0), shared in proportion to counts
+        order = np.argsort(-cnt, kind="stable")
+        label = np.full(cnt.size, -1)
+        centres: list[int] = []
+        r2 = coarse ** 2
+        for i in order:
+            if centres:
+                dd = np.sum((zs[centres] - zs[i]) ** 2, axis=1)
+                j = int(np.argmin(dd))
+                if dd[j] <= r2:
+                    label[i] = j
+                    continue
+            label[i] = len(centres)
+            centres.append(int(i))
+        ctot = np.bincount(label, cnt)
+        wgt = np.minimum(1.0, ctot / n0)[label] * cnt / ctot[label]
+    else:
+        wgt = np.minimum(1.0, cnt / n0)
+    tot = wgt.sum()
+    if tot > max_distinct:
+        wgt *= max_distinct / tot
+    return zs, ybar, cnt, wgt, side
+
+
+def _posterior(logp: np.ndarray) -> np.ndarray:
+    lp = logp - np.max(logp)
+    p = np.exp(lp)
+    return p / p.sum()
+
+
+def _entropy(p: np.ndarray) -> float:
+    q = p[p > 0]
+    return float(-(q * np.log(q)).sum())
+
+
+def _angle(a, b) -> np.ndarray:
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    an = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    bn = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.degrees(2 * np.arctan2(np.linalg.norm(an - bn, axis=-1), np.linalg.norm(an + bn, axis=-1)))
+
+
+def _fallback(px_all: np.ndarray, ok: np.ndarray, camera: Camera, reason: str, t0: float, diag: dict):
+    """Shades of gray (p = 6) on whatever finite positive pixels there are;
+    a flat response if there are none. Never NaN."""
+    use = px_all[ok & np.all(px_all >= 0, axis=1)] if px_all.size else px_all
+    rgb = None
+    if use.size and np.max(use) > 0:
+        rgb = shades_of_gray(use / np.max(use), None, 6.0)
+    if rgb is None or not (np.all(np.isfinite(rgb)) and np.linalg.norm(rgb) > 0 and np.all(rgb >= 0)):
+        rgb = np.ones(camera.channels)
+        reason += "; no usable signal at all, returned a flat response"
+    rgb = np.maximum(rgb, 0.0)
+    if np.count_nonzero(rgb) == 0:
+        rgb = np.ones(camera.channels)
+    diag.update({"method": "shades-of-gray", "fallback": reason, "decided_by": f"fallback to shades-of-gray: {reason}",
+                 "confidence": 0.0, "posterior_entropy": 0.0, "posterior_spread_deg": None, "best_candidate": "",
+                 "distinct_colours": 0.0, "ms": (time.perf_counter() - t0) * 1000.0})
+    return rgb / np.linalg.norm(rgb), None, diag
+
+
+def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
+                   candidates: CandidateLights | None = None, reflectances=None, white_level: float | None = None,
+                   saturation_fraction: float = 0.98, dark_fraction: float = 0.02, min_pixels: int = 4,
+                   cell: float = 0.5, coarse: float | None = None, min_count_fraction: float = 0.002,
+                   temperature: float = 1.0,
+                   lightness: bool = True, shade_range: float = DEFAULTS["shade_range"],
+                   lightness_bandwidth: float = DEFAULTS["lightness_bandwidth"], top_lights: int = 40,
+                   off_set_prior: float = 0.0, off_set_step: float = 0.02, off_set_radius: float = 0.15,
+                   off_set_scale: float = 0.05, model_options: dict | None = None):
+    """Estimate the light as the posterior mean over plausible lights.
+
+    Parameters
+    ----------
+    image_or_pixels : (H, W, C) or (P, C) linear camera data, any scale
+    mask : (H, W) or (P,) bool, pixels to use (``None``: all)
+    camera : :class:`~recovery.Camera` (any C >= 3)
+    candidates : :class:`~recovery.illuminant_prior.CandidateLights` on
+        ``camera.wavelengths`` (default
+        :func:`~recovery.illuminant_prior.default_candidates`)
+    reflectances : the surfaces that define "plausible" (see
+        :func:`bayes_model`; default every shipped reflectance set)
+    white_level : sensor saturation level; pixels with a channel at or above
+        ``saturation_fraction * white_level`` are left out
+    dark_fraction : pixels with a channel at or below this fraction of the
+        brightest value are left out (relative, so scale-free)
+    min_pixels : fewer usable pixels than this: fall back to shades of gray
+    cell : side of a chromaticity cell in kernel units
+    min_count_fraction : a cell counts fully once it holds this fraction of
+        the usable pixels (at least 2 pixels); fewer count proportionally
+    temperature : multiplies the log-likelihood (1: plain Bayes)
+    lightness : use the relative-lightness term (C = 3)
+    shade_range : shading is taken uniform in log on ``[1/shade_range, 1]``
+    top_lights : the lightness term is evaluated for at most this many of
+        the most probable lights
+    off_set_prior : prior mass of lights off the candidate set (0: none)
+    off_set_step, off_set_radius, off_set_scale : their grid step, reach and
+        prior decay, in log-ratio units (0.02 is a 2 % change of a channel
+        ratio)
+    model_options : keyword arguments for :func:`bayes_model`
+
+    Returns
+    -------
+    rgb : (C,) camera response to the estimated light, unit norm
+    spectrum : (N,) unit-mean relative spectral power on
+        ``camera.wavelengths`` whose camera response has the direction of
+        ``rgb``; ``None`` after a fallback
+    diagnostics : dict of plain numbers and strings: ``confidence`` in
+        [0, 1], ``posterior_entropy`` (nats), ``posterior_spread_deg``
+        (posterior standard deviation of the light's direction),
+        ``best_candidate``, ``decided_by`` (which evidence decided),
+        ``distinct_colours``, ``pixels_used``, ``top_candidates``, the
+        shift each kind of evidence caused, timings.
+
+    Notes
+    -----
+    Scale-invariant: only chromaticities and lightness relative to the
+    brightest pixel enter. The returned rgb is the posterior mean of the
+    light chromaticity ``rgb / sum``, the estimate that minimises the
+    expected squared chromaticity error.
+    """
+    t0 = time.perf_counter()
+    if camera is None:
+        raise ValueError("a camera is needed")
+    C = camera.channels
+    px_all, ok = _pixels(image_or_pixels, mask, C)
+    diag: dict = {"method": "bayes", "pixels_total": int(px_all.shape[0])}
+    with np.errstate(invalid="ignore"):
+        usable = ok & (_rowmin(px_all) > 0) if px_all.shape[0] else ok
+    if not usable.any():
+        return _fallback(px_all, ok, camera, "no pixel with a positive response in every channel", t0, diag)
+    pos = px_all if usable.all() else np.compress(usable, px_all, axis=0)
+    scale = float(_rowmax(pos).max())
+    keep = usable.copy()
+    with np.errstate(invalid="ignore"):
+        dark_ok = _rowmin(px_all) > dark_fraction * scale
+        if np.count_nonzero(dark_ok & usable) < min_pixels:
+            # one channel much weaker than the others everywhere (a blue
+            # channel under tungsten): relax the threshold once, by 4
+            diag["dark_threshold_relaxed"] = 0.25 * dark_fraction
+            dark_ok = _rowmin(px_all) > 0.25 * dark_fraction * scale
+        keep &= dark_ok
+        if white_level is not None and np.isfinite(white_level) and white_level > 0:
+            keep &= _rowmax(px_all) < saturation_fraction * float(white_level)
+    diag["pixels_dark_or_saturated"] = int(usable.sum() - keep.sum())
+    px = (px_all if keep.all() else np.compress(keep, px_all, axis=0)) / scale
+    diag["pixels_used"] = int(px.shape[0])
+    if px.shape[0] < min_pixels:
+        return _fallback(px_all, ok, camera, f"only {px.shape[0]} usable pixels (< {min_pixels})", t0, diag)
+    cands = candidates if candidates is not None else default_candidates(camera.wavelengths)
+    model = bayes_model(camera, cands, reflectances, **(model_options or {}))
+    t1 = time.perf_counter()
+    d = C - 1
+    zs, ybar, cnt, wgt, side = _summary(px, model, cell if d == 2 else max(cell, 1.0), min_count_fraction,
+                                        max_cells=1024 if d == 2 else 128,
+                                        coarse=coarse if (coarse is not None or d == 2) else 2.0)
+    M = len(cands)
+    diag.update(distinct_colours=round(float(wgt.sum()), 2), chromaticity_cells=int(zs.shape[0]),
+                cell_size=float(side))
+
+    # chromaticity likelihood of every candidate
+    if model.log_table is not None:
+        L_chroma = _chroma_loglik(model, np.arange(M), zs) @ wgt
+    else:
+        # C > 3: every light on a subsample of the surfaces, then the most
+        # probable ones on all of them
+        n = model.w_train.size
+        pts = np.random.default_rng(0).choice(n, size=min(n, 512), replace=False)
+        L_chroma = _chroma_loglik(model, np.arange(M), zs, pts) @ wgt
+        p1 = _posterior(np.log(np.maximum(cands.prior, 1e-300)) + temperature * L_chroma)
+        order = np.argsort(p1)[::-1]
+        top = order[:int(min(24, np.searchsorted(np.cumsum(p1[order]), 1 - 1e-6) + 1))]
+        full = _chroma_loglik(model, top, zs) @ wgt
+        L_chroma = np.full(M, -np.inf)
+        L_chroma[top] = full
+    log_prior = np.log(np.maximum(cands.prior, 1e-300))
+    light_rgb = model.light_rgb
+    light_z = model.light_z
+    names = list(cands.names)
+    nearest = np.arange(M)
+    if off_set_prior > 0:
+        off = _off_set_lights(model, off_set_step, off_set_radius, off_set_scale)
+        V = off["u"].shape[0]
+        if V:
+            Lv = np.einsum("vb,b->v", _chroma_loglik(model, off["nearest"], zs[None] - off["shift_z"][:, None, :]),
+                           wgt)
+            lpv = off["log_prior"]
+            lpv = lpv - np.log(np.exp(lpv - lpv.max()).sum()) - lpv.max()
+            log_prior = np.concatenate([log_prior + np.log1p(-off_set_prior), lpv + np.log(off_set_prior)])
+            L_chroma = np.concatenate([L_chroma, Lv])
+            light_rgb = np.concatenate([light_rgb, off["rgb"]])
+            light_z = np.concatenate([light_z, off["z"]])
+            nearest = np.concatenate([nearest, off["nearest"]])
+    chroma = light_rgb / light_rgb.sum(axis=1, keepdims=True)
+    post_prior = _posterior(log_prior)
+    lp_chroma = log_prior + temperature * L_chroma
+    post_chroma = _posterior(lp_chroma)
+    logpost = lp_chroma
+    use_light = lightness and model.log_table is not None and zs.shape[0] >= 2
+    if use_light:
+        order = np.argsort(post_chroma)[::-1]
+        cum = np.cumsum(post_chroma[order])
+        n = int(min(top_lights, np.searchsorted(cum, 1 - 1e-4) + 1))
+        top = order[:n]
+        L_light = _lightness_loglik(model, light_z[top], np.log(light_rgb[top]).mean(axis=1), zs, ybar, wgt,
+                                    shade_range, lightness_bandwidth)
+        logpost = np.full_like(lp_chroma, -np.inf)
+        logpost[top] = lp_chroma[top] + temperature * L_light
+    post = _posterior(logpost)
+    mean_chroma = post @ chroma
+    rgb = mean_chroma / np.linalg.norm(mean_chroma)
+
+    # spectrum: posterior mixture of the lights, each scaled to unit response sum
+    sig = np.flatnonzero(post > 1e-4 * post.max())
+    phys = sig[sig < M]
+    spd = (post[phys] / model.light_rgb[phys].sum(axis=1)) @ cands.spectra[phys]
+    for i in sig[sig >= M]:
+        s_i = _modulated_spectrum(cands.spectra[nearest[i]], camera, light_rgb[i])
+        spd = spd + post[i] * s_i / max(float(camera.response(s_i).sum()), 1e-300)
+    spectrum = spd / spd.mean() if spd.mean() > 0 else None
+
+    # evidence accounting
+    ang = _angle(chroma[sig], mean_chroma[None])
+    spread = float(np.sqrt(np.sum(post[sig] * ang ** 2) / post[sig].sum()))
+    confidence = float(1.0 / (1.0 + (spread / 2.0) ** 2))
+    shift_chroma = float(_angle(post_prior @ chroma, post_chroma @ chroma))
+    shift_light = float(_angle(post_chroma @ chroma, mean_chroma)) if use_light else 0.0
+    best = int(np.argmax(post))
+    best_name = names[best] if best < M else f"off-set light near {names[nearest[best]]}"
+    topk = np.argsort(post)[::-1][:5]
+    top_txt = ", ".join(f"{(names[i] if i < M else 'near ' + names[nearest[i]])} {post[i]:.2f}" for i in topk
+                        if post[i] > 0.005)
+    if shift_chroma >= shift_light:
+        why = (f"chromaticity evidence of {wgt.sum():.1f} distinct surface colours (moved the estimate "
+               f"{shift_chroma:.1f} deg from the prior mean)")
+        if use_light:
+            why += f"; relative lightness refined it by {shift_light:.1f} deg"
+    else:
+        why = (f"relative-lightness evidence (bright surfaces must be realisable; moved the estimate "
+               f"{shift_light:.1f} deg), after chromaticity evidence of {wgt.sum():.1f} distinct colours "
+               f"({shift_chroma:.1f} deg)")
+    why += f"; most probable light {best_name} ({post[best]:.2f}), posterior spread {spread:.1f} deg"
+    off_mass = float(post[M:].sum()) if post.size > M else 0.0
+    if off_mass > 0.5:
+        why += f"; the light is mostly off the candidate set ({off_mass:.0%} of the posterior)"
+    diag.update({
+        "confidence": confidence,
+        "posterior_entropy": _entropy(post),
+        "posterior_spread_deg": spread,
+        "best_candidate": best_name,
+        "best_candidate_family": cands.families[nearest[best]],
+        "best_candidate_probability": float(post[best]),
+        "top_candidates": top_txt,
+        "decided_by": why,
+        "shift_by_chromaticity_deg": shift_chroma,
+        "shift_by_lightness_deg": shift_light,
+        "off_set_posterior_mass": off_mass,
+        "lightness_term": bool(use_light),
+        "lights_considered": int(chroma.shape[0]),
+        "model_build_ms": float(model.build_ms),
+        "ms": (time.perf_counter() - t0) * 1000.0,
+        "ms_after_model": (time.perf_counter() - t1) * 1000.0,
+    })
+    return rgb, spectrum, diag

@@ -406,7 +406,7 @@ def evaluate_scene(scene: MondrianScene, methods=METHODS_BENCHED, with_true_ligh
                 fr = est.diagnostics.get("subspace_fit_ratio")
                 rec["subspace_fit_ratio"] = None if fr is None else float(fr)
                 rec["decision"] = est.diagnostics.get("decision")
-            if m in SUBSPACE_METHODS and est.method != "maloney-wandell":
+            if m in SUBSPACE_METHODS and est.method not in ("maloney-wandell", "bayes"):
                 rec["fallback"] = True
                 rec["fallback_reason"] = _fallback_reason(str(est.diagnostics.get("decision", "")))
             de, scale = delta_e00_scene(scene, cam, est)

@@ -52,7 +52,11 @@ import models
 __all__ = ["CandidateLights", "FAMILIES", "default_candidates", "candidate_lights", "random_lights"]
 
 #: The candidate families, in order.
-FAMILIES = ("named", "daylight", "blackbody", "mixture")
+FAMILIES = ("named", "daylight", "blackbody", "mixture", "narrowband")
+
+#: Prior mass of each family (relative): narrow-band lamps are admitted but
+#: rare.
+FAMILY_WEIGHTS = {"named": 1.0, "daylight": 1.0, "blackbody": 1.0, "mixture": 1.0, "narrowband": 0.25}
 
 #: (light a, light b) pairs mixed at power fractions of ``MIXTURE_FRACTIONS``.
 MIXTURE_PAIRS = (("D65", "A"), ("D50", "A"), ("D75", "BB2700"), ("D65", "BB2000"), ("D65", "FL2"),
@@ -102,6 +106,11 @@ class CandidateLights:
         object.__setattr__(self, "prior", pr / pr.sum())
         object.__setattr__(self, "names", tuple(str(n) for n in self.names))
         object.__setattr__(self, "families", tuple(str(f) for f in self.families))
+        h = hashlib.sha1()
+        for a in (wl, sp, self.prior):
+            h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+        h.update("\0".join(self.names).encode())
+        object.__setattr__(self, "_key", h.hexdigest())
 
     def __len__(self) -> int:
         return int(self.spectra.shape[0])
@@ -109,11 +118,7 @@ class CandidateLights:
     @property
     def key(self) -> str:
         """A digest of the spectra, names and prior (for caches)."""
-        h = hashlib.sha1()
-        for a in (self.wavelengths, self.spectra, self.prior):
-            h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
-        h.update("\0".join(self.names).encode())
-        return h.hexdigest()
+        return self._key
 
     def select(self, keep) -> "CandidateLights":
         """The candidates where ``keep`` (boolean (M,) or a predicate on
@@ -173,6 +178,15 @@ def _default_cached(wl: tuple, families: tuple, exclude: tuple, daylight_step: f
             ea, eb = models.illuminant(a, wl), models.illuminant(b, wl)
             for f in MIXTURE_FRACTIONS:
                 add(f"{f:g} {a} + {1 - f:g} {b}", f * ea + (1 - f) * eb, "mixture")
+    if "narrowband" in families:
+        # sodium-like and single-LED lights: a Gaussian emission band over a
+        # weak broadband floor (a tenth of the power from a 3000 K radiator)
+        bb = models.blackbody(3000.0, wl)
+        bb = bb / bb.mean()
+        for centre in np.arange(440.0, 661.0, 20.0):
+            band = np.exp(-0.5 * ((wl - centre) / (25.0 / 2.355)) ** 2)
+            band = band / band.mean()
+            add(f"band {centre:.0f} nm", 0.9 * band + 0.1 * bb, "narrowband")
     if not spectra:
         raise ValueError("no candidate lights: every family was excluded")
     weights = None if family_weights is None else dict(family_weights)
@@ -207,7 +221,7 @@ def default_candidates(wavelengths=None, *, families=FAMILIES, exclude=(), dayli
     bad = [f for f in families if f not in FAMILIES]
     if bad:
         raise ValueError(f"unknown families {bad}; accepted: {list(FAMILIES)}")
-    fw = None if family_weights is None else tuple(sorted(family_weights.items()))
+    fw = tuple(sorted((FAMILY_WEIGHTS if family_weights is None else family_weights).items()))
     return _default_cached(tuple(wl.tolist()), tuple(families), tuple(exclude), float(daylight_step_mired),
                            float(blackbody_step_mired), fw)
 

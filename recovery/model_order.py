@@ -98,7 +98,7 @@ def select_dimensions(pixels: np.ndarray, camera, light_model_for, surface_model
 
 def select_spatial(image: np.ndarray, mask: np.ndarray, camera, global_spectrum: np.ndarray,
                    region_spectra: np.ndarray, region_slices, surface_basis: np.ndarray,
-                   light_dim: int) -> dict:
+                   light_dim: int, min_gain: float = 0.1) -> dict:
     """One light or a light map? BIC of both on the same pixels.
 
     Parameters
@@ -109,6 +109,7 @@ def select_spatial(image: np.ndarray, mask: np.ndarray, camera, global_spectrum:
     region_slices : R pairs of slices, the regions (non-overlapping)
     surface_basis : (N, D(S)) the surface model of the subspace test
     light_dim : D(E), free parameters per light minus one
+    min_gain : the map must also cut the residual by this fraction
 
     Returns
     -------
@@ -137,5 +138,10 @@ def select_spatial(image: np.ndarray, mask: np.ndarray, camera, global_spectrum:
         return {"spatial": False, "reason": "no usable pixels in the regions"}
     bu = bic(rss_u, nobs, npx * ds + (light_dim - 1))
     bm = bic(rss_m, nobs, npx * ds + len(blocks) * (light_dim - 1))
+    # Real surfaces are not in the model, so the residual is model error, not
+    # Gaussian noise, and BIC alone over-fits (measured: 31 of 45 uniformly lit
+    # bench scenes preferred a map). A map must also explain a tenth of the
+    # misfit one light leaves.
+    gain = 1.0 - rss_m / rss_u if rss_u > 0 else 0.0
     return {"bic_uniform": bu, "bic_map": bm, "rss_uniform": rss_u, "rss_map": rss_m,
-            "regions": len(blocks), "spatial": bool(bm < bu)}
+            "rss_reduction": gain, "regions": len(blocks), "spatial": bool(bm < bu and gain >= min_gain)}
