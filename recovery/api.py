@@ -465,7 +465,7 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
 QUALITY_PRESETS = {
     "fast": {"analysis_pixels": 4096, "wavelength_step": 20.0},
     "balanced": {"analysis_pixels": 65536, "wavelength_step": 10.0},
-    "accurate": {"analysis_pixels": None, "wavelength_step": 5.0},
+    "accurate": {"analysis_pixels": None, "wavelength_step": 10.0},
 }
 
 
@@ -522,7 +522,9 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
     if knobs.get("analysis_pixels"):
         arr = np.asarray(image)
         if arr.ndim == 3:
-            nonfinite = int((~np.all(np.isfinite(arr), axis=2)).sum()) if arr.size else 0
+            nonfinite = 0
+            if arr.size and not np.isfinite(arr).all():  # the fast whole-array test first
+                nonfinite = int((~np.isfinite(arr).all(axis=2)).sum())
             img, mk, f = block_average(arr, kwargs.get("mask"), int(knobs["analysis_pixels"]))
             if f > 1 and mk is not None:
                 kwargs["mask"] = mk
@@ -534,9 +536,10 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
         cam = camera.on_grid(float(step))
     est = _estimate_core(img, cam, method, **kwargs)
     if cam is not camera:
-        from models.grid import resample
+        from models.grid import resample, resample_box
 
-        est.spectrum = resample(cam.wavelengths, est.spectrum, camera.wavelengths)
+        coarser = np.min(np.diff(camera.wavelengths)) > np.min(np.diff(cam.wavelengths)) * 1.01
+        est.spectrum = (resample_box if coarser else resample)(cam.wavelengths, est.spectrum, camera.wavelengths)
         est.spectrum = est.spectrum / (est.spectrum.mean() or 1.0)
         est.wavelengths = camera.wavelengths
         est.light_weights = None
@@ -695,10 +698,13 @@ def render(image, camera: Camera, estimate: IlluminantEstimate, target="D65", ou
     tgt = _target_spectrum(target, estimate)
     info = {"output": space.name, "gamut": gamut, "target": target if isinstance(target, str) else "spectrum"}
     h, w, C = img.shape
-    flat = img.reshape(-1, C).astype(np.float64)
-    bad = ~np.all(np.isfinite(flat), axis=1)
-    flat = np.where(bad[:, None], 0.0, flat)
-    info["pixels_nonfinite"] = int(bad.sum())
+    flat = img.reshape(-1, C).astype(np.float64, copy=False)
+    if np.isfinite(flat).all():
+        info["pixels_nonfinite"] = 0
+    else:
+        bad = ~np.all(np.isfinite(flat), axis=1)
+        flat = np.where(bad[:, None], 0.0, flat)
+        info["pixels_nonfinite"] = int(bad.sum())
     lm = estimate.light_map
     if lm is None:
         light = estimate.spectrum
@@ -708,7 +714,12 @@ def render(image, camera: Camera, estimate: IlluminantEstimate, target="D65", ou
                                               resolve_model("daylight", "light", 3, camera.wavelengths).basis)
             info["gamut_adjustment"] = ginfo
         M, cond = synthesis_matrix(camera.sensitivities, camera.wavelengths, light, t, S, space)
-        out = flat @ M.T
+        if C <= 4 and M.shape[0] <= 4:  # OpenCV's per-pixel matrix: multithreaded, no temporaries
+            import cv2
+
+            out = cv2.transform(np.ascontiguousarray(flat).reshape(-1, 1, C), M).reshape(-1, M.shape[0])
+        else:
+            out = flat @ M.T
         info["matrix"] = M.tolist()
     else:
         spectra = lm.weights @ lm.light_basis.T                      # (gr, gc, N)
@@ -730,8 +741,9 @@ def render(image, camera: Camera, estimate: IlluminantEstimate, target="D65", ou
         info["out_of_gamut_fraction"] = float(np.mean(np.any(out < 0, axis=1)))
     if gamut in ("clip", "adjust-light"):
         out = np.clip(out, 0.0, None)
-    out = np.where(np.isfinite(out), out, 0.0)
-    if out.size and np.max(np.abs(out)) > np.finfo(np.float32).max:
+    if not np.isfinite(out).all():
+        out = np.where(np.isfinite(out), out, 0.0)
+    if out.size and np.abs(out).max() > np.finfo(np.float32).max:
         raise InputError("rendered values exceed the float32 range (image values near 1e38 or more); "
                          "scale the image down (the analysis is scale-free)")
     out = out.reshape(h, w, out.shape[-1] if out.ndim == 2 else 3).astype(np.float32)

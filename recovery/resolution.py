@@ -55,8 +55,8 @@ def block_average(img: np.ndarray, mask: np.ndarray | None, max_pixels: int | No
     arr = np.asarray(img[: hh * f, : ww * f])
     dtype = np.float64 if arr.dtype == np.float64 else np.float32  # no float32 overflow of float64 data
     src = arr.astype(dtype, copy=False)
-    finite = np.all(np.isfinite(src), axis=2)
-    if not finite.all():
+    if not np.isfinite(src).all():  # the fast whole-array test first
+        finite = np.isfinite(src).all(axis=2)
         src = np.where(finite[..., None], src, 0.0).astype(dtype)
         mask = finite if mask is None else (np.asarray(mask)[: hh * f, : ww * f] & finite)
     src = np.ascontiguousarray(src)
