@@ -714,7 +714,7 @@ def render(image, camera: Camera, estimate: IlluminantEstimate, target="D65", ou
                                               resolve_model("daylight", "light", 3, camera.wavelengths).basis)
             info["gamut_adjustment"] = ginfo
         M, cond = synthesis_matrix(camera.sensitivities, camera.wavelengths, light, t, S, space)
-        if C <= 4 and M.shape[0] <= 4:  # OpenCV's per-pixel matrix: multithreaded, no temporaries
+        if C <= 4 and M.shape[0] <= 4 and flat.shape[0] > 0:  # OpenCV: multithreaded, no temporaries
             import cv2
 
             out = cv2.transform(np.ascontiguousarray(flat).reshape(-1, 1, C), M).reshape(-1, M.shape[0])
