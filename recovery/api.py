@@ -317,19 +317,12 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
     Notes
     -----
     ``"maloney-wandell"`` is the literal method (Wandell 1985, eq. 30, 35).
-    ``"auto"`` currently runs the literal method and falls back, declared
-    in ``diagnostics["decision"]``, to ``fallback`` when the paper's own
-    failure tests fire (too little surface variation, data not confined to
-    a subspace, non-physical light).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from recovery import Camera, estimate_illuminant
-    >>> cam = Camera.named("Nikon 5100 (NPL)")
-    >>> img = np.random.default_rng(0).uniform(0.1, 1, (8, 8, 3))
-    >>> estimate_illuminant(img, cam, method="gray-world").method
-    'gray-world'
+    ``"auto"`` runs the posterior over plausible lights
+    (:func:`recovery.bayes.estimate_bayes`) and falls back, declared in
+    ``diagnostics["decision"]``, to ``fallback`` when it cannot run. The
+    literal method falls back the same way when the paper's own failure
+    tests fire (too little surface variation, a non-positive light). The
+    public entry point is :func:`estimate_illuminant`.
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; accepted: {list(METHODS)}")
