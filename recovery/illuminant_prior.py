@@ -15,18 +15,23 @@ of candidate spectra built from colour-science's data only:
   in reciprocal colour temperature;
 * ``mixture``: two-light mixtures that occur in practice (daylight through a
   window plus tungsten or fluorescent room light, warm plus cool light), at
-  equal camera-independent power ratios.
+  power fractions 1/4, 1/2 and 3/4 of unit-mean spectra;
+* ``narrowband``: sodium-like and single-LED lamps, a Gaussian emission band
+  (25 nm wide, centred every 20 nm from 440 to 660 nm) over a weak 3000 K
+  broadband floor: under such light every surface takes nearly the light's
+  own colour, a case no other family covers.
 
 Each candidate is a spectrum (unit mean power) on the caller's grid, so any
 camera sees each one exactly (eq. 12 of Wandell 1985): nothing here is tied
-to a camera. A light's camera response is then a convex combination away
-from any other in the set (mixtures of lights are lights), which is why the
-posterior mean over candidates (:mod:`recovery.bayes`) is itself a
-physically realisable light.
+to a camera. Mixtures of lights are lights, so a posterior mean over
+candidates (:mod:`recovery.bayes`) is itself a physically realisable light.
 
-The prior gives every *family* the same total mass and spreads it evenly
-over the family's members, so that a family with many near-identical members
-(fifteen FL3.x lamps) does not dominate by count alone.
+The prior gives every family the same total mass (narrow-band lamps a
+quarter of it) and spreads it evenly over the family's members, so that a
+family with many near-identical members (fifteen FL3.x lamps) does not
+dominate by count alone. colour-science's ``SDS_LIGHT_SOURCES`` (56 lamps)
+are deliberately *not* candidates: they serve as unseen lights when checking
+that the estimator generalises.
 
 References
 ----------
@@ -205,7 +210,8 @@ def default_candidates(wavelengths=None, *, families=FAMILIES, exclude=(), dayli
     daylight_step_mired, blackbody_step_mired : spacing of the loci in
         reciprocal megakelvin (10 mired is about the just-noticeable
         difference of colour temperature near 6500 K)
-    family_weights : prior mass per family (default equal mass per family)
+    family_weights : relative prior mass per family (default
+        :data:`FAMILY_WEIGHTS`: equal, narrow-band a quarter)
 
     Returns
     -------
