@@ -369,10 +369,17 @@ def test_camera_gain_is_scale_free(method, gain):
     img = nikon_d65_mondrian()
     ref, est = estimate_illuminant(img, cam, method), estimate_illuminant(img, cam2, method)
     check_estimate(est, cam2)
-    assert angular_error(est.rgb, ref.rgb) < 1e-9
+    # The light posterior (auto, bayes) bins chromaticities of the camera's
+    # model: a last-bit change of a sample sitting on a cell edge moves its
+    # mass to the neighbouring cell, measured as 5e-8 degrees on the posterior
+    # mean; 1e-6 bounds that. Everything else is exact to rounding (1e-9).
+    binned = method in ("auto", "bayes")
+    tol = 1e-6 if binned else 1e-9
+    assert angular_error(est.rgb, ref.rgb) < tol
     pts = sample_points(img)
     np.testing.assert_allclose(analyze(img, cam2, method).reflectance(pts),
-                               analyze(img, cam, method).reflectance(pts), rtol=1e-9, atol=1e-12)
+                               analyze(img, cam, method).reflectance(pts), rtol=1e-6 if binned else 1e-9,
+                               atol=1e-12)
     x_ref = render(img, cam, ref).astype(np.float64)
     x = render(img, cam2, est).astype(np.float64)
     np.testing.assert_allclose(x * gain, x_ref, rtol=1e-5, atol=1e-6 * np.abs(x_ref).max())
