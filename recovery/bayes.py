@@ -725,7 +725,8 @@ def _negative_reflectance_fraction(px: np.ndarray, camera: Camera, spectrum, n: 
 def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
                    candidates: CandidateLights | None = None, reflectances=None, white_level: float | None = None,
                    saturation_fraction: float = 0.98, dark_fraction: float = 0.02, min_pixels: int = 4,
-                   cell: float = 0.5, coarse: float | None = None, min_count_fraction: float = 0.002,
+                   cell: float = 0.5, cell_noise: float = 0.0, coarse: float | None = None,
+                   min_count_fraction: float = 0.002,
                    temperature: float = 1.0,
                    lightness: bool = True, shade_range: float = DEFAULTS["shade_range"],
                    lightness_bandwidth: float = DEFAULTS["lightness_bandwidth"], top_lights: int = 40,
@@ -749,6 +750,13 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
         brightest value are left out (relative, so scale-free)
     min_pixels : fewer usable pixels than this: fall back to shades of gray
     cell : side of a chromaticity cell in kernel units
+    cell_noise : if > 0, cells are at least this many log units (times the
+        whitening gain), i.e. no finer than the pixel noise (off: measured
+        to lose more localisation than it gains in counting)
+    coarse : if given, cells within this many kernel units of a more
+        populous one share one colour's weight (default off for C = 3,
+        2 kernel units for C > 3, where noise splits a surface over many
+        cells of the higher-dimensional chromaticity)
     min_count_fraction : a cell counts fully once it holds this fraction of
         the usable pixels (at least 2 pixels); fewer count proportionally
     temperature : multiplies the log-likelihood (1: plain Bayes)
@@ -814,6 +822,8 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
     model = bayes_model(camera, cands, reflectances, **(model_options or {}))
     t1 = time.perf_counter()
     d = C - 1
+    if cell_noise > 0:   # cells no finer than a few times the pixel noise, in kernel units
+        cell = max(cell, cell_noise * float(np.linalg.norm(model.A, 2)))
     zs, ybar, cnt, wgt, side = _summary(px, model, cell if d == 2 else max(cell, 1.0), min_count_fraction,
                                         max_cells=1024 if d == 2 else 128,
                                         coarse=coarse if (coarse is not None or d == 2) else 2.0)

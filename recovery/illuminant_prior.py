@@ -10,7 +10,7 @@ of candidate spectra built from colour-science's data only:
   :func:`models.illuminant_names`;
 * ``daylight``: the CIE daylight locus (Judd, MacAdam & Wyszecki's S0, S1,
   S2 basis, CIE 015:2018), evenly spaced in reciprocal colour temperature
-  from 3500 K to 25000 K;
+  from 4000 K to 25000 K (its domain of definition);
 * ``blackbody``: Planckian radiators from 1600 K to 12000 K, evenly spaced
   in reciprocal colour temperature;
 * ``mixture``: two-light mixtures that occur in practice (daylight through a
@@ -173,7 +173,7 @@ def _default_cached(wl: tuple, families: tuple, exclude: tuple, daylight_step: f
         for n in models.illuminant_names():
             add(n, models.illuminant(n, wl), "named")
     if "daylight" in families:
-        for t in _mireds(3500.0, 25000.0, daylight_step):
+        for t in _mireds(4000.0, 25000.0, daylight_step):
             add(f"daylight {t:.0f} K", models.daylight(float(t), wl), "daylight")
     if "blackbody" in families:
         for t in _mireds(1600.0, 12000.0, blackbody_step):
