@@ -25,7 +25,8 @@ from .regions import LightMap, bilinear, estimate_light_map
 from .subspace import check_dimensions, surface_weights
 from .synthesis import adjust_light_for_gamut, encode, output_space, synthesis_matrix
 
-__all__ = ["IlluminantEstimate", "AnalysisResult", "estimate_illuminant", "analyze", "render",
+__all__ = ["IlluminantEstimate", "AnalysisResult", "estimate_illuminant", "analyze", "surfaces_from_estimate",
+           "render",
            "METHODS", "QUALITY_PRESETS", "resolve_model", "angular_error"]
 
 METHODS = ("auto", "bayes", "maloney-wandell") + tuple(PEERS)
@@ -611,6 +612,13 @@ def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool = Fals
     (1, 31)
     """
     est = estimate_illuminant(image, camera, method, spatial=spatial, **kwargs)
+    return surfaces_from_estimate(image, camera, est, surface_dim_render, synthesis_basis)
+
+
+def surfaces_from_estimate(image, camera: Camera, est: IlluminantEstimate, surface_dim_render: int | None = None,
+                           synthesis_basis=None) -> AnalysisResult:
+    """The surface half of :func:`analyze` for a light already estimated
+    (eq. 36 with a C-term surface model), e.g. on a reduced image."""
     img = np.asarray(image, dtype=np.float64)
     d = surface_dim_render or camera.channels
     S = resolve_model(synthesis_basis, "surface", None if isinstance(synthesis_basis, np.ndarray) else d,

@@ -34,16 +34,13 @@ def estimate_options(method: str, surface_dim, light_dim, region_size: int | Non
     if method not in METHODS:
         raise ApiError(422, "invalid_parameter", f"method {method!r} unknown; accepted: {list(METHODS)}")
     opts: dict = {"white_level": 1.0}
-    if surface_model is not None:
-        if surface_model not in SURFACE_MODELS:
-            raise ApiError(422, "invalid_parameter",
-                           f"surface_model {surface_model!r} unknown; accepted: {list(SURFACE_MODELS)}")
-        opts["surface_basis"] = surface_model
-    if light_model is not None:
-        if light_model not in LIGHT_MODELS:
-            raise ApiError(422, "invalid_parameter",
-                           f"light_model {light_model!r} unknown; accepted: {list(LIGHT_MODELS)}")
-        opts["light_basis"] = light_model
+    for field, value, accepted, key in (("surface_model", surface_model, SURFACE_MODELS, "surface_basis"),
+                                        ("light_model", light_model, LIGHT_MODELS, "light_basis"),
+                                        ("quality", quality, tuple(QUALITY_PRESETS), "quality")):
+        if value is not None:
+            if value not in accepted:
+                raise ApiError(422, "invalid_parameter", f"{field} {value!r} unknown; accepted: {list(accepted)}")
+            opts[key] = value
     for name, val in (("surface_dim", surface_dim), ("light_dim", light_dim)):
         if val is None or val == "":
             continue
@@ -58,11 +55,6 @@ def estimate_options(method: str, surface_dim, light_dim, region_size: int | Non
         if not 1 <= iv <= 16:
             raise ApiError(422, "invalid_parameter", f"{name} must be in 1..16 or 'auto'")
         opts[name] = iv
-    if quality is not None:
-        if quality not in QUALITY_PRESETS:
-            raise ApiError(422, "invalid_parameter",
-                           f"quality {quality!r} unknown; accepted: {list(QUALITY_PRESETS)}")
-        opts["quality"] = quality
     if region_size is not None:
         if not 8 <= region_size <= 100000:
             raise ApiError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")

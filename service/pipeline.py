@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from models import illuminant as get_illuminant
-from recovery import Camera, IlluminantEstimate, analyze, angular_error, estimate_illuminant
-from recovery.api import resolve_model
+from recovery import Camera, IlluminantEstimate, angular_error, estimate_illuminant
+from recovery.api import resolve_model, surfaces_from_estimate
 from recovery.resolution import block_average
 from recovery.synthesis import output_space, synthesis_matrix
 
@@ -184,15 +184,15 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None) -> bytes | 
     return enc.tobytes()
 
 
-def surfaces_at(decoded, run: EstimateRun, points, rects, grid, method: str, options: dict) -> dict:
+def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -> dict:
     """Reflectance spectra (eq. 36 with a C-term surface model) at full-
     resolution pixel points, rectangle means, or a coarse grid."""
     img = decoded.estimation
     h, w = img.shape[:2]
     H, W = decoded.full_shape
     sy, sx = h / H, w / W
-    res = analyze(img, run.camera, method, mask=~decoded.saturated,
-                  synthesis_basis=options.get("surface_basis"), **options)
+    # the light estimated once (run.estimate) serves the surfaces too
+    res = surfaces_from_estimate(img, run.camera, run.estimate, synthesis_basis=options.get("surface_basis"))
     entries = []
 
     def add(kind, where, pts):

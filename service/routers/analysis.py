@@ -170,7 +170,7 @@ async def surfaces(file: UploadFile = _FILE, sensitivities: UploadFile | None = 
 
     def work():
         decoded, run = _analyze_sync(data, file.filename, sens, camera, method, opts, settings)
-        res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, method, opts)
+        res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts)
         res["illuminant"] = pipeline.illuminant_json(run.estimate)
         res["method"] = run.estimate.method
         res["camera"] = pipeline.camera_json(run.camera)
