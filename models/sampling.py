@@ -150,3 +150,79 @@ class SpectralRule:
         e = self.reconstruct(self.coefficients(light))
         dl = wavelength_step(self.wavelengths)
         return self.synthesis.T @ (cmfs * (e * dl)[:, None])
+
+
+# --- strategies -----------------------------------------------------------------
+#
+# Every strategy is built by a function ``builder(n, wavelengths, **options)``
+# returning a SpectralRule. The table names the module and function, imported on
+# first use so that models.sampling does not depend on the modules that use it.
+
+STRATEGIES = {
+    "uniform": ("models.sampling", "uniform_rule"),
+    "riemann": ("models.sampling", "riemann_rule"),
+    "fourier": ("models.sampling", "fourier_rule"),
+    "pca": ("models.sampling", "pca_rule"),
+    "composite": ("models.sampling", "composite_rule"),
+    "sharpened": ("models.sharpening", "sharpened_rule"),
+    "gauss-ac1c2": ("models.quadrature", "gauss_ac1c2_rule"),
+    "quasi-gauss-xyz": ("models.quadrature", "quasi_gauss_xyz_rule"),
+}
+
+
+def strategy_names() -> list[str]:
+    """Names accepted by :func:`sampling_rule`."""
+    return list(STRATEGIES)
+
+
+def sampling_rule(strategy: str, n: int | None = None, wavelengths=None, **options) -> SpectralRule:
+    """Build the rule ``strategy`` with ``n`` coefficients on ``wavelengths``.
+
+    Raises ``ValueError`` naming the accepted strategies for an unknown name.
+    """
+    import importlib
+
+    from .grid import DEFAULT_WAVELENGTHS
+
+    if strategy not in STRATEGIES:
+        raise ValueError(f"unknown sampling strategy {strategy!r}; accepted: {', '.join(STRATEGIES)}")
+    module, name = STRATEGIES[strategy]
+    builder = getattr(importlib.import_module(module), name)
+    wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, dtype=float)
+    return builder(n, wl, **options)
+
+
+def _interpolation_matrix(points: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """``(len(points), len(grid))`` rows that linearly interpolate grid values at points."""
+    points = np.asarray(points, dtype=float)
+    grid = np.asarray(grid, dtype=float)
+    A = np.zeros((points.size, grid.size))
+    j = np.clip(np.searchsorted(grid, points) - 1, 0, grid.size - 2)
+    t = np.clip((points - grid[j]) / (grid[j + 1] - grid[j]), 0.0, 1.0)
+    A[np.arange(points.size), j] = 1.0 - t
+    A[np.arange(points.size), j + 1] += t
+    return A
+
+
+def uniform_rule(n: int | None, wavelengths: np.ndarray) -> SpectralRule:
+    """Point sampling at ``n`` equally spaced wavelengths (Kment 2011, sec. 3.1).
+
+    Nodes sit at the centres of ``n`` equal sub-intervals of the grid's range;
+    the spectrum is read there by linear interpolation and rebuilt as the
+    piecewise-linear curve through the nodes (constant beyond the end nodes).
+    Products of spectra are products of samples, so the rule is multiplicative.
+    """
+    wl = np.asarray(wavelengths, dtype=float)
+    if n is None or int(n) < 1:
+        raise ValueError("uniform sampling needs n >= 1")
+    n = int(n)
+    lo, hi = wl[0], wl[-1]
+    width = (hi - lo) / n
+    nodes = lo + width * (np.arange(n) + 0.5)
+    analysis = _interpolation_matrix(nodes, wl)
+    if n == 1:
+        synthesis = np.ones((wl.size, 1))
+    else:
+        synthesis = _interpolation_matrix(wl, nodes)
+    return SpectralRule("uniform", wl, analysis, synthesis, nodes_nm=nodes, multiplicative=True,
+                        diagnostics={"spacing_nm": float(width)})
