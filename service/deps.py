@@ -73,7 +73,7 @@ def parse_json_list(text: str | None, name: str, width: int) -> list:
     except json.JSONDecodeError as e:
         raise ApiError(422, "invalid_parameter", f"{name} is not valid JSON: {e.msg}") from None
     if not isinstance(val, list) or not all(
-            isinstance(v, list) and len(v) == width and all(isinstance(x, int) for x in v) for v in val):
+            isinstance(v, list) and len(v) == width and all(isinstance(x, int) and not isinstance(x, bool) for x in v) for v in val):
         raise ApiError(422, "invalid_parameter", f"{name} must be a JSON list of [{width} integers] lists")
     if len(val) > 10000:
         raise ApiError(422, "invalid_parameter", f"{name}: at most 10000 entries")
