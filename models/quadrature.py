@@ -380,11 +380,17 @@ def gauss_quadrature(weight, wavelengths, n: int, interval=None) -> GaussQuadrat
         diag["eigen_condition"] = 1.0
     else:
         J = np.diag(alpha) + np.diag(np.ones(n - 1), 1) + np.diag(beta[1:], -1)
-        ev, R = np.linalg.eig(J)
-        # eigenvalue condition numbers 1/|l^T r| with unit left/right vectors
-        Lh = np.linalg.inv(R)
-        cond = np.linalg.norm(Lh, axis=1) * np.linalg.norm(R, axis=0)
-        diag["eigen_condition"] = float(np.max(np.abs(cond)))
+        try:
+            ev, R = np.linalg.eig(J)
+            # eigenvalue condition numbers 1/|l^T r| with unit left/right vectors
+            Lh = np.linalg.inv(R)
+        except np.linalg.LinAlgError:
+            return undefined(f"order {n} undefined: the Jacobi matrix is defective (repeated nodes)")
+        cond = float(np.max(np.linalg.norm(Lh, axis=1) * np.linalg.norm(R, axis=0)))
+        if not np.isfinite(cond) or cond > 1e12:
+            return undefined(f"order {n} undefined: nodes ill-determined (eigenvalue condition "
+                             f"{cond:.1e}, near a repeated node)")
+        diag["eigen_condition"] = cond
         scale = max(1.0, float(np.max(np.abs(ev))))
         if np.any(np.abs(ev.imag) > 1e-9 * scale):
             k = int(np.sum(np.abs(ev.imag) > 1e-9 * scale))
@@ -861,6 +867,9 @@ def quasi_gauss_from_moments(tau, degrees) -> dict:
             rhs.append(-full[n])
     G = np.array(rows)
     cond = float(np.linalg.cond(G))
+    if not np.isfinite(cond) or cond > 1e14:
+        return {"t": np.zeros(0), "weights": None, "real": False, "singular": True,
+                "condition": cond if np.isfinite(cond) else 1e300}
     c = np.linalg.solve(G, np.array(rhs))
     roots = _cheb.chebroots(np.r_[c, 1.0])
     real = bool(np.all(np.abs(np.imag(roots)) <= 1e-9 * max(1.0, float(np.max(np.abs(roots))))))
@@ -1007,9 +1016,13 @@ def quasi_gauss_xyz_rule(n: int | None, wavelengths, degrees=(1, 1, 1), source: 
     c, h = _map((a, b))
     cond11, lit = _eq11_literal(raw, deg)
     diag = {"degrees": list(deg), "source": source, "lambda_power": lambda_power,
-            "interval_nm": [a, b], "condition_eq11": cond11,
+            "interval_nm": [a, b], "condition_eq11": cond11 if np.isfinite(cond11) else 1e300,
             "condition_chebyshev": sol["condition"],
             "degree_of_precision": [total + v - 1 for v in deg]}
+    if sol.get("singular"):
+        return _point_rule("quasi-gauss-xyz", wl, None, None, diag, False,
+                           f"degrees {deg}: the moment system (eq. 11) is singular to working "
+                           f"precision (condition {sol['condition']:.1e})")
     if not sol["real"]:
         return _point_rule("quasi-gauss-xyz", wl, None, None, diag, False,
                            f"degrees {deg}: {int(np.sum(np.abs(np.imag(sol['t'])) > 1e-9))} "
