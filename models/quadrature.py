@@ -10,6 +10,8 @@ Two strategies of :mod:`models.sampling` are built here:
     Tables 1a/1b). C1 and C2 change sign, so the "inner product" (eq. 14) is
     indefinite; orders whose nodes are complex or leave the interval
     380-770 nm are returned with ``defined=False`` and a reason.
+    ``channel="XYZ"`` combines the three into one rule with XYZ weights
+    (his four-wavelength set of Table 2 by default).
 ``"quasi-gauss-xyz"`` (:func:`quasi_gauss_xyz_rule`)
     ``n = nu_1 + nu_2 + nu_3`` abscissas shared by xbar, ybar, zbar, each
     with its own weights, exact for polynomials of degree ``n + nu_k - 1``
@@ -20,6 +22,22 @@ tabulated on a grid (discretised Stieltjes procedure with full
 re-orthogonalisation, then Golub-Welsch, or the non-symmetric Jacobi matrix
 when the weight is indefinite); :func:`quasi_gauss_from_moments` takes
 Chebyshev moments of any set of weights.
+
+What reproduces (``python -m models.quadrature`` prints it all beside the
+papers' numbers):
+
+- Meyer's Tables 1a/1b: nodes to 0.1 nm for orders 1-4 and 0.7 nm up to
+  order 10, weights to one normalising factor, and the undefined orders
+  exactly (C1 odd orders: a node beyond 770 nm; C2 orders 4, 5, 6, 8: a
+  complex pair), when the weight is CIE 1931 at 5 nm (the table Meyer cites;
+  1 nm data shift the high-order end nodes by up to 1.2 nm). OCR fix: A's
+  order-2 node "501.5" is 601.5.
+- Meyer's Table 2: 5.43 / 5.53 mean Delta E*ab (paper 5.432 / 5.429) with
+  N. Ohta's ColorChecker, 4.7 with the BabelColor average.
+- Borges' Table 1: with his analytic functions the abscissas land 1-4 nm
+  short when the moments are those of eq. 13 as printed; moments of
+  ``lam * w`` (every moment index shifted by one) reproduce (1,1,1), (1,1,2),
+  (2,2,2) to 0.5 nm and (3,3,3) to 1.0 nm; see :func:`quasi_gauss_xyz_rule`.
 
 Conventions: wavelengths in nm. Weights are in the units of the weight
 function times nm, so that ``sum_i H_i f(x_i) ~= sum_l f(l) w(l) dl`` with
@@ -224,7 +242,7 @@ class GaussQuadrature:
 
     @property
     def n(self) -> int:
-        """Number of nodes asked for."""
+        """Recurrence steps computed: the order asked for, fewer if the recurrence broke down."""
         return int(self.alpha.size)
 
 

@@ -324,3 +324,17 @@ def test_meyer_xyz_rule_is_table2():
         gauss_ac1c2_rule(5, None, "XYZ")
     undefined = gauss_ac1c2_rule(None, None, "XYZ", orders="3,3,1")
     assert not undefined.defined and "C1" in undefined.reason
+
+
+def test_undefined_and_singular_rules_have_json_safe_diagnostics():
+    # GET /v1/sampling serialises diagnostics: no NaN or inf, whether or not a rule exists.
+    import json
+
+    rules = [gauss_ac1c2_rule(n, None, ch) for ch in ("A", "C1", "C2") for n in (1, 4, 10)]
+    rules += [quasi_gauss_xyz_rule(None, None, d, source=s)
+              for d in ((1, 1, 1), (1, 2, 1), (10, 10, 10)) for s in ("analytic", "cie")]
+    for r in rules:
+        json.dumps(r.diagnostics, allow_nan=False)
+        assert r.defined or r.reason
+    singular = quasi_gauss_xyz_rule(None, None, (10, 10, 10), source="cie")
+    assert not singular.defined and "singular" in singular.reason
