@@ -44,6 +44,7 @@ from .sampling import SpectralRule
 __all__ = [
     "DEFAULT_N",
     "DEFAULT_TRAINING_LIGHTS",
+    "RELIGHT_MIN_BAND",
     "SharpenedBasis",
     "training_spectra",
     "band_transform",
@@ -67,6 +68,11 @@ DEFAULT_N = 7
 #: energy). Spiky lights (the FL series) need more coefficients than a
 #: sharpened basis of a few functions has; train on them explicitly.
 DEFAULT_TRAINING_LIGHTS = ("A", "B", "C", "D50", "D55", "D60", "D65", "D75", "E")
+
+#: :func:`relight` refuses a light whose coefficient in some band is below
+#: this fraction of its largest: the ratio ``e' / e`` would multiply that
+#: band's representation error by more than ``1 / RELIGHT_MIN_BAND``.
+RELIGHT_MIN_BAND = 0.01
 
 
 @dataclass(frozen=True)
@@ -142,17 +148,61 @@ def training_spectra(lights: np.ndarray, reflectances: np.ndarray, bounces: int 
     return np.concatenate(parts)
 
 
-def band_transform(pca: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _band_vector(pca: np.ndarray, start: int, stop: int, positive: bool) -> tuple[np.ndarray, float, bool]:
+    """Sharpening vector ``t`` for the band of samples ``start <= i < stop``.
+
+    Unconstrained (Drew and Finlayson 2003, eq. 11): with ``Q`` orthonormal,
+    minimising ``sum_{outside} (Q t)^2`` subject to ``|t| = 1`` gives the top
+    eigenvector of ``Q_in^T Q_in``; its eigenvalue is the fraction of the
+    energy inside the band. With ``positive`` (eq. 12-13, Drew and Finlayson
+    2000): the same objective and normalisation with ``Q t >= 0``, solved by
+    SLSQP from a feasible start (the eigenvector plus enough of the first,
+    positive, principal component). Returns ``(t, in_band_fraction, ok)``;
+    ``ok`` is False when the constrained solver did not converge (the best
+    feasible point is returned).
+    """
+    q_in = pca[start:stop]
+    a_in = q_in.T @ q_in
+    vals, vecs = np.linalg.eigh(a_in)
+    t = vecs[:, -1]
+    if (pca @ t).sum() < 0:
+        t = -t
+    f = pca @ t
+    if not positive or f.min() >= -1e-12 * np.abs(f).max():
+        return t, float(vals[-1]), True
+    from scipy.optimize import minimize
+
+    n = pca.shape[1]
+    a_out = np.eye(n) - a_in
+    first = pca[:, 0]
+    if first.min() <= 0:
+        raise ValueError("positivity needs a first principal component that is positive everywhere")
+    # feasible start: t + alpha e_1 with alpha making Q t >= 0 everywhere
+    alpha = np.max(-f / first) * 1.01
+    x0 = t.copy()
+    x0[0] += alpha
+    x0 /= np.linalg.norm(x0)
+    res = minimize(lambda x: x @ a_out @ x, x0, jac=lambda x: 2 * a_out @ x, method="SLSQP",
+                   constraints=[{"type": "eq", "fun": lambda x: x @ x - 1.0, "jac": lambda x: 2 * x},
+                                {"type": "ineq", "fun": lambda x: pca @ x, "jac": lambda x: pca}],
+                   options={"maxiter": 200, "ftol": 1e-12})
+    x = res.x / np.linalg.norm(res.x)
+    ok = bool(res.success) and (pca @ x).min() >= -1e-8 * np.abs(pca @ x).max()
+    if not ok:
+        x = x0
+    return x, float(x @ a_in @ x), ok
+
+
+def band_transform(pca: np.ndarray, edges: np.ndarray, positive: bool = False,
+                   _cache: dict | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
     """Sharpening transform of an orthonormal basis for given bands.
 
     For band ``k`` (grid samples ``edges[k] <= i < edges[k+1]``) the
     combination ``t_k`` of the columns of ``Q`` minimises the energy outside
     the band subject to unit total energy (Drew and Finlayson 2003,
-    eq. 11-12; Finlayson, Drew and Funt 1994): since ``Q`` is orthonormal,
-    ``t_k`` is the eigenvector of ``Q_in^T Q_in`` (rows of ``Q`` inside the
-    band) with the largest eigenvalue, which is the fraction of energy
-    inside the band. Signs are fixed so each sharp function has a positive
-    sum.
+    eq. 11-12; Finlayson, Drew and Funt 1994), optionally with the sharp
+    function kept nonnegative (eq. 13). Signs are fixed so each sharp
+    function has a positive sum.
 
     Parameters
     ----------
@@ -160,6 +210,8 @@ def band_transform(pca: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.n
         Orthonormal columns.
     edges : array_like of int, shape (n + 1,)
         Increasing sample indices, ``edges[0] = 0``, ``edges[-1] = N``.
+    positive : bool
+        Add the constraint ``Q t_k >= 0``.
 
     Returns
     -------
@@ -167,20 +219,26 @@ def band_transform(pca: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.n
         Unit-norm columns ``t_k``.
     in_band : ndarray, shape (n,)
         Fraction of each sharp function's energy inside its band.
+    converged : bool
+        False when a positivity-constrained solve did not converge.
     """
     edges = np.asarray(edges, dtype=int)
     n = pca.shape[1]
     T = np.empty((n, n))
     in_band = np.empty(n)
+    converged = True
     for k in range(n):
-        q_in = pca[edges[k]:edges[k + 1]]
-        vals, vecs = np.linalg.eigh(q_in.T @ q_in)
-        t = vecs[:, -1]
-        if (pca @ t).sum() < 0:
-            t = -t
+        key = (int(edges[k]), int(edges[k + 1]))
+        if _cache is not None and key in _cache:
+            t, frac, ok = _cache[key]
+        else:
+            t, frac, ok = _band_vector(pca, key[0], key[1], positive)
+            if _cache is not None:
+                _cache[key] = (t, frac, ok)
         T[:, k] = t
-        in_band[k] = vals[-1]
-    return T, in_band
+        in_band[k] = frac
+        converged = converged and ok
+    return T, in_band, converged
 
 
 def _analysis_synthesis(basis_unit_sum: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -206,21 +264,21 @@ def _product_relative_errors(analysis, synthesis, lights, reflectances, bounces=
     return num[den > 0] / den[den > 0]
 
 
-def _sharp_from_edges(pca, edges):
-    T, in_band = band_transform(pca, edges)
+def _sharp_from_edges(pca, edges, positive=False, cache=None):
+    T, in_band, ok = band_transform(pca, edges, positive, cache)
     q = pca @ T
     w = q.sum(axis=0)
-    return T, in_band, q, w
+    return T, in_band, q, w, ok
 
 
-def _optimise_edges(pca, lights, reflectances, edges, sweeps=6):
+def _optimise_edges(pca, lights, reflectances, edges, positive=False, cache=None, sweeps=6):
     """Coordinate descent on the band edges: each interior edge in turn moves
     to the position that minimises the mean squared one-bounce product
     error on the training pairs; stops when a sweep changes nothing."""
     n = pca.shape[1]
 
     def cost(e):
-        _, _, q, w = _sharp_from_edges(pca, e)
+        _, _, q, w, _ = _sharp_from_edges(pca, e, positive, cache)
         if np.any(np.abs(w) < 1e-9 * np.abs(q).sum(axis=0).max()):
             return np.inf
         a, s = _analysis_synthesis(q / w)
@@ -289,7 +347,8 @@ def _edge_nm(wl: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 
 def sharpened_basis(n: int | None = None, wavelengths=None, training=None, *,
-                    band_edges_nm=None, optimise: bool = True, bounces: int = 2) -> SharpenedBasis:
+                    band_edges_nm=None, optimise: bool = True, bounces: int = 2,
+                    positive: bool = False) -> SharpenedBasis:
     """Sharpened PCA basis of ``n`` functions (Drew and Finlayson 2003).
 
     1. ``Q``: the first ``n`` principal components (through the origin, the
@@ -318,6 +377,10 @@ def sharpened_basis(n: int | None = None, wavelengths=None, training=None, *,
         Choose the band edges by coordinate descent (default True).
     bounces : int
         Highest reflectance power in the PCA training signals.
+    positive : bool
+        Keep every sharp function nonnegative (eq. 13; Drew and Finlayson
+        2000): then the coefficients of a nonnegative spectrum are
+        nonnegative and relighting never divides by a negative band.
 
     Returns
     -------
@@ -338,19 +401,21 @@ def sharpened_basis(n: int | None = None, wavelengths=None, training=None, *,
     """
     wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, dtype=float)
     wavelength_step(wl)  # validates: 1-D, at least two, strictly increasing
+    n = _check_n(DEFAULT_N if n is None else n, wl.size,
+                 "a sharpened basis has at most one function per wavelength")
     if training is None and band_edges_nm is None:
-        return _default_basis(DEFAULT_N if n is None else n, tuple(wl.tolist()), bool(optimise),
-                              int(bounces))
-    return _build_basis(DEFAULT_N if n is None else n, wl, training, band_edges_nm, optimise, bounces)
+        return _default_basis(n, tuple(wl.tolist()), bool(optimise),
+                              int(bounces), bool(positive))
+    return _build_basis(n, wl, training, band_edges_nm, optimise, bounces,
+                        positive)
 
 
 @lru_cache(maxsize=64)
-def _default_basis(n, wl, optimise, bounces):
-    n = _check_n(n, len(wl), "a sharpened basis has at most one function per wavelength")
-    return _build_basis(n, np.asarray(wl), None, None, optimise, bounces)
+def _default_basis(n, wl, optimise, bounces, positive):
+    return _build_basis(n, np.asarray(wl), None, None, optimise, bounces, positive)
 
 
-def _build_basis(n, wl, training, band_edges_nm, optimise, bounces) -> SharpenedBasis:
+def _build_basis(n, wl, training, band_edges_nm, optimise, bounces, positive) -> SharpenedBasis:
     N = wl.size
     if training is None:
         lights, refl = _default_training(wl)
@@ -377,9 +442,10 @@ def _build_basis(n, wl, training, band_edges_nm, optimise, bounces) -> Sharpened
         edges = _edges_from_nm(band_edges_nm, wl, n)
     else:
         edges = np.round(np.linspace(0, N, n + 1)).astype(int)
-        if optimise and 1 < n < N:
-            edges = _optimise_edges(pca, lights, refl, edges)
-    T, in_band, q, w = _sharp_from_edges(pca, edges)
+    cache: dict = {}
+    if band_edges_nm is None and optimise and 1 < n < N:
+        edges = _optimise_edges(pca, lights, refl, edges, positive, cache)
+    T, in_band, q, w, converged = _sharp_from_edges(pca, edges, positive, cache)
     scale = np.abs(q).sum(axis=0)
     if np.any(np.abs(w) < 1e-9 * scale.max()):
         k = int(np.argmin(np.abs(w) / scale))
@@ -400,6 +466,8 @@ def _build_basis(n, wl, training, band_edges_nm, optimise, bounces) -> Sharpened
         "training_lights": int(lights.shape[0]),
         "training_reflectances": int(refl.shape[0]),
         "band_edges_nm": _edge_nm(wl, edges).tolist(),
+        "positive": bool(positive),
+        "positivity_converged": bool(converged),
         "condition_transform": float(np.linalg.cond(T)),
         "condition_basis": float(np.linalg.cond(basis)),
         "in_band_energy": in_band.tolist(),
@@ -433,7 +501,7 @@ def sharpened_rule(n: int | None = None, wavelengths=None, **options) -> Spectra
         Number of coefficients (default :data:`DEFAULT_N`).
     wavelengths : array_like, optional
     **options
-        ``training``, ``band_edges_nm``, ``optimise``, ``bounces`` as in
+        ``training``, ``band_edges_nm``, ``optimise``, ``bounces``, ``positive`` as in
         :func:`sharpened_basis`.
 
     Examples
@@ -444,7 +512,7 @@ def sharpened_rule(n: int | None = None, wavelengths=None, **options) -> Spectra
     >>> bool(np.allclose(rule.coefficients(np.ones(31)), 1.0))
     True
     """
-    allowed = {"training", "band_edges_nm", "optimise", "bounces"}
+    allowed = {"training", "band_edges_nm", "optimise", "bounces", "positive"}
     unknown = set(options) - allowed
     if unknown:
         raise ValueError(f"unknown option(s) for the sharpened strategy: {sorted(unknown)}; "
@@ -486,6 +554,25 @@ def _as_coefficients(x, rule: SpectralRule, what: str) -> np.ndarray:
     return x
 
 
+def _weak_bands(light, rule: SpectralRule) -> list[tuple[float, float]]:
+    """Sharpening bands in which a light given as a spectrum has a mean power
+    below :data:`RELIGHT_MIN_BAND` of its strongest band. A sharp function
+    leaks a little outside its band, so a light that is dark inside a band
+    can still get a small positive coefficient there from its neighbours;
+    this catches it."""
+    light = np.asarray(light, dtype=float)
+    edges = rule.diagnostics.get("band_edges_nm")
+    if light.shape != rule.wavelengths.shape or light.size == rule.n or edges is None:
+        return []
+    means = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = (rule.wavelengths > lo) & (rule.wavelengths < hi)
+        means.append(light[inside].mean() if inside.any() else np.inf)
+    means = np.asarray(means)
+    top = np.max(means[np.isfinite(means)])
+    return [(edges[k], edges[k + 1]) for k in np.flatnonzero(means <= RELIGHT_MIN_BAND * top)]
+
+
 def relight(coefficients, from_light, to_light, rule: SpectralRule) -> np.ndarray:
     """Colour-signal coefficients under another light: a diagonal map.
 
@@ -506,17 +593,26 @@ def relight(coefficients, from_light, to_light, rule: SpectralRule) -> np.ndarra
     Raises
     ------
     ValueError
-        The rule is not multiplicative, or ``from_light`` has a coefficient
-        at or below zero (no band of the light to divide by).
+        The rule is not multiplicative, or a coefficient of ``from_light``
+        is below :data:`RELIGHT_MIN_BAND` times its largest (dividing by it
+        would amplify the representation error more than 100-fold).
     """
     if not rule.multiplicative:
         raise ValueError(f"relighting by a diagonal needs a multiplicative rule, not {rule.strategy!r}")
     c = _as_coefficients(coefficients, rule, "coefficients")
     e0 = _as_coefficients(from_light, rule, "from_light")
     e1 = _as_coefficients(to_light, rule, "to_light")
-    if np.any(~np.isfinite(e0)) or np.any(e0 <= 1e-12 * np.max(np.abs(e0))):
-        raise ValueError("from_light has a coefficient at or below zero: it puts no power in a "
-                         "band of the basis, so the signal there cannot be relit")
+    weak = _weak_bands(from_light, rule)
+    if weak:
+        lo, hi = weak[0]
+        raise ValueError(f"from_light has (almost) no power in the band {lo:.0f}-{hi:.0f} nm (under "
+                         f"{RELIGHT_MIN_BAND:.0%} of its strongest band): the signal there cannot be "
+                         "relit")
+    if np.any(~np.isfinite(e0)) or np.any(e0 <= RELIGHT_MIN_BAND * np.max(np.abs(e0))):
+        k = int(np.argmin(e0)) if np.all(np.isfinite(e0)) else -1
+        raise ValueError(f"from_light has a coefficient at or below zero (band {k}: under "
+                         f"{RELIGHT_MIN_BAND:.0%} of its strongest band): it puts (almost) no power "
+                         "there, so the signal in that band cannot be relit")
     return c * (e1 / e0)
 
 
