@@ -243,12 +243,12 @@ def test_bad_options_are_clear_errors():
 def test_given_bands_are_used():
     rule = sharpened_rule(3, WL, band_edges_nm=[395, 495, 595, 705])
     np.testing.assert_allclose(rule.diagnostics["band_edges_nm"], [395, 495, 595, 705])
-    # each sharp function keeps most of its energy in its own band (eq. 11)
+    # each sharp function keeps most of its energy in its own band (eq. 11-13)
     assert min(rule.diagnostics["in_band_energy"]) > 0.5
 
 
 def test_positive_sharpening_is_nonnegative():
-    # eq. 13: Q t >= 0; SLSQP meets the constraint to its tolerance
+    # eq. 14: Q t >= 0; SLSQP meets the constraint to its tolerance
     b = sharpened_basis(5, WL, positive=True)
     assert b.diagnostics["positivity_converged"]
     assert b.basis.min() >= -1e-7 * b.basis.max()
