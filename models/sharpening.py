@@ -669,10 +669,26 @@ def metameric_pairs(reflectances, light, cmfs, wavelengths=None, per_surface: in
     For each reflectance ``r`` a smooth metameric black ``b`` is built: a
     random Fourier series of ``order`` harmonics over the grid, projected on
     the null space of ``M = (cmfs * light * dlambda)^T`` (Wyszecki and
-    Stiles' metameric blacks; Drew and Funt 1992, "Natural metamers", cited
-    by Drew and Finlayson 2003 for their Fig. 3). The partner ``r + a b``
-    uses ``a`` = ``fill`` times the largest amplitude keeping it in [0, 1],
-    so it is a physical reflectance matching ``r`` exactly under ``light``.
+    Stiles' metameric blacks; Drew and Funt 1992, "Natural metamers", in
+    Drew and Finlayson 2003's references; their Fig. 3 shows such pairs).
+    The partner ``r + a b`` uses ``a`` = ``fill`` times the largest
+    amplitude keeping it in [0, 1], so it is a physical reflectance matching
+    ``r`` exactly under ``light``.
+
+    Parameters
+    ----------
+    reflectances : ndarray, shape (M, N)
+    light : ndarray, shape (N,)
+        The light under which the pairs match.
+    cmfs : ndarray, shape (N, 3)
+    per_surface : int
+        Metamers per reflectance.
+    order, fill, rng
+        Harmonics of the random series, share of the largest amplitude,
+        random generator (default seed 0).
+    basis : ndarray, shape (N, K), optional
+        Draw the black from this span instead (e.g. a reflectance PCA, for
+        "natural" metamers in Drew and Funt's sense).
 
     Returns
     -------
