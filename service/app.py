@@ -3,12 +3,12 @@
 
 from __future__ import annotations
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI
 
 from . import __doc__ as _doc
-from .errors import error_response, install_error_handlers
+from .errors import install_error_handlers
+from .limits import UploadLimitMiddleware
 from .routers import analysis, info
-from .settings import get_settings
 
 app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=_doc)
 install_error_handlers(app)
@@ -16,17 +16,5 @@ app.include_router(info.router)
 app.include_router(analysis.router)
 
 
-@app.middleware("http")
-async def limit_body_size(request: Request, call_next):
-    """Refuse a declared body over the upload limit before reading it (413)."""
-    limit = get_settings().max_upload_bytes
-    length = request.headers.get("content-length")
-    if length is not None:
-        try:
-            n = int(length)
-        except ValueError:
-            return error_response(400, "bad_content_length", "Content-Length is not an integer")
-        if n > limit + 1024 * 1024:  # multipart framing on top of the file
-            return error_response(413, "file_too_large", f"request body of {n} bytes exceeds the upload "
-                                  f"limit of {limit} bytes")
-    return await call_next(request)
+# the upload limit, for declared and for streamed (chunked) bodies alike
+app.add_middleware(UploadLimitMiddleware)
