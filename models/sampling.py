@@ -638,9 +638,20 @@ def composite_rule(n: int | None, wavelengths: np.ndarray, smooth: str = "rieman
                 P[k, hi] = 1.0
     pick = np.zeros((n_spikes, N))
     pick[np.arange(n_spikes), line_idx] = 1.0
-    analysis = np.vstack([base.analysis @ P, pick])
     keep = np.ones(N)
     keep[line_idx] = 0.0
+    smooth_analysis = base.analysis @ P
+    if smooth == "riemann" and n_spikes:
+        # bin means over the cells that are not lines, so that the rebuilt smooth
+        # part keeps its area exactly (the lines carry theirs); a bin made of line
+        # cells only falls back to the bridged smooth part
+        c = _cell_edges(wl)
+        edges = np.linspace(c[0], c[-1], n_smooth + 1)
+        ov = _bin_overlap(edges, wl) * keep[None, :]
+        width = ov.sum(axis=1)
+        ok = width > 0
+        smooth_analysis[ok] = ov[ok] / width[ok, None]
+    analysis = np.vstack([smooth_analysis, pick])
     synthesis = np.hstack([base.synthesis * keep[:, None], pick.T])
     nodes = np.concatenate([base.nodes_nm if base.nodes_nm is not None else np.array([]), wl[line_idx]])
     return SpectralRule("composite", wl, analysis, synthesis,
