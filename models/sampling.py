@@ -462,25 +462,33 @@ def pca_rule(n: int | None, wavelengths: np.ndarray, training="all", centred: bo
     >>> pca_rule(6, wl).diagnostics["energy_captured"] > 0.99
     True
     """
-    from .bases import pca_model
-    from .reflectances import reflectance_set
+    from .bases import pca_model, surface_pca_model
+    from .reflectances import reflectance_set_names
 
     wl = _grid(wavelengths)
     if isinstance(training, str):
-        samples = reflectance_set(training, wl)
+        if training not in reflectance_set_names():
+            raise ValueError(f"pca: unknown training set {training!r}; accepted: {reflectance_set_names()}")
+        n = _check_n("pca", n, 1, wl.size)
+        try:
+            model = surface_pca_model(n, wl, training, centred)  # cached per grid and set
+        except ValueError as exc:
+            raise ValueError(f"pca: {exc}") from None
+        size = None
     else:
         samples = np.asarray(training, dtype=float)
         if samples.ndim != 2 or samples.shape[1] != wl.size or not np.all(np.isfinite(samples)):
             raise ValueError(f"pca: training must be finite spectra as rows of {wl.size} values")
-    n = _check_n("pca", n, 1, min(samples.shape))
-    model = pca_model(samples, n, wl, centred=centred)
+        n = _check_n("pca", n, 1, min(samples.shape))
+        model = pca_model(samples, n, wl, centred=centred)
+        size = int(samples.shape[0])
     if centred:
         # the mean is an extra synthesis function: n coefficients = mean weight + n-1 components
         basis = np.column_stack([model.mean, model.basis[:, : n - 1]])
     else:
         basis = model.basis
     return _least_squares_rule("pca", wl, basis, {
-        "energy_captured": float(np.sum(model.explained_variance)), "training_size": int(samples.shape[0])})
+        "energy_captured": float(np.sum(model.explained_variance)), "training_size": size})
 
 
 # --- composite: smooth part plus spikes (Sun 2000; Kment's enhanced Riemann) ------
@@ -618,6 +626,10 @@ def composite_rule(n: int | None, wavelengths: np.ndarray, smooth: str = "rieman
         groups = []
     line_idx = np.concatenate(groups) if groups else np.array([], dtype=int)
     n_spikes = int(line_idx.size)
+    if n_spikes and n is not None and not isinstance(n, bool) and isinstance(n, (int, np.integer)) \
+            and n_spikes < wl.size and n < n_spikes + 1:
+        raise ValueError(f"composite: n={n} cannot hold the light's {n_spikes} line samples plus a "
+                         f"smooth part; need n >= {n_spikes + 1}")
     n = _check_n("composite", n, n_spikes + 1, wl.size)
     n_smooth = n - n_spikes
     base = riemann_rule(n_smooth, wl) if smooth == "riemann" else fourier_rule(n_smooth, wl)
