@@ -330,16 +330,16 @@ def uniform_rule(n: int | None, wavelengths: np.ndarray, filter: str | None = No
         synthesis = np.ones((wl.size, 1))
     else:
         synthesis = _interpolation_matrix(wl, nodes)
+    node_weights = synthesis.T @ wavelength_step(wl)  # nm each node stands for (sums to the range)
     if cmf == "nodes":
-        node_weights = synthesis.T @ wavelength_step(wl)
         integration = node_weights[:, None] * _interpolation_matrix(nodes, wl)
     elif cmf == "dense":
         integration = None
     else:
         raise ValueError(f"cmf must be 'nodes' or 'dense', not {cmf!r}")
     diagnostics["cmf"] = cmf
-    return SpectralRule("uniform", wl, analysis, synthesis, nodes_nm=nodes, multiplicative=True,
-                        diagnostics=diagnostics, integration=integration)
+    return SpectralRule("uniform", wl, analysis, synthesis, nodes_nm=nodes, weights=node_weights,
+                        multiplicative=True, diagnostics=diagnostics, integration=integration)
 
 
 def _cell_edges(wl: np.ndarray) -> np.ndarray:
@@ -389,7 +389,8 @@ def riemann_rule(n: int | None, wavelengths: np.ndarray) -> SpectralRule:
     cell = np.diff(c)
     synthesis = (ov / cell[None, :]).T                # (N, n): fraction of each cell in each bin
     centres = 0.5 * (edges[1:] + edges[:-1])
-    return SpectralRule("riemann", wl, analysis, synthesis, nodes_nm=centres, multiplicative=True,
+    return SpectralRule("riemann", wl, analysis, synthesis, nodes_nm=centres, weights=np.diff(edges),
+                        multiplicative=True,
                         diagnostics={"bin_width_nm": float(edges[1] - edges[0])})
 
 

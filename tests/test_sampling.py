@@ -135,6 +135,8 @@ def test_riemann_sums_keep_the_area_and_multiply_elementwise():
     # the bins tile the cells, so the rebuilt spectrum has exactly the dense integral (eq. 5.3)
     np.testing.assert_allclose(rule.reconstruct(rule.coefficients(s)).sum(axis=1), s.sum(axis=1), rtol=1e-12)
     np.testing.assert_allclose(rule.coefficients(np.full(WL.size, 0.3)), 0.3, rtol=1e-12)
+    # the weights (bin widths) add up to the range the dense samples cover, 81 x 5 nm
+    assert rule.weights.sum() == pytest.approx(WL.size * 5.0)
     a, b = rule.coefficients(s[0]), rule.coefficients(s[1])
     assert rule.multiplicative
     np.testing.assert_allclose(rule.product(a, b), a * b)
