@@ -200,8 +200,10 @@ def _options_for(opts: dict, light_name: str, n: int) -> dict | None:
     return out
 
 
-def _time_per_million(M: np.ndarray, coeffs: np.ndarray, repeats: int = 5) -> float:
-    """Measured seconds to turn 1e6 stored spectra into XYZ (``c @ M``)."""
+def _time_per_million(M: np.ndarray, coeffs: np.ndarray, repeats: int = 9) -> float:
+    """Measured seconds to turn 1e6 stored spectra into XYZ (``c @ M``): the best of
+    ``repeats`` runs on ``coeffs`` scaled to 1e6 (the best run is the one least disturbed
+    by other processes on a shared machine)."""
     best = float("inf")
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -211,7 +213,7 @@ def _time_per_million(M: np.ndarray, coeffs: np.ndarray, repeats: int = 5) -> fl
 
 
 def report_rows(data: KmentData | None = None, sizes=REPORT_SIZES, variants=REPORT_VARIANTS,
-                timing_spectra: int = 50_000, seed: int = 0) -> list[dict]:
+                timing_spectra: int = 20_000, seed: int = 0) -> list[dict]:
     """One row per (variant, n, light class): CIEDE2000 statistics over the
     reflectances and lights of the class, storage and measured time per 1e6
     spectra. Unavailable strategies (module not present) and undefined or
@@ -348,7 +350,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m models.sampling_report", description=__doc__.splitlines()[0])
     p.add_argument("--out", default="/tmp/sampling_report", help="directory for the CSV and PNG")
     p.add_argument("--sizes", default=",".join(map(str, REPORT_SIZES)), help="comma-separated sizes")
-    p.add_argument("--timing-spectra", type=int, default=50_000,
+    p.add_argument("--timing-spectra", type=int, default=20_000,
                    help="spectra per timing run (scaled to 1e6)")
     a = p.parse_args(argv)
     try:
