@@ -226,10 +226,13 @@ def test_fluorescent_composite_wins_at_equal_storage(data):
     # every stored number, lines included (Kment's CS counts only Fourier terms).
     cs = lambda n: (lambda light: composite_rule(n, WL, smooth="fourier", light=light))  # noqa: E731
     rs = lambda n: (lambda _: riemann_rule(n, WL))  # noqa: E731
+    fo = lambda n: (lambda _: fourier_rule(n, WL))  # noqa: E731
     for n in (24, 32):
         for light in ("FL2", "FL7"):
             c = mean_error(data, cs(n), [light])
             assert c < mean_error(data, rs(n), [light]) and c < mean_error(data, ps(n), [light])
+            # and the lines are worth their storage: plain Fourier with the same n loses
+            assert c < mean_error(data, fo(n), [light])
     c32 = mean_error(data, cs(32), FLUORESCENT)
     assert c32 < mean_error(data, rs(32), FLUORESCENT) < mean_error(data, ps(32), FLUORESCENT)
     # Kment's enhanced Riemann (RE) wins over RS once its smooth part has enough bins:
@@ -247,6 +250,14 @@ def test_fluorescent_fl11_bands_cost_the_enhanced_riemann_its_bins(data):
     assert re32.diagnostics["n_spikes"] >= 15
     re_err = mean_error(data, lambda _: re32, ["FL11"])
     assert re_err > mean_error(data, lambda _: riemann_rule(32, WL), ["FL11"])
+    # Sun's composite keeps 18 band samples (30 % slope) and 14 Fourier terms: plain
+    # Fourier with 32 terms does better on FL11. Its least-squares projection of the light
+    # keeps the low frequencies, which is nearly all a smooth reflectance times a CMF
+    # responds to; the band samples instead read the reflectance exactly at a few
+    # wavelengths but leave too few terms for the rest of the spectrum.
+    cs32 = composite_rule(32, WL, smooth="fourier", light="FL11")
+    assert cs32.diagnostics["n_spikes"] == 18
+    assert mean_error(data, lambda _: cs32, ["FL11"]) > mean_error(data, lambda _: fourier_rule(32, WL), ["FL11"])
 
 
 # --- Kment's findings: low-pass filters before point sampling (Tables 7.1, A.2) --------
