@@ -3,18 +3,21 @@
 
 from __future__ import annotations
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
 
 from . import __doc__ as _doc
-from .errors import install_error_handlers
-from .limits import UploadLimitMiddleware
-from .routers import analysis, info
+from .errors import error_response, install_error_handlers
+from .routers import analysis, info, web
+from .settings import get_settings
 
 app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=_doc)
 install_error_handlers(app)
 app.include_router(info.router)
 app.include_router(analysis.router)
+app.include_router(web.router)
 
 
 # the upload limit, for declared and for streamed (chunked) bodies alike
+from .limits import UploadLimitMiddleware  # noqa: E402
+
 app.add_middleware(UploadLimitMiddleware)
