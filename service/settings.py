@@ -20,29 +20,14 @@ class Settings:
     estimation_pixels: int = 1_000_000
 
 
-def _positive_int(env, name: str, default: int) -> int:
-    """``WANDELL_<NAME>`` as a positive integer, or a ValueError naming it."""
-    key = "WANDELL_" + name.upper()
-    raw = env.get(key)
-    if raw is None:
-        return default
-    try:
-        value = int(raw)
-    except ValueError:
-        raise ValueError(f"{key}={raw!r} is not an integer") from None
-    if value <= 0:
-        raise ValueError(f"{key}={raw!r} must be positive")
-    return value
-
-
 @lru_cache
 def get_settings() -> Settings:
     """Settings from the environment, else the embedded defaults."""
     env = os.environ
     return Settings(
         host=env.get("WANDELL_HOST", Settings.host),
-        port=_positive_int(env, "port", Settings.port),
-        max_upload_bytes=_positive_int(env, "max_upload_bytes", Settings.max_upload_bytes),
-        max_pixels=_positive_int(env, "max_pixels", Settings.max_pixels),
-        estimation_pixels=_positive_int(env, "estimation_pixels", Settings.estimation_pixels),
+        port=int(env.get("WANDELL_PORT", Settings.port)),
+        max_upload_bytes=int(env.get("WANDELL_MAX_UPLOAD_BYTES", Settings.max_upload_bytes)),
+        max_pixels=int(env.get("WANDELL_MAX_PIXELS", Settings.max_pixels)),
+        estimation_pixels=int(env.get("WANDELL_ESTIMATION_PIXELS", Settings.estimation_pixels)),
     )

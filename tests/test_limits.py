@@ -73,12 +73,6 @@ def test_pixel_limit_is_read_from_the_environment(env_settings, seeds):
         assert c.post("/v1/analyze", files={"file": ("a.dng", seeds[0], "image/x-adobe-dng")}).status_code == 200
 
 
-def test_bad_limit_in_the_environment_is_a_clear_error(env_settings):
-    with pytest.raises(ValueError, match="WANDELL_MAX_PIXELS"):
-        env_settings(max_pixels="lots")
-        get_settings()
-
-
 def test_streamed_body_over_the_limit_is_cut_off_while_reading(env_settings):
     """A chunked body (no Content-Length) of 64 chunks of 64 kB against a
     limit of 1000 bytes + FRAMING (1 MiB): the app stops reading at the first
