@@ -7,11 +7,9 @@ import io
 import os
 import struct
 
-import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from recovery import bayes
 from service import fuzz
 from service.app import app
 
@@ -58,26 +56,14 @@ def test_huge_declared_dimensions_are_refused_before_decoding(seeds):
     assert r.status_code == 413 and r.json()["error"] == "too_many_pixels", r.text
 
 
-def _model_mb() -> float:
-    m = bayes.bayes_model(__import__("recovery").Camera.named("Nikon 5100 (NPL)"))
-    return sum(v.nbytes for v in vars(m).values() if isinstance(v, np.ndarray)) / 2**20
-
-
 def test_two_thousand_mutated_raws_never_crash_the_service():
     """Every mutated file: a 4xx with {"error", "detail"}, or a 200 whose
     numbers are all finite (fuzz._check); no 5xx, no request over the
-    timeout; /health answers afterwards.
-
-    Memory bound: mutated ColorMatrix tags give new matrix-derived cameras,
-    and each new camera builds a light-posterior model (recovery.bayes) that
-    is cached, at most ``_MODEL_CACHE_MAX`` of them. So the resident set may
-    legitimately grow by that cache's capacity times one model's arrays
-    (measured here, about 26 MB), plus 64 MB for allocator slack (glibc
-    keeps freed arenas; measured growth without new cameras is under 1 MB
-    over repeated passes). A leak of one 7 kB upload per request would
-    stay under this bound, so it is a bound on boundedness, not a leak
-    detector; a leak of any decoded image or model would exceed it."""
-    bound = bayes._MODEL_CACHE_MAX * _model_mb() + 64
+    timeout; /health answers afterwards; RSS growth within
+    fuzz.memory_bound_mb() (the light-posterior cache's capacity, which
+    mutated colour matrices fill, plus 64 MB of allocator slack: see its
+    docstring)."""
+    bound = fuzz.memory_bound_mb()
     rep = fuzz.run(N_FUZZ, timeout=60.0, sample_every=10, warmup=min(200, N_FUZZ // 4))
     print(rep.table())
     assert rep.failures == []
