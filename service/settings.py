@@ -16,6 +16,8 @@ class Settings:
     port: int = 8000
     max_upload_bytes: int = 200 * 1024 * 1024
     max_pixels: int = 120_000_000
+    #: decode/estimate/encode jobs running at once (0 = one per CPU); the rest queue (service.workers)
+    max_concurrent_work: int = 0
     #: RAW files are binned to at most this many pixels for estimation
     estimation_pixels: int = 1_000_000
 
@@ -29,5 +31,6 @@ def get_settings() -> Settings:
         port=int(env.get("WANDELL_PORT", Settings.port)),
         max_upload_bytes=int(env.get("WANDELL_MAX_UPLOAD_BYTES", Settings.max_upload_bytes)),
         max_pixels=int(env.get("WANDELL_MAX_PIXELS", Settings.max_pixels)),
+        max_concurrent_work=int(env.get("WANDELL_MAX_CONCURRENT_WORK", Settings.max_concurrent_work)),
         estimation_pixels=int(env.get("WANDELL_ESTIMATION_PIXELS", Settings.estimation_pixels)),
     )

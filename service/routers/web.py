@@ -17,7 +17,6 @@ from importlib import resources
 
 import numpy as np
 from fastapi import APIRouter, Depends, File, Form, UploadFile
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, Response
 
 from .. import pipeline
@@ -25,6 +24,7 @@ from ..deps import estimate_options, read_upload
 from ..errors import ApiError
 from ..jsonsafe import clean
 from ..settings import Settings, get_settings
+from ..workers import run_heavy
 from .analysis import _analyze_sync
 
 router = APIRouter()
@@ -195,7 +195,7 @@ async def preview(file: UploadFile = File(..., description="RAW file (anything L
                     full_width=int(decoded.full_shape[1]), full_height=int(decoded.full_shape[0]))
         return pipeline.encode_image(img, fmt), info
 
-    body, info = await run_in_threadpool(work)
+    body, info = await run_heavy(work)
     info["ms"] = (time.perf_counter() - t0) * 1e3
     return Response(body, media_type=pipeline.FORMATS[fmt],
                     headers={"X-Preview": json.dumps(clean(info), separators=(",", ":")),
