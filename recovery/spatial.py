@@ -117,7 +117,7 @@ def chromaticity_trend(image: np.ndarray, mask: np.ndarray | None = None, *, dar
     Returns
     -------
     dict of plain numbers: ``gradient_row``, ``gradient_col`` (per pixel,
-    in ``u`` units), ``chi2``, ``dof``, ``log10_p``, ``effect_deg`` (largest
+    in ``u`` units) and their standard errors ``se_row``, ``se_col``, ``chi2``, ``dof``, ``log10_p``, ``effect_deg`` (largest
     change of the light's direction between opposite corners),
     ``pairs``, ``runs``, ``noise`` (robust sd of ``du``), ``defined``.
     """
@@ -137,21 +137,23 @@ def chromaticity_trend(image: np.ndarray, mask: np.ndarray | None = None, *, dar
     with np.errstate(invalid="ignore"):
         ok &= np.all(img > dark_fraction * top, axis=2)
     u = np.log(np.where(ok[..., None], img, 1.0)) @ Hm.T               # (H, W, C-1)
-    grads, chi2, pairs, runs, noise = [], 0.0, 0, 0, []
+    grads, ses, chi2, pairs, runs, noise = [], [], 0.0, 0, 0, []
     for ax in (0, 1):
+        grads.append(np.zeros(C - 1))
+        ses.append(np.full(C - 1, np.inf))
         if img.shape[ax] < 2:
-            grads.append(np.zeros(C - 1))
             continue
         d = np.diff(u, axis=ax)
         pv = (ok[1:] & ok[:-1]) if ax == 0 else (ok[:, 1:] & ok[:, :-1])
         if pv.sum() < min_pairs:
-            grads.append(np.zeros(C - 1))
             continue
-        sig = np.maximum(np.median(np.abs(d[pv]), axis=0) / 0.6745, 1e-9)
+        # robust noise of a difference; at least 0.1 % (log units), so an
+        # image with repeated pixels (upsampled) does not make every
+        # difference an edge
+        sig = np.maximum(np.median(np.abs(d[pv]), axis=0) / 0.6745, 1e-3)
         same = pv & np.all(np.abs(d) < kappa * sig, axis=-1)
         n = int(same.sum())
         if n < min_pairs:
-            grads.append(np.zeros(C - 1))
             continue
         prev = np.zeros_like(same)
         if ax == 0:
@@ -162,7 +164,7 @@ def chromaticity_trend(image: np.ndarray, mask: np.ndarray | None = None, *, dar
         g = d[same].mean(axis=0)
         se = sig * np.sqrt(nr) / n
         chi2 += float(np.sum((g / se) ** 2))
-        grads.append(g)
+        grads[ax], ses[ax] = g, se
         pairs += n
         runs += nr
         noise.append(sig)
@@ -180,6 +182,8 @@ def chromaticity_trend(image: np.ndarray, mask: np.ndarray | None = None, *, dar
         eff = max(eff, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))))
     logp = float(stats.chi2.logsf(chi2, dof) / np.log(10))
     out.update(defined=True, gradient_row=[float(x) for x in grads[0]], gradient_col=[float(x) for x in grads[1]],
+               se_row=[float(x) if np.isfinite(x) else None for x in ses[0]],
+               se_col=[float(x) if np.isfinite(x) else None for x in ses[1]],
                chi2=chi2, dof=dof, log10_p=logp if np.isfinite(logp) else -300.0, effect_deg=eff,
                pairs=pairs, runs=runs, noise=float(np.mean([np.mean(s) for s in noise])))
     return out
@@ -296,7 +300,8 @@ def _region_map(regions: list, grid_shape, spectrum) -> LightMap:
 
 
 def choose_light_model(image: np.ndarray, mask: np.ndarray | None, camera, rgb, spectrum, *,
-                       mode: str = "auto", grid=(2, 2)) -> tuple[LightMap | None, dict]:
+                       mode: str = "auto", grid=(2, 2), max_pixels: int | None = 262144
+                       ) -> tuple[LightMap | None, dict]:
     """One light or a light map for an image whose single light is ``rgb``,
     ``spectrum`` (the default estimator's answer).
 
@@ -305,6 +310,10 @@ def choose_light_model(image: np.ndarray, mask: np.ndarray | None, camera, rgb, 
     mode : ``"auto"`` (decide), ``"map"`` (always a map: from the trend when
         it is significant, else from the regions)
     grid : regions of the Bayes-factor test and of the region map
+    max_pixels : the tests run on the image block-averaged to at most this
+        many pixels (:func:`recovery.resolution.block_average`: a mean over a
+        block of one surface keeps its chromaticity and a linear trend); the
+        map's centres are in the caller's pixels
 
     Returns
     -------
@@ -314,12 +323,15 @@ def choose_light_model(image: np.ndarray, mask: np.ndarray | None, camera, rgb, 
     threshold, and a per-region summary (distinct colours, posterior spread,
     angle to the single light).
     """
-    img = np.asarray(image, dtype=np.float64)
+    from .resolution import block_average
+
+    img, mask, f = block_average(np.asarray(image), mask, max_pixels)
+    img = np.asarray(img, dtype=np.float64)
     h, w = img.shape[:2]
     trend = chromaticity_trend(img, mask, reference_rgb=rgb)
     regions = region_posteriors(img, mask, camera, grid) if min(h, w) >= 2 else []
     lbf, used = log_bayes_factor(regions)
-    summary = [{"centre": [float(x) for x in r["centre"]],
+    summary = [{"centre": [float((x + 0.5) * f - 0.5) for x in r["centre"]],
                 "distinct_colours": float(r["diagnostics"].get("distinct_colours") or 0.0),
                 "posterior_spread_deg": r["diagnostics"].get("posterior_spread_deg"),
                 "angle_to_one_light_deg": _angle(r["rgb"], rgb) if r["spectrum"] is not None else None,
@@ -333,7 +345,7 @@ def choose_light_model(image: np.ndarray, mask: np.ndarray | None, camera, rgb, 
         "trend_effect_threshold_deg": TREND_MIN_EFFECT_DEG, "trend_pairs": trend["pairs"],
         "log_bayes_factor": lbf, "log_bayes_factor_threshold": LOG_BF_THRESHOLD,
         "regions_grid": [int(grid[0]), int(grid[1])], "regions_used": used, "regions": summary,
-        "trend_says_map": trend_says, "regions_say_map": regions_say,
+        "trend_says_map": trend_says, "regions_say_map": regions_say, "test_block_factor": int(f),
     }
     if trend.get("reason"):
         evidence["trend_note"] = trend["reason"]
@@ -356,6 +368,9 @@ def choose_light_model(image: np.ndarray, mask: np.ndarray | None, camera, rgb, 
                      "the image"] if trend_says else [])
                    + ([f"regions disagree, log B = {lbf:.1f} > {LOG_BF_THRESHOLD:g}"] if regions_say else []))))
         evidence.update(light_model="light map", light_model_reason=f"{why}; map from {how}")
+        if f > 1:  # block centres back to the caller's pixels
+            lm.centres_r = (lm.centres_r + 0.5) * f - 0.5
+            lm.centres_c = (lm.centres_c + 0.5) * f - 0.5
     else:
         evidence.update(light_model="one light", light_model_reason=(
             f"no evidence the light varies: trend p = 10^{trend['log10_p']:.1f} over "
