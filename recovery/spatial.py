@@ -329,7 +329,7 @@ def choose_light_model(image: np.ndarray, mask: np.ndarray | None, camera, rgb, 
     img = np.asarray(img, dtype=np.float64)
     h, w = img.shape[:2]
     trend = chromaticity_trend(img, mask, reference_rgb=rgb)
-    regions = region_posteriors(img, mask, camera, grid) if min(h, w) >= 2 else []
+    regions = region_posteriors(img, mask, camera, grid)
     lbf, used = log_bayes_factor(regions)
     summary = [{"centre": [float((x + 0.5) * f - 0.5) for x in r["centre"]],
                 "distinct_colours": float(r["diagnostics"].get("distinct_colours") or 0.0),
