@@ -361,7 +361,8 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
             est = _maybe_light_map(img, m, camera, est, spatial_mode, region_size)
         else:
             est.diagnostics["spatial_decision"] = "one light"
-            est.diagnostics["spatial_reason"] = ("requested (spatial=False)" if spatial_mode == "uniform"
+            est.diagnostics["spatial_reason"] = ("requested or default (spatial=False; spatial='auto' decides "
+                                                 "from the image)" if spatial_mode == "uniform"
                                                      else f"the light posterior fell back to {est.method}")
         return est
 
@@ -587,7 +588,8 @@ class AnalysisResult:
 
 def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool = False,
             surface_dim_render: int | None = None, synthesis_basis=None, **kwargs) -> AnalysisResult:
-    """Light (or light map with ``spatial=True``) and surfaces together.
+    """Light (or light map with ``spatial=True``, or when ``spatial="auto"``
+    finds the light varies) and surfaces together.
 
     Once the light is known the surfaces use a model with as many terms as
     sensors (``surface_dim_render``, default C) of ``synthesis_basis``

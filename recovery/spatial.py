@@ -250,7 +250,7 @@ def log_bayes_factor(regions: list) -> tuple[float, int]:
         return 0.0, len(Ls)
     Ls = np.asarray(Ls)
     lbf = float(sum(logsumexp(lp + L) for L in Ls) - logsumexp(lp + Ls.sum(axis=0)))
-    return lbf, len(Ls)
+    return (lbf if np.isfinite(lbf) else 0.0), len(Ls)
 
 
 def _angle(a, b) -> float:
