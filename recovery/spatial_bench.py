@@ -33,7 +33,6 @@ regions). ``shared/DESIGN.md``, "The development benchmark".
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 
@@ -42,7 +41,7 @@ import numpy as np
 import models
 
 from .api import angular_error, estimate_illuminant
-from .bench import (_camera, _illuminant, _reflectances, _sensitivities, draw_scene, kd_partition, scene_rng)
+from .bench import _camera, _illuminant, _reflectances, _sensitivities, draw_scene, kd_partition
 
 __all__ = ["two_light_scene", "draw_two_light_scene", "evaluate", "run", "main"]
 

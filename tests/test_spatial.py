@@ -17,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import models
 from recovery import Camera, InputError, angular_error, estimate_illuminant
 from recovery.bayes import helmert
 from recovery.bench import mondrian_scene
@@ -71,7 +70,7 @@ def test_trend_recovers_a_known_gradient():
     errors of g (the noise is Gaussian and the statistic is a mean), and an
     image without the gradient gives chi-square of order its dof."""
     rng = np.random.default_rng(0)
-    h, w = 48, 64
+    w = 64
     labels = np.repeat(np.repeat(rng.integers(0, 12, (6, 8)), 8, axis=0), 8, axis=1)
     surf = rng.uniform(0.2, 0.9, (12, 3))
     base = surf[labels]
