@@ -261,7 +261,7 @@ def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_ma
 def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
                         light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
                         mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
-                        dark_fraction: float = 1e-3, spatial: bool = False, region_size: int | None = None,
+                        dark_fraction: float = 1e-3, spatial: bool | str = False, region_size: int | None = None,
                         overlap: float = 0.5, min_variation: float = 0.02, subspace_tolerance: float = 0.1,
                         on_failure: str = "fallback", fallback: str = "shades-of-gray", p: float = 6.0,
                         sigma: float = 1.0) -> IlluminantEstimate:
@@ -586,7 +586,7 @@ class AnalysisResult:
         return self.surface_weights(points) @ self.surface_model.basis.T
 
 
-def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool = False,
+def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str = False,
             surface_dim_render: int | None = None, synthesis_basis=None, **kwargs) -> AnalysisResult:
     """Light (or light map with ``spatial=True``, or when ``spatial="auto"``
     finds the light varies) and surfaces together.
