@@ -261,7 +261,7 @@ def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_ma
 def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
                         light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
                         mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
-                        dark_fraction: float = 1e-3, spatial: bool | str = False, region_size: int | None = None,
+                        dark_fraction: float = 1e-3, spatial: bool | str = "auto", region_size: int | None = None,
                         overlap: float = 0.5, min_variation: float = 0.02, subspace_tolerance: float = 0.1,
                         on_failure: str = "fallback", fallback: str = "shades-of-gray", p: float = 6.0,
                         sigma: float = 1.0) -> IlluminantEstimate:
@@ -281,7 +281,7 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         ``saturation_fraction * white_level`` are excluded
     dark_fraction : pixels with a channel at or below this fraction of the
         image maximum are excluded (relative, so the result is scale-free)
-    spatial : ``"auto"`` (decide from the image, :mod:`recovery.spatial`;
+    spatial : ``"auto"`` (the default: decide from the image, :mod:`recovery.spatial`;
         the decision and its evidence are in ``diagnostics["spatial_decision"]``,
         ``["spatial_reason"]`` and ``["spatial_test"]``), ``True`` / ``"map"``
         (always a light map), ``False`` / ``"uniform"`` (one light). The
@@ -361,8 +361,8 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
             est = _maybe_light_map(img, m, camera, est, spatial_mode, region_size)
         else:
             est.diagnostics["spatial_decision"] = "one light"
-            est.diagnostics["spatial_reason"] = ("requested or default (spatial=False; spatial='auto' decides "
-                                                 "from the image)" if spatial_mode == "uniform"
+            est.diagnostics["spatial_reason"] = ("requested (spatial=False or quality='fast'; the default "
+                                                 "spatial='auto' decides from the image)" if spatial_mode == "uniform"
                                                      else f"the light posterior fell back to {est.method}")
         return est
 
@@ -450,7 +450,8 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
 #: (``python -m recovery.tradeoff``; figures in the README). Each sets the
 #: analysis resolution (block-averaged pixels) and the wavelength grid.
 QUALITY_PRESETS = {
-    "fast": {"analysis_pixels": 4096, "wavelength_step": 20.0},
+    # fast pins one light: the light-map test costs more than its estimate
+    "fast": {"analysis_pixels": 4096, "wavelength_step": 20.0, "spatial": False},
     "balanced": {"analysis_pixels": 65536, "wavelength_step": 10.0},
     "accurate": {"analysis_pixels": None, "wavelength_step": 10.0},
 }
@@ -500,6 +501,8 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
         if quality not in QUALITY_PRESETS:
             raise InputError(f"quality must be one of {list(QUALITY_PRESETS)}, not {quality!r}")
         knobs.update(QUALITY_PRESETS[quality])
+        if "spatial" in knobs:
+            kwargs.setdefault("spatial", knobs.pop("spatial"))
     if analysis_pixels is not None:
         knobs["analysis_pixels"] = analysis_pixels
     if wavelength_step is not None:
@@ -586,7 +589,7 @@ class AnalysisResult:
         return self.surface_weights(points) @ self.surface_model.basis.T
 
 
-def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str = False,
+def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str = "auto",
             surface_dim_render: int | None = None, synthesis_basis=None, **kwargs) -> AnalysisResult:
     """Light (or light map with ``spatial=True``, or when ``spatial="auto"``
     finds the light varies) and surfaces together.
