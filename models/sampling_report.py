@@ -179,6 +179,8 @@ REPORT_VARIANTS = [
     ("sharpened", "sharpened", {}),
     ("gauss-ac1c2", "gauss-ac1c2", {"channel": "A"}),
     ("quasi-gauss-xyz", "quasi-gauss-xyz", {"degrees": "<n/3>"}),
+    # Borges' construction on tabulated CIE 1931 data (his analytic fits are rough)
+    ("quasi-gauss-xyz-cie", "quasi-gauss-xyz", {"degrees": "<n/3>", "source": "cie"}),
 ]
 REPORT_SIZES = (3, 4, 6, 8, 12, 16, 24, 32)
 #: Strategies whose basis is fitted to reflectances: the light stays exact.
