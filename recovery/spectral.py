@@ -640,8 +640,12 @@ def _choose(names, options, build, score, tried, n_in, max_error, spiky, represe
         counter[0] += 1
         heapq.heappush(heap, (built[2], built[0].n, counter[0], built, entry))
 
-    light = "spiky light (kept exact in the matrix; only the surfaces are sampled)" if spiky \
-        else "smooth light"
+    if not spiky:
+        light = "smooth light"
+    elif represent_light:
+        light = "spiky light (sampled by the rules, as asked)"
+    else:
+        light = "spiky light (kept exact in the matrix; only the surfaces are sampled)"
     best = None
 
     def drain(limit):

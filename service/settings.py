@@ -18,6 +18,8 @@ class Settings:
     max_pixels: int = 120_000_000
     #: RAW files are binned to at most this many pixels for estimation
     estimation_pixels: int = 1_000_000
+    #: POST /v1/render refuses spectral data with more values (H x W x N) (413)
+    max_render_values: int = 64_000_000
 
 
 @lru_cache
@@ -30,4 +32,5 @@ def get_settings() -> Settings:
         max_upload_bytes=int(env.get("WANDELL_MAX_UPLOAD_BYTES", Settings.max_upload_bytes)),
         max_pixels=int(env.get("WANDELL_MAX_PIXELS", Settings.max_pixels)),
         estimation_pixels=int(env.get("WANDELL_ESTIMATION_PIXELS", Settings.estimation_pixels)),
+        max_render_values=int(env.get("WANDELL_MAX_RENDER_VALUES", Settings.max_render_values)),
     )
