@@ -59,8 +59,12 @@ AUTO_BOUND = 1.0
 #: series, A, C and E are below 0.01 on colour-science's data, every FL light
 #: above 0.06.
 SPIKY_THRESHOLD = 0.04
-#: Pixels per chunk: 8192 pixels x 31 float32 bands is 1 MB, about one L2.
-CHUNK = 8192
+#: Values per chunk (pixels x bands read): 2^17 float32 is 0.5 MB (fits
+#: L2), so 4096 pixels of a full 31-band product and 16384 pixels of a 5-band
+#: one. Small enough that OpenBLAS runs the skinny product on one thread:
+#: larger chunks made it spin threads against each other on a loaded 2-core
+#: machine (10-50x slower; measured while writing ``recovery.spectral_bench``).
+CHUNK_VALUES = 1 << 17
 _XYZ = "CIE 1931 2 Degree Standard Observer"
 #: n tried by ``auto`` for strategies that take a size.
 AUTO_SIZES = tuple(range(3, 17))
@@ -124,6 +128,17 @@ def light_spikiness(values, wavelengths) -> float:
     return float(np.sum(np.maximum(v - smooth, 0.0)) / total) if total > 0 else 0.0
 
 
+@lru_cache(maxsize=256)
+def _named_spikiness(name: str):
+    """Spikiness of a colour-science illuminant on its own sampling, or None."""
+    import colour
+
+    if name not in colour.SDS_ILLUMINANTS:
+        return None
+    sd = colour.SDS_ILLUMINANTS[name]
+    return light_spikiness(sd.values, sd.wavelengths)
+
+
 def light_on_grid(light, grid=None, light_wavelengths=None) -> tuple[np.ndarray, dict]:
     """A light as ``(N,)`` values on the analysis grid, plus what is known of it.
 
@@ -143,8 +158,6 @@ def light_on_grid(light, grid=None, light_wavelengths=None) -> tuple[np.ndarray,
     info : dict
         ``name``, ``spikiness`` (on the light's own sampling), ``spiky``.
     """
-    import colour
-
     from models import illuminant
 
     grid = DEFAULT_WAVELENGTHS if grid is None else np.asarray(grid, float)
@@ -153,10 +166,8 @@ def light_on_grid(light, grid=None, light_wavelengths=None) -> tuple[np.ndarray,
             values = illuminant(light, grid)
         except KeyError as e:
             raise InputError(str(e).strip("'\"")) from None
-        if light in colour.SDS_ILLUMINANTS:
-            sd = colour.SDS_ILLUMINANTS[light]
-            spk = light_spikiness(sd.values, sd.wavelengths)
-        else:
+        spk = _named_spikiness(light)
+        if spk is None:
             spk = light_spikiness(values, grid)
         name = light
     else:
@@ -187,6 +198,12 @@ def light_on_grid(light, grid=None, light_wavelengths=None) -> tuple[np.ndarray,
 
 
 def _output_transform(output: str, grid: np.ndarray, white_xyz: np.ndarray, adapt: bool):
+    return _output_transform_cached(output, tuple(np.asarray(grid, float).tolist()),
+                                    tuple(np.asarray(white_xyz, float).tolist()), bool(adapt))
+
+
+@lru_cache(maxsize=128)
+def _output_transform_cached(output: str, grid: tuple, white_xyz: tuple, adapt: bool):
     """``(3, 3)`` matrix ``C`` (row vectors: ``out = xyz @ C``) and the
     encoding, for an output name of :func:`recovery.synthesis.output_space`.
 
@@ -198,6 +215,7 @@ def _output_transform(output: str, grid: np.ndarray, white_xyz: np.ndarray, adap
     """
     from .synthesis import output_space
 
+    grid, white_xyz = np.asarray(grid), np.asarray(white_xyz)
     try:
         space = output_space(output, grid)
     except (ValueError, KeyError) as e:
@@ -275,7 +293,7 @@ def _sparsify(K: np.ndarray) -> np.ndarray:
 
 def apply_band_matrix(cube: np.ndarray, K: np.ndarray, check: bool = True) -> tuple[np.ndarray, dict]:
     """``cube @ K`` for ``(..., N)`` spectra, reading only the bands where
-    ``K`` has a non-zero row, in float32 chunks of :data:`CHUNK` pixels (no
+    ``K`` has a non-zero row, in float32 chunks of :data:`CHUNK_VALUES` values (no
     ``H x W x N`` temporary).
 
     Band-interleaved cubes (``(H, W, N)`` C-ordered, the ``.npy`` layout)
@@ -283,8 +301,9 @@ def apply_band_matrix(cube: np.ndarray, K: np.ndarray, check: bool = True) -> tu
     of an ``(N, H, W)`` array, e.g. ``np.moveaxis(bsq, 0, -1)``) read whole
     planes, so a rule with ``k`` bands reads ``k / N`` of the data.
 
-    With ``check`` the bands read are checked for non-finite and negative
-    values (:class:`InputError`).
+    With ``check`` the output is checked for non-finite values (a NaN or Inf
+    in a band that is read reaches the output; checking the 3 output values
+    costs a tenth of checking the N input values) (:class:`InputError`).
 
     Returns
     -------
@@ -305,10 +324,13 @@ def apply_band_matrix(cube: np.ndarray, K: np.ndarray, check: bool = True) -> tu
     except (ValueError, TypeError):
         x = cube.reshape(P, N)
     planar = N > 1 and P > 1 and abs(x.strides[1]) > abs(x.strides[0])
-    Ks = np.ascontiguousarray(K[idx], dtype=np.float32)
-    full = idx.size == N
-    for s in range(0, P, CHUNK):
-        e = min(P, s + CHUNK)
+    # interleaved data: gathering more than half the bands costs more than
+    # multiplying the zero rows
+    full = idx.size == N or (not planar and 2 * idx.size > N)
+    Ks = np.ascontiguousarray(K if full else K[idx], dtype=np.float32)
+    chunk_px = int(np.clip(1 << int(np.log2(CHUNK_VALUES // Ks.shape[0])), 1024, 65536))
+    for s in range(0, P, chunk_px):
+        e = min(P, s + chunk_px)
         if full and not planar:
             chunk = x[s:e]
         elif planar:
@@ -317,14 +339,9 @@ def apply_band_matrix(cube: np.ndarray, K: np.ndarray, check: bool = True) -> tu
             chunk = np.take(x[s:e], idx, axis=1)
         if chunk.dtype != np.float32:
             chunk = chunk.astype(np.float32)
-        if check:
-            lo, hi = chunk.min(), chunk.max()
-            if not (np.isfinite(lo) and np.isfinite(hi)):
-                raise InputError("the spectra contain non-finite values (NaN or Inf)")
-            if lo < 0:
-                raise InputError(f"the spectra contain negative values (minimum {float(lo):.4g}); "
-                                 "reflectances are >= 0: clip measurement noise first")
         np.matmul(chunk, Ks, out=out[s:e])
+        if check and not np.all(np.isfinite(out[s:e])):
+            raise InputError("the spectra contain non-finite values (NaN or Inf)")
     return out.reshape(lead + (K.shape[1],)), {"bands_read": int(idx.size),
                                                 "layout": "band-sequential" if planar else "band-interleaved"}
 
@@ -387,10 +404,12 @@ def _input_map(wl: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, list]:
 
 
 def _sample(x2: np.ndarray, size: int, seed: int = 0) -> np.ndarray:
+    """``size`` pixels drawn at random (fixed seed; every pixel when there
+    are fewer), in memory order."""
     P = x2.shape[0]
     if P <= size:
         return np.asarray(x2, float)
-    idx = np.sort(np.random.default_rng(seed).choice(P, size, replace=False))
+    idx = np.unique(np.random.default_rng(seed).integers(0, P, size))
     return np.asarray(x2[idx], float)
 
 
@@ -445,7 +464,9 @@ def render_spectra(spectra, wavelengths, light, strategy: str = "auto", n: int |
         weights integrate E*S at their nodes, represent it for smooth lights;
         for spiky lights the light is always kept exact.
     check : bool
-        Refuse non-finite or negative values among the bands read.
+        Refuse non-finite values (any in a band that is read) and negative
+        values (on the sampled pixels; ``POST /v1/render`` checks every
+        value before rendering).
     **options
         Passed to the rule (``channel`` for ``gauss-ac1c2``, ``degrees`` for
         ``quasi-gauss-xyz``, ...).
@@ -493,8 +514,11 @@ def render_spectra(spectra, wavelengths, light, strategy: str = "auto", n: int |
     except (ValueError, TypeError):
         flat = arr.reshape(P, arr.shape[-1])
     sample = _sample(flat, sample_pixels)
-    if check and sample.size and (not np.all(np.isfinite(sample)) or sample.min() < 0):
-        raise InputError("the spectra contain non-finite or negative values")
+    if check and sample.size and not np.all(np.isfinite(sample)):
+        raise InputError("the spectra contain non-finite values (NaN or Inf)")
+    if check and sample.size and sample.min() < 0:
+        raise InputError(f"the spectra contain negative values (minimum {sample.min():.4g}); reflectances are "
+                         ">= 0: clip measurement noise first")
     ref = sample @ K_full
 
     def build(name, size, opts, rep_light):
