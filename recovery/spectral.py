@@ -47,6 +47,8 @@ __all__ = [
     "band_matrix",
     "apply_band_matrix",
     "ciede2000_between",
+    "ciede2000",
+    "lab_from_xyz",
     "AUTO_BOUND",
 ]
 
@@ -69,11 +71,17 @@ _XYZ = "CIE 1931 2 Degree Standard Observer"
 #: n tried by ``auto`` for strategies that take a size.
 AUTO_SIZES = tuple(range(3, 17))
 #: Option sets ``auto`` tries for strategies whose size is implied by an option
-#: (Borges' degree sequence gives n = sum of degrees).
+#: (Borges' degree sequence gives n = sum of degrees; Meyer's XYZ rule is his
+#: A, C1, C2 orders with close nodes merged, 4 wavelengths for 3, 2, 1).
 AUTO_OPTIONS = {
     "quasi-gauss-xyz": [{"degrees": (1, 1, 1)}, {"degrees": (2, 2, 2)}, {"degrees": (3, 3, 3)}],
-    "gauss-ac1c2": [{"channel": "A"}],
+    "gauss-ac1c2": [{"channel": "XYZ", "orders": o} for o in ((3, 2, 1), (4, 2, 1), (5, 2, 2), (6, 4, 2))],
 }
+
+
+def _size_implied(opts: dict) -> bool:
+    """True when the options fix the rule's size (``n`` is then not given)."""
+    return "degrees" in opts or opts.get("channel") == "XYZ"
 
 
 @dataclass
@@ -233,9 +241,9 @@ def _output_transform_cached(output: str, grid: tuple, white_xyz: tuple, adapt: 
     return C, space.encoding
 
 
-#: Strategies this module adds to :func:`models.sampling.strategy_names`:
-#: they need the light (the bands are chosen for it), so they are built here.
-#: Their rules model surfaces only: the light is always kept exact.
+#: Strategies this module adds to :func:`models.sampling.strategy_names`
+#: (until they are registered there). Their rules model surfaces only: the
+#: light is always kept exact.
 LIGHT_AWARE = {"wiener-points": ("models.band_selection", "wiener_points_rule")}
 
 
@@ -246,23 +254,55 @@ def render_strategies() -> list[str]:
     return list(dict.fromkeys(strategy_names() + list(LIGHT_AWARE)))
 
 
+def _builder(strategy: str):
+    import importlib
+
+    from models.sampling import STRATEGIES
+
+    module, name = LIGHT_AWARE.get(strategy) or STRATEGIES[strategy]
+    return getattr(importlib.import_module(module), name)
+
+
+def _accepts(strategy: str, param: str) -> bool:
+    """Whether the strategy's builder takes ``param`` (e.g. ``light``: a
+    rule built for the light at hand, such as a composite one)."""
+    import inspect
+
+    try:
+        return param in inspect.signature(_builder(strategy)).parameters
+    except (KeyError, AttributeError, ImportError, TypeError, ValueError):
+        return False
+
+
+def _key(v):
+    if isinstance(v, np.ndarray):
+        return ("__array__", v.shape, tuple(np.asarray(v, float).ravel().tolist()))
+    if isinstance(v, list):
+        return tuple(v)
+    return v
+
+
+def _unkey(v):
+    if isinstance(v, tuple) and len(v) == 3 and v[0] == "__array__":
+        return np.asarray(v[2], float).reshape(v[1])
+    return v
+
+
 @lru_cache(maxsize=256)
 def _rule_cached(strategy: str, n, wl: tuple, options: tuple):
-    from models.sampling import sampling_rule
-
-    return sampling_rule(strategy, n, np.asarray(wl), **dict(options))
+    return _builder(strategy)(n, np.asarray(wl), **{k: _unkey(v) for k, v in options})
 
 
 def _rule(strategy, n, grid, options, light=None, cmfs=None):
-    """The rule ``strategy`` of size ``n`` on ``grid`` (cached); light-aware
-    strategies get the light and observer too."""
-    if strategy in LIGHT_AWARE:
-        import importlib
-
-        module, name = LIGHT_AWARE[strategy]
-        return getattr(importlib.import_module(module), name)(n, grid, light=light, cmfs=cmfs, **options)
-    opts = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in options.items()))
-    return _rule_cached(strategy, None if n is None else int(n), tuple(np.asarray(grid, float).tolist()), opts)
+    """The rule ``strategy`` of size ``n`` on ``grid`` (cached). Builders
+    that take the light (or the observer) get them: their rules are made
+    for the scene's light (bands chosen for it, spikes kept)."""
+    opts = dict(options)
+    for name, value in (("light", light), ("cmfs", cmfs)):
+        if value is not None and name not in opts and _accepts(strategy, name):
+            opts[name] = np.asarray(value, float)
+    key = tuple(sorted((k, _key(v)) for k, v in opts.items()))
+    return _rule_cached(strategy, None if n is None else int(n), tuple(np.asarray(grid, float).tolist()), key)
 
 
 def band_matrix(rule, light: np.ndarray, cmfs: np.ndarray, represent_light: bool,
@@ -349,16 +389,54 @@ def apply_band_matrix(cube: np.ndarray, K: np.ndarray, check: bool = True) -> tu
 # --- errors -----------------------------------------------------------------------
 
 
-def ciede2000_between(xyz_a: np.ndarray, xyz_b: np.ndarray, white_xyz: np.ndarray) -> np.ndarray:
-    """CIEDE2000 (CIE 142-2001, colour-science's ``delta_E``) between two sets
-    of XYZ ``(M, 3)`` scaled so the light's white has Y = 1, in CIELAB
-    relative to that white."""
-    import colour
+def lab_from_xyz(xyz: np.ndarray, white_xyz: np.ndarray) -> np.ndarray:
+    """CIELAB (CIE 015:2018, eq. 8.1-8.3) of ``(M, 3)`` XYZ relative to ``white_xyz``."""
+    t = np.asarray(xyz, float) / np.asarray(white_xyz, float)
+    d = 6.0 / 29.0
+    f = np.where(t > d ** 3, np.cbrt(np.maximum(t, d ** 3)), t / (3 * d * d) + 4.0 / 29.0)
+    return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], 1)
 
-    xy = colour.XYZ_to_xy(np.asarray(white_xyz, float))
-    la = colour.XYZ_to_Lab(np.asarray(xyz_a, float), xy)
-    lb = colour.XYZ_to_Lab(np.asarray(xyz_b, float), xy)
-    d = np.asarray(colour.delta_E(la, lb, method="CIE 2000"), float)
+
+def ciede2000(lab1: np.ndarray, lab2: np.ndarray) -> np.ndarray:
+    """CIEDE2000 colour difference (CIE 142-2001; the formulation and test
+    data of Sharma, Wu and Dalal 2005), ``(M,)`` for ``(M, 3)`` CIELAB pairs,
+    kL = kC = kH = 1. Plain numpy: the error estimate of every render calls
+    it, so it avoids colour-science's per-call overhead (same numbers, see
+    ``tests/test_spectral.py``)."""
+    L1, a1, b1 = np.asarray(lab1, float).T
+    L2, a2, b2 = np.asarray(lab2, float).T
+    C1, C2 = np.hypot(a1, b1), np.hypot(a2, b2)
+    Cm7 = ((C1 + C2) / 2) ** 7
+    G = 0.5 * (1 - np.sqrt(Cm7 / (Cm7 + 25.0 ** 7)))
+    a1p, a2p = (1 + G) * a1, (1 + G) * a2
+    C1p, C2p = np.hypot(a1p, b1), np.hypot(a2p, b2)
+    h1p = np.degrees(np.arctan2(b1, a1p)) % 360
+    h2p = np.degrees(np.arctan2(b2, a2p)) % 360
+    dLp, dCp = L2 - L1, C2p - C1p
+    dh = h2p - h1p
+    dh = np.where(dh > 180, dh - 360, np.where(dh < -180, dh + 360, dh))
+    dh = np.where(C1p * C2p == 0, 0.0, dh)
+    dHp = 2 * np.sqrt(C1p * C2p) * np.sin(np.radians(dh / 2))
+    Lpm, Cpm = (L1 + L2) / 2, (C1p + C2p) / 2
+    hs = h1p + h2p
+    hpm = np.where(np.abs(h1p - h2p) > 180, np.where(hs < 360, hs + 360, hs - 360), hs) / 2
+    hpm = np.where(C1p * C2p == 0, hs, hpm)
+    T = (1 - 0.17 * np.cos(np.radians(hpm - 30)) + 0.24 * np.cos(np.radians(2 * hpm))
+         + 0.32 * np.cos(np.radians(3 * hpm + 6)) - 0.20 * np.cos(np.radians(4 * hpm - 63)))
+    dtheta = 30 * np.exp(-(((hpm - 275) / 25) ** 2))
+    Cpm7 = Cpm ** 7
+    RC = 2 * np.sqrt(Cpm7 / (Cpm7 + 25.0 ** 7))
+    SL = 1 + 0.015 * (Lpm - 50) ** 2 / np.sqrt(20 + (Lpm - 50) ** 2)
+    SC = 1 + 0.045 * Cpm
+    SH = 1 + 0.015 * Cpm * T
+    RT = -np.sin(np.radians(2 * dtheta)) * RC
+    return np.sqrt((dLp / SL) ** 2 + (dCp / SC) ** 2 + (dHp / SH) ** 2 + RT * (dCp / SC) * (dHp / SH))
+
+
+def ciede2000_between(xyz_a: np.ndarray, xyz_b: np.ndarray, white_xyz: np.ndarray) -> np.ndarray:
+    """CIEDE2000 (:func:`ciede2000`) between two sets of XYZ ``(M, 3)``
+    scaled so the light's white has Y = 1, in CIELAB relative to that white."""
+    d = ciede2000(lab_from_xyz(xyz_a, white_xyz), lab_from_xyz(xyz_b, white_xyz))
     return np.where(np.isfinite(d), d, np.inf)
 
 
@@ -460,8 +538,9 @@ def render_spectra(spectra, wavelengths, light, strategy: str = "auto", n: int |
     represent_light : bool, optional
         True: the light is held in the rule's representation too (the
         setting of Meyer, Borges and Kment). False: the exact light is folded
-        into the matrix. ``None``: decided per rule; quadrature rules, whose
-        weights integrate E*S at their nodes, represent it for smooth lights;
+        into the matrix. ``None``: decided per rule; quadrature rules with
+        per-channel weights (``(n, 3)``: they integrate E*S at their nodes)
+        represent it for smooth lights;
         for spiky lights the light is always kept exact.
     check : bool
         Refuse non-finite values (any in a band that is read) and negative
@@ -545,9 +624,9 @@ def render_spectra(spectra, wavelengths, light, strategy: str = "auto", n: int |
     if strategy == "full":
         chosen = None
         why = "the full calculation was asked for"
-    elif strategy != "auto" and (n is not None or "degrees" in options):
-        rep = _represent(strategy, represent_light, spiky, options, n, grid)
+    elif strategy != "auto" and (n is not None or _size_implied(options)):
         try:
+            rep = _represent(_rule(strategy, n, grid, options, E, cmfs), represent_light, spiky)
             built, entry = build(strategy, n, options, rep)
         except (ValueError, TypeError, KeyError, NotImplementedError, AttributeError, ImportError) as e:
             raise InputError(f"strategy {strategy!r} with n={n} {_opt_json(options)}: {e}") from None
@@ -604,20 +683,16 @@ def _opt_json(opts: dict) -> dict:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dict(opts).items()}
 
 
-def _represent(strategy, represent_light, spiky, options, n, grid) -> bool:
+def _represent(rule, represent_light, spiky) -> bool:
     """Whether the light is held in the rule's representation (see
     :func:`render_spectra`)."""
-    if strategy in LIGHT_AWARE:
+    if rule.strategy in LIGHT_AWARE:
         return False
     if represent_light is not None:
         return bool(represent_light)
     if spiky:
         return False
-    try:
-        rule = _rule(strategy, n, grid, options)
-    except Exception:  # noqa: BLE001 - evaluate() reports the builder's own error
-        return False
-    return rule.weights is not None
+    return rule.weights is not None and np.ndim(rule.weights) == 2
 
 
 def _choose(names, options, build, score, tried, n_in, max_error, spiky, represent_light, asked):
@@ -690,7 +765,7 @@ def _choose(names, options, build, score, tried, n_in, max_error, spiky, represe
         return None
 
     for fam in families:
-        if "degrees" in fam[1]:
+        if _size_implied(fam[1]):
             add(fam, None)
             fam[3] = False
     for size in AUTO_SIZES:

@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 import models
 from models import DEFAULT_WAVELENGTHS as WL
 from recovery.errors import InputError
-from recovery.spectral import ciede2000_between, light_spikiness, render_spectra
+from recovery.spectral import ciede2000, ciede2000_between, lab_from_xyz, light_spikiness, render_spectra
 
 
 @pytest.fixture(scope="module")
@@ -105,6 +105,27 @@ def test_band_sequential_layout_gives_the_same_image(mondrian):
     b, rb = render_spectra(mondrian, WL, "D65", strategy="uniform", n=5, output="XYZ")
     assert ra["layout"] == "band-sequential" and rb["layout"] == "band-interleaved"
     np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+
+
+def test_ciede2000_matches_sharma_test_data_and_colour():
+    import colour
+
+    # Sharma, Wu and Dalal (2005), Table 1: pairs 1, 7, 13, 17, 25 and 34 with their
+    # published differences (4 decimals: tolerance 5e-5).
+    pairs = np.array([[50.0, 2.6772, -79.7751, 50.0, 0.0, -82.7485, 2.0425],
+                      [50.0, 0.0, 0.0, 50.0, -1.0, 2.0, 2.3669],
+                      [50.0, 2.49, -0.001, 50.0, -2.49, 0.0011, 7.2195],
+                      [50.0, 2.5, 0.0, 73.0, 25.0, -18.0, 27.1492],
+                      [60.2574, -34.0099, 36.2677, 60.4626, -34.1751, 39.4387, 1.2644],
+                      [2.0776, 0.0795, -1.135, 0.9033, -0.0636, -0.5514, 0.9082]])
+    np.testing.assert_allclose(ciede2000(pairs[:, :3], pairs[:, 3:6]), pairs[:, 6], atol=5e-5)
+    rng = np.random.default_rng(3)
+    a = rng.uniform([0, -100, -100], [100, 100, 100], (2000, 3))
+    b = a + rng.normal(scale=5, size=a.shape)
+    np.testing.assert_allclose(ciede2000(a, b), colour.delta_E(a, b, method="CIE 2000"), rtol=1e-9, atol=1e-9)
+    xyz = rng.uniform(0, 1, (100, 3))
+    w = np.array([0.95, 1.0, 1.09])
+    np.testing.assert_allclose(lab_from_xyz(xyz, w), colour.XYZ_to_Lab(xyz, colour.XYZ_to_xy(w)), atol=1e-9)
 
 
 # --- the rules and auto --------------------------------------------------------------
@@ -318,7 +339,7 @@ def test_sampling_endpoint_uniform_and_errors(client):
     # 10 nm integral of ybar over 400-700 (106.8 from colour-science's table,
     # rebuilt piecewise-linearly: within 1 %)
     ybar = models.observer("XYZ", WL)[:, 1].sum() * 10
-    assert abs(sum(w[1] for w in body["weights"]) - ybar) < 0.01 * ybar
+    assert abs(sum(w[1] for w in body["integration_weights_xyz"]) - ybar) < 0.01 * ybar
     r = client.get("/v1/sampling", params={"strategy": "wiener-points", "n": 4, "illuminant": "FL11"})
     assert r.status_code == 200 and len(r.json()["nodes_nm"]) == 4
     for params, code in (({"strategy": "nope", "n": 3}, "unknown_strategy"),

@@ -70,8 +70,8 @@ def rule_options(strategy: str, n: int | None, channel: str | None, degrees: str
         raise ApiError(422, "n_out_of_range", f"n must be in 1..{MAX_N}, got {n}")
     opts: dict = {}
     if channel is not None and channel != "":
-        if channel not in ("A", "C1", "C2"):
-            raise ApiError(422, "invalid_parameter", f"channel must be A, C1 or C2, got {channel!r}")
+        if channel not in ("A", "C1", "C2", "XYZ"):
+            raise ApiError(422, "invalid_parameter", f"channel must be A, C1, C2 or XYZ, got {channel!r}")
         opts["channel"] = channel
     deg = parse_degrees(degrees)
     if deg is not None:
@@ -172,7 +172,7 @@ async def render(file: UploadFile = File(..., description=".npy reflectance cube
                                                "default D65"),
                  light_file: UploadFile | None = File(None, description="light spectrum CSV: wavelength, value"),
                  strategy: str = Form("auto"), n: int | None = Form(None),
-                 channel: str | None = Form(None, description="gauss-ac1c2: A, C1 or C2"),
+                 channel: str | None = Form(None, description="gauss-ac1c2: A, C1, C2 or XYZ (Meyer's 4-wavelength rule)"),
                  degrees: str | None = Form(None, description="quasi-gauss-xyz: e.g. 2,2,2"),
                  format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16"),
                  output: str = Form("sRGB", description="sRGB (encoded) or linear-sRGB"),
@@ -274,16 +274,19 @@ async def render(file: UploadFile = File(..., description=".npy reflectance cube
 @router.get("/sampling")
 def sampling(strategy: str = Query(..., description="a sampling strategy name"),
              n: int | None = Query(None, description=f"size 1..{MAX_N} (implied by degrees for quasi-gauss-xyz)"),
-             channel: str | None = Query(None, description="gauss-ac1c2: A, C1 or C2"),
+             channel: str | None = Query(None, description="gauss-ac1c2: A, C1, C2 or XYZ"),
              degrees: str | None = Query(None, description="quasi-gauss-xyz: e.g. 2,2,2"),
-             illuminant: str = Query("D65", description="light the bands are chosen for (wiener-points)")):
+             illuminant: str | None = Query(None, description="light the rule is made for (wiener-points: "
+                                            "default D65; composite: its spikes)")):
     """Nodes and weights of a sampling rule on the analysis grid (400-700 nm,
     10 nm), ``defined`` false with a ``reason`` when the order does not exist
     (e.g. Gaussian nodes outside the interval, Meyer 1988, Table 1a).
 
-    ``weights`` are the rule's quadrature weights when it has them,
-    otherwise its integration weights against CIE 1931 xbar, ybar, zbar
-    (one row per node); ``weights_kind`` says which."""
+    ``weights`` are the rule's own weights when it has them (quadrature
+    weights, or the nm each node stands for), otherwise its integration
+    weights against CIE 1931 xbar, ybar, zbar (one row per node);
+    ``weights_kind`` says which. ``integration_weights_xyz`` are always the
+    latter (``T ~= coefficients @ W`` for an equal-energy light)."""
     import models
     from recovery.spectral import LIGHT_AWARE, _rule
 
@@ -293,9 +296,9 @@ def sampling(strategy: str = Query(..., description="a sampling strategy name"),
     grid = models.DEFAULT_WAVELENGTHS
     cmfs = models.observer("XYZ", grid)
     light = None
-    if strategy in LIGHT_AWARE:
+    if illuminant is not None or strategy in LIGHT_AWARE:
         try:
-            light = models.illuminant(illuminant, grid)
+            light = models.illuminant(illuminant or "D65", grid)
         except KeyError:
             raise ApiError(422, "unknown_illuminant", f"illuminant {illuminant!r} unknown; accepted: "
                            f"{models.illuminant_names()} or D<cct>, BB<cct>") from None
@@ -306,13 +309,14 @@ def sampling(strategy: str = Query(..., description="a sampling strategy name"),
     except (AttributeError, ImportError, NotImplementedError) as e:
         raise ApiError(422, "strategy_unavailable", f"strategy {strategy!r} is not available in this "
                        f"build: {e}") from None
+    integ = rule.integration_weights(cmfs) if rule.defined else None
     if rule.weights is not None:
-        weights, kind = np.asarray(rule.weights, float), "quadrature"
+        weights, kind = np.asarray(rule.weights, float), "the rule's own"
     else:
-        weights, kind = rule.integration_weights(cmfs), "integration weights against CIE 1931 xbar, ybar, zbar"
+        weights, kind = integ, "integration weights against CIE 1931 xbar, ybar, zbar"
     body = {"strategy": strategy, "n": rule.n, "defined": bool(rule.defined),
             "nodes_nm": None if rule.nodes_nm is None else np.asarray(rule.nodes_nm, float),
-            "weights": weights, "weights_kind": kind, "options": opts,
+            "weights": weights, "weights_kind": kind, "integration_weights_xyz": integ, "options": opts,
             "diagnostics": dict(rule.diagnostics or {})}
     if not rule.defined:
         body["reason"] = rule.reason
