@@ -380,8 +380,8 @@ def apply_band_matrix(cube: np.ndarray, K: np.ndarray, check: bool = True) -> tu
         if chunk.dtype != np.float32:
             chunk = chunk.astype(np.float32)
         np.matmul(chunk, Ks, out=out[s:e])
-        if check and not np.all(np.isfinite(out[s:e])):
-            raise InputError("the spectra contain non-finite values (NaN or Inf)")
+    if check and not np.isfinite(out).all():
+        raise InputError("the spectra contain non-finite values (NaN or Inf)")
     return out.reshape(lead + (K.shape[1],)), {"bands_read": int(idx.size),
                                                 "layout": "band-sequential" if planar else "band-interleaved"}
 
@@ -482,12 +482,15 @@ def _input_map(wl: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, list]:
 
 
 def _sample(x2: np.ndarray, size: int, seed: int = 0) -> np.ndarray:
-    """``size`` pixels drawn at random (fixed seed; every pixel when there
-    are fewer), in memory order."""
+    """``size`` pixels drawn at random (fixed seed, with replacement; every
+    pixel when there are fewer), in memory order; band planes are gathered
+    one at a time."""
     P = x2.shape[0]
     if P <= size:
         return np.asarray(x2, float)
-    idx = np.unique(np.random.default_rng(seed).integers(0, P, size))
+    idx = np.sort(np.random.default_rng(seed).integers(0, P, size))
+    if x2.shape[1] > 1 and abs(x2.strides[1]) > abs(x2.strides[0]):
+        return np.stack([np.take(x2[:, j], idx) for j in range(x2.shape[1])], 1).astype(float)
     return np.asarray(x2[idx], float)
 
 
