@@ -6,7 +6,8 @@ in [0.5, 1], DESIGN.md's development scenes) rendered under smooth (A, D65,
 C) and fluorescent (FL2, FL11) lights: the full 31-band calculation (this
 project's best: one (31, 3) matrix per light, float32, chunked; and
 colour-science's ``msds_to_XYZ`` for reference) against 4-, 5- and 6-node
-rules, median of several runs in the same process, in both memory layouts:
+rules (uniform, the Wiener point rule, Meyer's four-wavelength XYZ rule, Borges'
+quasi-Gaussian (1,1,1) and (2,2,2)), median of several runs in the same process, in both memory layouts:
 
 * band-interleaved ``(H, W, N)`` C order (the ``.npy`` upload): every pixel's
   31 values sit in two cache lines, so a rule that reads 5 bands still pulls
@@ -71,8 +72,10 @@ def _candidates(include_gauss: bool = True):
     for n in (4, 5, 6):
         rules.append((f"wiener-points {n}", "wiener-points", n, {"training": HELD_OUT_TRAINING}))
     if include_gauss:
-        for n in (4, 5, 6):
-            rules.append((f"gauss-ac1c2 A {n}", "gauss-ac1c2", n, {"channel": "A"}))
+        # Meyer's four wavelengths (A, C1, C2 orders 3, 2, 1 merged; his Table 2)
+        # and Borges' shared abscissas, each in its own setting (light sampled too)
+        rules.append(("meyer-xyz 3,2,1", "gauss-ac1c2", None, {"channel": "XYZ"}))
+        rules.append(("quasi-gauss-xyz 1,1,1", "quasi-gauss-xyz", None, {"degrees": (1, 1, 1)}))
         rules.append(("quasi-gauss-xyz 2,2,2", "quasi-gauss-xyz", None, {"degrees": (2, 2, 2)}))
     return rules
 

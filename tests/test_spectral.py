@@ -335,11 +335,12 @@ def test_sampling_endpoint_uniform_and_errors(client):
     assert r.status_code == 200
     body = r.json()
     assert body["defined"] is True and body["nodes_nm"] == [430.0, 490.0, 550.0, 610.0, 670.0]
-    # integration weights against xbar, ybar, zbar: their ybar column sums to the
-    # 10 nm integral of ybar over 400-700 (106.8 from colour-science's table,
-    # rebuilt piecewise-linearly: within 1 %)
-    ybar = models.observer("XYZ", WL)[:, 1].sum() * 10
-    assert abs(sum(w[1] for w in body["integration_weights_xyz"]) - ybar) < 0.01 * ybar
+    # the endpoint hands out the rule's own integration weights against CIE 1931
+    # (serialised floats: exact to 1e-12)
+    from models.sampling import sampling_rule
+
+    W = sampling_rule("uniform", 5, WL).integration_weights(models.observer("XYZ", WL))
+    np.testing.assert_allclose(body["integration_weights_xyz"], W, rtol=1e-12, atol=1e-12)
     r = client.get("/v1/sampling", params={"strategy": "wiener-points", "n": 4, "illuminant": "FL11"})
     assert r.status_code == 200 and len(r.json()["nodes_nm"]) == 4
     for params, code in (({"strategy": "nope", "n": 3}, "unknown_strategy"),
