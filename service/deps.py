@@ -28,7 +28,7 @@ LIGHT_MODELS = ("daylight", "illuminant-pca", "fourier")
 
 
 def estimate_options(method: str, surface_dim, light_dim, region_size: int | None,
-                     spatial: bool, surface_model: str | None = None, light_model: str | None = None,
+                     spatial, surface_model: str | None = None, light_model: str | None = None,
                      quality: str | None = None) -> dict:
     """Validated keyword options for :func:`recovery.estimate_illuminant`."""
     if method not in METHODS:
@@ -59,8 +59,15 @@ def estimate_options(method: str, surface_dim, light_dim, region_size: int | Non
         if not 8 <= region_size <= 100000:
             raise ApiError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")
         opts["region_size"] = region_size
-    if spatial:
-        opts["spatial"] = True
+    if spatial is not None and spatial != "":
+        from recovery.spatial import parse_spatial
+
+        try:
+            mode = parse_spatial(spatial)
+        except ValueError:
+            raise ApiError(422, "invalid_parameter", f"spatial {spatial!r} unknown; accepted: auto, true (a light "
+                           "map), false (one light)") from None
+        opts["spatial"] = {"map": True, "uniform": False, "auto": "auto"}[mode]
     return opts
 
 

@@ -59,7 +59,8 @@ async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _
                   quality: str | None = Form(None, description="fast, balanced or accurate (measured trade-off)"),
                   surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"),
                   light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"), region_size: int | None = Form(None),
-                  spatial: bool = Form(False), surface_model: str | None = Form(None, description="pca or fourier"),
+                  spatial: str | None = Form(None, description="auto (decide from the image), true (light map) or false (one light)"),
+                  surface_model: str | None = Form(None, description="pca or fourier"),
                   light_model: str | None = Form(None, description="daylight, illuminant-pca or fourier"),
                   settings: Settings = Depends(get_settings)):
     """Estimate the scene light: camera RGB, white-balance multipliers,
