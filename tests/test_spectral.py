@@ -359,7 +359,7 @@ def test_sampling_endpoint_reports_undefined_gauss_order(client):
 
     r = client.get("/v1/sampling", params={"strategy": "gauss-ac1c2", "channel": "C1", "n": 3})
     assert r.status_code == 200, r.text
-    assert r.json()["defined"] is False and r.json()["reason"]
+    assert r.json()["defined"] is False and r.json()["reason"] and r.json()["n"] == 3
     r = client.get("/v1/sampling", params={"strategy": "gauss-ac1c2", "channel": "A", "n": 3})
     assert r.status_code == 200 and r.json()["defined"] is True
     # Meyer's A order 3: 483.0, 557.7, 632.3 nm; within 1 nm (grid data vs his tables)

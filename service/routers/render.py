@@ -314,7 +314,7 @@ def sampling(strategy: str = Query(..., description="a sampling strategy name"),
         weights, kind = np.asarray(rule.weights, float), "the rule's own"
     else:
         weights, kind = integ, "integration weights against CIE 1931 xbar, ybar, zbar"
-    body = {"strategy": strategy, "n": rule.n, "defined": bool(rule.defined),
+    body = {"strategy": strategy, "n": rule.n if rule.defined or n is None else n, "defined": bool(rule.defined),
             "nodes_nm": None if rule.nodes_nm is None else np.asarray(rule.nodes_nm, float),
             "weights": weights, "weights_kind": kind, "integration_weights_xyz": integ, "options": opts,
             "diagnostics": dict(rule.diagnostics or {})}
