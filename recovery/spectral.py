@@ -20,7 +20,8 @@ abscissas), which is where its speed comes from.
 
 ``strategy="auto"`` picks the rule that reads the fewest bands while the mean
 CIEDE2000 against the full calculation, measured on a pixel sample of the
-data at hand, stays within a stated bound; spiky (fluorescent) lights are
+data at hand, stays within a stated bound (default 1, tested as the sample
+mean plus two standard errors); spiky (fluorescent) lights are
 detected and then kept exact in ``K`` instead of being sampled (model only
 what the scene requires: the surfaces are smooth, the light is not).
 """
