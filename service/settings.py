@@ -20,6 +20,8 @@ class Settings:
     max_concurrent_work: int = 0
     #: RAW files are binned to at most this many pixels for estimation
     estimation_pixels: int = 1_000_000
+    #: POST /v1/render refuses spectral data with more values (H x W x N) (413)
+    max_render_values: int = 64_000_000
 
 
 @lru_cache
@@ -33,4 +35,5 @@ def get_settings() -> Settings:
         max_pixels=int(env.get("WANDELL_MAX_PIXELS", Settings.max_pixels)),
         max_concurrent_work=int(env.get("WANDELL_MAX_CONCURRENT_WORK", Settings.max_concurrent_work)),
         estimation_pixels=int(env.get("WANDELL_ESTIMATION_PIXELS", Settings.estimation_pixels)),
+        max_render_values=int(env.get("WANDELL_MAX_RENDER_VALUES", Settings.max_render_values)),
     )
