@@ -136,10 +136,12 @@ def batch_options(**kw) -> BatchOptions:
         from models import camera_names, canonical_camera_name
 
         try:
-            canonical_camera_name(opts.camera)
+            known = canonical_camera_name(opts.camera) is not None
         except (KeyError, ValueError):
+            known = False
+        if not known:
             raise JobError("invalid_parameter", f"camera {opts.camera!r} unknown; accepted: "
-                           f"{list(camera_names()) + ['matrix', 'generic', 'auto']}") from None
+                           f"{list(camera_names()) + ['matrix', 'generic', 'auto']}")
     opts.estimate_kwargs()
     return opts
 
