@@ -644,6 +644,12 @@ class JobStore:
                        "WHERE batch_id = ? AND idx = ? AND status IN ('pending', 'running')",
                        (error, time.time(), batch_id, idx))
 
+    def cancel_item(self, batch_id: str, idx: int) -> None:
+        """``running`` -> ``cancelled`` for an item dropped before it started."""
+        with self._tx() as db:
+            db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
+                       "AND status = 'running'", (time.time(), batch_id, idx))
+
     def set_light(self, batch_id: str, light: dict | None, error: str | None = None) -> None:
         with self._tx() as db:
             db.execute("UPDATE batches SET light = ?, light_error = ? WHERE id = ?",
@@ -781,9 +787,9 @@ class BatchRunner:
     def cancel(self, batch_id: str) -> bool:
         ok = self.store.cancel(batch_id)
         with self._lock:
-            for (b, _), fut in list(self._inflight.items()):
-                if b == batch_id:
-                    fut.cancel()  # not yet started: dropped; started: finishes, result kept
+            futs = [fut for (b, _), fut in self._inflight.items() if b == batch_id]
+        for fut in futs:  # outside the lock: cancel() runs the done callback at once
+            fut.cancel()  # not yet started: dropped; started: finishes, result kept
         self._wake.set()
         return ok
 
@@ -850,7 +856,9 @@ class BatchRunner:
         bid, idx = key
         with self._lock:
             self._inflight.pop(key, None)
-        if fut.cancelled():
+        if fut.cancelled():  # dropped before it started
+            self.store.cancel_item(bid, idx)
+            self.store.maybe_finish(bid)
             return
         try:
             result = fut.result()
