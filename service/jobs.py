@@ -286,7 +286,7 @@ def process_item(task: ItemTask) -> dict:
     """
     from . import pipeline
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
             if task.exactly_once and is_finished(task.out):  # written by an earlier run: adopt, never write twice
@@ -319,7 +319,7 @@ def process_item(task: ItemTask) -> dict:
                     f.write(json.dumps({"name": task.name, "out": os.path.basename(task.out),
                                         "pid": os.getpid(), "time": time.time()}) + "\n")
             return {"status": "done", "illuminant": _clean(illum), "adopted": False,
-                    "seconds": time.perf_counter() - t0}
+                    "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
     except MemoryError:
         return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
     except Exception as exc:
