@@ -21,7 +21,10 @@ app.include_router(batches.router)
 @app.middleware("http")
 async def limit_body_size(request: Request, call_next):
     """Refuse a declared body over the upload limit before reading it (413)."""
-    limit = get_settings().max_upload_bytes
+    settings = get_settings()
+    limit = settings.max_upload_bytes
+    if request.url.path == "/v1/batches":  # several files: the per-file limit is checked as each is saved
+        limit *= settings.max_batch_items
     length = request.headers.get("content-length")
     if length is not None:
         try:

@@ -438,11 +438,11 @@ class DaskExecutor:
 
     kind = "dask"
 
-    def __init__(self, scheduler=None, client=None):
+    def __init__(self, scheduler=None, client=None, timeout: float = 20.0):
         from distributed import Client
 
         self._own = client is None
-        self.client = client if client is not None else Client(scheduler, timeout="20s")
+        self.client = client if client is not None else Client(scheduler, timeout=f"{timeout}s")
         self.workers = max(1, sum(w.get("nthreads", 1)
                                   for w in self.client.scheduler_info().get("workers", {}).values()))
 
@@ -465,10 +465,10 @@ class DaskExecutor:
             self.client.close()
 
 
-def make_executor(workers: int | None = None, scheduler: str | None = None):
+def make_executor(workers: int | None = None, scheduler: str | None = None, timeout: float = 20.0):
     """Dask when a scheduler address is given, else the local pool."""
     if scheduler:
-        return DaskExecutor(scheduler)
+        return DaskExecutor(scheduler, timeout=timeout)
     return LocalExecutor(workers or default_workers())
 
 
@@ -737,6 +737,7 @@ class RunnerConfig:
     max_pixels: int = 120_000_000
     estimation_pixels: int = 1_000_000
     dask_scheduler: str | None = None
+    dask_timeout: float = 20.0
     poll_s: float = 0.2
     extra: dict = field(default_factory=dict)
 
@@ -760,11 +761,14 @@ class BatchRunner:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._light_jobs: dict = {}        # batch -> Future of the shared light
+        #: why items are not running (e.g. no Dask scheduler), shown in progress
+        self.executor_error: str | None = None
 
     @property
     def executor(self):
         if self._executor is None:
-            self._executor = make_executor(self.config.workers or None, self.config.dask_scheduler)
+            self._executor = make_executor(self.config.workers or None, self.config.dask_scheduler,
+                                           self.config.dask_timeout)
         return self._executor
 
     def start(self) -> int:
@@ -826,7 +830,12 @@ class BatchRunner:
             self.store.start_batch(bid)
         if not active:
             return
-        capacity = 2 * self.executor.workers
+        try:
+            capacity = 2 * self.executor.workers
+            self.executor_error = None
+        except Exception as e:  # e.g. the Dask scheduler is unreachable: items wait, the error is shown
+            self.executor_error = f"executor_unavailable: {type(e).__name__}: {e}"
+            return
         for bid in active:
             b = self.store.batch(bid)
             if b is None or b["status"] != "running":

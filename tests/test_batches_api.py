@@ -41,7 +41,8 @@ def env(tmp_path_factory):
     (root / "shoot" / "broken.dng").write_bytes(b"II*\x00" + b"\x13" * 500)
     old = dict(os.environ)
     os.environ.update(WANDELL_DATA_DIR=str(base / "data"), WANDELL_BATCH_ROOT=str(root),
-                      WANDELL_BATCH_WORKERS="2", WANDELL_MAX_BATCH_ITEMS="20")
+                      WANDELL_BATCH_WORKERS="2", WANDELL_MAX_BATCH_ITEMS="20",
+                      WANDELL_MAX_UPLOAD_BYTES="100000")  # a 160x240 DNG is about 77 kB
     get_settings.cache_clear()
     yield {"base": base, "root": root, "truths": truths}
     os.environ.clear()
@@ -152,8 +153,17 @@ def test_folder_mode_without_a_root_is_refused(client, env, monkeypatch):
     assert "WANDELL_BATCH_ROOT" in r.json()["detail"]
 
 
+def test_upload_limit_is_per_file_for_batches(client, env):
+    big = [("files", ("big.dng", b"II*\x00" + b"\x00" * 150_000, "application/octet-stream"))]
+    r = client.post("/v1/batches", files=_files(env["root"], ["im0.dng"]) + big, data=OPTS)
+    assert r.status_code == 413 and "big.dng" in r.json()["detail"]
+
+
 def test_cancel_stops_pending_items(client, env):
+    # 16 files of ~77 kB: more than the 100 kB per-file limit plus 1 MB of
+    # framing in all, accepted because the limit is per file for batches
     r = client.post("/v1/batches", files=_files(env["root"], ["im0.dng"] * 16), data=OPTS)
+    assert r.status_code == 202, r.text
     bid = r.json()["id"]
     d = client.delete(f"/v1/batches/{bid}")
     assert d.status_code == 200 and d.json()["status"] == "cancelled"

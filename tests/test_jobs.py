@@ -211,3 +211,21 @@ def test_runner_on_a_dask_local_cluster(tmp_path, dngs):
             assert len(rgbs) == 1
         finally:
             runner.stop()
+
+
+def test_unreachable_dask_scheduler_is_reported_not_hidden(tmp_path, dngs):
+    """No scheduler listening: the items stay pending and the runner says why."""
+    pytest.importorskip("distributed")
+    import socket
+
+    with socket.socket() as s:  # a loopback port with nothing listening
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    runner = jobs.BatchRunner(jobs.RunnerConfig(str(tmp_path / "data"), dask_scheduler=f"tcp://127.0.0.1:{port}",
+                                                 dask_timeout=2))
+    bid = runner.store.new_batch_id()
+    d, _ = dngs
+    runner.store.create_batch(bid, jobs.batch_options(format="png"), [("im0.dng", str(d / "im0.dng"))])
+    runner._tick()
+    assert runner.executor_error.startswith("executor_unavailable")
+    assert runner.store.counts(bid)["pending"] == 1

@@ -134,9 +134,12 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
 
 
 def _progress(bid: str) -> dict:
-    doc = get_runner().store.progress(bid)
+    runner = get_runner()
+    doc = runner.store.progress(bid)
     if doc is None:
         raise ApiError(404, "not_found", f"no batch {bid!r}")
+    if runner.executor_error and doc["status"] in ("queued", "running"):
+        doc["runner_error"] = runner.executor_error
     for it in doc["items"]:
         if it["status"] == "done":
             it["url"] = f"/v1/batches/{bid}/items/{it['index']}"
