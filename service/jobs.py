@@ -169,6 +169,22 @@ def limit_threads() -> None:
         pass
 
 
+def _pool_worker_init() -> None:
+    """Pool worker start-up: one numerical thread, and exit when the parent
+    (the server or the CLI) is gone, so a killed server leaves no orphans
+    (an item cut short this way is simply run again after the restart; its
+    output never got its final name)."""
+    limit_threads()
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 @dataclass(frozen=True)
 class ItemTask:
     """Everything a worker needs for one item (plain data, picklable)."""
@@ -417,7 +433,7 @@ class LocalExecutor:
 
         self.workers = max(1, int(workers))
         self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=limit_threads)
+                                         initializer=_pool_worker_init)
 
     def submit(self, fn, *args) -> Future:
         return self._pool.submit(fn, *args)
@@ -707,6 +723,8 @@ class JobStore:
                           "cancelled": c["cancelled"], "total": len(rows)},
                "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
                "created": b["created"], "items": items}
+        if opts.get("lighting") == "shared" and not b["light"] and b["status"] == "running":
+            doc["phase"] = "estimating the shared light from all images"
         if b["light"]:
             doc["shared_light"] = json.loads(b["light"])
         if b["light_error"]:

@@ -205,6 +205,21 @@ def _ready(base: str, proc, timeout=120) -> None:
     raise AssertionError("server did not start")
 
 
+def _group_members(pgid: int) -> list[int]:
+    """Live (non-zombie) processes of a process group."""
+    out = []
+    for p in os.listdir("/proc"):
+        if p.isdigit():
+            try:
+                with open(f"/proc/{p}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == pgid and fields[0] != "Z":
+                out.append(int(p))
+    return out
+
+
 def test_kill_9_mid_batch_then_restart_completes_every_item_once(env, tmp_path):
     """A real uvicorn server with one worker is SIGKILLed with items done and
     items pending; a new server on the same data dir resumes. Every item
@@ -252,6 +267,11 @@ def test_kill_9_mid_batch_then_restart_completes_every_item_once(env, tmp_path):
         z = httpx.get(f"{base}/v1/batches/{bid}/zip", timeout=60)
         with zipfile.ZipFile(io.BytesIO(z.content)) as zf:
             assert len(zf.namelist()) == n
+        # the killed server's pool worker noticed its parent was gone and exited
+        t_end = time.monotonic() + 10
+        while _group_members(first.pid) and time.monotonic() < t_end:
+            time.sleep(0.2)
+        assert _group_members(first.pid) == []
     finally:
         for p in (first, second):
             if p is not None:

@@ -193,7 +193,8 @@ def _zip_stream(entries: list[tuple[str, str]]):
     sink = _Sink()
     with zipfile.ZipFile(sink, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
         for arcname, path in entries:
-            with open(path, "rb") as src, zf.open(arcname, "w", force_zip64=True) as dst:
+            info = zipfile.ZipInfo.from_file(path, arcname)  # the result's own time stamp
+            with open(path, "rb") as src, zf.open(info, "w", force_zip64=True) as dst:
                 while chunk := src.read(1 << 20):
                     dst.write(chunk)
                     yield sink.take()
