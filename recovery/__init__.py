@@ -8,7 +8,8 @@ from .api import (METHODS, QUALITY_PRESETS, AnalysisResult, IlluminantEstimate, 
                   estimate_illuminant, render, resolve_model)
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation, ModelDimensionError, RecoveryError
+from .spectral import SpectralRender, render_spectra
 
 __all__ = ["Camera", "estimate_illuminant", "analyze", "render", "IlluminantEstimate",
            "AnalysisResult", "METHODS", "QUALITY_PRESETS", "angular_error", "resolve_model", "RecoveryError",
-           "ModelDimensionError", "InsufficientSurfaceVariation", "InputError"]
+           "ModelDimensionError", "InsufficientSurfaceVariation", "InputError", "render_spectra", "SpectralRender"]

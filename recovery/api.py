@@ -110,44 +110,23 @@ def _run_bayes(img, m, camera, diag, warns, run_peer):
     return _finish(rgb, spd, None, camera, None, "bayes", d, list(warns))
 
 
-def _maybe_light_map(img, m, camera, est, region_size, overlap, force: bool):
-    """One light or a light map (BIC, :func:`recovery.model_order.select_spatial`):
-    the posterior estimate in each of a grid of regions against the single
-    estimate; a map is kept when it explains the data better after paying
-    for its extra lights, or when ``force``."""
-    from .bayes import estimate_bayes
-    from .model_order import select_spatial
-    from .regions import LightMap, tile_regions
+def _maybe_light_map(img, m, camera, est, mode: str, region_size: int | None = None):
+    """One light or a light map (:func:`recovery.spatial.choose_light_model`):
+    a chromaticity trend inside surfaces (smooth light changes) or regions
+    whose light posteriors disagree (Bayes factor) make a map; ``mode="map"``
+    always makes one. The decision and its evidence go to
+    ``diagnostics["spatial_test"]`` and ``diagnostics["spatial_decision"]``.
+    ``region_size`` sets the regions of the test (default a 2 x 2 grid)."""
+    from .spatial import choose_light_model
 
     h, w = img.shape[:2]
-    size = region_size or max(8, min(h, w) // 3)
-    rs, cs, sr, sc = tile_regions((h, w), size, overlap if force else 0.0)
-    spectra, slices, used = [], [], []
-    for r0 in rs:
-        for c0 in cs:
-            sl = (slice(r0, r0 + sr), slice(c0, c0 + sc))
-            mm = m[sl]
-            ok = False
-            if mm.sum() >= 16:
-                _, spd, bd = estimate_bayes(img[sl], mm, camera)
-                ok = spd is not None and bd.get("method", "bayes") == "bayes"
-            spectra.append(np.asarray(spd, float) / np.mean(spd) if ok else est.spectrum)
-            slices.append(sl)
-            used.append(ok)
-    spectra = np.array(spectra)
-    S = surface_pca_model(camera.channels - 1, camera.wavelengths).basis
-    test = select_spatial(img, m, camera, est.spectrum, spectra, slices, S, 3)
-    est.diagnostics["spatial_test"] = {k: v for k, v in test.items() if not isinstance(v, np.ndarray)}
-    if not (test.get("spatial") or force):
-        est.diagnostics["light_map"] = "one light: the light map did not pay for its extra lights (BIC)"
-        return est
-    gr, gc = len(rs), len(cs)
-    basis = np.eye(camera.wavelengths.size)
-    lm = LightMap(rs + (sr - 1) / 2.0, cs + (sc - 1) / 2.0, spectra.reshape(gr, gc, -1),
-                  np.array(used).reshape(gr, gc), np.full((gr, gc), np.nan), np.full((gr, gc), np.nan), basis)
+    grid = (2, 2) if not region_size else (max(1, -(-h // int(region_size))), max(1, -(-w // int(region_size))))
+    lm, ev = choose_light_model(img, m, camera, est.rgb, est.spectrum, mode=mode, grid=grid)
+    est.diagnostics["spatial_decision"] = ev["light_model"]
+    est.diagnostics["spatial_reason"] = ev["light_model_reason"]
+    est.diagnostics["spatial_mode"] = mode
+    est.diagnostics["spatial_test"] = {k: v for k, v in ev.items() if k not in ("light_model", "light_model_reason")}
     est.light_map = lm
-    est.diagnostics["light_map"] = (f"light map of {gr}x{gc} regions ({sum(used)} estimated): "
-                                    + ("requested" if force else "BIC prefers it over one light"))
     return est
 
 
@@ -282,7 +261,7 @@ def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_ma
 def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
                         light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
                         mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
-                        dark_fraction: float = 1e-3, spatial: bool = False, region_size: int | None = None,
+                        dark_fraction: float = 1e-3, spatial: bool | str = "auto", region_size: int | None = None,
                         overlap: float = 0.5, min_variation: float = 0.02, subspace_tolerance: float = 0.1,
                         on_failure: str = "fallback", fallback: str = "shades-of-gray", p: float = 6.0,
                         sigma: float = 1.0) -> IlluminantEstimate:
@@ -302,9 +281,15 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         ``saturation_fraction * white_level`` are excluded
     dark_fraction : pixels with a channel at or below this fraction of the
         image maximum are excluded (relative, so the result is scale-free)
-    spatial : estimate a light map over overlapping regions (Fig. 1)
+    spatial : ``"auto"`` (the default: decide from the image, :mod:`recovery.spatial`;
+        the decision and its evidence are in ``diagnostics["spatial_decision"]``,
+        ``["spatial_reason"]`` and ``["spatial_test"]``), ``True`` / ``"map"``
+        (always a light map), ``False`` / ``"uniform"`` (one light). The
+        automatic choice applies to ``auto`` and ``bayes``; the literal
+        method makes its map (overlapping regions, Fig. 1) only when asked
     region_size, overlap : region side in pixels (default a quarter of the
-        shorter side) and fractional overlap
+        shorter side for the literal method, a 2 x 2 grid for ``auto``) and
+        the literal method's fractional overlap
     min_variation : a region is used only if ``s_D(S)/s_1`` exceeds this
     subspace_tolerance : ``s_{D(S)+1}/s_D(S)`` above it warns that the data
         are not confined to a subspace (the paper's first failure mode)
@@ -331,6 +316,9 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         raise InputError("on_failure must be 'fallback' or 'raise'")
     if fallback not in PEERS:
         raise InputError(f"fallback must be one of {list(PEERS)}")
+    from .spatial import parse_spatial
+
+    spatial_mode = parse_spatial(spatial)
     img, m, info = _prepare(image, camera, mask, white_level, saturation_fraction, dark_fraction)
     C = camera.channels
     order_auto = surface_dim == "auto" or light_dim == "auto"
@@ -367,10 +355,15 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         S_ = resolve_model(surface_basis, "surface", d_s, camera.wavelengths)
         E_ = resolve_model(light_basis, "light", d_e, camera.wavelengths)
         check_dimensions(C, S_.dimension, E_.dimension)
-    if method in ("auto", "bayes") and not (spatial is True and method == "bayes"):
+    if method in ("auto", "bayes"):
         est = _run_bayes(img, m, camera, diag, warns, run_peer)
-        if method == "auto" and spatial in (True, "auto") and est.method == "bayes":
-            est = _maybe_light_map(img, m, camera, est, region_size, overlap, spatial is True)
+        if spatial_mode != "uniform" and est.method == "bayes":
+            est = _maybe_light_map(img, m, camera, est, spatial_mode, region_size)
+        else:
+            est.diagnostics["spatial_decision"] = "one light"
+            est.diagnostics["spatial_reason"] = ("requested (spatial=False or quality='fast'; the default "
+                                                 "spatial='auto' decides from the image)" if spatial_mode == "uniform"
+                                                     else f"the light posterior fell back to {est.method}")
         return est
 
     if order_auto:
@@ -402,7 +395,7 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
     diag.update({"D(S)": d_s, "D(E)": d_e, "surface_model": S.name, "light_model": E.name})
     try:
         lm = None
-        if spatial:
+        if spatial_mode == "map":
             size = region_size or max(8, min(img.shape[:2]) // 4)
             lm, ldiag = estimate_light_map(img, m, T, E.basis, d_s, size, overlap, min_variation)
             diag.update(ldiag)
@@ -457,7 +450,8 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
 #: (``python -m recovery.tradeoff``; figures in the README). Each sets the
 #: analysis resolution (block-averaged pixels) and the wavelength grid.
 QUALITY_PRESETS = {
-    "fast": {"analysis_pixels": 4096, "wavelength_step": 20.0},
+    # fast pins one light: the light-map test costs more than its estimate
+    "fast": {"analysis_pixels": 4096, "wavelength_step": 20.0, "spatial": False},
     "balanced": {"analysis_pixels": 65536, "wavelength_step": 10.0},
     "accurate": {"analysis_pixels": None, "wavelength_step": 10.0},
 }
@@ -507,6 +501,8 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
         if quality not in QUALITY_PRESETS:
             raise InputError(f"quality must be one of {list(QUALITY_PRESETS)}, not {quality!r}")
         knobs.update(QUALITY_PRESETS[quality])
+        if "spatial" in knobs:
+            kwargs.setdefault("spatial", knobs.pop("spatial"))
     if analysis_pixels is not None:
         knobs["analysis_pixels"] = analysis_pixels
     if wavelength_step is not None:
@@ -593,9 +589,10 @@ class AnalysisResult:
         return self.surface_weights(points) @ self.surface_model.basis.T
 
 
-def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool = False,
+def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str = "auto",
             surface_dim_render: int | None = None, synthesis_basis=None, **kwargs) -> AnalysisResult:
-    """Light (or light map with ``spatial=True``) and surfaces together.
+    """Light (or light map with ``spatial=True``, or when ``spatial="auto"``
+    finds the light varies) and surfaces together.
 
     Once the light is known the surfaces use a model with as many terms as
     sensors (``surface_dim_render``, default C) of ``synthesis_basis``

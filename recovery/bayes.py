@@ -731,7 +731,8 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
                    lightness: bool = True, shade_range: float = DEFAULTS["shade_range"],
                    lightness_bandwidth: float = DEFAULTS["lightness_bandwidth"], top_lights: int = 40,
                    off_set_prior: float = 0.0, off_set_step: float = 0.02, off_set_radius: float = 0.15,
-                   off_set_scale: float = 0.05, model_options: dict | None = None):
+                   off_set_scale: float = 0.05, model_options: dict | None = None,
+                   keep_likelihood: bool = False):
     """Estimate the light as the posterior mean over plausible lights.
 
     Parameters
@@ -769,6 +770,11 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
         prior decay, in log-ratio units (0.02 is a 2 % change of a channel
         ratio)
     model_options : keyword arguments for :func:`bayes_model`
+    keep_likelihood : also return, in ``diagnostics``, the per-candidate
+        arrays ``log_likelihood_chroma`` (M,), ``log_likelihood_lightness``
+        (M,; NaN where not evaluated), ``log_prior`` (M,) and
+        ``candidate_rgb`` (M, C): what :mod:`recovery.spatial` combines
+        across regions to test one light against a light map
 
     Returns
     -------
@@ -847,6 +853,10 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
         L_chroma = np.full(M, -np.inf)
         L_chroma[top] = full
     log_prior = np.log(np.maximum(cands.prior, 1e-300))
+    if keep_likelihood:
+        diag.update(log_likelihood_chroma=np.array(L_chroma, float), log_prior=log_prior.copy(),
+                    candidate_rgb=np.array(model.light_rgb, float),
+                    log_likelihood_lightness=np.full(M, np.nan))
     light_rgb = model.light_rgb
     light_z = model.light_z
     names = list(cands.names)
@@ -884,6 +894,9 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
                                     ybar[cells], lw, shade_range, lightness_bandwidth)
         logpost = np.full_like(lp_chroma, -np.inf)
         logpost[top] = lp_chroma[top] + temperature * L_light
+        if keep_likelihood:
+            inside = top < M
+            diag["log_likelihood_lightness"][top[inside]] = np.asarray(L_light, float)[inside]
     post = _posterior(logpost)
     mean_chroma = post @ chroma
     rgb = mean_chroma / np.linalg.norm(mean_chroma)

@@ -28,7 +28,7 @@ LIGHT_MODELS = ("daylight", "illuminant-pca", "fourier")
 
 
 def estimate_options(method: str, surface_dim, light_dim, region_size: int | None,
-                     spatial: bool, surface_model: str | None = None, light_model: str | None = None,
+                     spatial, surface_model: str | None = None, light_model: str | None = None,
                      quality: str | None = None) -> dict:
     """Validated keyword options for :func:`recovery.estimate_illuminant`."""
     if method not in METHODS:
@@ -59,8 +59,15 @@ def estimate_options(method: str, surface_dim, light_dim, region_size: int | Non
         if not 8 <= region_size <= 100000:
             raise ApiError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")
         opts["region_size"] = region_size
-    if spatial:
-        opts["spatial"] = True
+    if spatial is not None and spatial != "":
+        from recovery.spatial import parse_spatial
+
+        try:
+            mode = parse_spatial(spatial)
+        except ValueError:
+            raise ApiError(422, "invalid_parameter", f"spatial {spatial!r} unknown; accepted: auto, true (a light "
+                           "map), false (one light)") from None
+        opts["spatial"] = {"map": True, "uniform": False, "auto": "auto"}[mode]
     return opts
 
 
@@ -73,7 +80,7 @@ def parse_json_list(text: str | None, name: str, width: int) -> list:
     except json.JSONDecodeError as e:
         raise ApiError(422, "invalid_parameter", f"{name} is not valid JSON: {e.msg}") from None
     if not isinstance(val, list) or not all(
-            isinstance(v, list) and len(v) == width and all(isinstance(x, int) for x in v) for v in val):
+            isinstance(v, list) and len(v) == width and all(isinstance(x, int) and not isinstance(x, bool) for x in v) for v in val):
         raise ApiError(422, "invalid_parameter", f"{name} must be a JSON list of [{width} integers] lists")
     if len(val) > 10000:
         raise ApiError(422, "invalid_parameter", f"{name}: at most 10000 entries")

@@ -29,8 +29,52 @@ def error_response(status: int, code: str, detail) -> JSONResponse:
     return JSONResponse(status_code=status, content={"error": code, "detail": detail})
 
 
+#: OpenAPI schema of every error body (DESIGN.md: ``{"error": code, "detail": text}``).
+ERROR_BODY_SCHEMA = {
+    "title": "ErrorBody",
+    "type": "object",
+    "required": ["error", "detail"],
+    "properties": {
+        "error": {"type": "string", "title": "Error", "description": "machine-readable code"},
+        "detail": {"type": "string", "title": "Detail", "description": "what was wrong, in words"},
+    },
+}
+
+
+def document_error_responses(app: FastAPI) -> None:
+    """Make the app's OpenAPI schema say what its errors really look like.
+
+    FastAPI documents a 422 with its own ``HTTPValidationError`` body (a list
+    of validation errors), but the handlers below answer every client error
+    with ``{"error", "detail"}``. The generated schema is rewritten once, for
+    every operation (so endpoints added later are covered too): the 422
+    response and a ``4XX`` range response both point at ``ErrorBody``.
+    """
+    from fastapi.openapi.utils import get_openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = get_openapi(title=app.title, version=app.version, description=app.description,
+                             routes=app.routes)
+        schema.setdefault("components", {}).setdefault("schemas", {})["ErrorBody"] = ERROR_BODY_SCHEMA
+        ref = {"description": "client error", "content": {"application/json": {
+            "schema": {"$ref": "#/components/schemas/ErrorBody"}}}}
+        for item in schema.get("paths", {}).values():
+            for method, op in item.items():
+                if not isinstance(op, dict) or "responses" not in op:
+                    continue
+                op["responses"]["422"] = dict(ref, description="invalid request or unusable upload")
+                op["responses"].setdefault("4XX", ref)
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi
+
+
 def install_error_handlers(app: FastAPI) -> None:
-    """Map every exception type to its JSON error body."""
+    """Map every exception type to its JSON error body (and document it)."""
+    document_error_responses(app)
 
     @app.exception_handler(ApiError)
     async def _api(_: Request, exc: ApiError):

@@ -722,6 +722,7 @@ class JobStore:
                "counts": {"done": c["done"], "failed": c["failed"], "pending": left, "running": c["running"],
                           "cancelled": c["cancelled"], "total": len(rows)},
                "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
+               "rate": rate, "eta_s": eta,  # short names the web page reads
                "created": b["created"], "items": items}
         if opts.get("lighting") == "shared" and not b["light"] and b["status"] == "running":
             doc["phase"] = "estimating the shared light from all images"

@@ -77,6 +77,15 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
         "image": {"kind": decoded.kind, "width": decoded.full_shape[1], "height": decoded.full_shape[0],
                   "make": decoded.make, "model": decoded.model},
     }
+    lm = est.light_map
+    if lm is not None:  # the light at the map's centres, as fractions of the image height and width
+        rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
+        rgb = run.camera.response(lm.spectra_at(rr.ravel(), cc.ravel()))
+        rgb = rgb / np.linalg.norm(rgb, axis=1, keepdims=True)
+        eh, ew = decoded.estimation.shape[:2]
+        out["light_map"] = {"centres_row_fraction": ((lm.centres_r + 0.5) * run.factor / eh).tolist(),
+                            "centres_col_fraction": ((lm.centres_c + 0.5) * run.factor / ew).tolist(),
+                            "camera_rgb": rgb.reshape(rr.shape + (-1,)).tolist()}
     if decoded.as_shot_neutral is not None and np.all(np.isfinite(decoded.as_shot_neutral)):
         asn = np.asarray(decoded.as_shot_neutral, float)
         out["as_shot"] = {"camera_rgb": (asn / np.linalg.norm(asn)).tolist(),

@@ -864,6 +864,11 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedI
         if _tag(page, 50706) is not None or photometric in (32803, 34892):
             shape = tuple(page.shape[:2])
             sane = len(shape) == 2 and all(isinstance(v, (int, np.integer)) and v > 0 for v in shape)
+            if sane and int(shape[0]) * int(shape[1]) > max_pixels:
+                # LibRaw refuses such headers outright; say why in the limit's terms
+                raise UploadError(413, "too_many_pixels",
+                                  f"{label} declares {shape[1]}x{shape[0]} = {int(shape[0]) * int(shape[1]):,} "
+                                  f"pixels; the limit is {max_pixels:,}")
             if sane and min(shape) < 22:
                 raise UploadError(415, "unsupported_format",
                                   f"{label} is a DNG/CFA image of {shape[1]}x{shape[0]} pixels; LibRaw "

@@ -16,6 +16,8 @@ class Settings:
     port: int = 8000
     max_upload_bytes: int = 200 * 1024 * 1024
     max_pixels: int = 120_000_000
+    #: decode/estimate/encode jobs running at once (0 = one per CPU); the rest queue (service.workers)
+    max_concurrent_work: int = 0
     #: RAW files are binned to at most this many pixels for estimation
     estimation_pixels: int = 1_000_000
     #: batch jobs (service.jobs): SQLite store, inputs and outputs live
@@ -29,6 +31,8 @@ class Settings:
     max_concurrent_batches: int = 2
     #: Dask scheduler address (tcp://host:8786); empty = local process pool
     dask_scheduler: str = ""
+    #: POST /v1/render refuses spectral data with more values (H x W x N) (413)
+    max_render_values: int = 64_000_000
 
 
 @lru_cache
@@ -40,6 +44,7 @@ def get_settings() -> Settings:
         port=int(env.get("WANDELL_PORT", Settings.port)),
         max_upload_bytes=int(env.get("WANDELL_MAX_UPLOAD_BYTES", Settings.max_upload_bytes)),
         max_pixels=int(env.get("WANDELL_MAX_PIXELS", Settings.max_pixels)),
+        max_concurrent_work=int(env.get("WANDELL_MAX_CONCURRENT_WORK", Settings.max_concurrent_work)),
         estimation_pixels=int(env.get("WANDELL_ESTIMATION_PIXELS", Settings.estimation_pixels)),
         data_dir=env.get("WANDELL_DATA_DIR", Settings.data_dir),
         batch_root=env.get("WANDELL_BATCH_ROOT", Settings.batch_root),
@@ -47,4 +52,5 @@ def get_settings() -> Settings:
         max_batch_items=int(env.get("WANDELL_MAX_BATCH_ITEMS", Settings.max_batch_items)),
         max_concurrent_batches=int(env.get("WANDELL_MAX_CONCURRENT_BATCHES", Settings.max_concurrent_batches)),
         dask_scheduler=env.get("WANDELL_DASK_SCHEDULER", Settings.dask_scheduler),
+        max_render_values=int(env.get("WANDELL_MAX_RENDER_VALUES", Settings.max_render_values)),
     )

@@ -10,7 +10,6 @@ import tempfile
 import time
 
 from fastapi import APIRouter, Depends, File, Form, UploadFile
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, Response
 from starlette.background import BackgroundTask
 
@@ -19,6 +18,7 @@ from ..deps import estimate_options, parse_grid, parse_json_list, read_upload
 from ..errors import ApiError
 from ..jsonsafe import clean
 from ..settings import Settings, get_settings
+from ..workers import run_heavy
 
 router = APIRouter(prefix="/v1")
 
@@ -59,7 +59,8 @@ async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _
                   quality: str | None = Form(None, description="fast, balanced or accurate (measured trade-off)"),
                   surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"),
                   light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"), region_size: int | None = Form(None),
-                  spatial: bool = Form(False), surface_model: str | None = Form(None, description="pca or fourier"),
+                  spatial: str | None = Form(None, description="auto (decide from the image), true (light map) or false (one light)"),
+                  surface_model: str | None = Form(None, description="pca or fourier"),
                   light_model: str | None = Form(None, description="daylight, illuminant-pca or fourier"),
                   settings: Settings = Depends(get_settings)):
     """Estimate the scene light: camera RGB, white-balance multipliers,
@@ -68,7 +69,7 @@ async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _
     opts = estimate_options(method, surface_dim, light_dim, region_size, spatial, surface_model, light_model,
                             quality)
     data, sens = await _inputs(file, sensitivities, settings)
-    decoded, run = await run_in_threadpool(_analyze_sync, data, file.filename, sens, camera, method, opts, settings)
+    decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts, settings)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     return JSONResponse(clean(body))
@@ -126,13 +127,13 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
     await file.close()
     fmt, bits = fmts[format]
     if response == "json":
-        decoded, run = await run_in_threadpool(_analyze_sync, data, file.filename, sens, camera, method, opts,
+        decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts,
                                                settings)
         M, _ = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"))
         body = pipeline.analysis_json(run, decoded)
         body["correction_matrix"] = M.tolist()
         return JSONResponse(clean(body))
-    decoded, run, M, path = await run_in_threadpool(_white_balance_sync, data, file.filename, sens, camera,
+    decoded, run, M, path = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
                                                        method, opts, target, output, fmt, bits, settings)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
@@ -177,7 +178,7 @@ async def surfaces(file: UploadFile = _FILE, sensitivities: UploadFile | None = 
         res["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
         return res
 
-    res = await run_in_threadpool(work)
+    res = await run_heavy(work)
     if format == "csv":
         buf = io.StringIO()
         w = csv.writer(buf)

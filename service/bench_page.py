@@ -1,0 +1,110 @@
+"""What the web page waits for after an upload (issue 6), on a large DNG.
+
+``python -m service.bench_page [--height 4000 --width 6000] [--repeat 3]``
+
+Writes a DNG with the fixture code (:mod:`service.dngwriter`), starts the
+real service (uvicorn) on a free loopback port and times, over HTTP, each
+request the page makes for one file and the three together as the page sends
+them (concurrently: the time until the result is shown), next to
+``POST /v1/white-balance`` as JPEG, which is what showing the full-resolution
+correction instead of a preview would cost. Prints the median time and the
+bytes each response carries. Figures are wall-clock on a shared machine: run
+it on a quiet one for numbers to quote.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+from .bench import _free_port
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--height", type=int, default=4000)
+    ap.add_argument("--width", type=int, default=6000)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--camera", default="Nikon 5100 (NPL)")
+    ap.add_argument("--illuminant", default="A")
+    args = ap.parse_args(argv)
+
+    import httpx
+
+    from service.dngwriter import scene_dng
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "bench.dng")
+        t0 = time.perf_counter()
+        scene_dng(path, args.camera, args.illuminant, args.height, args.width, seed=1, layout="mondrian",
+                  surfaces="all", n_surfaces=24)
+        print(f"wrote {args.width}x{args.height} DNG ({os.path.getsize(path) / 1e6:.0f} MB) "
+              f"in {time.perf_counter() - t0:.1f} s")
+        with open(path, "rb") as fh:
+            data = fh.read()
+        port = _free_port()
+        server = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
+                                   "--port", str(port), "--log-level", "warning"])
+        base = f"http://127.0.0.1:{port}"
+        try:
+            client = httpx.Client(timeout=600)
+            for _ in range(300):
+                try:
+                    if client.get(base + "/health").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    time.sleep(0.1)
+
+            def post(endpoint, fields):
+                r = client.post(base + endpoint, files={"file": ("bench.dng", data, "image/x-adobe-dng")},
+                                data=fields)
+                assert r.status_code == 200, r.text[:500]
+                return len(r.content)
+
+            requests = {
+                "POST /v1/preview wb=camera (jpeg, 1024)": ("/v1/preview", {"wb": "camera"}),
+                "POST /v1/preview wb=corrected (jpeg, 1024)": ("/v1/preview", {"wb": "corrected"}),
+                "POST /v1/analyze": ("/v1/analyze", {}),
+                "POST /v1/white-balance jpeg (full size)": ("/v1/white-balance", {"format": "jpeg"}),
+            }
+            page = list(requests.values())[:3]
+
+            def page_round():
+                with ThreadPoolExecutor(3) as pool:
+                    return sum(pool.map(lambda a: post(*a), page))
+
+            for args_ in requests.values():   # warm-up: imports, models, caches
+                post(*args_)
+            rows = []
+            for name, (endpoint, fields) in requests.items():
+                times, size = [], 0
+                for _ in range(args.repeat):
+                    t = time.perf_counter()
+                    size = post(endpoint, fields)
+                    times.append(time.perf_counter() - t)
+                rows.append((name, statistics.median(times), size))
+            times = []
+            for _ in range(args.repeat):
+                t = time.perf_counter()
+                size = page_round()
+                times.append(time.perf_counter() - t)
+            rows.append(("the page's three requests, concurrent", statistics.median(times), size))
+        finally:
+            server.terminate()
+            server.wait()
+
+    print(f"\n{'request':46s} {'median s':>9s} {'response kB':>12s}")
+    for name, t, size in rows:
+        print(f"{name:46s} {t:9.2f} {size / 1e3:12.0f}")
+    print(f"\n{args.width}x{args.height}, {args.repeat} repeats, {os.cpu_count()} CPUs; wall-clock on this "
+          "machine (noisy if it is shared)")
+
+
+if __name__ == "__main__":
+    main()

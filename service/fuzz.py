@@ -1,0 +1,497 @@
+"""Mutated RAW files against the service (issue 6): every answer a 4xx with a
+JSON error, or a 200 with finite numbers when the mutation left the file
+valid; never a 5xx, never a hang; the service still answers afterwards and
+its memory stays bounded.
+
+``python -m service.fuzz [--n 2000] [--timeout 20] [--seed 0]``
+
+The seeds are small valid DNGs written by :mod:`service.dngwriter` from
+spectral scenes (different cameras, lights and CFA patterns). Each mutation is
+a deterministic function of ``(seed, index)`` (:func:`mutations`); the kinds
+cycle so that any prefix of the sequence has every kind in it:
+
+=================  ==========================================================
+``truncate``        the file cut at an offset: inside the 8-byte header, the
+                    IFD, the tag values or the strip data
+``flip-header``     one bit of the TIFF header (byte order, magic, IFD offset)
+``flip-ifd``        one bit of an IFD entry (tag code, type, count, value)
+``flip-value``      one bit of the out-of-line tag values (strings, matrices)
+``flip-strip``      bits of the pixel data (the file usually stays valid)
+``tag-value``       one tag's value set to 0, 1, 2**15, 2**16-1, 2**31-1 or
+                    2**32-1 (as a LONG)
+``tag-type``        one tag's field type set to an invalid or wrong type
+``huge-dims``       ImageWidth/ImageLength declared 100000 x 100000 (and
+                    other large sizes) with the same small strip
+``zero-dims``       a zero, "negative" (2**32-1, 2**31 as LONG) or 1-pixel
+                    dimension
+``bits``            BitsPerSample 0, 1, 3, 7, 12, 15, 17, 32, 64 or 65535
+``strip-eof``       StripOffsets past the end of the file, or StripByteCounts
+                    larger than the file
+``ifd-offset``      the first-IFD offset past EOF, 0, into the header, or an
+                    IFD whose next-IFD pointer loops onto itself
+``entry-count``     the IFD's entry count 0, 1, 255 or 65535
+``splice``          a byte range overwritten with random bytes or another
+                    seed's bytes
+``wrong-name``      a valid or mutated file sent as ``.jpg``/``.png``/``.txt``
+                    with a matching or bogus content type, or random bytes
+                    named ``.dng``
+=================  ==========================================================
+
+All requests go through the ASGI app in-process (``httpx.ASGITransport``),
+each under a timeout. Memory is the resident set size of this process
+(``psutil``), sampled after a warm-up (imports, colour data, caches) and at
+the end; see :func:`run` for the bound.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import io
+import json
+import logging
+import math
+import struct
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Mutation", "FuzzReport", "seed_dngs", "ifd_entries", "mutations", "memory_bound_mb", "run", "main"]
+
+KINDS = ("truncate", "flip-header", "flip-ifd", "flip-value", "flip-strip", "tag-value", "tag-type",
+         "huge-dims", "zero-dims", "bits", "strip-eof", "ifd-offset", "entry-count", "splice", "wrong-name")
+
+#: TIFF tags the mutations aim at.
+TAG_WIDTH, TAG_LENGTH, TAG_BITS, TAG_STRIP_OFFSETS, TAG_STRIP_BYTES = 256, 257, 258, 273, 279
+
+
+@dataclass
+class Mutation:
+    """One mutated upload."""
+
+    index: int
+    kind: str
+    what: str
+    data: bytes
+    filename: str = "fuzz.dng"
+    content_type: str = "image/x-adobe-dng"
+
+
+@dataclass
+class FuzzReport:
+    """What :func:`run` saw."""
+
+    n: int = 0
+    statuses: Counter = field(default_factory=Counter)
+    by_kind: dict = field(default_factory=dict)
+    failures: list = field(default_factory=list)
+    elapsed_s: float = 0.0
+    latencies_s: list = field(default_factory=list)
+    rss_warm_mb: float = 0.0
+    rss_end_mb: float = 0.0
+    rss_peak_mb: float = 0.0
+    health_after: int = 0
+
+    @property
+    def rss_growth_mb(self) -> float:
+        return self.rss_end_mb - self.rss_warm_mb
+
+    def table(self) -> str:
+        lines = [f"{'kind':12s} {'n':>5s}  statuses"]
+        for kind in KINDS:
+            c = self.by_kind.get(kind)
+            if c:
+                lines.append(f"{kind:12s} {sum(c.values()):5d}  "
+                             + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())))
+        lat = np.array(self.latencies_s or [0.0])
+        lines.append(f"\n{self.n} requests in {self.elapsed_s:.1f} s ({self.n / max(self.elapsed_s, 1e-9):.1f}/s); "
+                     f"latency p50 {1e3 * np.percentile(lat, 50):.0f} ms, p99 {1e3 * np.percentile(lat, 99):.0f} ms, "
+                     f"max {1e3 * lat.max():.0f} ms")
+        lines.append(f"statuses: {dict(sorted(self.statuses.items()))}; /health afterwards: {self.health_after}")
+        lines.append(f"RSS after warm-up {self.rss_warm_mb:.1f} MB, at the end {self.rss_end_mb:.1f} MB "
+                     f"(growth {self.rss_growth_mb:+.1f} MB), peak sampled {self.rss_peak_mb:.1f} MB")
+        lines.append(f"failures: {len(self.failures)}")
+        lines.extend(f"  {f}" for f in self.failures[:20])
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------
+# Seeds and the TIFF structure
+# ---------------------------------------------------------------------------
+
+#: (camera, light, pattern, height, width): small scenes, above LibRaw's
+#: 22-pixel minimum, a few kilobytes each.
+SEEDS = (("Nikon 5100 (NPL)", "A", "RGGB", 48, 64),
+         ("Canon EOS 5D Mark II", "D65", "GRBG", 40, 56),
+         ("Sigma SDMerill (NPL)", "FL2", "BGGR", 32, 48))
+
+
+def seed_dngs() -> list[bytes]:
+    """The valid DNGs every mutation starts from (:data:`SEEDS`)."""
+    from .dngwriter import scene_dng
+
+    out = []
+    for i, (camera, light, pattern, h, w) in enumerate(SEEDS):
+        buf = io.BytesIO()
+        scene_dng(buf, camera, light, h, w, seed=10 + i, pattern=pattern)
+        out.append(buf.getvalue())
+    return out
+
+
+def ifd_entries(data: bytes) -> tuple[str, int, dict]:
+    """Byte order, first-IFD offset and ``{tag: (entry_pos, type, count,
+    value_pos)}`` of IFD 0 of a classic TIFF (TIFF 6.0, section 2: 8-byte
+    header, 12-byte entries; a value of at most 4 bytes sits in the entry)."""
+    bo = "<" if data[:2] == b"II" else ">"
+    (ifd,) = struct.unpack(bo + "I", data[4:8])
+    (n,) = struct.unpack(bo + "H", data[ifd:ifd + 2])
+    sizes = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8}
+    entries = {}
+    for i in range(n):
+        pos = ifd + 2 + 12 * i
+        tag, typ, count = struct.unpack(bo + "HHI", data[pos:pos + 8])
+        nbytes = sizes.get(typ, 1) * count
+        value_pos = pos + 8 if nbytes <= 4 else struct.unpack(bo + "I", data[pos + 8:pos + 12])[0]
+        entries[tag] = (pos, typ, count, value_pos)
+    return bo, ifd, entries
+
+
+def _set_long(data: bytearray, bo: str, entries: dict, tag: int, value: int) -> None:
+    """Make ``tag`` one LONG with ``value`` (written into its entry)."""
+    pos = entries[tag][0]
+    struct.pack_into(bo + "HIi" if value < 0 else bo + "HII", data, pos + 2, 4, 1, value)
+
+
+# ---------------------------------------------------------------------------
+# Mutations
+# ---------------------------------------------------------------------------
+
+def _flip(data: bytearray, pos: int, bit: int) -> None:
+    data[pos] ^= 1 << bit
+
+
+def mutations(n: int, seeds: list[bytes] | None = None, seed: int = 0):
+    """The first ``n`` mutations, deterministic for a given ``seed``.
+
+    Mutation ``i`` is of kind ``KINDS[i % len(KINDS)]`` applied to seed file
+    ``(i // len(KINDS)) % len(seeds)`` with parameters drawn from
+    ``numpy.random.default_rng((seed, i))``.
+    """
+    seeds = seed_dngs() if seeds is None else seeds
+    for i in range(n):
+        kind = KINDS[i % len(KINDS)]
+        src = seeds[(i // len(KINDS)) % len(seeds)]
+        rng = np.random.default_rng((seed, i))
+        yield _mutate(i, kind, src, seeds, rng)
+
+
+def _mutate(i: int, kind: str, src: bytes, seeds: list[bytes], rng) -> Mutation:
+    bo, ifd, ent = ifd_entries(src)
+    d = bytearray(src)
+    strip = ent[TAG_STRIP_OFFSETS][3]
+    (strip_off,) = struct.unpack(bo + "I", src[strip:strip + 4])
+    ifd_end = ifd + 2 + 12 * len(ent) + 4
+    m = lambda what, data=None, **kw: Mutation(i, kind, what, bytes(d if data is None else data), **kw)  # noqa: E731
+
+    if kind == "truncate":
+        region = int(rng.integers(4))
+        lo, hi = [(0, 8), (8, ifd_end), (ifd_end, strip_off), (strip_off, len(src))][region]
+        cut = int(rng.integers(lo, hi))
+        return m(f"cut at byte {cut} of {len(src)}", src[:cut])
+    if kind == "flip-header":
+        pos, bit = int(rng.integers(8)), int(rng.integers(8))
+        _flip(d, pos, bit)
+        return m(f"header byte {pos} bit {bit}")
+    if kind == "flip-ifd":
+        pos, bit = int(rng.integers(ifd, ifd_end)), int(rng.integers(8))
+        _flip(d, pos, bit)
+        return m(f"IFD byte {pos} bit {bit}")
+    if kind == "flip-value":
+        pos, bit = int(rng.integers(ifd_end, strip_off)), int(rng.integers(8))
+        _flip(d, pos, bit)
+        return m(f"tag-value byte {pos} bit {bit}")
+    if kind == "flip-strip":
+        k = int(rng.integers(1, 65))
+        for pos, bit in zip(rng.integers(strip_off, len(src), k), rng.integers(0, 8, k)):
+            _flip(d, int(pos), int(bit))
+        return m(f"{k} bit(s) of the strip")
+    if kind == "tag-value":
+        tag = int(rng.choice(sorted(ent)))
+        value = int(rng.choice([0, 1, 2**15, 2**16 - 1, 2**31 - 1, 2**32 - 1]))
+        _set_long(d, bo, ent, tag, value)
+        return m(f"tag {tag} = {value} (LONG)")
+    if kind == "tag-type":
+        tag = int(rng.choice(sorted(ent)))
+        typ = int(rng.choice([0, 1, 2, 3, 4, 5, 7, 10, 12, 13, 99, 65535]))
+        struct.pack_into(bo + "H", d, ent[tag][0] + 2, typ)
+        return m(f"tag {tag} type {typ}")
+    if kind == "huge-dims":
+        w, h = [(100000, 100000), (65535, 65535), (2**31 - 1, 2), (2, 2**31 - 1), (20000, 20000),
+                (12000, 10000), (2**32 - 1, 2**32 - 1)][int(rng.integers(7))]
+        _set_long(d, bo, ent, TAG_WIDTH, w)
+        _set_long(d, bo, ent, TAG_LENGTH, h)
+        return m(f"declared {w} x {h}")
+    if kind == "zero-dims":
+        tag = int(rng.choice([TAG_WIDTH, TAG_LENGTH]))
+        value = int(rng.choice([0, 1, 2**31, 2**32 - 1, 21]))
+        _set_long(d, bo, ent, tag, value)
+        return m(f"{'width' if tag == TAG_WIDTH else 'length'} = {value}")
+    if kind == "bits":
+        bits = int(rng.choice([0, 1, 3, 7, 8, 12, 15, 17, 32, 64, 65535]))
+        struct.pack_into(bo + "H", d, ent[TAG_BITS][3], bits)
+        return m(f"BitsPerSample {bits}")
+    if kind == "strip-eof":
+        if rng.integers(2):
+            off = int(rng.choice([len(src), len(src) + 1, len(src) - 1, 2**31, 2**32 - 1]))
+            struct.pack_into(bo + "I", d, ent[TAG_STRIP_OFFSETS][3], off)
+            return m(f"StripOffsets {off}")
+        cnt = int(rng.choice([len(src), 2 * len(src), 2**31, 2**32 - 1, 0, 1]))
+        struct.pack_into(bo + "I", d, ent[TAG_STRIP_BYTES][3], cnt)
+        return m(f"StripByteCounts {cnt}")
+    if kind == "ifd-offset":
+        choice = int(rng.integers(5))
+        if choice == 4:       # next-IFD pointer of IFD 0 points back at IFD 0
+            struct.pack_into(bo + "I", d, ifd_end - 4, ifd)
+            return m("IFD 0 lists itself as the next IFD")
+        off = [len(src) + 100, 0, 2, 2**32 - 1][choice]
+        struct.pack_into(bo + "I", d, 4, off)
+        return m(f"first IFD at {off}")
+    if kind == "entry-count":
+        count = int(rng.choice([0, 1, 255, 65535]))
+        struct.pack_into(bo + "H", d, ifd, count)
+        return m(f"IFD entry count {count}")
+    if kind == "splice":
+        start = int(rng.integers(len(src)))
+        length = int(rng.integers(1, 257))
+        if rng.integers(2):
+            d[start:start + length] = rng.integers(0, 256, length, dtype=np.uint8).tobytes()
+            return m(f"{length} random bytes at {start}")
+        other = seeds[int(rng.integers(len(seeds)))]
+        o = int(rng.integers(len(other)))
+        d[start:start + length] = other[o:o + length]
+        return m(f"{length} bytes of another seed at {start}")
+    if kind == "wrong-name":
+        choice = int(rng.integers(5))
+        if choice == 4:
+            junk = rng.integers(0, 256, int(rng.integers(1, 8192)), dtype=np.uint8).tobytes()
+            return m(f"{len(junk)} random bytes named .dng", junk)
+        name, ctype = [("photo.jpg", "image/jpeg"), ("photo.png", "image/png"), ("notes.txt", "text/plain"),
+                       ("noext", "application/x-bogus")][choice]
+        if rng.integers(2):      # also damaged
+            _flip(d, int(rng.integers(len(src))), int(rng.integers(8)))
+            return m(f"damaged DNG named {name} ({ctype})", filename=name, content_type=ctype)
+        return m(f"valid DNG named {name} ({ctype})", filename=name, content_type=ctype)
+    raise ValueError(f"unknown mutation kind {kind!r}")
+
+
+# ---------------------------------------------------------------------------
+# Running them against the app
+# ---------------------------------------------------------------------------
+
+def _strict_json(text):
+    def bad(name):
+        raise ValueError(f"non-finite number {name}")
+    return json.loads(text, parse_constant=bad)
+
+
+def _finite_numbers(obj, path="") -> list[str]:
+    """Paths of numbers that are not finite, or None where the estimate's
+    light should be a number."""
+    bad = []
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            bad += _finite_numbers(v, f"{path}.{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            bad += _finite_numbers(v, f"{path}[{i}]")
+    elif isinstance(obj, float) and not math.isfinite(obj):
+        bad.append(path)
+    return bad
+
+
+def _check(mut: Mutation, endpoint: str, r) -> str | None:
+    """``None`` if the answer is acceptable, else what was wrong."""
+    where = f"#{mut.index} {mut.kind} ({mut.what}) {endpoint}"
+    ctype = r.headers.get("content-type", "")
+    if r.status_code >= 500:
+        return f"{where}: {r.status_code} {r.text[:200]}"
+    if 400 <= r.status_code < 500:
+        try:
+            body = _strict_json(r.text)
+        except ValueError as e:
+            return f"{where}: {r.status_code} without a JSON body ({e}): {r.text[:120]!r}"
+        if not (isinstance(body, dict) and isinstance(body.get("error"), str) and isinstance(body.get("detail"), str)):
+            return f"{where}: {r.status_code} body without error/detail: {body!r}"[:300]
+        return None
+    if r.status_code != 200:
+        return f"{where}: unexpected status {r.status_code}"
+    try:
+        if ctype.startswith("application/json"):
+            body = _strict_json(r.text)
+        else:
+            body = _strict_json(r.headers["x-illuminant"])
+            import cv2
+            img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+            if img is None or img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 2:
+                return f"{where}: 200 image that does not decode to an RGB image"
+    except (ValueError, KeyError) as e:
+        return f"{where}: 200 with a bad body or header ({type(e).__name__}: {e})"
+    rgb = (body.get("illuminant") or {}).get("camera_rgb")
+    if not (isinstance(rgb, list) and len(rgb) == 3 and all(isinstance(v, (int, float)) for v in rgb)):
+        return f"{where}: 200 without a numeric illuminant.camera_rgb: {rgb!r}"
+    if not all(math.isfinite(v) for v in rgb):
+        return f"{where}: 200 with non-finite camera_rgb {rgb}"
+    bad = _finite_numbers(body)
+    if bad:
+        return f"{where}: 200 with non-finite numbers at {bad[:5]}"
+    return None
+
+
+def _rss_mb() -> float:
+    import psutil
+
+    return psutil.Process().memory_info().rss / 2**20
+
+
+#: (endpoint, form fields) for the sampled extra requests.
+EXTRA = (("/v1/white-balance", {"format": "png"}), ("/v1/surfaces", {"grid": "4x4"}))
+
+
+async def _run(muts, timeout: float, sample_every: int, warmup: int, report: FuzzReport, app, progress) -> None:
+    import httpx
+
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://fuzz") as client:
+        async def post(endpoint, mut, fields):
+            t0 = time.perf_counter()
+            try:
+                r = await asyncio.wait_for(
+                    client.post(endpoint, files={"file": (mut.filename, mut.data, mut.content_type)}, data=fields),
+                    timeout)
+            except asyncio.TimeoutError:
+                report.failures.append(f"#{mut.index} {mut.kind} ({mut.what}) {endpoint}: no answer in {timeout} s")
+                return
+            except Exception as e:  # the app raised through the transport: a 500 in a real server
+                report.failures.append(f"#{mut.index} {mut.kind} ({mut.what}) {endpoint}: "
+                                       f"{type(e).__name__}: {e}"[:300])
+                return
+            report.latencies_s.append(time.perf_counter() - t0)
+            report.n += 1
+            report.statuses[r.status_code] += 1
+            report.by_kind.setdefault(mut.kind, Counter())[r.status_code] += 1
+            problem = _check(mut, endpoint, r)
+            if problem:
+                report.failures.append(problem)
+
+        t0 = time.perf_counter()
+        for j, mut in enumerate(muts):
+            if j == warmup:
+                report.rss_warm_mb = _rss_mb()
+            await post("/v1/analyze", mut, {})
+            if sample_every and j % sample_every == 0:
+                endpoint, fields = EXTRA[(j // sample_every) % len(EXTRA)]
+                await post(endpoint, mut, fields)
+            if j % 50 == 0:
+                report.rss_peak_mb = max(report.rss_peak_mb, _rss_mb())
+                if progress:
+                    progress(j, report)
+        report.elapsed_s = time.perf_counter() - t0
+        if not report.rss_warm_mb:
+            report.rss_warm_mb = _rss_mb()
+        report.rss_end_mb = _rss_mb()
+        report.rss_peak_mb = max(report.rss_peak_mb, report.rss_end_mb)
+        h = await asyncio.wait_for(client.get("/health"), timeout)
+        report.health_after = h.status_code
+
+
+def memory_bound_mb(slack_mb: float = 64.0) -> float:
+    """Largest RSS growth over a fuzz run that still counts as bounded.
+
+    Mutated ColorMatrix tags give new matrix-derived cameras, and each new
+    camera builds a light-posterior model (:func:`recovery.bayes.bayes_model`)
+    that is cached, at most ``recovery.bayes._MODEL_CACHE_MAX`` of them. So
+    the resident set may legitimately grow by that cache's capacity times one
+    model's arrays (measured here on a measured camera, about 26 MB), plus
+    ``slack_mb`` for the allocator (glibc keeps freed arenas; replaying the
+    same 300 mutations five times moved RSS by under 1 MB). A leak of every
+    upload (7 kB) would stay under this bound over 2,000 requests; a leak of
+    every decoded image or model would not.
+    """
+    from recovery import Camera, bayes
+
+    model = bayes.bayes_model(Camera.named("Nikon 5100 (NPL)"))
+    model_mb = sum(v.nbytes for v in vars(model).values() if isinstance(v, np.ndarray)) / 2**20
+    return bayes._MODEL_CACHE_MAX * model_mb + slack_mb
+
+
+def run(n: int = 2000, *, seed: int = 0, timeout: float = 20.0, sample_every: int = 10, warmup: int = 200,
+        app=None, progress=None) -> FuzzReport:
+    """POST ``n`` mutated DNGs to ``/v1/analyze`` (every ``sample_every``-th
+    also to ``/v1/white-balance`` or ``/v1/surfaces``) through the ASGI app.
+
+    Parameters
+    ----------
+    n : int
+        Number of mutations (:func:`mutations`).
+    seed : int
+        Seed of the mutation parameters.
+    timeout : float
+        Seconds one request may take before it counts as a hang. A valid seed
+        file (at most 64 x 48 pixels) is answered in well under a second.
+    sample_every : int
+        Every this many mutations also go to the other upload endpoints.
+    warmup : int
+        Requests before the first memory sample: the first requests import
+        LibRaw, OpenCV and colour-science and fill caches (tens of MB) that
+        are not a leak.
+    app : ASGI app, optional
+        Default :data:`service.app.app`.
+
+    Returns
+    -------
+    FuzzReport
+        Statuses by kind, failures, latencies, memory. Memory is the process
+        RSS after ``warmup`` requests and at the end: a request holds a few
+        kilobytes of upload and at most a ``max_pixels``-limited image, all
+        released when it returns, so the growth over the run should be the
+        allocator's slack, not a function of ``n``.
+    """
+    if app is None:
+        from .app import app
+    # tifffile logs a warning for every malformed tag it skips: thousands here
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+    report = FuzzReport()
+    muts = mutations(n, seed=seed)
+    asyncio.run(_run(muts, timeout, sample_every, min(warmup, max(n - 1, 0)), report, app, progress))
+    return report
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=2000, help="number of mutated files")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--timeout", type=float, default=20.0, help="seconds per request before it is a hang")
+    ap.add_argument("--sample-every", type=int, default=10,
+                    help="also POST every k-th file to /v1/white-balance or /v1/surfaces")
+    ap.add_argument("--max-rss-growth-mb", type=float, default=None,
+                    help="default: the posterior-model cache's capacity + 64 MB (fuzz.memory_bound_mb)")
+    args = ap.parse_args(argv)
+
+    def progress(j, rep):
+        print(f"  {j}/{args.n}: {dict(sorted(rep.statuses.items()))}, RSS {_rss_mb():.0f} MB", file=sys.stderr,
+              flush=True)
+
+    rep = run(args.n, seed=args.seed, timeout=args.timeout, sample_every=args.sample_every, progress=progress)
+    print(rep.table())
+    bound = memory_bound_mb() if args.max_rss_growth_mb is None else args.max_rss_growth_mb
+    print(f"RSS growth bound {bound:.0f} MB")
+    ok = not rep.failures and rep.health_after == 200 and rep.rss_growth_mb <= bound
+    print("OK" if ok else "FAILED")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,323 @@
+"""``POST /v1/render`` (spectral data to a display image) and
+``GET /v1/sampling`` (a sampling rule's nodes and weights).
+
+Thin: parses and validates the upload, calls
+:func:`recovery.spectral.render_spectra`, encodes.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+
+import numpy as np
+from fastapi import APIRouter, Depends, File, Form, Query, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse, Response
+
+from ..deps import read_upload
+from ..errors import ApiError
+from ..jsonsafe import clean
+from ..settings import Settings, get_settings
+
+router = APIRouter(prefix="/v1")
+
+MAX_N = 64
+FORMATS = {"tiff": ("tiff", 16), "png": ("png", 8), "png16": ("png", 16)}
+OUTPUTS = ("sRGB", "linear-sRGB")
+
+
+# --- parsing ----------------------------------------------------------------------
+
+
+def parse_wavelengths(text: str | None, field: str = "wavelengths") -> np.ndarray | None:
+    """``"400,410,...,700"`` -> float array; finite, strictly increasing."""
+    if text is None or not text.strip():
+        return None
+    try:
+        wl = np.array([float(t) for t in text.replace(";", ",").split(",") if t.strip()])
+    except ValueError:
+        raise ApiError(422, "invalid_parameter", f"{field} must be comma-separated numbers in nm") from None
+    if wl.size < 2 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
+        raise ApiError(422, "invalid_parameter", f"{field} must be at least two finite, strictly increasing "
+                       "values in nm")
+    return wl
+
+
+def parse_degrees(text: str | None):
+    """``"2,2,2"`` -> (2, 2, 2) (Borges' degree sequence for x, y, z)."""
+    if text is None or not text.strip():
+        return None
+    try:
+        deg = tuple(int(t) for t in text.split(","))
+    except ValueError:
+        raise ApiError(422, "invalid_parameter", f"degrees must look like 2,2,2, got {text!r}") from None
+    if len(deg) != 3 or not all(0 <= d <= 12 for d in deg):
+        raise ApiError(422, "invalid_parameter", "degrees must be three integers in 0..12 (x, y, z)")
+    return deg
+
+
+def rule_options(strategy: str, n: int | None, channel: str | None, degrees: str | None) -> dict:
+    """Validated strategy, size and options (422 naming what is wrong)."""
+    from recovery.spectral import render_strategies
+
+    names = render_strategies()
+    if strategy not in names + ["auto", "full"]:
+        raise ApiError(422, "unknown_strategy", f"strategy {strategy!r} unknown; accepted: auto, full, "
+                       f"{', '.join(names)}")
+    if n is not None and not 1 <= n <= MAX_N:
+        raise ApiError(422, "n_out_of_range", f"n must be in 1..{MAX_N}, got {n}")
+    opts: dict = {}
+    if channel is not None and channel != "":
+        if channel not in ("A", "C1", "C2", "XYZ"):
+            raise ApiError(422, "invalid_parameter", f"channel must be A, C1, C2 or XYZ, got {channel!r}")
+        opts["channel"] = channel
+    deg = parse_degrees(degrees)
+    if deg is not None:
+        opts["degrees"] = deg
+    return opts
+
+
+def load_npy(data: bytes, settings: Settings) -> np.ndarray:
+    """A numeric ``.npy`` array without copying its data; object arrays and
+    pickles are refused (``allow_pickle=False`` semantics), and the size is
+    checked from the header before anything is read (413)."""
+    fmt = np.lib.format
+    buf = io.BytesIO(data)
+    try:
+        major, _ = fmt.read_magic(buf)
+        reader = fmt.read_array_header_1_0 if major == 1 else fmt.read_array_header_2_0
+        shape, fortran, dtype = reader(buf)
+    except Exception as e:  # noqa: BLE001 - any header failure is a bad upload
+        raise ApiError(422, "bad_npy", f"file is not a readable .npy array: {e}") from None
+    if dtype.hasobject or dtype.kind not in "fiu":
+        raise ApiError(422, "bad_npy", f"the array's dtype {dtype} is not numeric (object arrays and pickles "
+                       "are refused)")
+    if len(shape) not in (2, 3):
+        raise ApiError(422, "bad_shape", f"the array must be a cube H x W x N (or M x N spectra); got shape "
+                       f"{tuple(shape)}")
+    count = int(np.prod(shape))
+    if count > settings.max_render_values:
+        raise ApiError(413, "cube_too_large", f"the array has {count} values, over the limit of "
+                       f"{settings.max_render_values} (WANDELL_MAX_RENDER_VALUES)")
+    offset = buf.tell()
+    if len(data) - offset < count * dtype.itemsize:
+        raise ApiError(422, "bad_npy", f"the .npy file is truncated: {len(data) - offset} bytes of data for "
+                       f"shape {tuple(shape)} {dtype}")
+    arr = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
+    return arr.reshape(shape, order="F" if fortran else "C")
+
+
+def load_csv(data: bytes, what: str = "file") -> tuple[np.ndarray, np.ndarray, list]:
+    """CSV with one row per wavelength: the first column is the wavelength in
+    nm, each further column one spectrum; an optional first row of names
+    (any non-numeric first row is taken as a header). Returns wavelengths
+    ``(N,)``, spectra ``(M, N)`` and the names."""
+    import csv
+
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise ApiError(422, "bad_csv", f"{what} is neither a .npy array nor UTF-8 CSV text") from None
+    rows = [r for r in csv.reader(io.StringIO(text)) if any(c.strip() for c in r)]
+    if not rows:
+        raise ApiError(422, "bad_csv", f"{what} is empty")
+    names: list = []
+    try:
+        [float(c) for c in rows[0] if c.strip()]
+    except ValueError:
+        names = [c.strip() for c in rows[0][1:]]
+        rows = rows[1:]
+    try:
+        table = np.array([[float(c) for c in r] for r in rows], dtype=float)
+    except ValueError as e:
+        raise ApiError(422, "bad_csv", f"{what}: every value after the header must be a number ({e})") from None
+    if table.ndim != 2 or table.shape[1] < 2 or table.shape[0] < 2:
+        raise ApiError(422, "bad_csv", f"{what}: need a wavelength column and at least one spectrum column, "
+                       "at least two rows, every row the same length")
+    wl = table[:, 0]
+    if not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
+        raise ApiError(422, "bad_wavelengths", f"{what}: the first column (wavelength, nm) must be finite and "
+                       "strictly increasing")
+    return wl, table[:, 1:].T.copy(), names or [f"spectrum {i + 1}" for i in range(table.shape[1] - 1)]
+
+
+def check_values(arr: np.ndarray, what: str = "spectra") -> None:
+    """Refuse non-finite or negative values (chunked: no full-size temporary)."""
+    flat = arr.reshape(-1)
+    step = 1 << 22
+    for s in range(0, flat.size, step):
+        chunk = flat[s:s + step]
+        if chunk.dtype.kind == "f" and not np.all(np.isfinite(chunk)):
+            raise ApiError(422, "non_finite_values", f"the {what} contain NaN or Inf")
+        if chunk.size and chunk.min() < 0:
+            raise ApiError(422, "negative_values", f"the {what} contain negative values (minimum "
+                           f"{float(chunk.min()):.4g}); reflectances are >= 0")
+
+
+def _is_npy(data: bytes, filename: str | None) -> bool:
+    return data[:6] == b"\x93NUMPY" or (filename or "").lower().endswith(".npy")
+
+
+# --- endpoints --------------------------------------------------------------------
+
+
+@router.post("/render")
+async def render(file: UploadFile = File(..., description=".npy reflectance cube H x W x N (or M x N), or CSV: "
+                                          "first column wavelength (nm), one spectrum per further column, "
+                                          "optional header row"),
+                 wavelengths: str | None = Form(None, description="comma-separated nm; required for .npy"),
+                 illuminant: str | None = Form(None, description="light name (D65, A, FL11, D5000, BB3200...); "
+                                               "default D65"),
+                 light_file: UploadFile | None = File(None, description="light spectrum CSV: wavelength, value"),
+                 strategy: str = Form("auto"), n: int | None = Form(None),
+                 channel: str | None = Form(None, description="gauss-ac1c2: A, C1, C2 or XYZ (Meyer's 4-wavelength rule)"),
+                 degrees: str | None = Form(None, description="quasi-gauss-xyz: e.g. 2,2,2"),
+                 format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16"),
+                 output: str = Form("sRGB", description="sRGB (encoded) or linear-sRGB"),
+                 adapt: bool = Form(False, description="CAT02 to the display white (off: the colour signal as is)"),
+                 max_error: float = Form(1.0, description="auto: bound on the mean CIEDE2000 vs the full calculation"),
+                 response: str = Form("image", description="image, or json for the report alone"),
+                 settings: Settings = Depends(get_settings)):
+    """Render spectral data under a light with a chosen wavelength sampling.
+
+    The image is the colour signal's own tristimulus values (a perfect white
+    reflector under the light has Y = 1) on the display, without chromatic
+    adaptation unless ``adapt`` (Wandell 1985, eq. 22-24). The report (JSON
+    body with ``response=json``, else the ``X-Render-Report`` header) gives
+    the strategy, nodes, bands read, time and the estimated CIEDE2000 error
+    against the full calculation.
+    """
+    t0 = time.perf_counter()
+    if format not in FORMATS:
+        raise ApiError(422, "invalid_parameter", f"format {format!r} unknown; accepted: {sorted(FORMATS)}")
+    if response not in ("image", "json"):
+        raise ApiError(422, "invalid_parameter", "response must be image or json")
+    if output not in OUTPUTS:
+        raise ApiError(422, "invalid_parameter", f"output must be one of {', '.join(OUTPUTS)}")
+    if not (np.isfinite(max_error) and 0 < max_error <= 100):
+        raise ApiError(422, "invalid_parameter", "max_error must be in (0, 100]")
+    opts = rule_options(strategy, n, channel, degrees)
+    wl_form = parse_wavelengths(wavelengths)
+    data = await read_upload(file, settings)
+    light_data = await read_upload(light_file, settings, "light_file") if light_file is not None else None
+    if light_data is not None and illuminant:
+        raise ApiError(422, "invalid_parameter", "give either illuminant or light_file, not both")
+
+    def work():
+        from recovery.errors import InputError
+        from recovery.spectral import render_spectra
+
+        names = None
+        if _is_npy(data, file.filename):
+            arr = load_npy(data, settings)
+            if wl_form is None:
+                raise ApiError(422, "missing_wavelengths", "wavelengths (comma-separated nm) are required "
+                               "with a .npy cube")
+            wl = wl_form
+        else:
+            wl, arr, names = load_csv(data)
+            if arr.size > settings.max_render_values:
+                raise ApiError(413, "cube_too_large", f"{arr.size} values, over the limit of "
+                               f"{settings.max_render_values}")
+            if wl_form is not None and (wl_form.size != wl.size or not np.allclose(wl_form, wl)):
+                raise ApiError(422, "wavelength_mismatch", "wavelengths disagree with the CSV's first column")
+        if arr.shape[-1] != wl.size:
+            raise ApiError(422, "wavelength_mismatch", f"the array has {arr.shape[-1]} bands (last axis) for "
+                           f"{wl.size} wavelengths")
+        if arr.size == 0:
+            raise ApiError(422, "empty_input", "the spectra are empty")
+        check_values(arr)
+        light, light_wl = illuminant or "D65", None
+        if light_data is not None:
+            light_wl, lv, _ = load_csv(light_data, "light_file")
+            if lv.shape[0] != 1:
+                raise ApiError(422, "bad_csv", "light_file must have exactly one spectrum column")
+            check_values(lv, "light values")
+            light = lv[0]
+        try:
+            return render_spectra(arr, wl, light, strategy=strategy, n=n, output=output, adapt=adapt,
+                                  light_wavelengths=light_wl, max_error=max_error, **opts), names
+        except InputError as e:
+            msg = str(e)
+            code = "unknown_illuminant" if "illuminant" in msg else "invalid_input"
+            raise ApiError(422, code, msg) from None
+
+    result, names = await run_in_threadpool(work)
+    image, report = result.image, result.report
+    report["timings_ms"]["request"] = (time.perf_counter() - t0) * 1e3
+    if response == "json":
+        body = dict(report)
+        if names is not None:
+            body["spectra"] = [{"name": nm, output: v} for nm, v in zip(names, image.tolist())]
+        return JSONResponse(clean(body))
+    from ..pipeline import FORMATS as MEDIA, encode_image
+
+    fmt, bits = FORMATS[format]
+    img = image if image.ndim == 3 else image[None]
+    scale = 65535 if bits == 16 else 255
+    q = np.empty(img.shape, np.uint16 if bits == 16 else np.uint8)
+    np.multiply(np.clip(img, 0, 1), scale, out=img)
+    np.rint(img, out=img)
+    q[...] = img
+    t1 = time.perf_counter()
+    payload = await run_in_threadpool(encode_image, q, fmt)
+    report["timings_ms"]["file_encode"] = (time.perf_counter() - t1) * 1e3
+    header = {k: v for k, v in report.items() if k != "tried"}
+    header["tried"] = len(report.get("tried", []))
+    headers = {"X-Render-Report": json.dumps(clean(header), separators=(",", ":")),
+               "Content-Disposition": f'inline; filename="render.{"tif" if fmt == "tiff" else "png"}"'}
+    return Response(payload, media_type=MEDIA[fmt], headers=headers)
+
+
+@router.get("/sampling")
+def sampling(strategy: str = Query(..., description="a sampling strategy name"),
+             n: int | None = Query(None, description=f"size 1..{MAX_N} (implied by degrees for quasi-gauss-xyz)"),
+             channel: str | None = Query(None, description="gauss-ac1c2: A, C1, C2 or XYZ"),
+             degrees: str | None = Query(None, description="quasi-gauss-xyz: e.g. 2,2,2"),
+             illuminant: str | None = Query(None, description="light the rule is made for (wiener-points: "
+                                            "default D65; composite: its spikes)")):
+    """Nodes and weights of a sampling rule on the analysis grid (400-700 nm,
+    10 nm), ``defined`` false with a ``reason`` when the order does not exist
+    (e.g. Gaussian nodes outside the interval, Meyer 1988, Table 1a).
+
+    ``weights`` are the rule's own weights when it has them (quadrature
+    weights, or the nm each node stands for), otherwise its integration
+    weights against CIE 1931 xbar, ybar, zbar (one row per node);
+    ``weights_kind`` says which. ``integration_weights_xyz`` are always the
+    latter (``T ~= coefficients @ W`` for an equal-energy light)."""
+    import models
+    from recovery.spectral import LIGHT_AWARE, _rule
+
+    if strategy in ("auto", "full"):
+        raise ApiError(422, "unknown_strategy", f"{strategy!r} is a render mode, not a sampling rule")
+    opts = rule_options(strategy, n, channel, degrees)
+    grid = models.DEFAULT_WAVELENGTHS
+    cmfs = models.observer("XYZ", grid)
+    light = None
+    if illuminant is not None or strategy in LIGHT_AWARE:
+        try:
+            light = models.illuminant(illuminant or "D65", grid)
+        except KeyError:
+            raise ApiError(422, "unknown_illuminant", f"illuminant {illuminant!r} unknown; accepted: "
+                           f"{models.illuminant_names()} or D<cct>, BB<cct>") from None
+    try:
+        rule = _rule(strategy, n, grid, opts, light, cmfs)
+    except (ValueError, TypeError, KeyError) as e:
+        raise ApiError(422, "invalid_parameter", f"{strategy} with n={n} {opts}: {e}") from None
+    except (AttributeError, ImportError, NotImplementedError) as e:
+        raise ApiError(422, "strategy_unavailable", f"strategy {strategy!r} is not available in this "
+                       f"build: {e}") from None
+    integ = rule.integration_weights(cmfs) if rule.defined else None
+    if rule.weights is not None:
+        weights, kind = np.asarray(rule.weights, float), "the rule's own"
+    else:
+        weights, kind = integ, "integration weights against CIE 1931 xbar, ybar, zbar"
+    body = {"strategy": strategy, "n": rule.n if rule.defined or n is None else n, "defined": bool(rule.defined),
+            "nodes_nm": None if rule.nodes_nm is None else np.asarray(rule.nodes_nm, float),
+            "weights": weights, "weights_kind": kind, "integration_weights_xyz": integ, "options": opts,
+            "diagnostics": dict(rule.diagnostics or {})}
+    if not rule.defined:
+        body["reason"] = rule.reason
+    return JSONResponse(clean(body))

@@ -1,0 +1,212 @@
+"""``GET /`` (the web page), its static files, and ``POST /v1/preview``.
+
+The page is plain HTML, CSS and JavaScript from :mod:`service.static`, served
+by the app itself: no build step, nothing fetched from another host. The page
+calls the public REST endpoints (``/v1/analyze``, ``/v1/white-balance``,
+``/v1/batches``) and ``/v1/preview`` below, which exists so a browser can show
+a large RAW side by side before and after correction without transferring two
+full-resolution images.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from importlib import resources
+
+import numpy as np
+from fastapi import APIRouter, Depends, File, Form, UploadFile
+from fastapi.responses import HTMLResponse, Response
+
+from .. import pipeline
+from ..deps import estimate_options, read_upload
+from ..errors import ApiError
+from ..jsonsafe import clean
+from ..settings import Settings, get_settings
+from ..workers import run_heavy
+from .analysis import _analyze_sync
+
+router = APIRouter()
+
+#: The only files served under ``/static/`` (a fixed list: no path from the
+#: request ever reaches the file system).
+STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "style.css": "text/css; charset=utf-8"}
+
+#: Longest side of a preview, default and accepted range (pixels).
+PREVIEW_MAX_SIDE = 1024
+PREVIEW_SIDE_RANGE = (16, 4096)
+
+#: Output spaces /v1/white-balance accepts (the preview accepts the same).
+OUTPUTS = ("sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display")
+
+
+def _static_text(name: str) -> str:
+    return resources.files("service").joinpath("static", name).read_text(encoding="utf-8")
+
+
+@router.get("/", response_class=HTMLResponse, include_in_schema=False)
+def index() -> HTMLResponse:
+    """The web page: upload a RAW, compare, read the diagnostics, run a batch."""
+    return HTMLResponse(_static_text("index.html"), headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/static/{name}", include_in_schema=False)
+def static(name: str) -> Response:
+    """The page's script and style sheet (only the files in :data:`STATIC_FILES`)."""
+    if name not in STATIC_FILES:
+        raise ApiError(404, "not_found", f"no static file {name!r}; served: {sorted(STATIC_FILES)}")
+    return Response(_static_text(name), media_type=STATIC_FILES[name], headers={"Cache-Control": "no-cache"})
+
+
+# ---------------------------------------------------------------------------
+# POST /v1/preview
+# ---------------------------------------------------------------------------
+
+def downsize_linear(img: np.ndarray, max_side: int) -> np.ndarray:
+    """Area-average a linear (h, w, 3) float image so its longest side is at
+    most ``max_side`` (unchanged if already smaller).
+
+    Averaging is done on linear values, before any transfer function, so a
+    preview pixel is the mean light of the pixels it covers (the same
+    argument as the block averaging of the estimation image: mixtures of
+    surfaces under one light stay linear, Wandell 1985, eq. 26).
+    """
+    import cv2
+
+    h, w = img.shape[:2]
+    s = min(1.0, max_side / max(h, w))
+    if s >= 1.0:
+        return img
+    size = (max(1, int(round(w * s))), max(1, int(round(h * s))))
+    return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+
+
+def _to_uint16(lin: np.ndarray) -> np.ndarray:
+    """Linear float (1.0 = saturation) -> uint16 (65535 = saturation),
+    non-finite values mapped to 0 so no NaN reaches the encoder."""
+    v = np.nan_to_num(np.asarray(lin, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    return np.rint(np.clip(v, 0.0, 1.0) * np.float32(65535.0)).astype(np.uint16)
+
+
+def camera_wb_preview(decoded, data: bytes, max_side: int) -> tuple[np.ndarray, dict]:
+    """The image as the camera's own white balance renders it, 8-bit sRGB.
+
+    RAW: LibRaw's rendering (``rawpy.postprocess``) with the file's as-shot
+    multipliers (``use_camera_wb=True``), its colour matrix to sRGB and its
+    default tone curve and brightening, half size, then area-downsized. This
+    is "the original" a raw converter shows, not a product of this service's
+    estimate. TIFF/PNG: such files carry no as-shot white balance; the
+    linear camera RGB is shown sRGB-encoded without any balance, with a
+    warning.
+    """
+    import cv2
+
+    info: dict = {"wb": "camera", "warnings": []}
+    if decoded.kind == "raw":
+        import rawpy
+
+        try:
+            with rawpy.imread(io.BytesIO(data)) as raw:
+                mult = [float(x) for x in raw.camera_whitebalance[:3]]
+                rgb = raw.postprocess(use_camera_wb=True, half_size=True, output_bps=8)
+        except rawpy.LibRawError as exc:
+            raise ApiError(422, "corrupt_file", f"LibRaw could not render the file with its camera white "
+                                                f"balance ({type(exc).__name__}); it is damaged") from None
+        if decoded.as_shot_neutral is None:
+            info["warnings"].append("the file records no as-shot white balance; LibRaw used its default "
+                                    "(daylight) multipliers")
+        else:
+            info["camera_multipliers"] = [m / mult[1] if mult[1] else m for m in mult]
+        h, w = rgb.shape[:2]
+        s = min(1.0, max_side / max(h, w))
+        if s < 1.0:
+            rgb = cv2.resize(rgb, (max(1, int(round(w * s))), max(1, int(round(h * s)))),
+                             interpolation=cv2.INTER_AREA)
+        return np.ascontiguousarray(rgb[..., :3]), info
+    info["warnings"].append(f"a linear {decoded.kind.upper()} carries no camera white balance: shown "
+                            "unbalanced, sRGB-encoded")
+    small = _to_uint16(downsize_linear(decoded.estimation, max_side))
+    return pipeline.apply_matrix_inplace(small, np.eye(3), "sRGB", 8), info
+
+
+def corrected_preview(decoded, run, target: str, output: str, surface_basis, max_side: int
+                      ) -> tuple[np.ndarray, dict]:
+    """The corrected image, downsized: the 3x3 matrix of ``/v1/white-balance``
+    (:func:`service.pipeline.correction_matrix`, Wandell 1985, eq. 23 and 36)
+    applied to the area-downsized estimation image (binned CFA cells for a
+    RAW, no demosaic needed at preview size), encoded 8-bit."""
+    M, minfo = pipeline.correction_matrix(run, target, output, surface_basis)
+    small = _to_uint16(downsize_linear(decoded.estimation, max_side))
+    out = pipeline.apply_matrix_inplace(small, M, minfo["encoding"], 8)
+    return out, {"wb": "corrected", "target": target, "output": output, "method": run.estimate.method,
+                 "correction_matrix": M.tolist(), "warnings": []}
+
+
+@router.post("/v1/preview", response_class=Response, responses={
+    200: {"content": {"image/jpeg": {}, "image/png": {}},
+          "description": "An 8-bit preview image; the header ``X-Preview`` (JSON) says what it shows: "
+                         "``wb``, ``width``/``height`` of the preview, ``full_width``/``full_height`` "
+                         "of the image, ``warnings``, and the camera multipliers (camera) or the "
+                         "correction matrix, method and target (corrected)."},
+    415: {"description": "not a format the service reads"},
+    422: {"description": "bad option or unusable file"}})
+async def preview(file: UploadFile = File(..., description="RAW file (anything LibRaw reads) or linear "
+                                                           "16-bit TIFF/PNG"),
+                  wb: str = Form("camera", description="camera: the file's own as-shot white balance as "
+                                 "LibRaw renders it (the original); corrected: this service's correction, "
+                                 "the same matrix as /v1/white-balance"),
+                  max_side: int = Form(PREVIEW_MAX_SIDE, description="longest side of the preview, "
+                                       f"{PREVIEW_SIDE_RANGE[0]}..{PREVIEW_SIDE_RANGE[1]} pixels"),
+                  format: str = Form("jpeg", description="jpeg or png (8-bit)"),
+                  camera: str | None = Form(None, description="corrected only: as /v1/white-balance"),
+                  method: str = Form("auto", description="corrected only"),
+                  quality: str | None = Form(None, description="corrected only: fast, balanced or accurate"),
+                  target: str = Form("D65", description="corrected only: light to render under, or 'estimate'"),
+                  output: str = Form("sRGB", description="corrected only: sRGB, linear-sRGB or a display"),
+                  settings: Settings = Depends(get_settings)):
+    """A small 8-bit preview for the web page: the original as the camera's
+    white balance renders it (``wb=camera``) or the corrected image
+    (``wb=corrected``), longest side at most ``max_side``."""
+    t0 = time.perf_counter()
+    if wb not in ("camera", "corrected"):
+        raise ApiError(422, "invalid_parameter", f"wb must be camera or corrected, not {wb!r}")
+    lo, hi = PREVIEW_SIDE_RANGE
+    if not lo <= max_side <= hi:
+        raise ApiError(422, "invalid_parameter", f"max_side must be in {lo}..{hi} pixels, not {max_side}")
+    fmt = {"jpeg": "jpeg", "jpg": "jpeg", "png": "png"}.get(format)
+    if fmt is None:
+        raise ApiError(422, "invalid_parameter", f"format {format!r} unknown; accepted: jpeg, png")
+    if output not in OUTPUTS:
+        raise ApiError(422, "invalid_parameter", f"output must be one of {', '.join(OUTPUTS)}")
+    opts = estimate_options(method, None, None, None, False, None, None, quality)
+    data = await read_upload(file, settings)
+    name = file.filename
+
+    def work():
+        if wb == "camera":
+            decoded = _decode_only(data, name, settings)
+            img, info = camera_wb_preview(decoded, data, max_side)
+        else:
+            decoded, run = _analyze_sync(data, name, None, camera, method, opts, settings)
+            img, info = corrected_preview(decoded, run, target, output, opts.get("surface_basis"), max_side)
+            info["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
+        info.update(width=int(img.shape[1]), height=int(img.shape[0]),
+                    full_width=int(decoded.full_shape[1]), full_height=int(decoded.full_shape[0]))
+        return pipeline.encode_image(img, fmt), info
+
+    body, info = await run_heavy(work)
+    info["ms"] = (time.perf_counter() - t0) * 1e3
+    return Response(body, media_type=pipeline.FORMATS[fmt],
+                    headers={"X-Preview": json.dumps(clean(info), separators=(",", ":")),
+                             "Cache-Control": "no-store"})
+
+
+def _decode_only(data: bytes, filename: str | None, settings: Settings):
+    from .. import rawio
+
+    try:
+        return rawio.decode_upload(data, filename, max_pixels=settings.max_pixels,
+                                   estimation_pixels=settings.estimation_pixels)
+    except rawio.UploadError as e:
+        raise ApiError(e.status, e.code, e.detail) from None

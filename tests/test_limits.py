@@ -1,0 +1,133 @@
+"""Configurable limits (issue 6): upload size and pixel count from the
+environment (``WANDELL_*``, :mod:`service.settings`), honoured for declared
+and for streamed request bodies (:mod:`service.limits`)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+
+from service import fuzz
+from service.app import app
+from service.limits import FRAMING
+from service.settings import get_settings
+
+
+@pytest.fixture(scope="module")
+def seeds():
+    return fuzz.seed_dngs()
+
+
+# ---------------------------------------------------------------------------
+# Limits from the environment (WANDELL_*; service.settings)
+# ---------------------------------------------------------------------------
+
+@pytest.fixture
+def env_settings(monkeypatch):
+    """Set WANDELL_* variables for one test; settings are re-read from the
+    environment (get_settings is cached per process) and restored after."""
+    def set_env(**values):
+        for k, v in values.items():
+            monkeypatch.setenv(f"WANDELL_{k.upper()}", str(v))
+        get_settings.cache_clear()
+    yield set_env
+    monkeypatch.undo()
+    get_settings.cache_clear()
+
+
+def test_upload_limit_is_read_from_the_environment(env_settings, seeds):
+    data = seeds[0]
+    env_settings(max_upload_bytes=len(data) - 1)
+    with TestClient(app) as c:
+        r = c.post("/v1/analyze", files={"file": ("a.dng", data, "image/x-adobe-dng")})
+        assert r.status_code == 413 and r.json()["error"] == "file_too_large", r.text
+        assert c.get("/health").json()["max_upload_bytes"] == len(data) - 1
+    env_settings(max_upload_bytes=len(data))
+    with TestClient(app) as c:
+        assert c.post("/v1/analyze", files={"file": ("a.dng", data, "image/x-adobe-dng")}).status_code == 200
+
+
+def test_declared_body_over_the_limit_is_refused_before_reading(env_settings):
+    """The middleware refuses a Content-Length above the limit plus 1 MiB of
+    multipart framing, without reading the body."""
+    env_settings(max_upload_bytes=1000)
+    with TestClient(app) as c:
+        r = c.post("/v1/analyze", content=b"x" * (1000 + 1024 * 1024 + 1),
+                   headers={"content-type": "multipart/form-data; boundary=zz"})
+    assert r.status_code == 413 and r.json()["error"] == "file_too_large", r.text
+
+
+def test_pixel_limit_is_read_from_the_environment(env_settings, seeds):
+    _, _, _, h, w = fuzz.SEEDS[0]
+    env_settings(max_pixels=h * w - 1)
+    with TestClient(app) as c:
+        r = c.post("/v1/analyze", files={"file": ("a.dng", seeds[0], "image/x-adobe-dng")})
+        assert r.status_code == 413 and r.json()["error"] == "too_many_pixels", r.text
+        assert c.get("/health").json()["max_pixels"] == h * w - 1
+    env_settings(max_pixels=h * w)
+    with TestClient(app) as c:
+        assert c.post("/v1/analyze", files={"file": ("a.dng", seeds[0], "image/x-adobe-dng")}).status_code == 200
+
+
+def test_streamed_body_over_the_limit_is_cut_off_while_reading(env_settings):
+    """A chunked body (no Content-Length) of 64 chunks of 64 kB against a
+    limit of 1000 bytes + FRAMING (1 MiB): the app stops reading at the first
+    chunk past the allowance and answers 413 file_too_large, so at most
+    allowance + one chunk is ever received (not the 4 MiB sent)."""
+    env_settings(max_upload_bytes=1000)
+    chunk = 64 * 1024
+    head = (b'--zz\r\nContent-Disposition: form-data; name="file"; filename="a.dng"\r\n'
+            b"Content-Type: application/octet-stream\r\n\r\n")
+    chunks = [head] + [b"\0" * chunk] * 64 + [b"\r\n--zz--\r\n"]
+    consumed = 0
+    sent = []
+
+    async def receive():
+        nonlocal consumed
+        if not chunks:
+            return {"type": "http.disconnect"}
+        body = chunks.pop(0)
+        consumed += len(body)
+        return {"type": "http.request", "body": body, "more_body": bool(chunks)}
+
+    async def send(message):
+        sent.append(message)
+
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
+             "scheme": "http", "path": "/v1/analyze", "raw_path": b"/v1/analyze", "query_string": b"",
+             "root_path": "", "headers": [(b"host", b"test"),
+                                          (b"content-type", b"multipart/form-data; boundary=zz"),
+                                          (b"transfer-encoding", b"chunked")],
+             "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 80)}
+    asyncio.run(app(scope, receive, send))
+    start = [m for m in sent if m["type"] == "http.response.start"]
+    body = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
+    assert len(start) == 1 and start[0]["status"] == 413
+    assert json.loads(body)["error"] == "file_too_large"
+    assert consumed <= 1000 + FRAMING + chunk
+    assert chunks, "the whole body was read"
+
+
+def test_streamed_body_under_the_limit_is_read_whole(env_settings, seeds):
+    """The same path without Content-Length for a body within the limit: the
+    upload is analysed (200), nothing cut off."""
+    env_settings(max_upload_bytes=len(seeds[0]))
+    with TestClient(app) as c:
+        # a generator body is sent chunked, without Content-Length
+        files = {"file": ("a.dng", seeds[0], "image/x-adobe-dng")}
+        req = httpx.Request("POST", "http://test/v1/analyze", files=files)
+        payload = req.read()
+        r = c.post("/v1/analyze", content=iter([payload[:1000], payload[1000:]]),
+                   headers={"content-type": req.headers["content-type"]})
+    assert r.status_code == 200, r.text
+
+
+def test_content_length_that_is_not_a_number_is_a_400(env_settings):
+    env_settings(max_upload_bytes=1000)
+    with TestClient(app) as c:
+        r = c.post("/v1/analyze", content=b"x", headers={"content-length": "lots", "content-type": "text/plain"})
+    assert r.status_code == 400 and r.json()["error"] == "bad_content_length"

@@ -1,0 +1,206 @@
+"""One light or a light map (:mod:`recovery.spatial`, ``spatial="auto"``).
+
+The checks follow from the two pieces of evidence:
+
+* under one light the chromaticity differences of neighbouring pixels of
+  one surface are noise with mean zero; under a light that changes
+  smoothly their mean is the light's gradient, which the trend recovers
+  within its own standard error;
+* the Bayes factor of independent region lights against one light is never
+  positive when every region carries the same likelihood (Jensen: ``(E
+  e^L)^R <= E e^{RL}``) and is large when regions are sure of different
+  lights.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recovery import Camera, InputError, angular_error, estimate_illuminant
+from recovery.bayes import helmert
+from recovery.bench import mondrian_scene
+from recovery.spatial import chromaticity_trend, log_bayes_factor, parse_spatial
+from recovery.spatial_bench import two_light_scene
+
+
+@pytest.fixture(scope="module")
+def nikon():
+    return Camera.named("Nikon 5100 (NPL)")
+
+
+@pytest.fixture(scope="module")
+def uniform_scene():
+    """A development-bench Mondrian: 16 shipped reflectances under D65 (a
+    candidate light), 1 % noise: inside the estimator's model."""
+    return mondrian_scene(np.random.default_rng(11), 16, "Nikon 5100 (NPL)", "D65", 64)
+
+
+def _gradient(size):
+    rng = np.random.default_rng(5)
+    while True:  # a horizontal ramp (the layout draws its direction)
+        img, truth, sep = two_light_scene(rng, 16, "Nikon 5100 (NPL)", "A", "D65", "gradient", size)
+        if angular_error(truth[0, 0], truth[0, -1]) > 0.8 * sep:
+            return img, truth, sep
+
+
+@pytest.fixture(scope="module")
+def gradient_scene():
+    """The same kind of Mondrian lit by CIE A on the left turning smoothly
+    into D65 on the right (a window on one side, a lamp on the other)."""
+    return _gradient(64)
+
+
+def test_parse_spatial_accepts_booleans_and_names():
+    assert [parse_spatial(v) for v in (True, False, "auto", "map", "uniform", "TRUE", "false", "1", "off")] == \
+        ["map", "uniform", "auto", "map", "uniform", "map", "uniform", "map", "uniform"]
+    for bad in ("sometimes", "", None, 2, "maps"):
+        with pytest.raises(InputError, match="spatial must be auto"):
+            parse_spatial(bad)
+
+
+def test_bad_spatial_value_is_a_value_error(nikon, uniform_scene):
+    with pytest.raises(ValueError, match="spatial"):
+        estimate_illuminant(uniform_scene.image, nikon, spatial="sometimes")
+
+
+def test_trend_recovers_a_known_gradient():
+    """Piecewise-constant surfaces times a light whose chromaticity changes
+    linearly, u(x) = g . x: the estimate is within 5 of its own standard
+    errors of g (the noise is Gaussian and the statistic is a mean), and an
+    image without the gradient gives chi-square of order its dof."""
+    rng = np.random.default_rng(0)
+    w = 64
+    labels = np.repeat(np.repeat(rng.integers(0, 12, (6, 8)), 8, axis=0), 8, axis=1)
+    surf = rng.uniform(0.2, 0.9, (12, 3))
+    base = surf[labels]
+    g_col = np.array([0.002, -0.001])          # per pixel, in Helmert log-chromaticity units
+    H = helmert(3)
+    cols = np.arange(w)[None, :, None]
+    lit = base * np.exp((cols - w / 2) * (H.T @ g_col)[None, None, :])
+    noise = 0.003
+    img = lit * (1 + noise * rng.standard_normal(lit.shape))
+    t = chromaticity_trend(img)
+    assert t["defined"]
+    assert np.all(np.abs(np.array(t["gradient_col"]) - g_col) < 5 * np.array(t["se_col"]))
+    assert np.all(np.abs(t["gradient_row"]) < 5 * np.array(t["se_row"]))
+    assert t["log10_p"] < -6
+    flat = chromaticity_trend(base * (1 + noise * rng.standard_normal(base.shape)))
+    # chi-square with 4 dof: p = 1e-6 at 33; the null is far from it
+    assert flat["chi2"] < 33 and flat["effect_deg"] < 0.5
+
+
+def test_bayes_factor_jensen_and_disagreement():
+    rng = np.random.default_rng(1)
+    M = 50
+    lp = np.log(np.full(M, 1.0 / M))
+    L = rng.normal(0, 3, M)
+    same = [{"diagnostics": {"method": "bayes", "log_likelihood_chroma": L, "log_prior": lp}} for _ in range(4)]
+    lbf, used = log_bayes_factor(same)
+    assert used == 4 and lbf <= 1e-9
+    a, b = np.full(M, -50.0), np.full(M, -50.0)
+    a[3], b[40] = 0.0, 0.0                       # each region sure of a different light
+    diff = [{"diagnostics": {"method": "bayes", "log_likelihood_chroma": x, "log_prior": lp}} for x in (a, b)]
+    lbf, _ = log_bayes_factor(diff)
+    # log B = 2 log(1/M) - log(2/M e^-50) ~ 50 - log(2M)
+    assert lbf == pytest.approx(50 - np.log(2 * M), abs=1e-6)
+    fell_back = [{"diagnostics": {"method": "shades-of-gray"}}, diff[0]]
+    assert log_bayes_factor(fell_back) == (0.0, 1)
+
+
+def test_uniform_scene_gets_one_light_and_the_evidence(nikon, uniform_scene):
+    est = estimate_illuminant(uniform_scene.image, nikon, "auto", white_level=1.0, spatial="auto")
+    d = est.diagnostics
+    assert est.light_map is None and d["spatial_decision"] == "one light"
+    t = d["spatial_test"]
+    for key in ("trend_log10_p", "trend_log10_p_threshold", "trend_effect_deg", "trend_effect_threshold_deg",
+                "log_bayes_factor", "log_bayes_factor_threshold", "regions"):
+        assert key in t
+    assert len(t["regions"]) == 4 and all(np.isfinite(r["posterior_spread_deg"]) for r in t["regions"])
+    assert t["log_bayes_factor"] <= t["log_bayes_factor_threshold"]
+    assert "no evidence the light varies" in d["spatial_reason"]
+
+
+def test_pinning(nikon, uniform_scene, gradient_scene):
+    one = estimate_illuminant(gradient_scene[0], nikon, "auto", spatial=False)
+    assert one.light_map is None and one.diagnostics["spatial_reason"].startswith("requested")
+    assert estimate_illuminant(gradient_scene[0], nikon, "auto", spatial="uniform").light_map is None
+    for pin in (True, "map"):
+        est = estimate_illuminant(uniform_scene.image, nikon, "auto", spatial=pin)
+        assert est.light_map is not None and est.diagnostics["spatial_decision"] == "light map"
+        assert "requested" in est.diagnostics["spatial_reason"]
+    # the default is one light (the automatic choice is measured, not yet the default)
+    assert estimate_illuminant(uniform_scene.image, nikon, "auto").light_map is None
+
+
+def test_two_light_gradient_gets_a_map_that_follows_the_light(nikon, gradient_scene):
+    """CIE A and D65 differ by about 20 deg for this camera, so one light is
+    wrong by up to about half of that at the image's ends. A map that follows
+    the light must be within 3 deg of it at every centre: the single
+    estimate's own error on in-model scenes (about 1 deg) plus the diagonal
+    model's error over the change."""
+    img, truth, sep = gradient_scene
+    assert sep > 15
+    est = estimate_illuminant(img, nikon, "auto", white_level=1.0, spatial="auto")
+    assert est.diagnostics["spatial_decision"] == "light map"
+    assert est.diagnostics["spatial_test"]["trend_says_map"]
+    lm = est.light_map
+    rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
+    rows, cols = rr.ravel(), cc.ravel()
+    t = truth[np.round(rows).astype(int), np.round(cols).astype(int)]
+    err_map = angular_error(nikon.response(lm.spectra_at(rows, cols)), t)
+    err_one = angular_error(np.broadcast_to(est.rgb, t.shape), t)
+    assert err_map.max() < 3.0
+    assert err_one.max() > 2 * err_map.max()
+    assert np.all(np.isfinite(lm.spectra_at(rows, cols)))
+
+
+def test_rest_spatial_field(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+    from service.dngwriter import scene_dng
+
+    scene_dng(tmp_path / "g.dng", "Nikon 5100 (NPL)", "D65", 64, 96, seed=7)
+    data = (tmp_path / "g.dng").read_bytes()
+    with TestClient(app) as client:
+        def post(**fields):
+            return client.post("/v1/analyze", files={"file": ("g.dng", data)}, data=fields)
+
+        r = post(spatial="sometimes")
+        assert r.status_code == 422 and "spatial" in r.json()["detail"] and set(r.json()) == {"error", "detail"}
+        r = post(spatial="auto")
+        assert r.status_code == 200, r.text
+        assert r.json()["diagnostics"]["spatial_decision"] in ("one light", "light map")
+        assert "log_bayes_factor" in r.json()["diagnostics"]["spatial_test"]
+        r = post(spatial="true")
+        assert r.status_code == 200 and r.json()["diagnostics"]["spatial_decision"] == "light map"
+        lm = r.json()["light_map"]
+        assert np.all(np.isfinite(lm["camera_rgb"])) and 0 < min(lm["centres_row_fraction"]) < 1
+        r = post(spatial="false")
+        assert r.status_code == 200 and "light_map" not in r.json()
+
+
+def test_large_image_map_is_in_the_callers_pixels(nikon):
+    """The tests run on a block-averaged copy of a large image; the map's
+    centres must come back in the caller's pixels. On a 576 x 576 gradient
+    scene the map spans the image and agrees with the map computed at full
+    resolution within 0.5 deg at every centre: a block mean of one surface
+    keeps its chromaticity and a linear trend, so only noise differs (a few
+    tenths of a degree)."""
+    from recovery.spatial import choose_light_model
+
+    img, truth, _ = _gradient(576)
+    est = estimate_illuminant(img, nikon, "auto", white_level=1.0, spatial="auto")
+    lm = est.light_map
+    assert lm is not None and est.diagnostics["spatial_test"]["test_block_factor"] > 1
+    assert est.diagnostics["spatial_test"]["trend_says_map"]
+    assert lm.centres_c.max() > img.shape[1] - 4 and lm.centres_c.min() < 4
+    full, ev = choose_light_model(img, None, nikon, est.rgb, est.spectrum, max_pixels=None)
+    assert ev["test_block_factor"] == 1 and full is not None
+    rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
+    rows, cols = rr.ravel(), cc.ravel()
+    a = nikon.response(lm.spectra_at(rows, cols))
+    assert angular_error(a, nikon.response(full.spectra_at(rows, cols))).max() < 0.5
+    t = truth[np.clip(np.round(rows).astype(int), 0, 575), np.clip(np.round(cols).astype(int), 0, 575)]
+    assert angular_error(a, t).max() < angular_error(np.broadcast_to(est.rgb, t.shape), t).max()

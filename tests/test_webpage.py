@@ -1,0 +1,280 @@
+"""The web page at ``GET /``: a unit test of what is served, and tests in a
+real headless browser (Debian's chromium driven by playwright) against a real
+uvicorn server on loopback.
+
+Without chromium (or playwright) the browser tests skip, saying why, unless
+the environment variable ``CI`` is set: then they fail, because CI must run
+them (``.ci/run`` installs chromium and sets ``CI=1``).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import app
+from service.dngwriter import scene_dng
+
+CHROMIUM = os.environ.get("WANDELL_CHROMIUM", "/usr/bin/chromium")
+ROOT = Path(__file__).resolve().parents[1]
+STATIC = ROOT / "service" / "static"
+#: Copies of the screenshots land here (the pytest tmp dir has the originals).
+SCREENSHOT_DIR = Path(os.environ.get("WANDELL_SCREENSHOT_DIR", tempfile.gettempdir()))
+#: The one absolute URL the page's files may contain: the SVG namespace name
+#: given to ``document.createElementNS`` (an identifier, never fetched).
+ALLOWED_URLS = {"http://www.w3.org/2000/svg"}
+
+
+# ---------------------------------------------------------------------------
+# What is served (no browser)
+# ---------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def client():
+    return TestClient(app)
+
+
+def test_page_and_its_files_are_served_with_their_types(client):
+    r = client.get("/")
+    assert r.status_code == 200
+    assert r.headers["content-type"].startswith("text/html")
+    html = r.text
+    assert '<input type="file" id="file"' in html and 'id="batch-files" multiple' in html
+    refs = re.findall(r'(?:src|href)="([^"]+)"', html)
+    local = [u for u in refs if u.startswith("/")]
+    assert "/static/app.js" in local and "/static/style.css" in local
+    types = {".js": "text/javascript", ".css": "text/css"}
+    for url in local:
+        if url.startswith("/static/"):
+            s = client.get(url)
+            assert s.status_code == 200, url
+            assert s.headers["content-type"].startswith(types[Path(url).suffix]), url
+    assert client.get("/docs").status_code == 200   # the page links to it
+    bad = client.get("/static/../settings.py")
+    assert bad.status_code == 404 and bad.json()["error"] == "not_found"
+
+
+def test_page_fetches_nothing_from_another_host(client):
+    texts = {name: client.get(url).text for name, url in
+             (("index.html", "/"), ("app.js", "/static/app.js"), ("style.css", "/static/style.css"))}
+    for name, text in texts.items():
+        urls = set(re.findall(r"(?:https?:)?//[A-Za-z0-9][^\s\"'<>)`]*", text))
+        # "//" in a JavaScript comment is not a URL: keep only host-like ones
+        urls = {u for u in urls if re.match(r"(?:https?:)?//[\w-]+\.[\w.-]+", u)}
+        assert urls <= ALLOWED_URLS, (name, urls - ALLOWED_URLS)
+    html = texts["index.html"]
+    for url in re.findall(r'(?:src|href|action)="([^"]+)"', html):
+        assert url.startswith(("/", "#")) or url == "data:,", url   # data:, = no favicon request
+    assert "@import" not in texts["style.css"]
+    assert all(u.startswith("#") for u in re.findall(r"url\(([^)]*)\)", texts["style.css"] + texts["app.js"]))
+    assert "fetch(\"http" not in texts["app.js"] and "import(" not in texts["app.js"]
+
+
+def test_every_element_the_script_uses_is_on_the_page():
+    html = (STATIC / "index.html").read_text()
+    js = (STATIC / "app.js").read_text()
+    ids = set(re.findall(r'\bid="([\w-]+)"', html))
+    used = set(re.findall(r'\$\("([\w-]+)"\)', js))
+    assert used, "the script looks up no elements: the pattern is stale"
+    assert used <= ids, used - ids
+
+
+# ---------------------------------------------------------------------------
+# A real server and a real browser
+# ---------------------------------------------------------------------------
+
+def _unavailable(reason: str):
+    if os.environ.get("CI"):
+        pytest.fail(f"{reason}; CI is set, so the browser tests must run")
+    pytest.skip(reason)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server():
+    """``uvicorn service.app:app`` in a subprocess on a free loopback port."""
+    import httpx
+
+    port = _free_port()
+    log = tempfile.TemporaryFile()
+    proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
+                             "--port", str(port), "--log-level", "warning"],
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            if proc.poll() is not None:
+                log.seek(0)
+                pytest.fail(f"uvicorn exited with {proc.returncode}: {log.read().decode(errors='replace')}")
+            try:
+                if httpx.get(base + "/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail("uvicorn did not answer /health within 60 s")
+            time.sleep(0.2)
+        yield base
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not os.path.exists(CHROMIUM):
+        _unavailable(f"chromium is not installed at {CHROMIUM} (apt-get install chromium)")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        _unavailable("the playwright package is not installed (pip install -e '.[test]')")
+    with sync_playwright() as p:
+        # Debian's chromium, never a downloaded one; --no-sandbox because CI
+        # runs as root, where chromium's sandbox refuses to start
+        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture
+def page(browser, server):
+    ctx = browser.new_context(viewport={"width": 1280, "height": 1000}, accept_downloads=True)
+    pg = ctx.new_page()
+    problems = []
+    pg.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    pg.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+    pg.problems = problems
+    pg.goto(server + "/")
+    yield pg
+    ctx.close()
+
+
+def _screenshot(pg, tmp_path: Path, name: str) -> Path:
+    path = tmp_path / name
+    pg.screenshot(path=str(path), full_page=True)
+    SCREENSHOT_DIR.mkdir(parents=True, exist_ok=True)
+    shutil.copy(path, SCREENSHOT_DIR / name)
+    return path
+
+
+def _dng(path: Path, illuminant="A", seed=2) -> Path:
+    scene_dng(path, "Nikon 5100 (NPL)", illuminant, 240, 360, seed=seed)
+    return path
+
+
+def test_upload_shows_both_images_the_light_and_the_diagnostics(page, server, tmp_path):
+    import cv2
+    import httpx
+
+    dng = _dng(tmp_path / "scene.dng")
+    page.set_input_files("#file", str(dng))           # choosing a file starts the analysis
+    page.wait_for_selector("#result", state="visible", timeout=90_000)
+
+    for sel in ("#img-original", "#img-corrected"):
+        w = page.eval_on_selector(sel, "img => img.complete ? img.naturalWidth : 0")
+        assert w > 0, f"{sel} shows no image"
+    # the previews are the 2x2-binned image: 180 x 120 for a 360 x 240 file
+    assert page.eval_on_selector("#img-corrected", "i => [i.naturalWidth, i.naturalHeight]") == [180, 120]
+
+    # the numbers on the page are the API's (same file, same default options)
+    est = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())}, timeout=60).json()
+    assert page.inner_text("#cct") == f"{round(est['illuminant']['cct'])} K"
+    assert re.fullmatch(r"[+-]\d\.\d{4}", page.inner_text("#duv"))
+
+    # the spectrum: one vertex per wavelength of the estimate
+    d = page.get_attribute("#spectrum-svg #spectrum-path", "d")
+    assert d and d.startswith("M")
+    assert len(re.findall(r"[ML]", d)) == len(est["illuminant"]["wavelengths"])
+
+    summary = page.inner_text("#diag-summary")
+    assert summary.startswith("The light was estimated by ")
+    if est["diagnostics"].get("confidence") is not None:
+        assert f"({round(100 * est['diagnostics']['confidence'])} %)" in summary
+    assert "Camera: Nikon 5100 (NPL), with measured spectral sensitivities." in page.inner_text("#diag-details")
+
+    shot = _screenshot(page, tmp_path, "wandell-webpage.png")
+    assert shot.stat().st_size > 10_000
+
+    # downloads: the corrected PNG at full resolution, and the JSON estimate
+    with page.expect_download(timeout=90_000) as dl:
+        page.click("#dl-png")
+    png = cv2.imdecode(np.frombuffer(Path(dl.value.path()).read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert dl.value.suggested_filename == "scene-corrected.png"
+    assert png.shape == (240, 360, 3) and png.dtype == np.uint8
+    with page.expect_download() as dl:
+        page.click("#dl-json")
+    saved = json.loads(Path(dl.value.path()).read_text())
+    assert saved["illuminant"]["cct"] == pytest.approx(est["illuminant"]["cct"], rel=1e-12)
+    assert page.problems == []
+
+
+def test_a_bad_upload_shows_the_error_in_words(page, tmp_path):
+    # dropped onto the drop zone (the other way in), a text file
+    text = b"this is not a photograph\n"
+    page.evaluate("""([b64, name]) => {
+        const bytes = Uint8Array.from(atob(b64), c => c.charCodeAt(0));
+        const dt = new DataTransfer();
+        dt.items.add(new File([bytes], name, {type: "text/plain"}));
+        document.getElementById("drop").dispatchEvent(new DragEvent("drop", {dataTransfer: dt, bubbles: true}));
+    }""", [base64.b64encode(text).decode(), "notes.txt"])
+    page.wait_for_selector("#error", state="visible", timeout=30_000)
+    msg = page.inner_text("#error")
+    assert msg.startswith("This is not a file the service can read:"), msg
+    assert "'notes.txt'" in msg and "415" in msg
+    assert page.is_hidden("#result")
+    _screenshot(page, tmp_path, "wandell-webpage-error.png")
+    # the failed request is the only console error (the browser logs a 4xx)
+    assert all("status of 415" in p for p in page.problems), page.problems
+
+
+def test_batch_view_shows_progress_and_items(page, server, tmp_path):
+    import httpx
+
+    probe = httpx.post(server + "/v1/batches", timeout=30)
+    if probe.status_code in (404, 405):
+        pytest.skip(f"POST /v1/batches answers {probe.status_code}: the batch endpoints are not in this build")
+    files = [_dng(tmp_path / "a.dng", "A", 3), _dng(tmp_path / "b.dng", "D65", 4), tmp_path / "bad.dng"]
+    files[2].write_bytes(files[0].read_bytes()[:2000])   # truncated: fails its item only
+    page.set_input_files("#batch-files", [str(f) for f in files])
+    page.click("#batch-run")
+    page.wait_for_selector("#batch-view", state="visible", timeout=30_000)
+    # finished when the cancel button goes away
+    page.wait_for_function("document.getElementById('batch-cancel').hidden", timeout=180_000)
+    assert page.eval_on_selector("#batch-progress", "p => [p.value, p.max]") == [3, 3]
+    rows = page.eval_on_selector_all("#batch-table tbody tr",
+                                     "rs => rs.map(r => Array.from(r.cells, c => c.innerText))")
+    by_name = {r[0]: r for r in rows}
+    assert set(by_name) == {"a.dng", "b.dng", "bad.dng"}
+    for n in ("a.dng", "b.dng"):
+        assert by_name[n][1] == "done" and re.fullmatch(r"\d+ K", by_name[n][2]), by_name[n]
+    assert by_name["bad.dng"][1] == "failed" and by_name["bad.dng"][3], by_name["bad.dng"]
+    assert "2 done, 1 failed, 0 pending of 3" in page.inner_text("#batch-status")
+    assert page.is_visible("#batch-zip")
+    _screenshot(page, tmp_path, "wandell-webpage-batch.png")
