@@ -231,7 +231,8 @@ def _decode(path: str, task_like) -> tuple:
 
     with open(path, "rb") as f:
         data = f.read()
-    decoded = rawio.decode_upload(data, os.path.basename(path), max_pixels=task_like.max_pixels,
+    decoded = rawio.decode_upload(data, getattr(task_like, "name", None) or os.path.basename(path),
+                                  max_pixels=task_like.max_pixels,
                                   estimation_pixels=task_like.estimation_pixels)
     cam, warns = rawio.resolve_camera(decoded, task_like.options.camera)
     return decoded, cam, warns

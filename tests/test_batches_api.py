@@ -87,6 +87,7 @@ def test_upload_batch_end_to_end_with_a_corrupt_file(client, env):
     assert doc["rate_per_minute"] > 0 and doc["time_left_s"] == 0
     by = {it["name"]: it for it in doc["items"]}
     assert by["broken.dng"]["status"] == "failed" and by["broken.dng"]["error"].startswith("corrupt_file")
+    assert "'broken.dng'" in by["broken.dng"]["error"]  # the user's name, not the stored file's
     for i in range(3):
         it = by[f"im{i}.dng"]
         # in-model surfaces and daylight, no noise: within 0.25 degree (see test_api)

@@ -129,7 +129,8 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
         shutil.rmtree(store.batch_dir(bid), ignore_errors=True)
         raise
     runner.wake()
-    return JSONResponse(status_code=202, content={"id": bid, "status": "queued", "items": n,
+    return JSONResponse(status_code=202, content={"id": bid, "status": "queued",
+                                                  "counts": {"done": 0, "failed": 0, "pending": n},
                                                   "lighting": opts.lighting, "url": f"/v1/batches/{bid}"})
 
 
