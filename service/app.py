@@ -7,13 +7,15 @@ from fastapi import FastAPI, Request
 
 from . import __doc__ as _doc
 from .errors import error_response, install_error_handlers
-from .routers import analysis, info, render, web
+from .routers import analysis, batches, info, render, web
 from .settings import get_settings
 
-app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=_doc)
+app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=_doc,
+              lifespan=batches.lifespan)
 install_error_handlers(app)
 app.include_router(info.router)
 app.include_router(analysis.router)
+app.include_router(batches.router)
 app.include_router(render.router)
 app.include_router(web.router)
 

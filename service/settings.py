@@ -20,6 +20,17 @@ class Settings:
     max_concurrent_work: int = 0
     #: RAW files are binned to at most this many pixels for estimation
     estimation_pixels: int = 1_000_000
+    #: batch jobs (service.jobs): SQLite store, inputs and outputs live
+    #: here; empty = the user cache dir ($XDG_CACHE_HOME or ~/.cache)/wandell
+    data_dir: str = ""
+    #: server-side root for folder batches; empty = folder mode refused
+    batch_root: str = ""
+    #: local pool workers (0 = one per core)
+    batch_workers: int = 0
+    max_batch_items: int = 1000
+    max_concurrent_batches: int = 2
+    #: Dask scheduler address (tcp://host:8786); empty = local process pool
+    dask_scheduler: str = ""
     #: POST /v1/render refuses spectral data with more values (H x W x N) (413)
     max_render_values: int = 64_000_000
 
@@ -35,5 +46,11 @@ def get_settings() -> Settings:
         max_pixels=int(env.get("WANDELL_MAX_PIXELS", Settings.max_pixels)),
         max_concurrent_work=int(env.get("WANDELL_MAX_CONCURRENT_WORK", Settings.max_concurrent_work)),
         estimation_pixels=int(env.get("WANDELL_ESTIMATION_PIXELS", Settings.estimation_pixels)),
+        data_dir=env.get("WANDELL_DATA_DIR", Settings.data_dir),
+        batch_root=env.get("WANDELL_BATCH_ROOT", Settings.batch_root),
+        batch_workers=int(env.get("WANDELL_BATCH_WORKERS", Settings.batch_workers)),
+        max_batch_items=int(env.get("WANDELL_MAX_BATCH_ITEMS", Settings.max_batch_items)),
+        max_concurrent_batches=int(env.get("WANDELL_MAX_CONCURRENT_BATCHES", Settings.max_concurrent_batches)),
+        dask_scheduler=env.get("WANDELL_DASK_SCHEDULER", Settings.dask_scheduler),
         max_render_values=int(env.get("WANDELL_MAX_RENDER_VALUES", Settings.max_render_values)),
     )

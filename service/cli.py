@@ -1,0 +1,286 @@
+"""The ``wandell`` command (also ``python -m service.cli``), issue 6.
+
+``wandell batch IN_DIR OUT_DIR [options]``
+    White-balance every RAW in ``IN_DIR`` into ``OUT_DIR`` on a local process
+    pool (``--workers``) or a Dask cluster (``--dask-scheduler``), with a
+    progress bar on stderr and a summary table at the end. Resumable: an
+    output already finished (renamed into place with its sidecar, see
+    :mod:`service.jobs`) is skipped; a partially written one never counts.
+``wandell analyze FILE``
+    The estimate as JSON (the body of ``POST /v1/analyze``).
+``wandell white-balance FILE OUT``
+    One corrected image (``POST /v1/white-balance``).
+
+Options are those of the API: ``--camera``, ``--method``, ``--quality``,
+``--target``, ``--output``, ``--format``, ``--lighting`` (per-image or
+shared), ``--surface-model``, ``--light-model``. Exit status: 0 when every
+item succeeded or was already done, 1 when something failed, 2 for a usage
+error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import glob
+import json
+import os
+import sys
+import time
+
+from . import jobs
+
+
+def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
+    ap.add_argument("--camera", help="measured camera name, 'matrix' or 'generic' (default: from the file)")
+    ap.add_argument("--method", default="auto", help="auto, bayes, maloney-wandell, gray-world, ...")
+    ap.add_argument("--quality", help="fast, balanced or accurate")
+    ap.add_argument("--surface-model", help="pca or fourier")
+    ap.add_argument("--light-model", help="daylight, illuminant-pca or fourier")
+    if batch is None:
+        return
+    ap.add_argument("--target", default="D65", help="light to render under, or 'estimate'")
+    ap.add_argument("--output", default="sRGB", help="sRGB, linear-sRGB or a display name")
+    ap.add_argument("--format", default="tiff", help="tiff (16-bit), png (8-bit), png16, jpeg")
+    if batch:
+        ap.add_argument("--lighting", default="per-image", help="per-image, or shared: one light for all")
+        ap.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
+        ap.add_argument("--dask-scheduler", default=os.environ.get("WANDELL_DASK_SCHEDULER", ""),
+                        help="run on this Dask cluster (tcp://host:8786) instead of the local pool")
+
+
+def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
+    return jobs.batch_options(camera=args.camera, method=args.method, quality=args.quality,
+                              target=getattr(args, "target", None), output=getattr(args, "output", None),
+                              format=getattr(args, "format", None), lighting=lighting,
+                              surface_model=args.surface_model, light_model=args.light_model)
+
+
+def _limits():
+    from .settings import get_settings
+
+    s = get_settings()
+    return s.max_pixels, s.estimation_pixels
+
+
+class Progress:
+    """A one-line text progress bar on stderr (redrawn with ``\\r`` on a
+    terminal, one line per update otherwise)."""
+
+    def __init__(self, total: int, stream=None, width: int = 30):
+        self.total, self.width = total, width
+        self.stream = stream or sys.stderr
+        self.t0 = time.monotonic()
+        self.tty = getattr(self.stream, "isatty", lambda: False)()
+
+    def update(self, done: int, failed: int, skipped: int) -> None:
+        n = done + failed + skipped
+        frac = n / self.total if self.total else 1.0
+        bar = "#" * int(frac * self.width)
+        el = time.monotonic() - self.t0
+        worked = done + failed
+        rate = worked / el * 60 if el > 0 and worked else 0.0
+        left = self.total - n
+        eta = f"{left / (rate / 60):.0f} s" if rate else "?"
+        line = (f"[{bar:<{self.width}}] {n}/{self.total}  done {done}  failed {failed}  skipped {skipped}  "
+                f"{rate:.1f} img/min  left {eta}")
+        self.stream.write(("\r" + line) if self.tty else line + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+
+
+def _summary(rows: list[dict], stream) -> None:
+    w = max([4] + [len(r["name"]) for r in rows])
+    stream.write(f"\n{'file':{w}s}  {'status':8s}  {'CCT K':>7s}  {'seconds':>7s}  light camera RGB / error\n")
+    for r in rows:
+        ill = r.get("illuminant") or {}
+        cct = ill.get("cct")
+        rgb = ill.get("camera_rgb")
+        what = r.get("error") or ("" if rgb is None else "(" + ", ".join(f"{v:.3f}" for v in rgb) + ")")
+        sec = r.get("seconds")
+        stream.write(f"{r['name']:{w}s}  {r['status']:8s}  {'' if cct is None else f'{cct:7.0f}':>7s}  "
+                     f"{'' if sec is None else f'{sec:7.2f}':>7s}  {what}\n")
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "skipped", "failed")}
+    stream.write(f"\n{counts['done']} done, {counts['skipped']} skipped (already finished), "
+                 f"{counts['failed']} failed, {len(rows)} in all\n")
+
+
+def _inputs(in_dir: str) -> list[str]:
+    return sorted(p for p in glob.glob(os.path.join(in_dir, "*"))
+                  if os.path.isfile(p) and p.lower().endswith(jobs.RAW_SUFFIXES)
+                  and not os.path.basename(p).startswith("."))
+
+
+def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
+              dask_scheduler: str | None = None, executor=None, stream=None) -> list[dict]:
+    """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
+    file (``name``, ``status`` done/skipped/failed, ``illuminant``,
+    ``error``, ``seconds``)."""
+    stream = stream or sys.stderr
+    files = _inputs(in_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    for stale in glob.glob(os.path.join(out_dir, ".*.part")):  # left by a killed run: never a result
+        os.unlink(stale)
+    max_pixels, est_pixels = _limits()
+    seen: set = set()
+    tasks = []
+    for p in files:
+        name = os.path.basename(p)
+        out = os.path.join(out_dir, jobs.unique(f"{os.path.splitext(name)[0]}.{options.extension}", seen))
+        tasks.append(jobs.ItemTask(src=p, out=out, name=name, options=options, max_pixels=max_pixels,
+                                   estimation_pixels=est_pixels))
+    rows = {t.name: {"name": t.name, "status": "pending"} for t in tasks}
+    todo = []
+    for t in tasks:
+        if jobs.is_finished(t.out):
+            with open(jobs.meta_path(t.out, ".json")) as f:
+                side = json.load(f)
+            rows[t.name].update(status="skipped", illuminant=side.get("illuminant"))
+        else:
+            todo.append(t)
+    bar = Progress(len(tasks), stream)
+    count = {"done": 0, "failed": 0, "skipped": len(tasks) - len(todo)}
+    bar.update(**count)
+    own = executor is None and bool(todo)
+    if own:
+        executor = jobs.make_executor(workers or None, dask_scheduler or None)
+    try:
+        if todo and options.lighting == "shared":
+            light = _shared_light(tasks, options, out_dir, executor, rows, count)
+            todo = [t for t in todo if rows[t.name]["status"] == "pending"]
+            todo = [dataclasses.replace(t, light=light) for t in todo] if light else []
+            for t in tasks:
+                if light is None and rows[t.name]["status"] == "pending":
+                    rows[t.name].update(status="failed", error="the shared light could not be estimated")
+                    count["failed"] += 1
+        futs = {executor.submit(jobs.process_item, t): t for t in todo}
+        from concurrent.futures import as_completed
+
+        for fut in as_completed(futs):
+            t = futs[fut]
+            try:
+                res = fut.result()
+            except BaseException as e:  # a worker lost
+                res = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
+            rows[t.name].update(res)
+            rows[t.name].pop("adopted", None)
+            count["done" if res["status"] == "done" else "failed"] += 1
+            bar.update(**count)
+    finally:
+        bar.close()
+        if own:
+            executor.shutdown()
+    return [rows[t.name] for t in tasks]
+
+
+def _shared_light(tasks, options, out_dir, executor, rows, count) -> dict | None:
+    """One light from all input images (finished ones included, so a resumed
+    run corrects with the same light), kept in ``OUT_DIR/.wandell``."""
+    path = os.path.join(out_dir, ".wandell", "shared-light.json")
+    key = {"inputs": [os.path.basename(t.src) for t in tasks], "options": json.loads(options.to_json())}
+    if os.path.exists(path):
+        with open(path) as f:
+            saved = json.load(f)
+        if saved.get("key") == key:
+            return saved["light"]
+    pixels = max(4096, jobs.SHARED_POOL_PIXELS // max(1, len(tasks)))
+    futs = [(t, executor.submit(jobs.estimation_sample, t, pixels)) for t in tasks]
+    samples = []
+    for t, f in futs:
+        s = f.result()
+        if s["status"] != "ok":
+            if rows[t.name]["status"] == "pending":
+                rows[t.name].update(status="failed", error=s["error"])
+                count["failed"] += 1
+            continue
+        samples.append(s)
+    if not samples:
+        return None
+    cam = samples[0]["camera"].name
+    if any(s["camera"].name != cam for s in samples):
+        raise jobs.JobError("camera_mismatch", "shared lighting pools images of one camera; this folder mixes "
+                            f"{sorted({s['camera'].name for s in samples})}")
+    light = executor.submit(jobs.shared_light, samples, options).result()
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    jobs._atomic_write(path, lambda p: jobs._write_text(p, json.dumps({"key": key, "light": light})))
+    return light
+
+
+def _cmd_batch(args) -> int:
+    opts = _options(args, args.lighting)
+    if not os.path.isdir(args.in_dir):
+        raise jobs.JobError("folder_not_found", f"input folder {args.in_dir!r} does not exist")
+    if not _inputs(args.in_dir):
+        raise jobs.JobError("empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
+    rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler)
+    _summary(rows, sys.stdout)
+    return 1 if any(r["status"] == "failed" for r in rows) else 0
+
+
+def _cmd_white_balance(args) -> int:
+    opts = _options(args)
+    max_pixels, est_pixels = _limits()
+    task = jobs.ItemTask(src=args.file, out=os.path.abspath(args.out), name=os.path.basename(args.file),
+                         options=opts, max_pixels=max_pixels, estimation_pixels=est_pixels, threads=None,
+                         exactly_once=False)
+    res = jobs.process_item(task)
+    res["name"] = task.name
+    _summary([res], sys.stdout)
+    return 0 if res["status"] == "done" else 1
+
+
+def _cmd_analyze(args) -> int:
+    from . import pipeline, rawio
+    from .jsonsafe import clean
+
+    opts = _options(args)
+    max_pixels, est_pixels = _limits()
+    try:
+        with open(args.file, "rb") as f:
+            data = f.read()
+        decoded = rawio.decode_upload(data, os.path.basename(args.file), max_pixels=max_pixels,
+                                      estimation_pixels=est_pixels)
+        cam, warns = rawio.resolve_camera(decoded, opts.camera)
+        run = pipeline.run_estimate(decoded, cam, warns, method=opts.method, options=opts.estimate_kwargs())
+    except rawio.UploadError as e:
+        print(f"error: {e.code}: {e.detail}", file=sys.stderr)
+        return 1
+    print(json.dumps(clean(pipeline.analysis_json(run, decoded)), indent=1))
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="wandell", description="White balance and illuminant estimation of RAW "
+                                 "files (Wandell 1985; Maloney & Wandell)")
+    sub = ap.add_subparsers(dest="command", required=True)
+    b = sub.add_parser("batch", help="white-balance every RAW of IN_DIR into OUT_DIR (resumable)")
+    b.add_argument("in_dir")
+    b.add_argument("out_dir")
+    _add_options(b, True)
+    a = sub.add_parser("analyze", help="estimate the light of one file (JSON on stdout)")
+    a.add_argument("file")
+    _add_options(a, None)
+    w = sub.add_parser("white-balance", help="one corrected image")
+    w.add_argument("file")
+    w.add_argument("out")
+    _add_options(w, False)
+    args = ap.parse_args(argv)
+    try:
+        if args.command == "batch":
+            return _cmd_batch(args)
+        if args.command == "analyze":
+            return _cmd_analyze(args)
+        return _cmd_white_balance(args)
+    except jobs.JobError as e:
+        print(f"error: {e.code}: {e.detail}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

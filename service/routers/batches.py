@@ -1,0 +1,227 @@
+"""``/v1/batches``: batch white balance over HTTP (issue 6), a thin shell
+over :mod:`service.jobs` (SQLite store, local process pool or Dask).
+
+The runner starts with the app (:func:`lifespan`) and resumes what a killed
+server left unfinished; it is also started lazily by the first request, so
+an app used without its lifespan still works.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import threading
+import zipfile
+
+from fastapi import APIRouter, Depends, File, Form, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
+
+from .. import jobs
+from ..errors import ApiError
+from ..jsonsafe import clean
+from ..settings import Settings, get_settings
+
+router = APIRouter(prefix="/v1", tags=["batches"])
+
+_runner: jobs.BatchRunner | None = None
+_runner_lock = threading.Lock()
+
+
+def get_runner(settings: Settings | None = None) -> jobs.BatchRunner:
+    """The process's batch runner (created and started on first use)."""
+    global _runner
+    with _runner_lock:
+        if _runner is None:
+            s = settings or get_settings()
+            cfg = jobs.RunnerConfig(data_dir=s.data_dir or jobs.default_data_dir(), workers=s.batch_workers,
+                                    max_concurrent_batches=s.max_concurrent_batches, max_pixels=s.max_pixels,
+                                    estimation_pixels=s.estimation_pixels, dask_scheduler=s.dask_scheduler or None)
+            _runner = jobs.BatchRunner(cfg)
+            _runner.start()
+        return _runner
+
+
+def stop_runner() -> None:
+    """Stop the runner (app shutdown, tests)."""
+    global _runner
+    with _runner_lock:
+        if _runner is not None:
+            _runner.stop(wait=False)
+            _runner = None
+
+
+@contextlib.asynccontextmanager
+async def lifespan(app):
+    """Start the batch runner with the app (resuming unfinished batches)."""
+    await run_in_threadpool(get_runner)
+    try:
+        yield
+    finally:
+        await run_in_threadpool(stop_runner)
+
+
+def _job_error(e: jobs.JobError) -> ApiError:
+    return ApiError(e.status, e.code, e.detail)
+
+
+async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) -> list[tuple[str, str]]:
+    """Stream each upload to ``dest`` (per-file size limit), returning
+    ``(name, path)`` pairs."""
+    out = []
+    for i, f in enumerate(files):
+        name = jobs.safe_name(f.filename or f"file{i}")
+        path = os.path.join(dest, f"{i:05d}-{name}")
+        size = 0
+        with open(path, "wb") as fh:
+            while chunk := await f.read(1 << 20):
+                size += len(chunk)
+                if size > settings.max_upload_bytes:
+                    raise ApiError(413, "file_too_large", f"{name!r} exceeds the upload limit of "
+                                   f"{settings.max_upload_bytes} bytes")
+                fh.write(chunk)
+        await f.close()
+        if size == 0:
+            raise ApiError(422, "empty_file", f"{name!r} is empty")
+        out.append((name, path))
+    return out
+
+
+@router.post("/batches", status_code=202)
+async def create_batch(files: list[UploadFile] | None = File(None, description="RAW files (repeat the field)"),
+                       folder: str | None = Form(None, description="folder relative to WANDELL_BATCH_ROOT"),
+                       lighting: str = Form("per-image", description="per-image, or shared: one light estimated "
+                                                                     "from all images together"),
+                       camera: str | None = Form(None), method: str = Form("auto"),
+                       quality: str | None = Form(None, description="fast, balanced or accurate"),
+                       target: str = Form("D65", description="light to render under, or 'estimate'"),
+                       output: str = Form("sRGB", description="sRGB, linear-sRGB or a display name"),
+                       format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16, jpeg"),
+                       surface_dim: str | None = Form(None), light_dim: str | None = Form(None),
+                       region_size: int | None = Form(None), surface_model: str | None = Form(None),
+                       light_model: str | None = Form(None), settings: Settings = Depends(get_settings)):
+    """Start a batch: several ``files`` fields, or a ``folder`` under the
+    server's batch root, with the white-balance options. Answers ``{"id"}``
+    at once (202); follow it with ``GET /v1/batches/{id}``."""
+    files = [f for f in (files or []) if f is not None and (f.filename or f.size)]
+    if bool(files) == bool(folder):
+        raise ApiError(422, "invalid_parameter", "give either files (one or more 'files' fields) or folder")
+    try:
+        opts = jobs.batch_options(camera=camera, method=method, quality=quality, target=target, output=output,
+                                  format=format, lighting=lighting, surface_model=surface_model,
+                                  light_model=light_model, surface_dim=surface_dim, light_dim=light_dim,
+                                  region_size=region_size)
+        sources = jobs.folder_sources(settings.batch_root, folder) if folder else None
+    except jobs.JobError as e:
+        raise _job_error(e) from None
+    n = len(sources) if sources is not None else len(files)
+    if n > settings.max_batch_items:
+        raise ApiError(413, "too_many_items", f"{n} items exceed the batch limit of {settings.max_batch_items}")
+    runner = get_runner(settings)
+    store = runner.store
+    bid = store.new_batch_id()
+    try:
+        if sources is None:
+            sources = await _save_uploads(files, os.path.join(store.batch_dir(bid), "in"), settings)
+        store.create_batch(bid, opts, sources)
+    except BaseException:
+        shutil.rmtree(store.batch_dir(bid), ignore_errors=True)
+        raise
+    runner.wake()
+    return JSONResponse(status_code=202, content={"id": bid, "status": "queued",
+                                                  "counts": {"done": 0, "failed": 0, "pending": n},
+                                                  "lighting": opts.lighting, "url": f"/v1/batches/{bid}"})
+
+
+def _progress(bid: str) -> dict:
+    runner = get_runner()
+    doc = runner.store.progress(bid)
+    if doc is None:
+        raise ApiError(404, "not_found", f"no batch {bid!r}")
+    if runner.executor_error and doc["status"] in ("queued", "running"):
+        doc["runner_error"] = runner.executor_error
+    for it in doc["items"]:
+        if it["status"] == "done":
+            it["url"] = f"/v1/batches/{bid}/items/{it['index']}"
+    return doc
+
+
+@router.get("/batches/{batch_id}")
+def batch_status(batch_id: str):
+    """Progress (done, failed, pending, rate per minute, time left) and
+    each item's status with its estimate or error."""
+    return JSONResponse(clean(_progress(batch_id)))
+
+
+@router.get("/batches/{batch_id}/items/{item}")
+def batch_item(batch_id: str, item: str):
+    """Download one result, by item name or index."""
+    store = get_runner().store
+    if store.batch(batch_id) is None:
+        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+    row = store.item(batch_id, item)
+    if row is None:
+        raise ApiError(404, "not_found", f"batch {batch_id!r} has no item {item!r} (a name or an index)")
+    if row["status"] != "done" or not os.path.exists(row["out"]):
+        raise ApiError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
+                       + (f": {row['error']}" if row["error"] else ""))
+    fmt = jobs.BatchOptions.from_json(store.batch(batch_id)["options"]).format
+    media = {"tiff": "image/tiff", "png": "image/png", "png16": "image/png"}.get(fmt, "image/jpeg")
+    return FileResponse(row["out"], media_type=media, filename=os.path.basename(row["out"]))
+
+
+class _Sink:
+    """A write-only stream whose bytes are collected between yields (zipfile
+    writes to unseekable streams with data descriptors)."""
+
+    def __init__(self):
+        self.parts: list[bytes] = []
+
+    def write(self, b) -> int:
+        self.parts.append(bytes(b))
+        return len(b)
+
+    def flush(self) -> None:
+        pass
+
+    def take(self) -> bytes:
+        data, self.parts = b"".join(self.parts), []
+        return data
+
+
+def _zip_stream(entries: list[tuple[str, str]]):
+    sink = _Sink()
+    with zipfile.ZipFile(sink, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for arcname, path in entries:
+            info = zipfile.ZipInfo.from_file(path, arcname)  # the result's own time stamp
+            with open(path, "rb") as src, zf.open(info, "w", force_zip64=True) as dst:
+                while chunk := src.read(1 << 20):
+                    dst.write(chunk)
+                    yield sink.take()
+            yield sink.take()
+    yield sink.take()
+
+
+@router.get("/batches/{batch_id}/zip")
+def batch_zip(batch_id: str):
+    """Every finished result in one zip, streamed (not built in memory)."""
+    store = get_runner().store
+    if store.batch(batch_id) is None:
+        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+    entries = [(os.path.basename(r["out"]), r["out"]) for r in store.items(batch_id)
+               if r["status"] == "done" and os.path.exists(r["out"])]
+    if not entries:
+        raise ApiError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
+    return StreamingResponse(_zip_stream(entries), media_type="application/zip",
+                             headers={"Content-Disposition": f'attachment; filename="batch-{batch_id}.zip"'})
+
+
+@router.delete("/batches/{batch_id}")
+def cancel_batch(batch_id: str):
+    """Cancel: pending items are dropped, running ones finish and are kept."""
+    runner = get_runner()
+    if runner.store.batch(batch_id) is None:
+        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+    runner.cancel(batch_id)
+    return JSONResponse(clean(_progress(batch_id)))
