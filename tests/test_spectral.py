@@ -281,6 +281,7 @@ def test_render_endpoint_light_file(client, mondrian):
 
 @pytest.mark.parametrize("payload, form, status, code", [
     (b"not a numpy file at all", {"wavelengths": "400,500"}, 422, "bad_csv"),
+    (b'\r"', {"wavelengths": "400,500"}, 422, "bad_csv"),  # raised csv.Error before newline='' (schemathesis)
     ("objects", {}, 422, "bad_npy"),
     ("4d", {}, 422, "bad_shape"),
     ("cube", {"wavelengths": "400,410,420"}, 422, "wavelength_mismatch"),

@@ -120,7 +120,10 @@ def load_csv(data: bytes, what: str = "file") -> tuple[np.ndarray, np.ndarray, l
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise ApiError(422, "bad_csv", f"{what} is neither a .npy array nor UTF-8 CSV text") from None
-    rows = [r for r in csv.reader(io.StringIO(text)) if any(c.strip() for c in r)]
+    try:
+        rows = [r for r in csv.reader(io.StringIO(text, newline="")) if any(c.strip() for c in r)]
+    except csv.Error as e:  # e.g. a bare carriage return inside a field
+        raise ApiError(422, "bad_csv", f"{what} is not readable CSV: {e}") from None
     if not rows:
         raise ApiError(422, "bad_csv", f"{what} is empty")
     names: list = []
