@@ -3,12 +3,11 @@
 
 from __future__ import annotations
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI
 
 from . import __doc__ as _doc
-from .errors import error_response, install_error_handlers
+from .errors import install_error_handlers
 from .routers import analysis, batches, info, render, web
-from .settings import get_settings
 
 app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=_doc,
               lifespan=batches.lifespan)

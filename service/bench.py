@@ -67,26 +67,39 @@ for line in sys.stdin:
 """
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def bench_arguments(doc: str, argv=None, **extra) -> argparse.Namespace:
+    """The options the 24-megapixel benches share (size, repeats, camera, light)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--height", type=int, default=4000)
     ap.add_argument("--width", type=int, default=6000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--camera", default="Nikon 5100 (NPL)")
     ap.add_argument("--illuminant", default="A")
-    args = ap.parse_args(argv)
+    for name, kw in extra.items():
+        ap.add_argument(f"--{name.replace('_', '-')}", **kw)
+    return ap.parse_args(argv)
+
+
+def write_bench_dng(tmp: str, args: argparse.Namespace) -> str:
+    """Write the bench's Mondrian DNG (service.dngwriter) into ``tmp``; print its size."""
+    from service.dngwriter import scene_dng
+
+    path = os.path.join(tmp, "bench.dng")
+    t0 = time.perf_counter()
+    scene_dng(path, args.camera, args.illuminant, args.height, args.width, seed=1, layout="mondrian",
+              surfaces="all", n_surfaces=24)
+    print(f"wrote {args.width}x{args.height} DNG ({os.path.getsize(path) / 1e6:.0f} MB) "
+          f"in {time.perf_counter() - t0:.1f} s")
+    return path
+
+
+def main(argv=None) -> None:
+    args = bench_arguments(__doc__, argv)
 
     import httpx
 
-    from service.dngwriter import scene_dng
-
     with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "bench.dng")
-        t0 = time.perf_counter()
-        scene_dng(path, args.camera, args.illuminant, args.height, args.width, seed=1, layout="mondrian",
-                  surfaces="all", n_surfaces=24)
-        size_mb = os.path.getsize(path) / 1e6
-        print(f"wrote {args.width}x{args.height} DNG ({size_mb:.0f} MB) in {time.perf_counter() - t0:.1f} s")
+        path = write_bench_dng(tmp, args)
         decoded_mb = args.height * args.width * 3 * 2 / 2**20
 
         worker = subprocess.Popen([sys.executable, "-c", _RAWPY_WORKER, path], stdin=subprocess.PIPE,

@@ -14,7 +14,6 @@ it on a quiet one for numbers to quote.
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import subprocess
@@ -23,29 +22,16 @@ import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from .bench import _free_port
+from .bench import _free_port, bench_arguments, write_bench_dng
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--height", type=int, default=4000)
-    ap.add_argument("--width", type=int, default=6000)
-    ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--camera", default="Nikon 5100 (NPL)")
-    ap.add_argument("--illuminant", default="A")
-    args = ap.parse_args(argv)
+    args = bench_arguments(__doc__, argv)
 
     import httpx
 
-    from service.dngwriter import scene_dng
-
     with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "bench.dng")
-        t0 = time.perf_counter()
-        scene_dng(path, args.camera, args.illuminant, args.height, args.width, seed=1, layout="mondrian",
-                  surfaces="all", n_surfaces=24)
-        print(f"wrote {args.width}x{args.height} DNG ({os.path.getsize(path) / 1e6:.0f} MB) "
-              f"in {time.perf_counter() - t0:.1f} s")
+        path = write_bench_dng(tmp, args)
         with open(path, "rb") as fh:
             data = fh.read()
         port = _free_port()
