@@ -25,31 +25,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-
-
-def _status_kb(pid: int, field: str) -> int:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-    return 0
-
-
-def _reset_peak(pid: int) -> None:
-    with open(f"/proc/{pid}/clear_refs", "w") as f:
-        f.write("5")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 _RAWPY_WORKER = r"""
@@ -98,25 +78,18 @@ def main(argv=None) -> None:
 
     import httpx
 
+    from .load import _reset_peak, _status_kb, start_server
+
     with tempfile.TemporaryDirectory() as tmp:
         path = write_bench_dng(tmp, args)
         decoded_mb = args.height * args.width * 3 * 2 / 2**20
 
         worker = subprocess.Popen([sys.executable, "-c", _RAWPY_WORKER, path], stdin=subprocess.PIPE,
                                   stdout=subprocess.PIPE, text=True)
-        port = _free_port()
-        server = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
-                                   "--port", str(port), "--log-level", "warning"])
+        server, base = start_server()
         try:
             assert worker.stdout.readline().strip() == "ready"
-            base = f"http://127.0.0.1:{port}"
             client = httpx.Client(timeout=600)
-            for _ in range(200):
-                try:
-                    if client.get(base + "/health").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    time.sleep(0.1)
 
             def post(endpoint, fields):
                 with open(path, "rb") as fh:

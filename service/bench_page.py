@@ -16,13 +16,12 @@ from __future__ import annotations
 
 import os
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from .bench import _free_port, bench_arguments, write_bench_dng
+from .bench import bench_arguments, write_bench_dng
+from .load import start_server
 
 
 def main(argv=None) -> None:
@@ -34,18 +33,9 @@ def main(argv=None) -> None:
         path = write_bench_dng(tmp, args)
         with open(path, "rb") as fh:
             data = fh.read()
-        port = _free_port()
-        server = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
-                                   "--port", str(port), "--log-level", "warning"])
-        base = f"http://127.0.0.1:{port}"
+        server, base = start_server()
         try:
             client = httpx.Client(timeout=600)
-            for _ in range(300):
-                try:
-                    if client.get(base + "/health").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    time.sleep(0.1)
 
             def post(endpoint, fields):
                 r = client.post(base + endpoint, files={"file": ("bench.dng", data, "image/x-adobe-dng")},
