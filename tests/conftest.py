@@ -31,3 +31,18 @@ def in_model_scene(rng, camera, surface_basis, light_weights, light_basis, n_pix
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261121)
+
+
+@pytest.fixture
+def env_settings(monkeypatch):
+    """Set WANDELL_* variables for one test; settings are re-read from the
+    environment (get_settings is cached per process) and restored after."""
+    from service.settings import get_settings
+
+    def set_env(**values):
+        for k, v in values.items():
+            monkeypatch.setenv(f"WANDELL_{k.upper()}", str(v))
+        get_settings.cache_clear()
+    yield set_env
+    monkeypatch.undo()
+    get_settings.cache_clear()

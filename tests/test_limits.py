@@ -14,7 +14,6 @@ from fastapi.testclient import TestClient
 from service import fuzz
 from service.app import app
 from service.limits import FRAMING
-from service.settings import get_settings
 
 
 @pytest.fixture(scope="module")
@@ -25,19 +24,6 @@ def seeds():
 # ---------------------------------------------------------------------------
 # Limits from the environment (WANDELL_*; service.settings)
 # ---------------------------------------------------------------------------
-
-@pytest.fixture
-def env_settings(monkeypatch):
-    """Set WANDELL_* variables for one test; settings are re-read from the
-    environment (get_settings is cached per process) and restored after."""
-    def set_env(**values):
-        for k, v in values.items():
-            monkeypatch.setenv(f"WANDELL_{k.upper()}", str(v))
-        get_settings.cache_clear()
-    yield set_env
-    monkeypatch.undo()
-    get_settings.cache_clear()
-
 
 def test_upload_limit_is_read_from_the_environment(env_settings, seeds):
     data = seeds[0]

@@ -16,17 +16,6 @@ from service.routers import analysis
 from service.settings import get_settings
 
 
-@pytest.fixture
-def env(monkeypatch):
-    def set_env(**values):
-        for k, v in values.items():
-            monkeypatch.setenv(f"WANDELL_{k.upper()}", str(v))
-        get_settings.cache_clear()
-    yield set_env
-    monkeypatch.undo()
-    get_settings.cache_clear()
-
-
 class _Probe:
     """Stands in for the decode+estimate step: records how many run at once."""
 
@@ -57,12 +46,12 @@ async def _fire(n: int, path="/v1/analyze"):
 
 
 @pytest.mark.parametrize("limit", [1, 2, 3])
-def test_at_most_the_configured_number_run_at_once(env, monkeypatch, limit):
+def test_at_most_the_configured_number_run_at_once(env_settings, monkeypatch, limit):
     """8 simultaneous uploads, each holding its worker 50 ms: the peak number
     running together is exactly the limit (8 > limit, and 50 ms is far longer
     than it takes the event loop to hand out the next token), and every
     request still gets its answer."""
-    env(max_concurrent_work=limit)
+    env_settings(max_concurrent_work=limit)
     probe = _Probe()
     monkeypatch.setattr(analysis, "_analyze_sync", probe)
     rs = asyncio.run(_fire(8))
@@ -70,16 +59,16 @@ def test_at_most_the_configured_number_run_at_once(env, monkeypatch, limit):
     assert probe.peak == limit
 
 
-def test_default_is_one_job_per_cpu(env):
-    env(max_concurrent_work=0)
+def test_default_is_one_job_per_cpu(env_settings):
+    env_settings(max_concurrent_work=0)
     assert workers.default_concurrency() >= 1
     assert get_settings().max_concurrent_work == 0
 
 
-def test_health_answers_while_heavy_work_fills_every_slot(env, monkeypatch):
+def test_health_answers_while_heavy_work_fills_every_slot(env_settings, monkeypatch):
     """With the only slot held by a blocked job and more queued, /health
     still answers: light endpoints do not use the heavy-work limiter."""
-    env(max_concurrent_work=1)
+    env_settings(max_concurrent_work=1)
     gate = threading.Event()
     probe = _Probe(gate=gate)
     monkeypatch.setattr(analysis, "_analyze_sync", probe)
