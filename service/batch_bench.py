@@ -3,7 +3,7 @@
 ``python -m service.batch_bench [--files 6] [--height 4000 --width 6000]
 [--format tiff] [--rounds 2] [--no-dask]``
 
-Writes ``--files`` 24-megapixel DNGs once (:func:`service.dngwriter.scene_dng`,
+Writes ``--files`` 24-megapixel DNGs once (:func:`testing.dngwriter.scene_dng`,
 Mondrian scenes under different lights) into a temporary folder, then in the
 same run corrects all of them with the batch item function
 (:func:`service.jobs.process_item`: decode, estimate, demosaic, one 3x3
@@ -67,7 +67,7 @@ def main(argv=None) -> None:
     ap.add_argument("--dir", help="keep the DNGs here (reused when present)")
     args = ap.parse_args(argv)
 
-    from .dngwriter import scene_dng
+    from testing.dngwriter import scene_dng
 
     options = jobs.batch_options(format=args.format)
     tmp = tempfile.mkdtemp(prefix="wandell-batch-bench-")

@@ -2,7 +2,7 @@
 
 ``python -m service.bench [--height 4000 --width 6000] [--repeat 3]``
 
-Writes a 24-megapixel DNG with the fixture code (:mod:`service.dngwriter`),
+Writes a 24-megapixel DNG with the fixture code (:mod:`testing.dngwriter`),
 starts the real service (uvicorn, as the README starts it) on a free
 loopback port, and measures side by side in one run:
 
@@ -61,8 +61,8 @@ def bench_arguments(doc: str, argv=None, **extra) -> argparse.Namespace:
 
 
 def write_bench_dng(tmp: str, args: argparse.Namespace) -> str:
-    """Write the bench's Mondrian DNG (service.dngwriter) into ``tmp``; print its size."""
-    from service.dngwriter import scene_dng
+    """Write the bench's Mondrian DNG (testing.dngwriter) into ``tmp``; print its size."""
+    from testing.dngwriter import scene_dng
 
     path = os.path.join(tmp, "bench.dng")
     t0 = time.perf_counter()

@@ -2,7 +2,7 @@
 
 ``python -m service.bench_page [--height 4000 --width 6000] [--repeat 3]``
 
-Writes a DNG with the fixture code (:mod:`service.dngwriter`), starts the
+Writes a DNG with the fixture code (:mod:`testing.dngwriter`), starts the
 real service (uvicorn) on a free loopback port and times, over HTTP, each
 request the page makes for one file and the three together as the page sends
 them (concurrently: the time until the result is shown), next to

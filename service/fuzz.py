@@ -5,7 +5,7 @@ its memory stays bounded.
 
 ``python -m service.fuzz [--n 2000] [--timeout 20] [--seed 0]``
 
-The seeds are small valid DNGs written by :mod:`service.dngwriter` from
+The seeds are small valid DNGs written by :mod:`testing.dngwriter` from
 spectral scenes (different cameras, lights and CFA patterns). Each mutation is
 a deterministic function of ``(seed, index)`` (:func:`mutations`); the kinds
 cycle so that any prefix of the sequence has every kind in it:
@@ -131,7 +131,7 @@ SEEDS = (("Nikon 5100 (NPL)", "A", "RGGB", 48, 64),
 
 def seed_dngs() -> list[bytes]:
     """The valid DNGs every mutation starts from (:data:`SEEDS`)."""
-    from .dngwriter import scene_dng
+    from testing.dngwriter import scene_dng
 
     out = []
     for i, (camera, light, pattern, h, w) in enumerate(SEEDS):

@@ -2,7 +2,7 @@
 
 ``python -m service.load [--n 50] [--height 512 --width 768] [--url URL [--pid PID]]``
 
-Writes ``n`` DNGs with :mod:`service.dngwriter`, one per light (different
+Writes ``n`` DNGs with :mod:`testing.dngwriter`, one per light (different
 CIE, fluorescent, LED and high-pressure lights, so that every file has its
 own true light), starts the service with uvicorn on a free loopback port
 (or targets ``--url``, e.g. a server started by hand), and:
@@ -105,7 +105,7 @@ def make_inputs(n: int, height: int, width: int, camera: str = "Nikon 5100 (NPL)
     :data:`EXCLUDED_LIGHTS`, cycling when ``n`` is larger)."""
     import models
 
-    from .dngwriter import scene_dng
+    from testing.dngwriter import scene_dng
 
     lights = [x for x in models.illuminant_names() if x not in EXCLUDED_LIGHTS]
     out = []

@@ -1,5 +1,5 @@
 """The REST service through its ASGI stack, on real DNG files decoded by
-LibRaw (written by :mod:`service.dngwriter` from spectral scenes with known
+LibRaw (written by :mod:`testing.dngwriter` from spectral scenes with known
 truth)."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 import models
 from recovery import angular_error
 from service.app import app
-from service.dngwriter import scene_dng
+from testing.dngwriter import scene_dng
 
 WL5 = models.wavelength_grid(400, 700, 5)
 
@@ -264,7 +264,7 @@ def test_linear_16bit_tiff_and_png_uploads(client):
     the camera must then be named (or a generic one is used, with a warning)."""
     import cv2
 
-    from service.dngwriter import spectral_scene
+    from testing.dngwriter import spectral_scene
 
     s = spectral_scene("Canon EOS 5D Mark II", "D65", 60, 90, seed=8)
     img16 = np.rint(np.clip(s.image, 0, 1) * 65535).astype(np.uint16)

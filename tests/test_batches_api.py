@@ -1,6 +1,6 @@
 """``/v1/batches`` through the ASGI app, and a real uvicorn server killed
 with SIGKILL mid-batch then restarted (issue 6). Real DNGs from
-service.dngwriter with known truth."""
+testing.dngwriter with known truth."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from recovery import angular_error
-from service.dngwriter import scene_dng
+from testing.dngwriter import scene_dng
 from service.settings import get_settings
 
 from .test_jobs import in_model_surfaces

@@ -1,5 +1,5 @@
 """The ``wandell`` CLI (issue 6): batch (resumable, exit codes, summary),
-analyze, white-balance. Real DNGs from service.dngwriter."""
+analyze, white-balance. Real DNGs from testing.dngwriter."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 
 from recovery import angular_error
 from service import cli, jobs
-from service.dngwriter import scene_dng
+from testing.dngwriter import scene_dng
 
 from .test_jobs import in_model_surfaces
 

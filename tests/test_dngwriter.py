@@ -1,4 +1,4 @@
-"""DNG fixtures (service/dngwriter.py) decoded by LibRaw through rawpy.
+"""DNG fixtures (testing/dngwriter.py) decoded by LibRaw through rawpy.
 
 Each test writes a small DNG (64 x 96 unless said) to ``tmp_path``, reads it
 back with ``rawpy`` and compares what LibRaw reports with what was written
@@ -14,9 +14,9 @@ import pytest
 import rawpy
 
 import models
-from service.dngwriter import (CAMERA_MAKE_MODEL, cfa_colour_indices, color_matrix_for_camera,
+from testing.dngwriter import (CAMERA_MAKE_MODEL, cfa_colour_indices, color_matrix_for_camera,
                                mosaic, scene_dng, spectral_scene, write_dng)
-from service.dngwriter import _d50_xyz
+from testing.dngwriter import _d50_xyz
 
 H, W = 64, 96
 BLACK, WHITE = 512, 16383

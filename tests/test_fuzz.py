@@ -23,7 +23,7 @@ def seeds():
 
 def test_ifd_entries_reads_the_written_tags(seeds):
     """The parser the mutations rely on finds the dimensions and the strip
-    that service.dngwriter wrote (fuzz.SEEDS gives the sizes)."""
+    that testing.dngwriter wrote (fuzz.SEEDS gives the sizes)."""
     for data, (_, _, _, h, w) in zip(seeds, fuzz.SEEDS):
         bo, ifd, ent = fuzz.ifd_entries(data)
         width = struct.unpack(bo + "I", data[ent[256][3]:ent[256][3] + 4])[0]

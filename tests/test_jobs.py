@@ -1,6 +1,6 @@
 """service.jobs: the SQLite job store, the exactly-once item function, the
 shared-light pooling, the runner on a Dask LocalCluster (issue 6). Real
-DNG files from service.dngwriter with known truth."""
+DNG files from testing.dngwriter with known truth."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 import models
 from recovery import angular_error
 from service import jobs
-from service.dngwriter import scene_dng
+from testing.dngwriter import scene_dng
 
 WL5 = models.wavelength_grid(400, 700, 5)
 

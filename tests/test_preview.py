@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import app
-from service.dngwriter import scene_dng
+from testing.dngwriter import scene_dng
 
 
 @pytest.fixture(scope="module")

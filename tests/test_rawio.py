@@ -1,6 +1,6 @@
 """Upload decoding and camera resolution (service/rawio.py).
 
-Real DNG files are written with ``service.dngwriter`` (scenes whose every
+Real DNG files are written with ``testing.dngwriter`` (scenes whose every
 number is known) and decoded through LibRaw; PNG/TIFF/JPEG inputs are made
 with OpenCV and tifffile. Tolerances are derived from the noise the writer
 adds (1 % multiplicative, 0.0005 additive, per CFA sample) and from the
@@ -17,7 +17,7 @@ import pytest
 import tifffile
 
 import models
-from service.dngwriter import (CAMERA_MAKE_MODEL, mosaic, scene_dng, spectral_scene, write_dng)
+from testing.dngwriter import (CAMERA_MAKE_MODEL, mosaic, scene_dng, spectral_scene, write_dng)
 from service.rawio import (SATURATION_FRACTION, DecodedImage, UploadError, camera_from_csv,
                            camera_from_matrix, decode_upload, generic_camera, resolve_camera)
 

@@ -17,7 +17,7 @@ The operations are read from the schema at collection time, so endpoints
 added later (batches, render, sampling, the web page) are covered without
 editing this file. A multipart ``file`` field is, for half of the examples
 (a Hypothesis boolean), replaced by a small valid DNG from
-:mod:`service.dngwriter`, so the generated options reach the estimator and
+:mod:`testing.dngwriter`, so the generated options reach the estimator and
 the encoder instead of stopping at the decoder (then generated ``None``
 values are left out rather than sent as the string ``"null"``). ``WANDELL_SCHEMATHESIS_EXAMPLES``
 sets the examples per operation (default 40, sized to keep the run under a
@@ -40,7 +40,7 @@ from schemathesis.checks import not_a_server_error  # noqa: E402
 from schemathesis.specs.openapi.checks import response_schema_conformance  # noqa: E402
 
 from service.app import app  # noqa: E402
-from service.dngwriter import scene_dng  # noqa: E402
+from testing.dngwriter import scene_dng  # noqa: E402
 
 EXAMPLES = int(os.environ.get("WANDELL_SCHEMATHESIS_EXAMPLES", "40"))
 

@@ -159,7 +159,7 @@ def test_rest_spatial_field(tmp_path):
     from fastapi.testclient import TestClient
 
     from service.app import app
-    from service.dngwriter import scene_dng
+    from testing.dngwriter import scene_dng
 
     scene_dng(tmp_path / "g.dng", "Nikon 5100 (NPL)", "D65", 64, 96, seed=7)
     data = (tmp_path / "g.dng").read_bytes()

@@ -27,7 +27,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import app
-from service.dngwriter import scene_dng
+from testing.dngwriter import scene_dng
 
 CHROMIUM = os.environ.get("WANDELL_CHROMIUM", "/usr/bin/chromium")
 ROOT = Path(__file__).resolve().parents[1]
