@@ -2,7 +2,7 @@
 
 ``python -m service.load [--n 50] [--height 512 --width 768] [--url URL [--pid PID]]``
 
-Writes ``n`` DNGs with :mod:`testing.dngwriter`, one per light (different
+Writes ``n`` DNGs with :mod:`service.dngwriter`, one per light (different
 CIE, fluorescent, LED and high-pressure lights, so that every file has its
 own true light), starts the service with uvicorn on a free loopback port
 (or targets ``--url``, e.g. a server started by hand), and:
