@@ -10,7 +10,7 @@ import struct
 import pytest
 from fastapi.testclient import TestClient
 
-from service import fuzz
+from benchmarks import fuzz
 from service.app import app
 
 N_FUZZ = int(os.environ.get("WANDELL_FUZZ_N", "2000"))

@@ -11,7 +11,7 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 
-from service import fuzz
+from benchmarks import fuzz
 from service.app import app
 from service.limits import FRAMING
 

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from service import load
+from benchmarks import load
 
 
 @pytest.fixture(scope="module")

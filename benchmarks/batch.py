@@ -1,6 +1,6 @@
 """Batch throughput benchmark (issue 6).
 
-``python -m service.batch_bench [--files 6] [--height 4000 --width 6000]
+``python -m benchmarks.batch [--files 6] [--height 4000 --width 6000]
 [--format tiff] [--rounds 2] [--no-dask]``
 
 Writes ``--files`` 24-megapixel DNGs once (:func:`testing.dngwriter.scene_dng`,
@@ -29,7 +29,7 @@ import shutil
 import tempfile
 import time
 
-from . import jobs
+from service import jobs
 
 LIGHTS = ("A", "D65", "D50", "FL2", "D75", "FL11", "D55", "LED-B3")
 

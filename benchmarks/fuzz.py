@@ -460,7 +460,7 @@ def run(n: int = 2000, *, seed: int = 0, timeout: float = 20.0, sample_every: in
         allocator's slack, not a function of ``n``.
     """
     if app is None:
-        from .app import app
+        from service.app import app
     # tifffile logs a warning for every malformed tag it skips: thousands here
     logging.getLogger("tifffile").setLevel(logging.CRITICAL)
     report = FuzzReport()

@@ -1,6 +1,6 @@
 """White-balance speed and memory benchmark (issue 3).
 
-``python -m service.bench [--height 4000 --width 6000] [--repeat 3]``
+``python -m benchmarks.white_balance [--height 4000 --width 6000] [--repeat 3]``
 
 Writes a 24-megapixel DNG with the fixture code (:mod:`testing.dngwriter`),
 starts the real service (uvicorn, as the README starts it) on a free

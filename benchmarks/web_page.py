@@ -1,6 +1,6 @@
 """What the web page waits for after an upload (issue 6), on a large DNG.
 
-``python -m service.bench_page [--height 4000 --width 6000] [--repeat 3]``
+``python -m benchmarks.web_page [--height 4000 --width 6000] [--repeat 3]``
 
 Writes a DNG with the fixture code (:mod:`testing.dngwriter`), starts the
 real service (uvicorn) on a free loopback port and times, over HTTP, each
@@ -20,7 +20,7 @@ import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from .bench import bench_arguments, write_bench_dng
+from .white_balance import bench_arguments, write_bench_dng
 from .load import start_server
 
 
