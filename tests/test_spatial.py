@@ -19,9 +19,8 @@ import pytest
 
 from recovery import Camera, InputError, angular_error, estimate_illuminant
 from recovery.bayes import helmert
-from recovery.bench import mondrian_scene
 from recovery.spatial import chromaticity_trend, log_bayes_factor, parse_spatial
-from recovery.spatial_bench import two_light_scene
+from testing.scenes import mondrian_scene, two_light_scene
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,7 @@
 
 Run as::
 
-    python -m recovery.bench [--scenes N] [--size 64] [--seed 0] [--ks 4,8,16,32] [--out DIR] [--jobs 1]
+    python -m benchmarks.synthetic [--scenes N] [--size 64] [--seed 0] [--ks 4,8,16,32] [--out DIR] [--jobs 1]
 
 Implements ``shared/DESIGN.md``, section "The development benchmark".
 Mondrian scenes of K surfaces (colour-science's reflectances, each a
@@ -53,7 +53,6 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -61,11 +60,10 @@ from scipy import ndimage
 
 import models
 
-from .api import IlluminantEstimate, angular_error, estimate_illuminant, render
-from .camera import Camera
+from recovery import Camera, IlluminantEstimate, angular_error, estimate_illuminant, render
+from testing.scenes import MondrianScene, draw_scene, grid_illuminant, named_camera
 
-__all__ = ["METHODS_BENCHED", "MondrianScene", "kd_partition", "mondrian_scene", "scene_rng",
-           "draw_scene", "true_xyz_d65", "summarise_angles", "delta_e00_scene", "evaluate_scene",
+__all__ = ["METHODS_BENCHED", "true_xyz_d65", "summarise_angles", "delta_e00_scene", "evaluate_scene",
            "run_benchmark", "format_tables", "main"]
 
 #: Estimators run on every scene, in table order (``true-light`` is added).
@@ -77,191 +75,9 @@ TRUE_LIGHT_DIAGONAL = "true-light diag+matrix"
 SUBSPACE_METHODS = ("maloney-wandell", "auto")
 
 
-# --------------------------------------------------------------------------- data (cached)
-def scene_wavelengths() -> np.ndarray:
-    """The synthesis grid: 400-700 nm at 5 nm."""
-    return models.wavelength_grid(400, 700, 5)
-
-
-@lru_cache(maxsize=None)
-def _reflectances(step: float) -> np.ndarray:
-    return models.reflectance_set("all", models.wavelength_grid(400, 700, step))
-
-
-@lru_cache(maxsize=None)
-def _sensitivities(camera_name: str, step: float) -> np.ndarray:
-    return models.camera_sensitivities(camera_name, models.wavelength_grid(400, 700, step))
-
-
-@lru_cache(maxsize=None)
-def _illuminant(name: str, step: float) -> np.ndarray:
-    return models.illuminant(name, models.wavelength_grid(400, 700, step))
-
-
 @lru_cache(maxsize=None)
 def _observer(step: float) -> np.ndarray:
     return models.observer("CIE 1931 2 Degree Standard Observer", models.wavelength_grid(400, 700, step))
-
-
-@lru_cache(maxsize=None)
-def _camera(name: str) -> Camera:
-    return Camera.named(name)
-
-
-# --------------------------------------------------------------------------- scenes
-@dataclass(frozen=True)
-class MondrianScene:
-    """One synthetic Mondrian and its truth.
-
-    Attributes
-    ----------
-    image : (H, W, 3) float32, linear camera data in [0, 1]
-    rgb_true : (3,) camera response to the illuminant (unit norm), on the
-        synthesis grid: the truth of the angular error
-    labels : (H, W) int, index into ``reflectances`` of the surface at each pixel
-    reflectances : (K, N) surface reflectances on ``wavelengths``
-    shading : (K,) shading factor of each surface
-    surface_indices : (K,) rows of ``models.reflectance_set("all")``
-    rects : (K, 4) int, ``(row0, row1, col0, col1)`` (half-open) of each surface
-    illuminant : (N,) illuminant spectrum on ``wavelengths``, unit mean
-    wavelengths : (N,) synthesis grid in nm
-    camera_name, illuminant_name : str
-    exposure : float, the factor that scaled the noiseless image to max 0.9
-    """
-
-    image: np.ndarray
-    rgb_true: np.ndarray
-    labels: np.ndarray
-    reflectances: np.ndarray
-    shading: np.ndarray
-    surface_indices: np.ndarray
-    rects: np.ndarray
-    illuminant: np.ndarray
-    wavelengths: np.ndarray
-    camera_name: str
-    illuminant_name: str
-    exposure: float
-
-
-def kd_partition(rng: np.random.Generator, shape: tuple[int, int], k: int, min_side: int = 4,
-                 split_range: tuple[float, float] = (0.25, 0.75)) -> np.ndarray:
-    """Split an ``(H, W)`` image into ``k`` rectangles by a random k-d split.
-
-    Repeatedly pick a rectangle (probability proportional to its area, among
-    those whose longer side can be split leaving ``min_side`` pixels on each
-    side) and cut it across its longer side at a uniform fraction in
-    ``split_range``.
-
-    Returns
-    -------
-    (k, 4) int array of ``(row0, row1, col0, col1)``, half-open.
-
-    Examples
-    --------
-    >>> r = kd_partition(np.random.default_rng(0), (64, 64), 8)
-    >>> r.shape, int(((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2])).sum())
-    ((8, 4), 4096)
-    """
-    h, w = int(shape[0]), int(shape[1])
-    rects = [(0, h, 0, w)]
-    while len(rects) < k:
-        sides = np.array([max(r1 - r0, c1 - c0) for r0, r1, c0, c1 in rects])
-        ok = sides >= 2 * min_side
-        if not ok.any():
-            raise ValueError(f"cannot split a {h}x{w} image into {k} rectangles of side >= {min_side}")
-        area = np.array([(r1 - r0) * (c1 - c0) for r0, r1, c0, c1 in rects], float) * ok
-        i = int(rng.choice(len(rects), p=area / area.sum()))
-        r0, r1, c0, c1 = rects.pop(i)
-        rows = r1 - r0 >= c1 - c0 if r1 - r0 != c1 - c0 else bool(rng.integers(2))
-        lo, hi = (r0, r1) if rows else (c0, c1)
-        cut = lo + int(round(rng.uniform(*split_range) * (hi - lo)))
-        cut = min(max(cut, lo + min_side), hi - min_side)
-        if rows:
-            rects += [(r0, cut, c0, c1), (cut, r1, c0, c1)]
-        else:
-            rects += [(r0, r1, c0, cut), (r0, r1, cut, c1)]
-    return np.array(rects, dtype=int)
-
-
-def mondrian_scene(rng: np.random.Generator, k: int, camera_name: str, illuminant_name: str,
-                   size: int = 64, *, shading: tuple[float, float] = (0.5, 1.0), peak: float = 0.9,
-                   multiplicative_noise: float = 0.01, additive_noise: float = 0.0005,
-                   step: float = 5.0, min_side: int = 4) -> MondrianScene:
-    """A Mondrian of ``k`` rectangles under one light, seen by one camera.
-
-    ``shared/DESIGN.md``, "The development benchmark". The ``k`` surfaces
-    are drawn without replacement from ``models.reflectance_set("all")``;
-    the image is cut into ``k`` rectangles by :func:`kd_partition`; each
-    rectangle gets one surface and a shading factor uniform in ``shading``.
-    Sensor values are the spectral sums (Wandell 1985, eq. 12 with
-    :math:`\\Delta\\lambda`) ``rho_k = s sum_n E(l_n) S(l_n) R_k(l_n) dl`` on a
-    ``step`` nm grid over 400-700 nm (exact per rectangle, since each is
-    uniform). The image is then scaled so its maximum is ``peak``, given
-    multiplicative ``(1 + multiplicative_noise * N(0, 1))`` and additive
-    ``additive_noise * N(0, 1)`` noise per pixel and channel, and clipped
-    to [0, 1].
-
-    The function is pure: everything random comes from ``rng``.
-
-    Parameters
-    ----------
-    rng : numpy.random.Generator
-    k : int, number of surfaces
-    camera_name : one of :func:`models.camera_names`
-    illuminant_name : one of :func:`models.illuminant_names`
-    size : int, image side in pixels (square image)
-
-    Returns
-    -------
-    MondrianScene
-
-    Examples
-    --------
-    >>> s = mondrian_scene(np.random.default_rng(1), 4, "Nikon 5100 (NPL)", "A", 32)
-    >>> s.image.shape, s.image.dtype, s.reflectances.shape, sorted(np.unique(s.labels).tolist())
-    ((32, 32, 3), dtype('float32'), (4, 61), [0, 1, 2, 3])
-    """
-    wl = models.wavelength_grid(400, 700, step)
-    library = _reflectances(step)
-    if not 1 <= k <= library.shape[0]:
-        raise ValueError(f"k must be in 1..{library.shape[0]}, not {k}")
-    R = _sensitivities(camera_name, step) * models.wavelength_step(wl)[:, None]   # (N, 3), with dl
-    E = _illuminant(illuminant_name, step)
-    idx = rng.choice(library.shape[0], size=k, replace=False)
-    refl = library[idx]
-    rects = kd_partition(rng, (size, size), k, min_side)
-    shade = rng.uniform(shading[0], shading[1], size=k)
-    labels = np.empty((size, size), dtype=int)
-    for j, (r0, r1, c0, c1) in enumerate(rects):
-        labels[r0:r1, c0:c1] = j
-    rgb_surf = shade[:, None] * ((E * refl) @ R)                                 # (K, 3)
-    img = rgb_surf[labels]
-    exposure = float(peak / img.max())
-    img = img * exposure
-    img = img * (1.0 + multiplicative_noise * rng.standard_normal(img.shape))
-    img = img + additive_noise * rng.standard_normal(img.shape)
-    img = np.clip(img, 0.0, 1.0).astype(np.float32)
-    truth = E @ R
-    return MondrianScene(img, truth / np.linalg.norm(truth), labels, refl, shade, idx, rects, E, wl,
-                         camera_name, illuminant_name, exposure)
-
-
-def scene_rng(seed: int, k: int, index: int) -> np.random.Generator:
-    """The generator of scene ``index`` with ``k`` surfaces: independent of
-    how many scenes or which K are run, so tables are reproducible."""
-    return np.random.default_rng([int(seed), int(k), int(index)])
-
-
-def draw_scene(seed: int, k: int, index: int, size: int = 64) -> MondrianScene:
-    """Scene ``index`` of the benchmark for ``k`` surfaces: camera and
-    illuminant drawn uniformly from all shipped ones, then
-    :func:`mondrian_scene`."""
-    rng = scene_rng(seed, k, index)
-    cams = models.camera_names()
-    lights = models.illuminant_names()
-    cam = cams[int(rng.integers(len(cams)))]
-    light = lights[int(rng.integers(len(lights)))]
-    return mondrian_scene(rng, k, cam, light, size)
 
 
 def true_xyz_d65(scene: MondrianScene) -> np.ndarray:
@@ -269,14 +85,14 @@ def true_xyz_d65(scene: MondrianScene) -> np.ndarray:
     with a perfect white under D65 at Y = 1, on the scene's grid."""
     step = float(scene.wavelengths[1] - scene.wavelengths[0])
     cmf = _observer(step)
-    d65 = _illuminant("D65", step)
+    d65 = grid_illuminant("D65", step)
     white = d65 @ cmf
     return scene.shading[:, None] * ((d65 * scene.reflectances) @ cmf) / white[1]
 
 
 @lru_cache(maxsize=None)
 def _d65_white_xy(step: float) -> tuple[float, float]:
-    white = _illuminant("D65", step) @ _observer(step)
+    white = grid_illuminant("D65", step) @ _observer(step)
     return float(white[0] / white.sum()), float(white[1] / white.sum())
 
 
@@ -299,7 +115,7 @@ def _d65_camera_matrix(camera_name: str) -> np.ndarray:
     """The usual RAW pipeline's fixed camera-to-XYZ matrix: least squares
     from white-balanced camera RGB to XYZ of colour-science's reflectances
     under D65 (white Y = 1), on the camera's 10 nm grid."""
-    cam = _camera(camera_name)
+    cam = named_camera(camera_name)
     d65 = models.illuminant("D65", cam.wavelengths)
     refl = models.reflectance_set("all", cam.wavelengths)
     cmf = models.observer("XYZ", cam.wavelengths)
@@ -378,7 +194,7 @@ def _fallback_reason(decision: str) -> str:
 
 def evaluate_scene(scene: MondrianScene, methods=METHODS_BENCHED, with_true_light: bool = True) -> dict:
     """Run every method on one scene; angle, time, fallback and ΔE00 per method."""
-    cam = _camera(scene.camera_name)
+    cam = named_camera(scene.camera_name)
     out = {}
     runs = list(methods) + ([TRUE_LIGHT, TRUE_LIGHT_DIAGONAL] if with_true_light else [])
     for m in runs:
@@ -577,7 +393,7 @@ def write_outputs(result: dict, out_dir: str) -> tuple[str, str]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m recovery.bench",
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.synthetic",
                                  description="The development benchmark of shared/DESIGN.md (Mondrian scenes).")
     ap.add_argument("--scenes", type=int, default=100, help="scenes per K (default 100)")
     ap.add_argument("--size", type=int, default=64, help="image side in pixels (default 64)")

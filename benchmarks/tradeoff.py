@@ -1,13 +1,13 @@
 """The speed/accuracy trade, measured (issue 4).
 
-``python -m recovery.tradeoff [--scenes 12] [--size 1024] [--seed 0] [--out out]``
+``python -m benchmarks.tradeoff [--scenes 12] [--size 1024] [--seed 0] [--out out]``
 
 For each knob (estimator, analysis resolution, wavelength grid, D(E) and
 D(S), region size and overlap, the ``quality`` presets) the same Mondrian
 scenes of the development benchmark (``shared/DESIGN.md``; here at
 ``size`` x ``size`` pixels so that time per megapixel means something) are
 analysed and rendered under D65; the table gives median and 95th-percentile
-angular error, median end-to-end CIEDE2000 (as in :mod:`recovery.bench`) and
+angular error, median end-to-end CIEDE2000 (as in :mod:`benchmarks.synthetic`) and
 the time per megapixel of estimate + render. The Pareto front (no other
 setting both faster and more accurate) is marked and plotted.
 """
@@ -21,9 +21,10 @@ import time
 
 import numpy as np
 
-from . import bench
-from .api import METHODS, angular_error, estimate_illuminant
-from .camera import Camera
+from recovery import METHODS, Camera, angular_error, estimate_illuminant
+from testing.scenes import draw_scene
+
+from .synthetic import delta_e00_scene
 
 __all__ = ["configurations", "run_tradeoff", "pareto_front"]
 
@@ -71,9 +72,9 @@ def run_tradeoff(scenes: int = 12, size: int = 1024, seed: int = 0, configs=None
     configuration."""
     configs = configs or configurations()
     ks = (4, 8, 16, 32)
-    scene_list = [bench.draw_scene(seed, ks[i % 4], i, size) for i in range(scenes)]
+    scene_list = [draw_scene(seed, ks[i % 4], i, size) for i in range(scenes)]
     cams = {s.camera_name: Camera.named(s.camera_name) for s in scene_list}
-    from .api import render
+    from recovery import render
 
     # warm caches (bases, colour-science data) outside the timings
     for c in configs:
@@ -92,7 +93,7 @@ def run_tradeoff(scenes: int = 12, size: int = 1024, seed: int = 0, configs=None
             est_secs.append(t1 - t0)
             del out
             angles.append(float(angular_error(est.rgb, s.rgb_true)))
-            de, _ = bench.delta_e00_scene(s, cam, est)
+            de, _ = delta_e00_scene(s, cam, est)
             des.append(float(np.median(de)))
         mp = size * size / 1e6
         rows.append({**{k: c[k] for k in ("knob", "label", "method")}, "kwargs": c["kwargs"],

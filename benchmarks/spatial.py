@@ -2,10 +2,10 @@
 
 Run as::
 
-    python -m recovery.spatial_bench [--scenes 25] [--size 64] [--seed 0] [--ks 4,8,16,32] [--jobs 2]
+    python -m benchmarks.spatial [--scenes 25] [--size 64] [--seed 0] [--ks 4,8,16,32] [--jobs 2]
 
 Uniformly lit scenes are the development benchmark's Mondrians
-(``shared/DESIGN.md``; :func:`recovery.bench.draw_scene`, the same scenes).
+(``shared/DESIGN.md``; :func:`testing.scenes.draw_scene`, the same scenes).
 Two-light scenes are the same Mondrians (same surfaces, shading, noise,
 cameras, light list) lit by two of colour-science's illuminants whose camera
 responses are more than ``--min-separation`` degrees apart (3 by default),
@@ -38,89 +38,10 @@ import time
 
 import numpy as np
 
-import models
+from recovery import angular_error, estimate_illuminant
+from testing.scenes import LAYOUTS, draw_scene, draw_two_light_scene, named_camera
 
-from .api import angular_error, estimate_illuminant
-from .bench import _camera, _illuminant, _reflectances, _sensitivities, draw_scene, kd_partition
-
-__all__ = ["two_light_scene", "draw_two_light_scene", "evaluate", "run", "main"]
-
-LAYOUTS = ("halves", "gradient")
-
-
-def _mix_field(rng: np.random.Generator, size: int, layout: str) -> np.ndarray:
-    """The fraction ``a(x)`` of light B at each pixel, ``(size, size)``."""
-    r, c = np.mgrid[0:size, 0:size].astype(float) + 0.5
-    if layout == "halves":
-        cut = rng.uniform(0.35, 0.65) * size
-        a = (c >= cut) if rng.integers(2) else (r >= cut)
-        return a.astype(float)
-    if layout == "gradient":
-        kind = int(rng.integers(3))
-        t = c / size if kind == 0 else (r / size if kind == 1 else (r + c) / (2 * size))
-        return t
-    raise ValueError(f"layout must be one of {LAYOUTS}, not {layout!r}")
-
-
-def two_light_scene(rng: np.random.Generator, k: int, camera_name: str, light_a: str, light_b: str,
-                    layout: str, size: int = 64, *, shading=(0.5, 1.0), peak: float = 0.9,
-                    multiplicative_noise: float = 0.01, additive_noise: float = 0.0005, step: float = 5.0):
-    """A development-benchmark Mondrian lit by two lights.
-
-    As :func:`recovery.bench.mondrian_scene` (Wandell 1985, eq. 12 on a
-    ``step`` nm grid, the same noise and scaling), but the light at pixel
-    ``x`` is ``(1 - a(x)) E_A + a(x) E_B`` (unit-mean spectra), so the sensor
-    value is ``s_j [(1 - a) rho_A,j + a rho_B,j]``: light is additive.
-
-    Returns
-    -------
-    image : (size, size, 3) float32 in [0, 1]
-    truth : (size, size, 3) unit camera response to the light at each pixel
-    separation : angle (deg) between the two lights' camera responses
-    """
-    wl = models.wavelength_grid(400, 700, step)
-    library = _reflectances(step)
-    R = _sensitivities(camera_name, step) * models.wavelength_step(wl)[:, None]
-    Ea, Eb = _illuminant(light_a, step), _illuminant(light_b, step)
-    idx = rng.choice(library.shape[0], size=k, replace=False)
-    refl = library[idx]
-    rects = kd_partition(rng, (size, size), k, 4)
-    shade = rng.uniform(shading[0], shading[1], size=k)
-    labels = np.empty((size, size), dtype=int)
-    for j, (r0, r1, c0, c1) in enumerate(rects):
-        labels[r0:r1, c0:c1] = j
-    a = _mix_field(rng, size, layout)[..., None]
-    rho_a = shade[:, None] * ((Ea * refl) @ R)
-    rho_b = shade[:, None] * ((Eb * refl) @ R)
-    img = (1 - a) * rho_a[labels] + a * rho_b[labels]
-    img = img * (peak / img.max())
-    img = img * (1.0 + multiplicative_noise * rng.standard_normal(img.shape))
-    img = img + additive_noise * rng.standard_normal(img.shape)
-    img = np.clip(img, 0.0, 1.0).astype(np.float32)
-    ea, eb = Ea @ R, Eb @ R
-    truth = (1 - a) * ea + a * eb
-    truth = truth / np.linalg.norm(truth, axis=2, keepdims=True)
-    return img, truth, float(angular_error(ea, eb))
-
-
-def draw_two_light_scene(seed: int, k: int, index: int, layout: str, size: int = 64,
-                         min_separation: float = 3.0):
-    """Two-light scene ``index``: camera and two lights drawn uniformly from
-    the shipped ones (as :func:`recovery.bench.draw_scene`), redrawn until
-    the lights are more than ``min_separation`` degrees apart for that
-    camera. Independent of the uniform scenes (its own generator)."""
-    rng = np.random.default_rng([int(seed), int(k), int(index), 2, LAYOUTS.index(layout)])
-    cams = models.camera_names()
-    lights = models.illuminant_names()
-    cam = cams[int(rng.integers(len(cams)))]
-    R = _sensitivities(cam, 5.0)
-    for _ in range(1000):
-        la, lb = (lights[int(i)] for i in rng.choice(len(lights), 2, replace=False))
-        if angular_error(_illuminant(la, 5.0) @ R, _illuminant(lb, 5.0) @ R) > min_separation:
-            break
-    img, truth, sep = two_light_scene(rng, k, cam, la, lb, layout, size)
-    return img, truth, sep, cam, la, lb
-
+__all__ = ["evaluate", "run", "main"]
 
 def _points(size: int, n: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Evaluation points: the centres of an ``n`` x ``n`` grid of regions."""
@@ -152,7 +73,7 @@ def evaluate(task) -> dict:
     else:
         img, truth, sep, cam_name, la, lb = draw_two_light_scene(seed, k, index, kind, size, min_sep)
         lights = (la, lb)
-    cam = _camera(cam_name)
+    cam = named_camera(cam_name)
     t0 = time.perf_counter()
     est = estimate_illuminant(img, cam, "auto", white_level=1.0, spatial="auto")
     ms = (time.perf_counter() - t0) * 1e3
@@ -243,7 +164,7 @@ def format_report(recs: list[dict], ks) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m recovery.spatial_bench",
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.spatial",
                                  description="How often spatial='auto' picks one light / a light map.")
     ap.add_argument("--scenes", type=int, default=25, help="scenes per K and per kind (default 25)")
     ap.add_argument("--size", type=int, default=64, help="image side in pixels (default 64, as the bench)")

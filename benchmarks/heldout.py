@@ -1,7 +1,7 @@
 """Held-out checks of the default estimator (issue 4): data its model did
 not see.
 
-``python -m recovery.heldout [--scenes 120] [--seed 123]``
+``python -m benchmarks.heldout [--scenes 120] [--seed 123]``
 
 1. Lights not in the candidate set: random mixtures of daylights and
    blackbodies (:func:`recovery.illuminant_prior.random_lights`).
@@ -22,10 +22,9 @@ import numpy as np
 
 import models
 
-from .api import angular_error, estimate_illuminant
-from .bayes import estimate_bayes
-from .camera import Camera
-from .illuminant_prior import random_lights
+from recovery import Camera, angular_error, estimate_illuminant
+from recovery.bayes import estimate_bayes
+from recovery.illuminant_prior import random_lights
 
 PEERS = ("gray-world", "white-patch", "shades-of-gray", "gray-edge")
 

@@ -1,4 +1,4 @@
-"""Speed bench of spectral rendering: ``python -m recovery.spectral_bench``.
+"""Speed bench of spectral rendering: ``python -m benchmarks.spectral``.
 
 A 1024 x 1024 x 31 reflectance Mondrian (400-700 nm, 10 nm; surfaces from
 colour-science's ``rawtoaces-190`` set, each rectangle with a shading factor
@@ -35,7 +35,7 @@ import numpy as np
 import models
 from models import DEFAULT_WAVELENGTHS as WL
 
-from .spectral import ciede2000_between, render_spectra
+from recovery.spectral import ciede2000_between, render_spectra
 
 HELD_OUT_TRAINING = "colorchecker+colorchecker-ohta+tcs+vs"
 
