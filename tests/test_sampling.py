@@ -1,6 +1,6 @@
 """Sampling strategies (models.sampling), Kment's filters (models.filters) and
 his findings reproduced on colour-science's reflectances (Kment 2011, seed 001,
-Tables 6.1, 6.2, 7.1, A.1, A.2; evaluation as in models.sampling_report).
+Tables 6.1, 6.2, 7.1, A.1, A.2; evaluation as in benchmarks.sampling).
 
 Where our data disagree with the thesis the test asserts what the data show
 and says why.
@@ -13,11 +13,11 @@ import csv
 import numpy as np
 import pytest
 
+from benchmarks.sampling import (FLUORESCENT, KMENT_WAVELENGTHS, NON_FLUORESCENT, kment_data, main, report_rows,
+                                 rule_errors)
 from models.filters import filter_names, filter_window, lowpass_matrix
 from models.sampling import (composite_rule, detect_spikes, fourier_rule, fourier_terms, pca_rule,
                              riemann_rule, sampling_rule, strategy_names, uniform_rule)
-from models.sampling_report import (FLUORESCENT, KMENT_WAVELENGTHS, NON_FLUORESCENT, kment_data,
-                                    main, report_rows, rule_errors)
 
 WL = KMENT_WAVELENGTHS  # 380-780 nm at 5 nm
 

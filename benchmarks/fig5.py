@@ -1,6 +1,6 @@
 """How many terms do surface reflectances need? Wandell (1985), Fig. 5.
 
-Run as ``python -m models.fig5 [--out DIR] [--max-terms 12] [--step 10]``.
+Run as ``python -m benchmarks.fig5 [--out DIR] [--max-terms 12] [--step 10]``.
 
 For every reflectance set shipped with colour-science
 (:func:`models.reflectance_set_names`, ``"all"`` included) and for 1 to
@@ -37,9 +37,9 @@ import time
 
 import numpy as np
 
-from .bases import fourier_model, normalised_rmse, pca_model
-from .grid import wavelength_grid
-from .reflectances import reflectance_set, reflectance_set_names
+from models.bases import fourier_model, normalised_rmse, pca_model
+from models.grid import wavelength_grid
+from models.reflectances import reflectance_set, reflectance_set_names
 
 __all__ = ["FIG5_MODELS", "FIG5_STATS", "CV_GROUPS", "fig5_table", "format_table", "write_csv",
            "plot", "main"]
@@ -233,7 +233,7 @@ def plot(table: dict, path: str) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m models.fig5", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.fig5", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="out", help="output directory (default ./out)")
     ap.add_argument("--max-terms", type=int, default=12, help="largest number of terms (default 12)")
     ap.add_argument("--step", type=float, default=10.0, help="wavelength step in nm over 400-700 (default 10)")

@@ -26,7 +26,7 @@ Differences from the thesis, forced by the data: Kment used the NCS atlas
 the 267 reflectances of :func:`models.reflectance_set` ("all"). His
 non-fluorescent lights were A, B, C; here A, C, D65 (the issue's choice).
 
-``python -m models.sampling_report [--out DIR]`` prints CIEDE2000 (mean, p95)
+``python -m benchmarks.sampling [--out DIR]`` prints CIEDE2000 (mean, p95)
 and the measured time per 1e6 spectra for every strategy in
 :func:`models.sampling.strategy_names` and every size, for fluorescent and
 non-fluorescent lights, and saves ``sampling_tradeoff.csv`` and
@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .grid import wavelength_grid, wavelength_step
+from models.grid import wavelength_grid, wavelength_step
 
 __all__ = [
     "KMENT_WAVELENGTHS", "NON_FLUORESCENT", "FLUORESCENT", "kment_data", "reference_xyz",
@@ -80,9 +80,9 @@ def kment_data(reflectance_set_name: str = "all", lights=NON_FLUORESCENT + FLUOR
     >>> d.reflectances.shape, d.cmfs.shape
     ((24, 81), (81, 3))
     """
-    from .illuminants import illuminant
-    from .observers import observer
-    from .reflectances import reflectance_set
+    from models.illuminants import illuminant
+    from models.observers import observer
+    from models.reflectances import reflectance_set
 
     wl = KMENT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, dtype=float)
     cmfs = np.asarray(observer("CIE 1931 2 Degree Standard Observer", wl), dtype=float)
@@ -220,7 +220,7 @@ def report_rows(data: KmentData | None = None, sizes=REPORT_SIZES, variants=REPO
     reflectances and lights of the class, storage and measured time per 1e6
     spectra. Unavailable strategies (module not present) and undefined or
     rejected sizes are rows with ``status`` saying why."""
-    from .sampling import sampling_rule, strategy_names
+    from models.sampling import sampling_rule, strategy_names
 
     data = kment_data() if data is None else data
     rng = np.random.default_rng(seed)
@@ -348,8 +348,8 @@ def _save_plot(rows: list[dict], path: str) -> None:
 
 
 def main(argv=None) -> int:
-    """``python -m models.sampling_report [--out DIR] [--sizes 4,8,16]``."""
-    p = argparse.ArgumentParser(prog="python -m models.sampling_report", description=__doc__.splitlines()[0])
+    """``python -m benchmarks.sampling [--out DIR] [--sizes 4,8,16]``."""
+    p = argparse.ArgumentParser(prog="python -m benchmarks.sampling", description=__doc__.splitlines()[0])
     p.add_argument("--out", default="/tmp/sampling_report", help="directory for the CSV and PNG")
     p.add_argument("--sizes", default=",".join(map(str, REPORT_SIZES)), help="comma-separated sizes")
     p.add_argument("--timing-spectra", type=int, default=20_000,
