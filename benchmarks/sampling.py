@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import importlib
 import os
 import sys
 import time
@@ -218,8 +217,7 @@ def report_rows(data: KmentData | None = None, sizes=REPORT_SIZES, variants=REPO
                 timing_spectra: int = 20_000, seed: int = 0) -> list[dict]:
     """One row per (variant, n, light class): CIEDE2000 statistics over the
     reflectances and lights of the class, storage and measured time per 1e6
-    spectra. Unavailable strategies (module not present) and undefined or
-    rejected sizes are rows with ``status`` saying why."""
+    spectra. Undefined or rejected sizes are rows with ``status`` saying why."""
     from models.sampling import sampling_rule, strategy_names
 
     data = kment_data() if data is None else data
@@ -242,12 +240,6 @@ def report_rows(data: KmentData | None = None, sizes=REPORT_SIZES, variants=REPO
         base = {"variant": label, "strategy": strategy}
         if strategy not in names:
             rows.append({**base, "n": "", "lights": "", "status": "not a strategy"})
-            continue
-        module = __import__("models.sampling", fromlist=["STRATEGIES"]).STRATEGIES[strategy][0]
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError:
-            rows.append({**base, "n": "", "lights": "", "status": f"not available ({module} missing)"})
             continue
         for cls, lights in (("non-fluorescent", NON_FLUORESCENT), ("fluorescent", FLUORESCENT)):
             for n in sizes:

@@ -28,7 +28,7 @@ from functools import lru_cache
 import numpy as np
 
 from .grid import wavelength_step
-from .sampling import SpectralRule
+from .spectral_rule import SpectralRule
 
 __all__ = ["wiener_points_rule", "training_reflectances"]
 

@@ -65,7 +65,7 @@ import numpy as np
 from numpy.polynomial import chebyshev as _cheb
 
 from .grid import wavelength_step
-from .sampling import SpectralRule, _interpolation_matrix
+from .spectral_rule import SpectralRule, interpolation_matrix
 
 __all__ = [
     "XYZ_TO_SML",
@@ -592,8 +592,8 @@ def _point_rule(strategy, wavelengths, nodes, weights, diagnostics, defined=True
                             nodes_nm=None, weights=None, multiplicative=True, defined=False,
                             reason=reason, diagnostics=diagnostics)
     nodes = np.asarray(nodes, dtype=float)
-    analysis = _interpolation_matrix(nodes, wl)
-    synthesis = np.ones((wl.size, 1)) if nodes.size == 1 else _interpolation_matrix(wl, nodes)
+    analysis = interpolation_matrix(nodes, wl)
+    synthesis = np.ones((wl.size, 1)) if nodes.size == 1 else interpolation_matrix(wl, nodes)
     outside = nodes[(nodes < wl[0]) | (nodes > wl[-1])]
     if outside.size:
         diagnostics = dict(diagnostics, nodes_outside_grid_nm=[float(v) for v in outside],
@@ -1089,7 +1089,7 @@ def _delta_e00(rule, light: str, reflectances: str = "colorchecker") -> np.ndarr
     wl = np.arange(360.0, 830.5, 1.0)
     cmf, E, S = _cie1931(wl), illuminant(light, wl), reflectance_set(reflectances, wl)
     full, white = (S * E) @ cmf, E @ cmf
-    ce, cs = _interpolation_matrix(rule.nodes_nm, wl) @ E, S @ _interpolation_matrix(rule.nodes_nm, wl).T
+    ce, cs = interpolation_matrix(rule.nodes_nm, wl) @ E, S @ interpolation_matrix(rule.nodes_nm, wl).T
     approx, white_q = (cs * ce) @ rule.weights, ce @ rule.weights
     lab_f = colour.XYZ_to_Lab(full / white[1], colour.XYZ_to_xy(white))
     lab_q = colour.XYZ_to_Lab(approx / white_q[1], colour.XYZ_to_xy(white_q))

@@ -44,7 +44,7 @@ from functools import lru_cache
 import numpy as np
 
 from .grid import DEFAULT_WAVELENGTHS, wavelength_step
-from .sampling import SpectralRule
+from .spectral_rule import SpectralRule
 
 __all__ = [
     "DEFAULT_N",

@@ -36,6 +36,7 @@ import numpy as np
 
 from models import DEFAULT_WAVELENGTHS, observer, wavelength_step
 from models.grid import resample, resample_box
+from models.sampling import LIGHT_AWARE, STRATEGIES, strategy_names
 
 from .errors import InputError
 
@@ -43,6 +44,7 @@ __all__ = [
     "SpectralRender",
     "render_strategies",
     "render_spectra",
+    "cached_rule",
     "light_on_grid",
     "light_spikiness",
     "band_matrix",
@@ -242,26 +244,12 @@ def _output_transform_cached(output: str, grid: tuple, white_xyz: tuple, adapt: 
     return C, space.encoding
 
 
-#: Strategies this module adds to :func:`models.sampling.strategy_names`
-#: (until they are registered there). Their rules model surfaces only: the
-#: light is always kept exact.
-LIGHT_AWARE = {"wiener-points": ("models.band_selection", "wiener_points_rule")}
-
-
 def render_strategies() -> list[str]:
-    """Strategies :func:`render_spectra` accepts besides ``auto`` and ``full``."""
-    from models.sampling import strategy_names
-
-    return list(dict.fromkeys(strategy_names() + list(LIGHT_AWARE)))
-
-
-def _builder(strategy: str):
-    import importlib
-
-    from models.sampling import STRATEGIES
-
-    module, name = LIGHT_AWARE.get(strategy) or STRATEGIES[strategy]
-    return getattr(importlib.import_module(module), name)
+    """Strategies :func:`render_spectra` accepts besides ``auto`` and ``full``:
+    every strategy of :data:`models.sampling.STRATEGIES`, the light-aware ones
+    (:data:`models.sampling.LIGHT_AWARE`, which model surfaces only: the light
+    is always kept exact) included."""
+    return strategy_names(light_aware=True)
 
 
 def _accepts(strategy: str, param: str) -> bool:
@@ -270,7 +258,7 @@ def _accepts(strategy: str, param: str) -> bool:
     import inspect
 
     try:
-        return param in inspect.signature(_builder(strategy)).parameters
+        return param in inspect.signature(STRATEGIES[strategy]).parameters
     except (KeyError, AttributeError, ImportError, TypeError, ValueError):
         return False
 
@@ -291,10 +279,10 @@ def _unkey(v):
 
 @lru_cache(maxsize=256)
 def _rule_cached(strategy: str, n, wl: tuple, options: tuple):
-    return _builder(strategy)(n, np.asarray(wl), **{k: _unkey(v) for k, v in options})
+    return STRATEGIES[strategy](n, np.asarray(wl), **{k: _unkey(v) for k, v in options})
 
 
-def _rule(strategy, n, grid, options, light=None, cmfs=None):
+def cached_rule(strategy, n, grid, options, light=None, cmfs=None):
     """The rule ``strategy`` of size ``n`` on ``grid`` (cached). Builders
     that take the light (or the observer) get them: their rules are made
     for the scene's light (bands chosen for it, spikes kept)."""
@@ -504,7 +492,7 @@ def render_spectra(spectra, wavelengths, light, strategy: str = "auto", n: int |
         ``light_wavelengths`` (default: the analysis grid).
     strategy : str
         ``"auto"``, ``"full"`` (every band, exact) or a name of
-        :func:`models.sampling.strategy_names`.
+        :func:`render_strategies`.
     n : int, optional
         Size of the rule. ``None`` with a named strategy: the smallest size of
         that strategy that keeps the bound (as ``auto`` does within it).
@@ -587,7 +575,7 @@ def render_spectra(spectra, wavelengths, light, strategy: str = "auto", n: int |
 
     def build(name, size, opts, rep_light):
         """The rule's matrix and the bands it reads, or None with the reason."""
-        rule = _rule(name, size, grid, opts, E, cmfs)
+        rule = cached_rule(name, size, grid, opts, E, cmfs)
         base = {"strategy": name, "n": rule.n, **_opt_json(opts)}
         if not getattr(rule, "defined", True):
             return None, {**base, "defined": False, "reason": rule.reason}
@@ -617,7 +605,7 @@ def render_spectra(spectra, wavelengths, light, strategy: str = "auto", n: int |
         why = "the full calculation was asked for"
     elif strategy != "auto" and (n is not None or _size_implied(options)):
         try:
-            rep = _represent(_rule(strategy, n, grid, options, E, cmfs), represent_light, spiky)
+            rep = _represent(cached_rule(strategy, n, grid, options, E, cmfs), represent_light, spiky)
             built, entry = build(strategy, n, options, rep)
         except (ValueError, TypeError, KeyError, NotImplementedError, AttributeError, ImportError) as e:
             raise InputError(f"strategy {strategy!r} with n={n} {_opt_json(options)}: {e}") from None

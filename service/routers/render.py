@@ -291,7 +291,7 @@ def sampling(strategy: str = Query(..., description="a sampling strategy name"),
     ``weights_kind`` says which. ``integration_weights_xyz`` are always the
     latter (``T ~= coefficients @ W`` for an equal-energy light)."""
     import models
-    from recovery.spectral import LIGHT_AWARE, _rule
+    from recovery.spectral import LIGHT_AWARE, cached_rule as _rule
 
     if strategy in ("auto", "full"):
         raise ApiError(422, "unknown_strategy", f"{strategy!r} is a render mode, not a sampling rule")
