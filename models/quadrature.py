@@ -23,8 +23,8 @@ re-orthogonalisation, then Golub-Welsch, or the non-symmetric Jacobi matrix
 when the weight is indefinite); :func:`quasi_gauss_from_moments` takes
 Chebyshev moments of any set of weights.
 
-What reproduces (``python -m models.quadrature`` prints it all beside the
-papers' numbers):
+What reproduces (``python -m benchmarks.quadrature`` prints it all beside the
+papers' numbers; Meyer's Table 2 and Borges' Table 1 are kept there):
 
 - Meyer's Tables 1a/1b: nodes to 0.1 nm for orders 1-4 and 0.7 nm up to
   order 10, weights to one normalising factor, and the undefined orders
@@ -73,8 +73,6 @@ __all__ = [
     "MEYER_INTERVAL",
     "MEYER_STEP_NM",
     "MEYER_TABLE_1A",
-    "MEYER_TABLE_2",
-    "BORGES_TABLE_1",
     "BORGES_TERMS",
     "BORGES_INTERVAL_NM",
     "GaussQuadrature",
@@ -86,15 +84,19 @@ __all__ = [
     "ac1c2_eigenvalues",
     "ac1c2_fundamentals",
     "meyer_weight_scale",
+    "meyer_grid",
+    "cie1931",
+    "AC1C2_CHANNELS",
     "gauss_ac1c2_rule",
-    "meyer_table2_error",
     "borges_matching_functions",
     "borges_raw_moments",
+    "borges_chebyshev_moments",
+    "eq11_literal",
     "quasi_gauss_from_moments",
     "quasi_gauss_xyz_rule",
 ]
 
-# --- published numbers (for comparison and tests; the code computes its own) ------
+# --- published numbers the rules use (the others: benchmarks.quadrature) ---------
 
 #: XYZ -> SML (Meyer 1988, eq. 1; Estevez confusion points, Vos-Walraven scaling, App. A).
 XYZ_TO_SML = np.array([[0.0000, 0.0000, 0.0127],
@@ -164,29 +166,6 @@ MEYER_TABLE_1A = {
              [0.00234, 0.06757, 0.26510, 0.20992, -0.05047, 0.01304, 0.03172, 0.00685, 0.00033,
               0.00001]),
     },
-}
-
-#: Meyer (1988) Table 2: {row: {channel: (nodes, weights)}, "error": mean L*a*b* error}.
-#: Row 1: A order 3, C1 order 2, C2 order 1 (six wavelengths; the table's A weight
-#: "0.71595" is Table 1a's 0.71695 misprinted). Row 2: the two C1 wavelengths also used
-#: for A, with A's weights recomputed by eq. 13 (four wavelengths).
-MEYER_TABLE_2 = {
-    1: {"A": ([483.0, 557.7, 632.3], [0.15908, 0.71695, 0.18035]),
-        "C1": ([490.9, 631.4], [0.31824, -0.46008]),
-        "C2": ([456.4], [0.54640]), "error": 5.432},
-    2: {"A": ([490.9, 557.7, 631.4], [0.18892, 0.67493, 0.19253]),
-        "C1": ([490.9, 631.4], [0.31824, -0.46008]),
-        "C2": ([456.4], [0.54640]), "error": 5.429},
-}
-
-#: Borges (1992) Table 1: quasi-Gaussian abscissas (nm) per degree sequence (xbar, ybar, zbar).
-BORGES_TABLE_1 = {
-    (1, 1, 1): [445.3, 535.8, 619.4],
-    (2, 1, 1): [441.0, 523.4, 574.3, 643.1],
-    (1, 2, 1): [443.1, 531.8, 607.6, 720.0],
-    (1, 1, 2): [425.3, 469.3, 543.0, 627.6],
-    (2, 2, 2): [419.8, 461.7, 526.6, 582.7, 638.6, 707.7],
-    (3, 3, 3): [391.4, 422.6, 453.8, 488.8, 539.1, 587.7, 635.2, 689.4, 767.2],
 }
 
 #: Borges' analytic matching functions (after Moon and Spencer 1945), sec. 2: each term is
@@ -479,12 +458,12 @@ def interpolatory_weights(nodes_nm, weight, wavelengths, interval=None) -> np.nd
 MEYER_STEP_NM = 5.0
 
 
-def _meyer_grid(interval=MEYER_INTERVAL, step=MEYER_STEP_NM):
+def meyer_grid(interval=MEYER_INTERVAL, step=MEYER_STEP_NM):
     a, b = float(interval[0]), float(interval[1])
     return a + step * np.arange(int(round((b - a) / step)) + 1)
 
 
-def _cie1931(wavelengths) -> np.ndarray:
+def cie1931(wavelengths) -> np.ndarray:
     from .observers import observer
 
     return np.asarray(observer("CIE 1931 2 Degree Standard Observer", wavelengths), dtype=float)
@@ -492,8 +471,8 @@ def _cie1931(wavelengths) -> np.ndarray:
 
 @lru_cache(maxsize=8)
 def _kl_transform(interval=MEYER_INTERVAL, step=MEYER_STEP_NM):
-    wl = _meyer_grid(interval, step)
-    sml = _cie1931(wl) @ XYZ_TO_SML.T
+    wl = meyer_grid(interval, step)
+    sml = cie1931(wl) @ XYZ_TO_SML.T
     # Covariance of the cone fundamentals for a white-noise set of spectra,
     # K(l, m) = delta(l - m): C_ij = int f_i f_j dl (Meyer 1988, eq. 4-8).
     cov = sml.T @ (sml * wavelength_step(wl)[:, None])
@@ -501,7 +480,7 @@ def _kl_transform(interval=MEYER_INTERVAL, step=MEYER_STEP_NM):
     order = np.argsort(ev)[::-1]
     ev, T = ev[order], vec[:, order].T  # rows: eigenvectors (eq. 3)
     M = T @ XYZ_TO_SML                  # XYZ -> AC1C2, one row per channel (eq. 9)
-    F = _cie1931(wl) @ M.T
+    F = cie1931(wl) @ M.T
     for i in range(3):
         # Meyer's rows are scaled so each function's largest magnitude is 1 (A and C2
         # peak at +1, C1 at -1 in the red), which fixes sign and scale of eq. 9.
@@ -558,14 +537,14 @@ def ac1c2_fundamentals(wavelengths=None, matrix: str = "computed") -> np.ndarray
     matrix : {"computed", "printed"}
         The KL transform computed here, or Meyer's printed eq. 9.
     """
-    wl = _meyer_grid() if wavelengths is None else np.asarray(wavelengths, dtype=float)
+    wl = meyer_grid() if wavelengths is None else np.asarray(wavelengths, dtype=float)
     if matrix == "computed":
         M = xyz_to_ac1c2_matrix()
     elif matrix == "printed":
         M = MEYER_XYZ_TO_AC1C2
     else:
         raise ValueError(f"matrix must be 'computed' or 'printed', not {matrix!r}")
-    return _cie1931(wl) @ M.T
+    return cie1931(wl) @ M.T
 
 
 def meyer_weight_scale() -> float:
@@ -576,11 +555,11 @@ def meyer_weight_scale() -> float:
     and C2 weights. He does not say where it comes from; it cancels in every
     colour difference (white and samples use the same weights).
     """
-    g = gauss_quadrature(ac1c2_fundamentals()[:, 0], _meyer_grid(), 1)
+    g = gauss_quadrature(ac1c2_fundamentals()[:, 0], meyer_grid(), 1)
     return MEYER_TABLE_1A["A"][1][1][0] / float(g.weights[0])
 
 
-_CHANNELS = {"A": 0, "C1": 1, "C2": 2}
+AC1C2_CHANNELS = {"A": 0, "C1": 1, "C2": 2}
 
 
 def _point_rule(strategy, wavelengths, nodes, weights, diagnostics, defined=True, reason=None):
@@ -643,8 +622,8 @@ def gauss_ac1c2_rule(n: int | None, wavelengths, channel: str = "A", interval=ME
     """
     if channel == "XYZ":
         return _meyer_xyz_rule(n, wavelengths, orders, merge_nm, interval, step)
-    if channel not in _CHANNELS:
-        raise ValueError(f"channel must be one of {', '.join(_CHANNELS)} or XYZ, not {channel!r}")
+    if channel not in AC1C2_CHANNELS:
+        raise ValueError(f"channel must be one of {', '.join(AC1C2_CHANNELS)} or XYZ, not {channel!r}")
     if n is None:
         raise ValueError("gauss-ac1c2 needs the number of nodes n (Meyer's order), e.g. n=3")
     try:
@@ -653,9 +632,9 @@ def gauss_ac1c2_rule(n: int | None, wavelengths, channel: str = "A", interval=ME
         raise ValueError(f"n must be an integer, not {n!r}") from None
     if not 1 <= n <= 30:
         raise ValueError(f"n={n}: gauss-ac1c2 supports 1 to 30 nodes")
-    grid = _meyer_grid(interval, step)
+    grid = meyer_grid(interval, step)
     wl = grid if wavelengths is None else np.asarray(wavelengths, dtype=float)
-    g = gauss_quadrature(ac1c2_fundamentals(grid)[:, _CHANNELS[channel]], grid, n, interval)
+    g = gauss_quadrature(ac1c2_fundamentals(grid)[:, AC1C2_CHANNELS[channel]], grid, n, interval)
     diag = dict(g.diagnostics, channel=channel, order=n, weight_grid_step_nm=float(step),
                 meyer_weight_scale=meyer_weight_scale())
     return _point_rule("gauss-ac1c2", wl, g.nodes, g.weights, diag, g.defined, g.reason)
@@ -669,11 +648,11 @@ def _meyer_xyz_rule(n, wavelengths, orders, merge_nm, interval, step) -> Spectra
         raise ValueError(f"orders must be three integers (A, C1, C2) such as '3,2,1', not {orders!r}") from None
     if len(orders) != 3 or min(orders) < 0 or sum(orders) < 1 or max(orders) > 30:
         raise ValueError(f"orders must be three integers 0-30 (A, C1, C2), not {orders!r}")
-    grid = _meyer_grid(interval, step)
+    grid = meyer_grid(interval, step)
     wl = grid if wavelengths is None else np.asarray(wavelengths, dtype=float)
     F = ac1c2_fundamentals(grid)
     per, diag = {}, {"channel": "XYZ", "orders": list(orders), "merge_nm": float(merge_nm)}
-    for (ch, ci), order in zip(_CHANNELS.items(), orders):
+    for (ch, ci), order in zip(AC1C2_CHANNELS.items(), orders):
         if order == 0:
             continue
         g = gauss_quadrature(F[:, ci], grid, order, interval)
@@ -694,83 +673,9 @@ def _meyer_xyz_rule(n, wavelengths, orders, merge_nm, interval, step) -> Spectra
         raise ValueError(f"n={n} does not match orders {orders}, which give {nodes.size} wavelengths")
     W = np.zeros((nodes.size, 3))
     for ch, (x, w) in per.items():
-        W[np.searchsorted(nodes, x), _CHANNELS[ch]] = w
+        W[np.searchsorted(nodes, x), AC1C2_CHANNELS[ch]] = w
     W_xyz = W @ ac1c2_to_xyz_matrix(interval, step).T
     return _point_rule("gauss-ac1c2", wl, nodes, W_xyz, diag)
-
-
-def meyer_table2_error(row: int = 2, reflectances: str = "colorchecker-ohta",
-                       weights: str = "computed") -> dict:
-    """Mean CIELAB error of Meyer's Table 2 wavelengths on the ColorChecker under C.
-
-    Meyer (1988), sec. 4.1 and Table 2: the tristimulus values A, C1, C2 of
-    the 24 ColorChecker patches under CIE illuminant C are computed with the
-    quadrature (A order 3, C1 order 2, C2 order 1; in row 2 A uses C1's two
-    wavelengths, four wavelengths in all), turned into XYZ with the inverse of
-    eq. 9, and compared in CIE 1976 L*a*b* with the full calculation (5 nm
-    sums over 380-770 nm). As in the paper, the white of L*a*b* is illuminant
-    C computed the same way as the samples (quadrature white for the
-    quadrature colours), so the weights' overall scale cancels.
-
-    Parameters
-    ----------
-    row : {1, 2}
-        Table 2's row.
-    reflectances : str
-        A set of :func:`models.reflectances.reflectance_set`; the default,
-        N. Ohta's ColorChecker, gives 5.42 (row 1) and 5.51 (row 2) against
-        Meyer's 5.432 and 5.429; the BabelColor average gives about 4.7.
-        Meyer used McCamy et al.'s 1976 curves, which colour-science does
-        not ship.
-    weights : {"computed", "table"}
-        Interpolatory weights (eq. 13) recomputed on this module's
-        fundamentals and matrix, or Meyer's printed weights with his printed
-        eq. 9 matrix.
-
-    Returns
-    -------
-    dict
-        ``mean``, ``max`` (Delta E*ab), ``paper`` (Meyer's value),
-        ``wavelengths`` (distinct nodes) and ``per_patch``.
-    """
-    import colour
-
-    from .illuminants import illuminant
-    from .reflectances import reflectance_set
-
-    if row not in MEYER_TABLE_2:
-        raise ValueError(f"Meyer's Table 2 has rows 1 and 2, not {row!r}")
-    if weights not in ("computed", "table"):
-        raise ValueError(f"weights must be 'computed' or 'table', not {weights!r}")
-    wl = _meyer_grid()
-    dl = wavelength_step(wl)
-    cmf = _cie1931(wl)
-    S = reflectance_set(reflectances, wl)
-    E = illuminant("C", wl, normalise=False)
-    M = MEYER_XYZ_TO_AC1C2 if weights == "table" else xyz_to_ac1c2_matrix()
-    F = ac1c2_fundamentals(wl, "printed" if weights == "table" else "computed")
-    spec = MEYER_TABLE_2[row]
-
-    def quadrature_xyz(spectra):
-        out = []
-        for ch, ci in _CHANNELS.items():
-            nodes, w = spec[ch]
-            if weights == "computed":
-                w = interpolatory_weights(nodes, F[:, ci], wl)
-            vals = np.stack([np.interp(nodes, wl, s) for s in np.atleast_2d(spectra)])
-            out.append(vals @ np.asarray(w, dtype=float))
-        return np.stack(out, -1) @ np.linalg.inv(M).T
-
-    def lab(xyz, white):
-        return colour.XYZ_to_Lab(xyz / white[1], colour.XYZ_to_xy(white))
-
-    white_true = E @ (cmf * dl[:, None])
-    true = lab((S * E) @ (cmf * dl[:, None]), white_true)
-    approx = lab(quadrature_xyz(S * E), quadrature_xyz(E)[0])
-    d = np.linalg.norm(approx - true, axis=1)
-    nodes = sorted({v for ch in _CHANNELS for v in spec[ch][0]})
-    return {"mean": float(d.mean()), "max": float(d.max()), "paper": spec["error"],
-            "wavelengths": nodes, "reflectances": reflectances, "per_patch": d.tolist()}
 
 
 # --- Borges' quasi-Gaussian shared-abscissa rules ------------------------------------
@@ -820,7 +725,7 @@ def borges_raw_moments(max_degree: int, lambda_power: int = 0, digits: int = 60)
 
 
 @lru_cache(maxsize=32)
-def _borges_chebyshev_moments(max_degree, lambda_power, interval_nm):
+def borges_chebyshev_moments(max_degree, lambda_power, interval_nm):
     """Chebyshev moments on ``interval_nm`` (nm units of d lambda) from the analytic moments."""
     import mpmath
 
@@ -900,7 +805,7 @@ def quasi_gauss_from_moments(tau, degrees) -> dict:
             "vandermonde_condition": float(np.linalg.cond(V))}
 
 
-def _eq11_literal(raw, degrees):
+def eq11_literal(raw, degrees):
     """Borges' eq. 11 as printed (ordinary moments, lam in microns): its condition number
     and the abscissas (nm) a double-precision solve of it gives."""
     deg = [int(v) for v in degrees]
@@ -924,7 +829,7 @@ def _cie_moments(max_degree, interval_nm, lambda_power):
     """Chebyshev and ordinary (microns) moments of tabulated CIE 1931 at 1 nm."""
     a, b = interval_nm
     wl = np.arange(a, b + 0.5, 1.0)
-    cmf = _cie1931(wl) * (wl[:, None] / 1000.0) ** lambda_power
+    cmf = cie1931(wl) * (wl[:, None] / 1000.0) ** lambda_power
     tau = np.stack([chebyshev_moments(cmf[:, k], wl, max_degree) for k in range(3)])
     lam = wl / 1000.0
     raw = np.stack([(lam ** m) @ cmf for m in range(max_degree + 1)], axis=1) / 1000.0
@@ -1025,14 +930,14 @@ def quasi_gauss_xyz_rule(n: int | None, wavelengths, degrees=(1, 1, 1), source: 
     wl = grid if wavelengths is None else np.asarray(wavelengths, dtype=float)
     R = total + max(deg)
     if source == "analytic":
-        tau_nodes, raw = _borges_chebyshev_moments(R, lambda_power, (a, b))
-        tau_w = tau_nodes if lambda_power == 0 else _borges_chebyshev_moments(R, 0, (a, b))[0]
+        tau_nodes, raw = borges_chebyshev_moments(R, lambda_power, (a, b))
+        tau_w = tau_nodes if lambda_power == 0 else borges_chebyshev_moments(R, 0, (a, b))[0]
     else:
         tau_nodes, raw = _cie_moments(R, (a, b), lambda_power)
         tau_w = tau_nodes if lambda_power == 0 else _cie_moments(R, (a, b), 0)[0]
     sol = quasi_gauss_from_moments(tau_nodes, deg)
     c, h = _map((a, b))
-    cond11, lit = _eq11_literal(raw, deg)
+    cond11, lit = eq11_literal(raw, deg)
     diag = {"degrees": list(deg), "source": source, "lambda_power": lambda_power,
             "interval_nm": [a, b], "condition_eq11": cond11 if np.isfinite(cond11) else 1e300,
             "condition_chebyshev": sol["condition"],
@@ -1060,110 +965,3 @@ def quasi_gauss_xyz_rule(n: int | None, wavelengths, degrees=(1, 1, 1), source: 
         diag["eq11_double_max_shift_nm"] = "eq. 11 solved in double precision gives complex or no abscissas"
     diag["vandermonde_condition"] = float(np.linalg.cond(_cheb.chebvander(sol["t"], total - 1)))
     return _point_rule("quasi-gauss-xyz", wl, x, W, diag)
-
-
-def _eq11_sensitivity(degrees, rel_error=1e-15, trials=200, seed=0):
-    """90th percentile abscissa shift (nm) when eq. 11 is solved in double precision
-    with Borges' analytic moments perturbed by ``rel_error`` (relative, Gaussian)."""
-    deg = tuple(int(v) for v in degrees)
-    _, raw = _borges_chebyshev_moments(sum(deg) + max(deg), 1, BORGES_INTERVAL_NM)
-    base = np.sort(np.real(_eq11_literal(raw, deg)[1])) * 1000.0
-    rng = np.random.default_rng(seed)
-    shifts = []
-    for _ in range(trials):
-        r = _eq11_literal(raw * (1.0 + rel_error * rng.standard_normal(raw.shape)), deg)[1]
-        if r.size == base.size and np.all(np.abs(np.imag(r)) < 1e-9):
-            shifts.append(np.sort(np.real(r)) * 1000.0 - base)
-    return np.percentile(np.abs(np.array(shifts)), 90, axis=0)
-
-
-def _delta_e00(rule, light: str, reflectances: str = "colorchecker") -> np.ndarray:
-    """CIEDE2000 of an XYZ rule (weights ``(n, 3)``) against 1 nm sums over 360-830 nm,
-    per reflectance, with the white of each side computed the same way (Meyer 1988,
-    sec. 4.1: a perfect reflector under the light)."""
-    import colour
-
-    from .illuminants import illuminant
-    from .reflectances import reflectance_set
-
-    wl = np.arange(360.0, 830.5, 1.0)
-    cmf, E, S = _cie1931(wl), illuminant(light, wl), reflectance_set(reflectances, wl)
-    full, white = (S * E) @ cmf, E @ cmf
-    ce, cs = interpolation_matrix(rule.nodes_nm, wl) @ E, S @ interpolation_matrix(rule.nodes_nm, wl).T
-    approx, white_q = (cs * ce) @ rule.weights, ce @ rule.weights
-    lab_f = colour.XYZ_to_Lab(full / white[1], colour.XYZ_to_xy(white))
-    lab_q = colour.XYZ_to_Lab(approx / white_q[1], colour.XYZ_to_xy(white_q))
-    return np.asarray(colour.delta_E(lab_f, lab_q, method="CIE 2000"), dtype=float)
-
-
-def _fmt(values, digits=1):
-    return " ".join(f"{v:{6 + digits}.{digits}f}" for v in values)
-
-
-def main() -> None:
-    """Print Meyer's Tables 1a/1b and 2 and Borges' Table 1 beside this module's numbers."""
-    scale = meyer_weight_scale()
-    print("Meyer (1988) Tables 1a/1b: Gaussian quadrature on the AC1C2 fundamentals, 380-770 nm")
-    print(f"(CIE 1931 at {MEYER_STEP_NM:g} nm; weights x {scale:.6f}, Meyer's normalising factor)")
-    for ch in _CHANNELS:
-        print(f"\n  {ch}")
-        for order in range(1, 11):
-            r = gauss_ac1c2_rule(order, None, channel=ch)
-            paper = MEYER_TABLE_1A[ch][order]
-            if not r.defined:
-                mark = "undefined" if paper is None else "undefined, PAPER DEFINED"
-                print(f"  {order:2d}  {mark:9s}  ({r.reason})")
-                continue
-            print(f"  {order:2d}  nodes   {_fmt(r.nodes_nm)}")
-            if paper is None:
-                print("      paper   undefined")
-                continue
-            print(f"      paper   {_fmt(paper[0])}   max |diff| {np.max(np.abs(r.nodes_nm - paper[0])):.2f} nm")
-            print(f"      weights {_fmt(r.weights * scale, 5)}")
-            print(f"      paper   {_fmt(paper[1], 5)}")
-    ev = ac1c2_eigenvalues()
-    print(f"\n  eigenvalue ratio {ev[0] / ev[2] * 0.0221:.1f} : {ev[1] / ev[2] * 0.0221:.2f} : 0.0221"
-          "   (paper, eq. 10: 102.4 : 2.29 : 0.0221)")
-    print("\nMeyer Table 2: mean CIELAB error, ColorChecker under illuminant C")
-    for row in (1, 2):
-        for refl in ("colorchecker-ohta", "colorchecker"):
-            for w in ("computed", "table"):
-                e = meyer_table2_error(row, refl, w)
-                print(f"  row {row} ({len(e['wavelengths'])} wavelengths) {refl:18s} weights={w:8s} "
-                      f"mean {e['mean']:.3f} (max {e['max']:.2f})   paper {e['paper']:.3f}")
-    print("\nBorges (1992) Table 1: quasi-Gaussian shared abscissas (nm), 360-830 nm")
-    print("  analytic = his functions, log-gamma moments of lam*w (the convention that")
-    print("  reproduces his table); exact = moments of w as eq. 13 prints; cie = tabulated CIE 1931")
-    for deg, paper in BORGES_TABLE_1.items():
-        print(f"\n  {deg}  paper    {_fmt(paper)}")
-        for label, kw in (("analytic", {}), ("exact", {"lambda_power": 0}), ("cie", {"source": "cie"})):
-            r = quasi_gauss_xyz_rule(None, None, deg, **kw)
-            if not r.defined:
-                print(f"  {'':9s}  {label:8s} undefined: {r.reason}")
-                continue
-            d = r.diagnostics
-            print(f"  {'':9s}  {label:8s} {_fmt(r.nodes_nm)}   max |diff| "
-                  f"{np.max(np.abs(r.nodes_nm - paper)):5.2f} nm   cond eq.11 {d['condition_eq11']:.1e}, "
-                  f"solved (Chebyshev) {d['condition_chebyshev']:.1e}")
-    sens = _eq11_sensitivity((3, 3, 3))
-    print("\n  (3,3,3): 90th percentile shift of eq. 11 solved in double with moments off by 1e-15:")
-    print(f"  {'':9s}  shift    {_fmt(sens)}")
-    lights = ("A", "C", "D65", "FL2", "FL11")
-    print("\nXYZ rules on the ColorChecker (BabelColor): mean CIEDE2000 against 1 nm sums, "
-          "white from the same rule")
-    print(f"  {'rule':34s} {'n':>3s} " + " ".join(f"{v:>6s}" for v in lights))
-    rules = [("Meyer Table 2 (A3 C1-2 C2-1, shared)", gauss_ac1c2_rule(None, None, "XYZ")),
-             ("Meyer A3 C1-2 C2-1, not shared", gauss_ac1c2_rule(None, None, "XYZ", merge_nm=0))]
-    for deg in ((1, 1, 1), (2, 2, 2), (3, 3, 3), (4, 4, 4)):
-        for src in ("cie", "analytic"):
-            rules.append((f"Borges {deg} {src}", quasi_gauss_xyz_rule(None, None, deg, source=src)))
-    for label, rule in rules:
-        if not rule.defined:
-            print(f"  {label:34s}   -  undefined: {rule.reason}")
-            continue
-        errs = [float(np.mean(_delta_e00(rule, v))) for v in lights]
-        print(f"  {label:34s} {rule.n:3d} " + " ".join(f"{v:6.2f}" for v in errs))
-
-
-if __name__ == "__main__":
-    main()

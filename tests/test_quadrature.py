@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 from numpy.polynomial import chebyshev as C
 
+from benchmarks.quadrature import BORGES_TABLE_1, MEYER_TABLE_2, meyer_table2_error
+from benchmarks.quadrature import delta_e00 as _delta_e00, eq11_sensitivity as _eq11_sensitivity
 from models.grid import wavelength_grid, wavelength_step
 from models.observers import observer
-from models.quadrature import (BORGES_TABLE_1, MEYER_TABLE_1A, MEYER_TABLE_2, MEYER_XYZ_TO_AC1C2,
-                               _delta_e00, _eq11_sensitivity, _meyer_grid, ac1c2_eigenvalues,
-                               ac1c2_fundamentals, ac1c2_to_xyz_matrix, borges_matching_functions,
-                               borges_raw_moments, chebyshev_moments, gauss_ac1c2_rule,
-                               gauss_quadrature, interpolatory_weights, meyer_table2_error,
+from models.quadrature import (MEYER_TABLE_1A, MEYER_XYZ_TO_AC1C2, ac1c2_eigenvalues, ac1c2_fundamentals,
+                               ac1c2_to_xyz_matrix, borges_matching_functions, borges_raw_moments,
+                               chebyshev_moments, gauss_ac1c2_rule, gauss_quadrature, interpolatory_weights,
                                meyer_weight_scale, quasi_gauss_xyz_rule, xyz_to_ac1c2_matrix)
+from models.quadrature import meyer_grid as _meyer_grid
 from models.sampling import sampling_rule
 
 CIE_WL = wavelength_grid(360, 830, 1)

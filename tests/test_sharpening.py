@@ -12,12 +12,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from benchmarks.sharpening import metameric_pairs, metamer_mismatch
 from models import DEFAULT_WAVELENGTHS, illuminant, illuminants, observer, reflectance_set, wavelength_grid
 from models.grid import wavelength_step
 from models.sampling import sampling_rule
-from models.sharpening import (DEFAULT_N, DEFAULT_TRAINING_LIGHTS, metameric_pairs, metamer_mismatch,
-                               multibounce, pca_product_rule, product_errors, relight,
-                               sharpened_basis, sharpened_rule)
+from models.sharpening import (DEFAULT_N, DEFAULT_TRAINING_LIGHTS, multibounce, pca_product_rule, product_errors,
+                               relight, sharpened_basis, sharpened_rule)
 
 WL = DEFAULT_WAVELENGTHS
 CMFS = np.asarray(observer("CIE 1931 2 Degree Standard Observer", WL))
@@ -111,7 +111,7 @@ def test_coefficient_products_are_as_good_as_the_span_allows(data, rules):
 def test_colour_signal_error_small_in_cielab(data, rules):
     import colour
 
-    from models.sharpening import _lab
+    from benchmarks.sharpening import lab as _lab
 
     rule = rules[7]
     dl = wavelength_step(WL)
