@@ -127,7 +127,7 @@ from .errors import InputError
 from .estimators import shades_of_gray
 from .illuminant_prior import CandidateLights, default_candidates
 
-__all__ = ["estimate_bayes", "BayesModel", "bayes_model", "helmert", "DEFAULTS"]
+__all__ = ["estimate_bayes", "BayesModel", "bayes_model", "helmert", "modulated_spectrum", "DEFAULTS"]
 
 #: Default settings of the model (see :func:`bayes_model`) and of the
 #: image summary (see :func:`estimate_bayes`).
@@ -529,7 +529,7 @@ def _off_set_lights(model: BayesModel, step_u: float, radius_u: float, tau_u: fl
     return out
 
 
-def _modulated_spectrum(spd: np.ndarray, camera: Camera, target_rgb: np.ndarray) -> np.ndarray:
+def modulated_spectrum(spd: np.ndarray, camera: Camera, target_rgb: np.ndarray) -> np.ndarray:
     """``spd`` times a smooth non-negative modulation so its camera response
     is ``target_rgb`` (diagonal model made spectral: the modulation is a
     combination of the channels' shares of sensitivity)."""
@@ -905,7 +905,7 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
     sig = np.flatnonzero(post > 1e-4 * post.max())
     spd = (post[:M] / model.light_rgb.sum(axis=1)) @ cands.spectra
     for i in sig[sig >= M]:
-        s_i = _modulated_spectrum(cands.spectra[nearest[i]], camera, light_rgb[i])
+        s_i = modulated_spectrum(cands.spectra[nearest[i]], camera, light_rgb[i])
         spd = spd + post[i] * s_i / max(float(camera.response(s_i).sum()), 1e-300)
     spectrum = spd / spd.mean() if spd.mean() > 0 else None
 

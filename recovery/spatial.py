@@ -58,7 +58,7 @@ import numpy as np
 from scipy import stats
 from scipy.special import logsumexp
 
-from .bayes import _modulated_spectrum, estimate_bayes, helmert
+from .bayes import estimate_bayes, helmert, modulated_spectrum
 from .errors import InputError
 from .regions import LightMap
 
@@ -276,7 +276,7 @@ def _trend_map(shape, trend: dict, camera, rgb, spectrum, centroid, points: int 
     for a, r in enumerate(cr):
         for b, c in enumerate(cc):
             tgt = base * np.exp(Hm.T @ (g_r * (r - centroid[0]) + g_c * (c - centroid[1])))
-            s = _modulated_spectrum(spectrum, camera, tgt)
+            s = modulated_spectrum(spectrum, camera, tgt)
             spectra[a, b] = s / (s.mean() or 1.0)
     n = spectrum.size
     return LightMap(cr, cc, spectra, np.ones((cr.size, cc.size), bool), np.full((cr.size, cc.size), np.nan),

@@ -67,6 +67,7 @@ __all__ = [
     "SpectralScene",
     "cfa_colour_indices",
     "color_matrix_for_camera",
+    "d50_xyz",
     "mosaic",
     "scene_dng",
     "spectral_scene",
@@ -225,7 +226,8 @@ def _default_color_matrix() -> np.ndarray:
     return _normalise_color_matrix(m)
 
 
-def _d50_xyz() -> np.ndarray:
+def d50_xyz() -> np.ndarray:
+    """CIE XYZ of D50 (CIE 1931 2 degree, Y = 1): the white of the DNG ColorMatrix tags."""
     import colour
 
     xy = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D50"]
@@ -235,7 +237,7 @@ def _d50_xyz() -> np.ndarray:
 def _normalise_color_matrix(m: np.ndarray) -> np.ndarray:
     """Scale an XYZ->camera matrix so the D50 white (Y = 1) maps to a camera
     vector whose largest entry is 1 (DNG SDK ``NormalizeColorMatrix``)."""
-    top = float(np.max(m @ _d50_xyz()))
+    top = float(np.max(m @ d50_xyz()))
     if top <= 0:
         raise ValueError("colour matrix maps the D50 white to no positive camera response")
     return m / top
@@ -440,7 +442,7 @@ def color_matrix_for_camera(camera: str, wavelengths=None, *, training: str = "a
     Examples
     --------
     >>> m = color_matrix_for_camera("Nikon 5100 (NPL)")
-    >>> m.shape, round(float(np.max(m @ _d50_xyz())), 6)
+    >>> m.shape, round(float(np.max(m @ d50_xyz())), 6)
     ((3, 3), 1.0)
     """
     import models

@@ -16,7 +16,7 @@ import rawpy
 import models
 from testing.dngwriter import (CAMERA_MAKE_MODEL, cfa_colour_indices, color_matrix_for_camera,
                                mosaic, scene_dng, spectral_scene, write_dng)
-from testing.dngwriter import _d50_xyz
+from testing.dngwriter import d50_xyz as _d50_xyz
 
 H, W = 64, 96
 BLACK, WHITE = 512, 16383
