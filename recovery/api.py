@@ -27,10 +27,7 @@ from .synthesis import adjust_light_for_gamut, encode, output_space, synthesis_m
 
 __all__ = ["IlluminantEstimate", "AnalysisResult", "estimate_illuminant", "analyze", "surfaces_from_estimate",
            "render",
-           "METHODS", "QUALITY_PRESETS", "resolve_model", "angular_error"]
-
-METHODS = ("auto", "bayes", "maloney-wandell") + tuple(PEERS)
-
+           "METHODS", "ESTIMATORS", "QUALITY_PRESETS", "resolve_model", "angular_error"]
 
 def angular_error(a, b) -> np.ndarray:
     """Angle in degrees between vectors (last axis), computed as
@@ -258,6 +255,33 @@ def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_ma
                               None if weights is None else np.asarray(weights, float), model, light_map)
 
 
+@dataclass
+class _Run:
+    """What :func:`_estimate_core` has prepared for the estimator it dispatches to."""
+
+    method: str
+    camera: Camera
+    img: np.ndarray
+    m: np.ndarray
+    diag: dict
+    warns: list
+    run_peer: object
+    spatial_mode: str
+    region_size: int | None
+    surface_basis: object
+    light_basis: object
+    surface_dim: object
+    light_dim: object
+    d_s: int
+    d_e: int
+    order_auto: bool
+    overlap: float
+    min_variation: float
+    subspace_tolerance: float
+    on_failure: str
+    fallback: str
+
+
 def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
                         light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
                         mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
@@ -346,26 +370,45 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
             d["decision"] = f"fallback to {name}: {why}"
         return _finish(rgb, spd, w, camera, peer_model, name, d, list(warns))
 
-    if method in PEERS:
-        return run_peer(method)
+    run = _Run(method, camera, img, m, diag, warns, run_peer, spatial_mode, region_size, surface_basis,
+               light_basis, surface_dim, light_dim, d_s, d_e, order_auto, overlap, min_variation,
+               subspace_tolerance, on_failure, fallback)
+    return ESTIMATORS[method](run)
 
-    if method in ("auto", "bayes") and any(v is not None for v in (surface_dim, light_dim, surface_basis,
-                                                                    light_basis)):
+
+def _estimate_peer(run: _Run) -> IlluminantEstimate:
+    """A classical peer (:data:`recovery.estimators.PEERS`), its spectrum fitted to its RGB."""
+    return run.run_peer(run.method)
+
+
+def _estimate_posterior(run: _Run) -> IlluminantEstimate:
+    """``auto`` and ``bayes``: the light posterior, then one light or a map."""
+    camera, img, m, spatial_mode = run.camera, run.img, run.m, run.spatial_mode
+    if any(v is not None for v in (run.surface_dim, run.light_dim, run.surface_basis, run.light_basis)):
         # a pinned linear model must obey the paper's rules whichever estimator decides
-        S_ = resolve_model(surface_basis, "surface", d_s, camera.wavelengths)
-        E_ = resolve_model(light_basis, "light", d_e, camera.wavelengths)
-        check_dimensions(C, S_.dimension, E_.dimension)
-    if method in ("auto", "bayes"):
-        est = _run_bayes(img, m, camera, diag, warns, run_peer)
-        if spatial_mode != "uniform" and est.method == "bayes":
-            est = _maybe_light_map(img, m, camera, est, spatial_mode, region_size)
-        else:
-            est.diagnostics["spatial_decision"] = "one light"
-            est.diagnostics["spatial_reason"] = ("requested (spatial=False or quality='fast'; the default "
-                                                 "spatial='auto' decides from the image)" if spatial_mode == "uniform"
-                                                     else f"the light posterior fell back to {est.method}")
-        return est
+        S_ = resolve_model(run.surface_basis, "surface", run.d_s, camera.wavelengths)
+        E_ = resolve_model(run.light_basis, "light", run.d_e, camera.wavelengths)
+        check_dimensions(camera.channels, S_.dimension, E_.dimension)
+    est = _run_bayes(img, m, camera, run.diag, run.warns, run.run_peer)
+    if spatial_mode != "uniform" and est.method == "bayes":
+        est = _maybe_light_map(img, m, camera, est, spatial_mode, run.region_size)
+    else:
+        est.diagnostics["spatial_decision"] = "one light"
+        est.diagnostics["spatial_reason"] = ("requested (spatial=False or quality='fast'; the default "
+                                             "spatial='auto' decides from the image)" if spatial_mode == "uniform"
+                                             else f"the light posterior fell back to {est.method}")
+    return est
 
+
+def _estimate_subspace(run: _Run) -> IlluminantEstimate:
+    """``maloney-wandell``: the literal method of the paper (eq. 30, 35), one light or a map."""
+    (camera, img, m, diag, warns, run_peer, spatial_mode, region_size, surface_basis, light_basis,
+     surface_dim, light_dim, d_s, d_e, order_auto, overlap, min_variation, subspace_tolerance, on_failure,
+     fallback) = (run.camera, run.img, run.m, run.diag, run.warns, run.run_peer, run.spatial_mode,
+                  run.region_size, run.surface_basis, run.light_basis, run.surface_dim, run.light_dim, run.d_s,
+                  run.d_e, run.order_auto, run.overlap, run.min_variation, run.subspace_tolerance,
+                  run.on_failure, run.fallback)
+    C = camera.channels
     if order_auto:
         from .model_order import select_dimensions
 
@@ -431,19 +474,25 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
             warns.append(f"light weights poorly determined: Pi null-space ratio {null_ratio:.3g}")
         if not np.all(rgb > 0):
             raise InsufficientSurfaceVariation("estimated light gives a non-positive camera response")
-        est = _finish(rgb, spd, w, camera, E, "maloney-wandell", diag, warns, lm)
-        if method == "auto":
-            bad = [s for s in est.warnings if s.startswith(("data not confined", "estimated light spectrum"))]
-            if bad:
-                return run_peer(fallback, "; ".join(bad))
-            est.diagnostics["decision"] = "maloney-wandell: subspace fit and light passed the paper's tests"
-        return est
+        return _finish(rgb, spd, w, camera, E, "maloney-wandell", diag, warns, lm)
     except InsufficientSurfaceVariation as e:
-        if on_failure == "raise" and method == "maloney-wandell":
+        if on_failure == "raise":
             raise
         warns.append(f"maloney-wandell could not run: {e}")
         diag["failure"] = str(e)
         return run_peer(fallback, str(e))
+
+
+#: Estimator dispatch: method name -> the function that runs it on a prepared
+#: :class:`_Run`. :data:`METHODS` are its keys.
+ESTIMATORS = {
+    "auto": _estimate_posterior,
+    "bayes": _estimate_posterior,
+    "maloney-wandell": _estimate_subspace,
+    **dict.fromkeys(PEERS, _estimate_peer),
+}
+METHODS = tuple(ESTIMATORS)
+
 
 
 #: The ``quality`` presets: points of the measured speed/accuracy trade
