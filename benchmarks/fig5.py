@@ -21,7 +21,7 @@ writes ``fig5_rmse_vs_terms.png`` and ``fig5_rmse_vs_terms.csv``.
 References
 ----------
 Wandell (1985), *The Synthesis and Analysis of Color Images*,
-``shared/seeds/002``, section "Fourier Basis": Fig. 5 plots the median
+[docs/references.md#seed-002], section "Fourier Basis": Fig. 5 plots the median
 normalised RMSE of least-squares Fourier fits to 462 Munsell chips against
 the number of terms; Fig. 4a shows the worst fit. Section "Principal
 Components Analysis" (Cohen 1964) motivates the PCA comparison.
@@ -70,7 +70,7 @@ def _stats(err: np.ndarray) -> np.ndarray:
 def fig5_table(max_terms: int = 12, sets=None, wavelengths=None) -> dict:
     """Normalised RMSE of least-squares fits against the number of terms.
 
-    The computation behind Wandell (1985), Fig. 5 (``shared/seeds/002``,
+    The computation behind Wandell (1985), Fig. 5 ([docs/references.md#seed-002],
     section "Fourier Basis"), for colour-science's reflectance sets instead
     of the 462 Munsell chips, and with PCA through the origin beside the
     Fourier basis.

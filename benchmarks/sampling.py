@@ -1,6 +1,6 @@
 """Accuracy and cost of every sampling strategy, evaluated as Kment (2011) does.
 
-Evaluation (Kment 2011, seed 001, sec. 5.4 "Testing spectral data representation
+Evaluation (Kment 2011 [docs/references.md#seed-001], sec. 5.4 "Testing spectral data representation
 methods", Fig. 5.5, sec. 6.1):
 
 * Reference: the light ``E`` and the reflectance ``S`` multiplied on the dense

@@ -5,7 +5,7 @@ Run as::
     python -m benchmarks.spatial [--scenes 25] [--size 64] [--seed 0] [--ks 4,8,16,32] [--jobs 2]
 
 Uniformly lit scenes are the development benchmark's Mondrians
-(``shared/DESIGN.md``; :func:`testing.scenes.draw_scene`, the same scenes).
+(``docs/DESIGN.md``; :func:`testing.scenes.draw_scene`, the same scenes).
 Two-light scenes are the same Mondrians (same surfaces, shading, noise,
 cameras, light list) lit by two of colour-science's illuminants whose camera
 responses are more than ``--min-separation`` degrees apart (3 by default),
@@ -25,9 +25,9 @@ the true light at each centre).
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, Fig. 1 and 'A condition on spatial
+Wandell (1985) [docs/references.md#seed-002], Fig. 1 and 'A condition on spatial
 variation' (a light that varies slowly across the image, estimated in
-regions). ``shared/DESIGN.md``, "The development benchmark".
+regions). ``docs/DESIGN.md``, "The development benchmark".
 """
 
 from __future__ import annotations

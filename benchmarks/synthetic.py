@@ -4,7 +4,7 @@ Run as::
 
     python -m benchmarks.synthetic [--scenes N] [--size 64] [--seed 0] [--ks 4,8,16,32] [--out DIR] [--jobs 1]
 
-Implements ``shared/DESIGN.md``, section "The development benchmark".
+Implements ``docs/DESIGN.md``, section "The development benchmark".
 Mondrian scenes of K surfaces (colour-science's reflectances, each a
 rectangle with a random shading factor in [0.5, 1]) under one of
 colour-science's illuminants, seen by one of the three shipped cameras, are
@@ -32,8 +32,8 @@ angle is the error of the 10 nm camera model against the 5 nm world.
 
 References
 ----------
-``shared/DESIGN.md``, "The development benchmark".
-Wandell (1985), ``shared/seeds/002``, eq. 29-36 (the literal
+``docs/DESIGN.md``, "The development benchmark".
+Wandell (1985) [docs/references.md#seed-002], eq. 29-36 (the literal
 Maloney-Wandell method, ``maloney-wandell``) and eq. 22-25 with Fig. 6
 (rendering for an observer from camera data).
 Buchsbaum (1980) gray world; Land & McCann (1971) white patch; Finlayson &
@@ -394,7 +394,7 @@ def write_outputs(result: dict, out_dir: str) -> tuple[str, str]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.synthetic",
-                                 description="The development benchmark of shared/DESIGN.md (Mondrian scenes).")
+                                 description="The development benchmark of docs/DESIGN.md (Mondrian scenes).")
     ap.add_argument("--scenes", type=int, default=100, help="scenes per K (default 100)")
     ap.add_argument("--size", type=int, default=64, help="image side in pixels (default 64)")
     ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

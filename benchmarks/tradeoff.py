@@ -4,7 +4,7 @@
 
 For each knob (estimator, analysis resolution, wavelength grid, D(E) and
 D(S), region size and overlap, the ``quality`` presets) the same Mondrian
-scenes of the development benchmark (``shared/DESIGN.md``; here at
+scenes of the development benchmark (``docs/DESIGN.md``; here at
 ``size`` x ``size`` pixels so that time per megapixel means something) are
 analysed and rendered under D65; the table gives median and 95th-percentile
 angular error, median end-to-end CIEDE2000 (as in :mod:`benchmarks.synthetic`) and

@@ -2,7 +2,7 @@
 the light at hand, spectra rebuilt by a Wiener (linear least-squares) estimate.
 
 Surfaces are close to a low-dimensional linear model (Wandell 1985,
-``shared/seeds/002``, eq. 6 and 11; Fig. 5: a handful of terms explain
+[docs/references.md#seed-002], eq. 6 and 11; Fig. 5: a handful of terms explain
 Munsell reflectances). A spectrum is then known from a few of its samples:
 with ``R = E[s s^T]`` the autocorrelation of a training set of reflectances
 and ``i`` the sampled bands, the linear least-squares estimate is
@@ -15,9 +15,9 @@ and ``i`` the sampled bands, the linear least-squares estimate is
 ``R[:, i] R[i, i]^-1``. Which bands: chosen greedily, then refined by single
 swaps, to minimise the mean CIEDE2000 of the training set's colour signals
 under the given light against the full calculation, so spiky lights pull
-bands onto their lines (Kment 2011, ``seeds/001``, ch. 5: fluorescent lights
+bands onto their lines (Kment 2011 [docs/references.md#seed-001], ch. 5: fluorescent lights
 need their lines represented) while smooth ones spread them over the
-colour-matching functions (Meyer 1988, ``seeds/000``, sec. 3: wavelengths
+colour-matching functions (Meyer 1988 [docs/references.md#seed-000], sec. 3: wavelengths
 placed where the observer integrates).
 """
 

@@ -8,7 +8,7 @@ explained variance.
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``: eq. 5-11; section "Fourier Basis"
+Wandell (1985) [docs/references.md#seed-002]: eq. 5-11; section "Fourier Basis"
 (Fig. 4b: DC plus sine/cosine pairs over 400-700 nm; Fig. 5: normalised
 RMSE against number of terms); section "Principal Components Analysis"
 (Cohen 1964 for Munsell chips; Judd, MacAdam & Wyszecki 1964 for daylight).

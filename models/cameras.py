@@ -5,7 +5,7 @@ the analysis side (Fig. 6: camera sensors analyse).
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, eq. 12 and Fig. 6.
+Wandell (1985) [docs/references.md#seed-002], eq. 12 and Fig. 6.
 colour-science: ``colour.MSDS_CAMERA_SENSITIVITIES`` (NPL measurements of
 the Nikon 5100 and Sigma SD Merrill) and the rawtoaces Canon EOS 5D Mark II
 data in ``colour/characterisation/datasets/rawtoaces``.

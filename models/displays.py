@@ -8,7 +8,7 @@ XYZ, so its :math:`\\Gamma` exists for the CIE 1931 observer alone.
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, eq. 2-4; IEC 61966-2-1 (sRGB).
+Wandell (1985) [docs/references.md#seed-002], eq. 2-4; IEC 61966-2-1 (sRGB).
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ by the central lobe of a sinc the width of the window (Turkowski and Gabriel
 References
 ----------
 Kment, T. (2011). Spectral data representation techniques for realistic image
-synthesis. TU Wien (seed 001), ch. 4 and sec. 6.3, Tables A.1, A.2 and 7.1.
+synthesis. TU Wien [docs/references.md#seed-001], ch. 4 and sec. 6.3, Tables A.1, A.2 and 7.1.
 Mitchell, D. P. and Netravali, A. N. (1988). Reconstruction filters in
 computer graphics. SIGGRAPH 22(4).
 """

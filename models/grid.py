@@ -8,7 +8,7 @@ chosen by the caller.
 References
 ----------
 Wandell, B. A. (1985). *The Synthesis and Analysis of Color Images*,
-NASA TM-86844 (``shared/seeds/002``), eq. 1 and 12: all quantities are
+NASA TM-86844 [docs/references.md#seed-002], eq. 1 and 12: all quantities are
 sampled at wavelengths :math:`\\lambda_n`, :math:`n = 1..N`.
 """
 

@@ -3,7 +3,7 @@ daylight basis, as arrays.
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, eq. 5 and 10 (lights as weighted sums
+Wandell (1985) [docs/references.md#seed-002], eq. 5 and 10 (lights as weighted sums
 of basis functions) and section "Principal Components Analysis" (Judd,
 MacAdam & Wyszecki 1964: the daylight components S0, S1, S2).
 CIE 015:2018, daylight series.

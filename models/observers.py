@@ -5,7 +5,7 @@ eq. 1-4) and of Fig. 6. Data from colour-science (``colour.MSDS_CMFS``).
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, eq. 1-4; Smith & Pokorny (1975) are
+Wandell (1985) [docs/references.md#seed-002], eq. 1-4; Smith & Pokorny (1975) are
 the cones Wandell used.
 """
 

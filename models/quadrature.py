@@ -47,9 +47,9 @@ function times nm, so that ``sum_i H_i f(x_i) ~= sum_l f(l) w(l) dl`` with
 References
 ----------
 Meyer, G. W. (1988). Wavelength selection for synthetic image generation.
-CVGIP 41, 57-79 (``shared/seeds/000``).
+CVGIP 41, 57-79 [docs/references.md#seed-000].
 Borges, C. F. (1992). Optimal spectral sampling for color imaging. SPIE
-1670, 353-358 (``shared/seeds/004``).
+1670, 353-358 [docs/references.md#seed-004].
 Golub, G. H. and Welsch, J. H. (1969). Calculation of Gauss quadrature
 rules. Math. Comp. 23, 221-230. Gautschi, W. (2004). Orthogonal
 Polynomials: Computation and Approximation, sec. 2.2 (discretised Stieltjes

@@ -2,7 +2,7 @@
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, eq. 6 and 11 and Fig. 5 (surfaces as
+Wandell (1985) [docs/references.md#seed-002], eq. 6 and 11 and Fig. 5 (surfaces as
 weighted sums of basis functions, fitted to a set of measured surfaces).
 """
 

@@ -24,12 +24,9 @@ those built here and those of :mod:`models.sharpening`,
 
 References
 ----------
-Meyer, G. W. (1988). Wavelength selection for synthetic image generation.
-CVGIP 41 (seed 000). Kment, T. (2011). Spectral data representation techniques
-for realistic image synthesis. TU Wien (seed 001). Drew, M. S. and Finlayson,
-G. D. (2003). Multispectral processing without spectra. JOSA A 20(7) (seed 003).
-Borges, C. F. (1992). Optimal spectral sampling for color imaging. SPIE 1670
-(seed 004).
+Meyer (1988) [docs/references.md#seed-000]; Kment (2011)
+[docs/references.md#seed-001]; Drew and Finlayson (2003)
+[docs/references.md#seed-003]; Borges (1992) [docs/references.md#seed-004].
 """
 
 from __future__ import annotations

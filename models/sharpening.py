@@ -1,6 +1,6 @@
 """Spectral sharpening: products of spectra as products of coefficients.
 
-Drew and Finlayson (2003, seed ``003``) take the principal components ``Q``
+Drew and Finlayson (2003) [docs/references.md#seed-003] take the principal components ``Q``
 (``N x n``) of a representative set of spectra (lights, reflectances and the
 colour signals they make) and transform them, ``Q~ = Q T``, so that each new
 basis function is as narrow-band as the span allows: column ``k`` puts as
@@ -31,7 +31,7 @@ coordinate descent to minimise the product error on the training products
 References
 ----------
 Drew, M. S. and Finlayson, G. D. (2003). Multispectral processing without
-spectra. JOSA A 20(7) (``shared/seeds/003``). Finlayson, G. D.,
+spectra. JOSA A 20(7) [docs/references.md#seed-003]. Finlayson, G. D.,
 Drew, M. S. and Funt, B. V. (1994). Spectral sharpening: sensor
 transformations for improved color constancy. JOSA A 11, 1553-1563.
 """

@@ -1,9 +1,9 @@
 """The public Python API: :func:`estimate_illuminant`, :func:`analyze`,
-:func:`render` (contracts in ``shared/DESIGN.md``).
+:func:`render` (contracts in ``docs/DESIGN.md``).
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``: analysis eq. 26-36, synthesis eq.
+Wandell (1985) [docs/references.md#seed-002]: analysis eq. 26-36, synthesis eq.
 22-25, the camera-to-observer rendering of Fig. 6.
 """
 

@@ -24,7 +24,7 @@ used:
 * chromaticity, as the centred log-ratio ``u = H log rho`` with ``H`` the
   (C-1) x C Helmert basis of the sum-zero subspace (for C = 3 a rotation of
   ``(log R/G, log B/G)``). A light change by a diagonal matrix is a shift of
-  ``u`` (the diagonal model, Drew & Finlayson, seed ``003``), so distances
+  ``u`` (the diagonal model, Drew & Finlayson [docs/references.md#seed-003]), so distances
   in ``u`` have the same meaning under every light;
 * relative lightness ``y = mean_k log(rho_k / e_k)`` with ``e = R^T E_m``
   the light's own response, i.e. the geometric mean of the implied
@@ -97,14 +97,14 @@ this estimator is biased by the difference.
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``: eq. 12, 16-17 (sensor responses and
+Wandell (1985) [docs/references.md#seed-002]: eq. 12, 16-17 (sensor responses and
 lighting matrices), eq. 26-31 (the subspace of one light), eq. 36
 (surfaces by pseudo-inverse), eq. 37-39 (noise and model errors), and the
 two failure modes (data not in a subspace; non-realisable surfaces).
 Brainard & Freeman (1997), Bayesian color constancy, JOSA A 14(7).
 Finlayson, Hordley & Hubel (2001), Color by correlation, IEEE PAMI 23(11).
 Forsyth (1990), A novel algorithm for color constancy, IJCV 5(1).
-Drew & Finlayson (2003), seed ``003`` (diagonal models of light change).
+Drew & Finlayson (2003) [docs/references.md#seed-003] (diagonal models of light change).
 Land & McCann (1971) (white patch); Finlayson & Trezzi (2004) (shades of
 gray, the fallback).
 """

@@ -2,7 +2,7 @@
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, eq. 12: :math:`\\rho_k = \\sum_n
+Wandell (1985) [docs/references.md#seed-002], eq. 12: :math:`\\rho_k = \\sum_n
 E(\\lambda_n) S(\\lambda_n) R_k(\\lambda_n)` (here with :math:`\\Delta\\lambda`).
 """
 

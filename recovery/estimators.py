@@ -7,12 +7,12 @@ model.
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, eq. 29-35 (Maloney-Wandell).
+Wandell (1985) [docs/references.md#seed-002], eq. 29-35 (Maloney-Wandell).
 Buchsbaum (1980) gray world; Land & McCann (1971) white patch (max-RGB);
 Finlayson & Trezzi (2004) shades of gray (Minkowski p-norm);
 van de Weijer, Gevers & Gijsenij (2007) gray edge (p-norm of Gaussian
 derivatives). The peers are the development benchmark's baselines
-(``shared/DESIGN.md``).
+(``docs/DESIGN.md``).
 """
 
 from __future__ import annotations

@@ -35,7 +35,7 @@ that the estimator generalises.
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``: eq. 5 and 10 (lights as weighted sums
+Wandell (1985) [docs/references.md#seed-002]: eq. 5 and 10 (lights as weighted sums
 of basis functions; the daylight basis of Judd, MacAdam & Wyszecki 1964).
 CIE 015:2018 (daylight locus, Planck's law).
 Brainard & Freeman (1997), Bayesian color constancy, JOSA A 14(7): a prior

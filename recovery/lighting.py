@@ -2,7 +2,7 @@
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``:
+Wandell (1985) [docs/references.md#seed-002]:
 
 * eq. 17: :math:`(\\Lambda_E)_{kj} = \\sum_n E(\\lambda_n) S_j(\\lambda_n) R_k(\\lambda_n)`
 * eq. 20-21: :math:`\\Lambda_E = \\sum_i \\epsilon_i \\Lambda_i`,

@@ -14,7 +14,7 @@ against model size. A light map with R regions has R lights.
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``: eq. 26, 29-30 (the subspace), 38-39
+Wandell (1985) [docs/references.md#seed-002]: eq. 26, 29-30 (the subspace), 38-39
 (model error when D(E), D(S) are too small). Schwarz (1978), BIC.
 """
 

@@ -2,7 +2,7 @@
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, Fig. 1 and 'A condition on spatial
+Wandell (1985) [docs/references.md#seed-002], Fig. 1 and 'A condition on spatial
 variation': the image is analysed in overlapping regions, each with enough
 surface variation; the light is assumed constant within a region; its scale
 is fixed 'by consistency on overlaps' (the scalar :math:`\\alpha` of eq.

@@ -3,7 +3,7 @@
 Two kinds of evidence, each able to say "the light varies":
 
 1. **A chromaticity trend inside surfaces** (smooth light changes). Wandell
-   (1985, ``shared/seeds/002``, 'A condition on spatial variation') assumes
+   (1985 [docs/references.md#seed-002], 'A condition on spatial variation') assumes
    the light varies slowly across the image while surfaces change abruptly;
    Land & McCann's retinex (1971) and Horn (1974) separate the two the same
    way: small steps between neighbouring pixels belong to the light, large
@@ -44,11 +44,11 @@ Two kinds of evidence, each able to say "the light varies":
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``: Fig. 1 and 'A condition on spatial
+Wandell (1985) [docs/references.md#seed-002]: Fig. 1 and 'A condition on spatial
 variation' (overlapping regions, light constant within a region, slowly
 varying across the image). Land & McCann (1971), Lightness and retinex
 theory, JOSA 61(1); Horn (1974), Determining lightness from an image, CGIP
-3. Drew & Finlayson (2003), seed ``003`` (diagonal model of light change).
+3. Drew & Finlayson (2003) [docs/references.md#seed-003] (diagonal model of light change).
 Kass & Raftery (1995), Bayes factors, JASA 90 (the scale of log B).
 """
 

@@ -2,7 +2,7 @@
 and lists of spectra rendered to a display under one light.
 
 The tristimulus values of the colour signal ``E(l) S(l)`` are (Wandell 1985,
-``shared/seeds/002``, eq. 1-4 and 22-23; Meyer 1988, ``seeds/000``, eq. 1)
+[docs/references.md#seed-002], eq. 1-4 and 22-23; Meyer 1988 [docs/references.md#seed-000], eq. 1)
 
     T_k = k_w sum_l E(l) S(l) xbar_k(l) dl ,   k_w = 1 / sum_l E(l) ybar(l) dl ,
 
@@ -14,8 +14,8 @@ the coefficients is linear too (resampling onto the analysis grid, the
 display's Gamma^-1 of Wandell's eq. 23-24, an optional von Kries adaptation),
 so the whole calculation is one ``(N_in, 3)`` matrix ``K`` applied to every
 pixel's spectrum. A point or quadrature rule has few non-zero rows in ``K``:
-only the bands next to its nodes are ever read (Kment 2011, ``seeds/001``,
-sec. 3.1: point sampling; Borges 1992, ``seeds/004``, eq. 3: shared
+only the bands next to its nodes are ever read (Kment 2011 [docs/references.md#seed-001],
+sec. 3.1: point sampling; Borges 1992 [docs/references.md#seed-004], eq. 3: shared
 abscissas), which is where its speed comes from.
 
 ``strategy="auto"`` picks the rule that reads the fewest bands while the mean
@@ -110,7 +110,7 @@ def light_spikiness(values, wavelengths) -> float:
     and divided by the light's integral over 380-780 nm. Smooth lights
     (blackbodies, CIE daylight) score below 0.01 on colour-science's data;
     the FL series 0.06-0.5 (FL11, three-band, 0.5). This is the test that
-    decides whether a light is 'spiky' in Kment's sense (2011, ``seeds/001``,
+    decides whether a light is 'spiky' in Kment's sense (2011 [docs/references.md#seed-001],
     ch. 5: fluorescent lights need composite or filtered representations).
 
     Examples
@@ -470,13 +470,13 @@ def render_spectra(spectra, wavelengths, light, strategy: str = "auto", n: int |
                    **options) -> SpectralRender:
     """Render reflectance spectra under a light with a chosen wavelength sampling.
 
-    Implements the synthesis of Wandell (1985, ``seeds/002``, eq. 22-24):
+    Implements the synthesis of Wandell (1985 [docs/references.md#seed-002], eq. 22-24):
     the colour signal's own tristimulus values ``T_k = k_w sum E S xbar_k dl``
     (a perfect white reflector under the light has Y = 1), then display
     values ``Gamma^-1 T`` and the display encoding, with the integral
     evaluated by a sampling rule of :mod:`models.sampling` (Meyer 1988,
-    ``seeds/000``, eq. 1-3; Borges 1992, ``seeds/004``, eq. 3; Kment 2011,
-    ``seeds/001``, ch. 3). All linear steps are folded into one ``(N, 3)``
+    [docs/references.md#seed-000], eq. 1-3; Borges 1992 [docs/references.md#seed-004], eq. 3; Kment 2011,
+    [docs/references.md#seed-001], ch. 3). All linear steps are folded into one ``(N, 3)``
     matrix per light (:func:`band_matrix`).
 
     Parameters

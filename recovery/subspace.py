@@ -2,7 +2,7 @@
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, section "The recovery method":
+Wandell (1985) [docs/references.md#seed-002], section "The recovery method":
 
 * eq. 29: under one light the sensor vectors lie in a D(S)-dimensional
   subspace of the C-dimensional sensor space when D(S) < C;

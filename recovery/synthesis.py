@@ -2,7 +2,7 @@
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``:
+Wandell (1985) [docs/references.md#seed-002]:
 
 * eq. 22-24: :math:`\\Gamma I^x = \\Lambda'_{E'} \\sigma^x`, so
   :math:`I^x = \\Gamma^{-1}\\Lambda'_{E'}\\sigma^x`, where :math:`\\Lambda'` uses the

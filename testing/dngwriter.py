@@ -50,7 +50,7 @@ References
 ----------
 Adobe, *Digital Negative (DNG) Specification*, version 1.4.0.0 (2012),
 chapter 4 (tags) and chapter 6 (mapping camera colour space to XYZ).
-Wandell (1985), ``shared/seeds/002``, eq. 12.
+Wandell (1985) [docs/references.md#seed-002], eq. 12.
 """
 
 from __future__ import annotations

@@ -127,7 +127,7 @@ def mondrian_scene(rng: np.random.Generator, k: int, camera_name: str, illuminan
                    step: float = 5.0, min_side: int = 4) -> MondrianScene:
     """A Mondrian of ``k`` rectangles under one light, seen by one camera.
 
-    ``shared/DESIGN.md``, "The development benchmark". The ``k`` surfaces
+    ``docs/DESIGN.md``, "The development benchmark". The ``k`` surfaces
     are drawn without replacement from ``models.reflectance_set("all")``;
     the image is cut into ``k`` rectangles by :func:`kd_partition`; each
     rectangle gets one surface and a shading factor uniform in ``shading``.

@@ -1,5 +1,5 @@
 """Sampling strategies (models.sampling), Kment's filters (models.filters) and
-his findings reproduced on colour-science's reflectances (Kment 2011, seed 001,
+his findings reproduced on colour-science's reflectances (Kment 2011 [docs/references.md#seed-001],
 Tables 6.1, 6.2, 7.1, A.1, A.2; evaluation as in benchmarks.sampling).
 
 Where our data disagree with the thesis the test asserts what the data show

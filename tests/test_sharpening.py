@@ -1,4 +1,4 @@
-"""Spectral sharpening (Drew and Finlayson 2003, seed 003): metamers,
+"""Spectral sharpening (Drew and Finlayson 2003 [docs/references.md#seed-003]): metamers,
 products of spectra, relighting, and the range of n.
 
 Training and test data are kept apart: the bases are trained on the
