@@ -68,7 +68,7 @@ SPIKY_THRESHOLD = 0.04
 #: L2), so 4096 pixels of a full 31-band product and 16384 pixels of a 5-band
 #: one. Small enough that OpenBLAS runs the skinny product on one thread:
 #: larger chunks made it spin threads against each other on a loaded 2-core
-#: machine (10-50x slower; measured while writing ``recovery.spectral_bench``).
+#: machine (10-50x slower; measured while writing ``benchmarks.spectral``).
 CHUNK_VALUES = 1 << 17
 _XYZ = "CIE 1931 2 Degree Standard Observer"
 #: n tried by ``auto`` for strategies that take a size.

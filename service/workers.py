@@ -4,7 +4,7 @@ Every upload endpoint does its numerical work in a worker thread. Without a
 bound, all requests in flight run at once (up to the thread pool's 40
 threads): on 2 cores that only slows each of them down, and the memory
 peak is the per-request peak (about 2.3 x the decoded 16-bit image, measured
-by ``python -m service.load``) times the number of requests. With at most
+by ``python -m benchmarks.load``) times the number of requests. With at most
 ``Settings.max_concurrent_work`` (``WANDELL_MAX_CONCURRENT_WORK``; default
 the number of CPUs) running and the rest queued first come first served,
 the peak is that many images, and the early requests finish early. Light

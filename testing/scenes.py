@@ -224,7 +224,7 @@ def two_light_scene(rng: np.random.Generator, k: int, camera_name: str, light_a:
                     multiplicative_noise: float = 0.01, additive_noise: float = 0.0005, step: float = 5.0):
     """A development-benchmark Mondrian lit by two lights.
 
-    As :func:`recovery.bench.mondrian_scene` (Wandell 1985, eq. 12 on a
+    As :func:`mondrian_scene` (Wandell 1985, eq. 12 on a
     ``step`` nm grid, the same noise and scaling), but the light at pixel
     ``x`` is ``(1 - a(x)) E_A + a(x) E_B`` (unit-mean spectra), so the sensor
     value is ``s_j [(1 - a) rho_A,j + a rho_B,j]``: light is additive.
@@ -263,7 +263,7 @@ def two_light_scene(rng: np.random.Generator, k: int, camera_name: str, light_a:
 def draw_two_light_scene(seed: int, k: int, index: int, layout: str, size: int = 64,
                          min_separation: float = 3.0):
     """Two-light scene ``index``: camera and two lights drawn uniformly from
-    the shipped ones (as :func:`recovery.bench.draw_scene`), redrawn until
+    the shipped ones (as :func:`draw_scene`), redrawn until
     the lights are more than ``min_separation`` degrees apart for that
     camera. Independent of the uniform scenes (its own generator)."""
     rng = np.random.default_rng([int(seed), int(k), int(index), 2, LAYOUTS.index(layout)])
