@@ -317,16 +317,14 @@ def process_item(task: ItemTask) -> dict:
                 run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
             else:
                 run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
-            M, info = pipeline.correction_matrix(run, task.options.target, task.options.output,
-                                                 opts.get("surface_basis"))
             fmt, bits, _ = FORMATS[task.options.format]
-            rgb16 = decoded.full_linear("uint16")
+            out, M, info = pipeline.render_full(decoded, run, task.options.target, task.options.output, bits,
+                                                opts.get("surface_basis"), threads=task.threads)
             del decoded
-            out = pipeline.apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=task.threads)
-            del rgb16
             illum = _estimate_json(run.estimate, cam.name)
             illum["warnings"] = list(run.camera_warnings) + list(run.estimate.warnings)
             side = {"name": task.name, "illuminant": illum, "correction_matrix": M.tolist(),
+                    "rendering": pipeline.rendering_json(info),
                     "options": asdict(task.options)}
             if task.exactly_once:
                 _atomic_write(meta_path(task.out, ".json"), lambda p: _write_text(p, json.dumps(_clean(side))))

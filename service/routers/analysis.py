@@ -78,12 +78,8 @@ async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, bits, settings):
     decoded, run = _analyze_sync(data, filename, sens, camera, method, opts, settings)
     del data
-    M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"))
-    t0 = time.perf_counter()
-    rgb16 = decoded.full_linear("uint16")
-    t1 = time.perf_counter()
-    out = pipeline.apply_matrix_inplace(rgb16, M, info["encoding"], bits)
-    del rgb16
+    out, M, info = pipeline.render_full(decoded, run, target, output, bits, opts.get("surface_basis"),
+                                        timings=run.timings_ms)
     t2 = time.perf_counter()
     fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt)
     os.close(fd)
@@ -94,8 +90,8 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
         raise
     t3 = time.perf_counter()
     del out
-    run.timings_ms.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3, encode=(t3 - t2) * 1e3)
-    return decoded, run, M, path
+    run.timings_ms.update(encode=(t3 - t2) * 1e3)
+    return decoded, run, M, path, info
 
 
 @router.post("/white-balance")
@@ -129,17 +125,19 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
     if response == "json":
         decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts,
                                                settings)
-        M, _ = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"))
+        M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded)
         body = pipeline.analysis_json(run, decoded)
         body["correction_matrix"] = M.tolist()
+        body["rendering"] = pipeline.rendering_json(info)
         return JSONResponse(clean(body))
-    decoded, run, M, path = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
+    decoded, run, M, path, info = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
                                                        method, opts, target, output, fmt, bits, settings)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     header = {k: body[k] for k in ("method", "camera", "warnings", "timings_ms")}
     header["illuminant"] = {k: v for k, v in body["illuminant"].items() if k not in ("wavelengths", "spectrum")}
     header["correction_matrix"] = M.tolist()
+    header["rendering"] = pipeline.rendering_json(info)
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
                "Content-Disposition": f'inline; filename="corrected.{"tif" if fmt == "tiff" else fmt}"'}
     # streamed from a temporary file (deleted after sending): the encoded
