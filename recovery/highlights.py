@@ -37,7 +37,8 @@ HIGHLIGHT_FULL = 0.98
 
 
 def balance_highlights(camera_rgb: np.ndarray, neutral, start: float = HIGHLIGHT_START,
-                       full: float = HIGHLIGHT_FULL, out: np.ndarray | None = None) -> np.ndarray:
+                       full: float = HIGHLIGHT_FULL, out: np.ndarray | None = None,
+                       white=None) -> np.ndarray:
     """White-balanced camera RGB with clipped pixels made neutral.
 
     Parameters
@@ -50,6 +51,12 @@ def balance_highlights(camera_rgb: np.ndarray, neutral, start: float = HIGHLIGHT
         The blend to neutral runs from ``start`` to ``full`` of saturation
         in the pixel's largest channel.
     out : array like ``camera_rgb`` (float32), optional
+    white : (3,), optional
+        The white-balanced colour that renders as display white (default
+        ``(1, 1, 1)``, exact for the DNG rendering; the spectral synthesis
+        maps the light to a white a little off neutral, so its caller gives
+        the vector its matrix sends to display white). Clipped pixels blend
+        to ``L * white / max(white)``.
 
     Returns
     -------
@@ -78,7 +85,8 @@ def balance_highlights(camera_rgb: np.ndarray, neutral, start: float = HIGHLIGHT
         wh = w[hit]
         L = wh.max(axis=-1, keepdims=True)
         th = t[hit][:, None]
-        w[hit] = wh + th * (L - wh)
+        goal = L if white is None else L * (np.asarray(white, np.float32) / np.float32(np.max(white)))
+        w[hit] = wh + th * (goal - wh)
     return w
 
 
@@ -105,10 +113,8 @@ def highlight_shoulder(rgb: np.ndarray, luminance_weights, knee: float = SHOULDE
     Examples
     --------
     >>> v = np.array([[0.2, 0.2, 0.2], [4.0, 4.0, 4.0], [1.0, 1.0, 1.0]], np.float32)
-    >>> highlight_shoulder(v, [0.2126, 0.7152, 0.0722], knee=0.4, peak=4.0).round(3)
-    array([[0.2  , 0.2  , 0.2  ],
-           [1.   , 1.   , 1.   ],
-           [0.727, 0.727, 0.727]], dtype=float32)
+    >>> highlight_shoulder(v, [0.2126, 0.7152, 0.0722], knee=0.4, peak=4.0).round(3).tolist()
+    [[0.2, 0.2, 0.2], [1.0, 1.0, 1.0], [0.727, 0.727, 0.727]]
     """
     w = np.asarray(luminance_weights, np.float32).reshape(3)
     k = float(knee)

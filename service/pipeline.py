@@ -319,15 +319,24 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
 
         n = np.asarray(neutral, float)
         n = n / n.max()
-        A = (np.asarray(M, float) @ np.diag(n) * 65535.0).astype(np.float32)
+        A64 = np.asarray(M, float) @ np.diag(n)
+        A = (A64 * 65535.0).astype(np.float32)
         inv = np.float32(1.0 / 65535.0)
+        # the white-balanced colour the matrix sends to display white (1, 1, 1)
+        # for the DNG rendering; near it for the spectral one)
+        try:
+            wb_white = np.linalg.solve(A64, np.ones(3))
+        except np.linalg.LinAlgError:
+            wb_white = None
+        if wb_white is None or not np.all(wb_white > 0):
+            wb_white = None
 
     def work(r):
         chunk = rgb16[r:r + rows_per_chunk]
         if neutral is None:
             lin = cv2.transform(np.ascontiguousarray(chunk), Mt)
         else:
-            wb = balance_highlights(chunk.astype(np.float32) * inv, n)
+            wb = balance_highlights(chunk.astype(np.float32) * inv, n, white=wb_white)
             lin = cv2.transform(wb, A)
             if shoulder is not None:
                 from recovery.highlights import highlight_shoulder
