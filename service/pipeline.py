@@ -9,6 +9,7 @@ chunks, and encodes.
 from __future__ import annotations
 
 import io
+import json
 import time
 from dataclasses import dataclass, field
 
@@ -358,17 +359,34 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
 FORMATS = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg"}
 
 
-def encode_image(img: np.ndarray, fmt: str, path: str | None = None) -> bytes | None:
+def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None) -> bytes | None:
     """PNG (8-bit or 16-bit), 16-bit TIFF or 8-bit JPEG of an RGB image, as
-    bytes, or written to ``path`` (TIFF straight from the array, no copy)."""
+    bytes, or written to ``path`` (TIFF straight from the array, no copy).
+
+    ``meta`` (:func:`output_meta`): ``icc`` (profile bytes), ``facts`` (EXIF
+    facts, :func:`service.outputs.output_facts`) and ``text`` (PNG text) are
+    embedded so other tools read the colours and the source right."""
+    from . import outputs
+
+    meta = meta or {}
+    icc, facts = meta.get("icc"), meta.get("facts")
     if fmt == "tiff":
         import tifffile
 
+        kw = {}
+        if icc:
+            kw["iccprofile"] = icc
+        if facts:
+            kw["extratags"] = outputs.tiff_extratags(facts)
+            if facts.get("ImageDescription"):
+                kw["description"] = facts["ImageDescription"]
+                kw["metadata"] = None
+            kw["software"] = facts.get("Software", "wandell-recovery")
         if path is not None:
-            tifffile.imwrite(path, img, photometric="rgb")
+            tifffile.imwrite(path, img, photometric="rgb", **kw)
             return None
         buf = io.BytesIO()
-        tifffile.imwrite(buf, img, photometric="rgb")
+        tifffile.imwrite(buf, img, photometric="rgb", **kw)
         return buf.getvalue()
     import cv2
 
@@ -377,10 +395,47 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None) -> bytes | 
                            [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise ApiError(422, "encode_failed", f"could not encode {fmt}")
+    data = enc.tobytes()
+    if icc or facts or meta.get("text"):
+        data = outputs.embed(data, fmt, icc, outputs.exif_block(facts) if facts else None, meta.get("text"))
     if path is not None:
-        enc.tofile(path)
+        with open(path, "wb") as f:
+            f.write(data)
         return None
-    return enc.tobytes()
+    return data
+
+
+def output_meta(decoded, output: str, estimate: dict | None) -> dict:
+    """What an output file carries: the ICC profile of ``output`` (sRGB,
+    linear sRGB, Display P3; none for the spectral display models), the
+    source's EXIF facts, orientation 1, and the estimate."""
+    from . import metadata, outputs
+
+    facts = outputs.output_facts(metadata.source_exif(decoded), estimate)
+    text = {"wandell:estimate": json.dumps(estimate, separators=(",", ":"))} if estimate is not None else None
+    return {"icc": outputs.shipped_icc(output), "facts": facts, "text": text}
+
+
+def temperature_tint(decoded, run: EstimateRun) -> dict:
+    """Camera Raw's Temperature/Tint of the estimated light: the camera
+    neutral -> xy through the file's colour matrices (DNG ``NeutralToXY``),
+    then Adobe's Robertson temperature and tint
+    (:func:`recovery.dng_color.xy_to_temperature_tint`). Without matrices,
+    the spectrum's CCT and ``3000 * Duv`` (approximate)."""
+    from recovery.dng_color import neutral_to_xy, xy_to_temperature_tint
+
+    from .metadata import color_profile
+
+    prof = color_profile(decoded) if decoded is not None else None
+    if prof is not None and run.camera.channels == 3:
+        xy = neutral_to_xy(prof, np.asarray(run.estimate.rgb, float))
+        t, tint = xy_to_temperature_tint(xy)
+        return {"temperature": t, "tint": tint, "xy": [float(xy[0]), float(xy[1])], "basis": prof.source}
+    cct, duv = run.estimate.cct_duv()
+    if cct is None:
+        raise ApiError(422, "no_temperature", "the estimated light is too far from the Planckian locus for a "
+                       "temperature/tint white balance")
+    return {"temperature": cct, "tint": 3000.0 * duv, "basis": "spectrum CCT/Duv (approximate)"}
 
 
 def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -> dict:
