@@ -71,9 +71,11 @@ def output_space(output: str, wavelengths: np.ndarray, observer: str | None = No
     try:
         d: Display = get_display(output, wl)
     except KeyError:
-        raise ValueError(f"unknown output {output!r}; accepted: XYZ, linear-sRGB, sRGB, "
+        raise ValueError(f"unknown output {output!r}; accepted: XYZ, linear-sRGB, sRGB, Display P3, "
                          "Typical CRT Brainard 1997, Apple Studio Display") from None
     obs = get_observer(observer or "CIE 1931 2 Degree Standard Observer", wl)
+    if d.guns is None:  # a colorimetric display (Display P3, Rec. 709): its primaries, encoded
+        return OutputSpace(output, obs, d.primaries_XYZ, d.encoding)
     G = display_matrix(d.guns, obs, wavelength_step(wl))
     G = G / G.sum(axis=1)[1]
     return OutputSpace(output, obs, G)

@@ -40,7 +40,7 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
     if batch is None:
         return
     ap.add_argument("--target", default="D65", help="light to render under, or 'estimate'")
-    ap.add_argument("--output", default="sRGB", help="sRGB, linear-sRGB or a display name")
+    ap.add_argument("--output", default="sRGB", help="sRGB, linear-sRGB, Display P3 or a display name")
     ap.add_argument("--format", default="tiff", help="tiff (16-bit), png (8-bit), png16, jpeg")
     if batch:
         ap.add_argument("--lighting", default="per-image", help="per-image, or shared: one light for all")
@@ -228,8 +228,39 @@ def _cmd_white_balance(args) -> int:
                          exactly_once=False)
     res = jobs.process_item(task)
     res["name"] = task.name
+    if res["status"] == "done" and args.xmp is not None:
+        path = args.xmp or os.path.join(os.path.dirname(os.path.abspath(args.out)),
+                                        os.path.splitext(os.path.basename(args.file))[0] + ".xmp")
+        try:
+            tt = _write_xmp(args.file, res["illuminant"], opts, path)
+            res["xmp"] = path
+            print(f"XMP sidecar: {path} (Temperature {tt['temperature']:.0f} K, Tint {tt['tint']:+.0f})")
+        except Exception as e:  # noqa: BLE001 - the image is written; say why the sidecar is not
+            res["status"] = "failed"
+            res["error"] = f"xmp: {getattr(e, 'detail', e)}"
     _summary([res], sys.stdout)
     return 0 if res["status"] == "done" else 1
+
+
+def _write_xmp(src: str, illuminant: dict, opts, path: str) -> dict:
+    """The Camera Raw sidecar of a finished item (its estimated light's
+    camera RGB through the file's colour matrices, pipeline.temperature_tint)."""
+    from . import pipeline, rawio
+    from .outputs import xmp_sidecar
+
+    max_pixels, est_pixels = _limits()
+    with open(src, "rb") as f:
+        decoded = rawio.decode_upload(f.read(), os.path.basename(src), max_pixels=max_pixels,
+                                      estimation_pixels=est_pixels)
+    cam, warns = rawio.resolve_camera(decoded, opts.camera)
+    run = pipeline.run_with_white(pipeline.EstimateRun(None, cam, warns), illuminant["camera_rgb"],
+                                  illuminant.get("method", "estimate"))
+    tt = pipeline.temperature_tint(decoded, run)
+    summary = {"method": illuminant.get("method"), "camera_rgb": illuminant["camera_rgb"],
+               "temperature": tt["temperature"], "tint": tt["tint"], "basis": tt["basis"]}
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(xmp_sidecar(tt["temperature"], tt["tint"], summary))
+    return tt
 
 
 def _cmd_analyze(args) -> int:
@@ -267,6 +298,9 @@ def main(argv=None) -> int:
     w.add_argument("file")
     w.add_argument("out")
     _add_options(w, False)
+    w.add_argument("--xmp", nargs="?", const="", default=None, metavar="PATH",
+                   help="also write a Camera Raw XMP sidecar with the estimate as Temperature/Tint (default path: "
+                        "beside OUT, named after the RAW, so editors apply it to the RAW of that name)")
     args = ap.parse_args(argv)
     try:
         if args.command == "batch":

@@ -46,7 +46,7 @@ THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUM
 
 FORMATS = {"tiff": ("tiff", 16, "tif"), "png": ("png", 8, "png"), "png16": ("png", 16, "png"),
            "jpeg": ("jpeg", 8, "jpg"), "jpg": ("jpeg", 8, "jpg")}
-OUTPUTS = ("sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display")
+OUTPUTS = ("sRGB", "linear-sRGB", "Display P3", "Typical CRT Brainard 1997", "Apple Studio Display")
 LIGHTING = ("per-image", "shared")
 #: Pixels of pooled estimation data in ``shared`` mode (split between the
 #: images): the same budget as one image's estimation (pipeline.ANALYSIS_PIXELS).
@@ -317,20 +317,22 @@ def process_item(task: ItemTask) -> dict:
                 run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
             else:
                 run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
-            M, info = pipeline.correction_matrix(run, task.options.target, task.options.output,
-                                                 opts.get("surface_basis"))
             fmt, bits, _ = FORMATS[task.options.format]
-            rgb16 = decoded.full_linear("uint16")
+            out, M, info = pipeline.render_full(decoded, run, task.options.target, task.options.output, bits,
+                                                opts.get("surface_basis"), threads=task.threads)
+            summary = {"method": run.estimate.method, "camera_rgb": run.estimate.rgb.tolist(),
+                       "camera": cam.name, "rendering": info.get("rendering"), "target": task.options.target,
+                       "output": task.options.output}
+            meta = pipeline.output_meta(decoded, task.options.output, summary)
             del decoded
-            out = pipeline.apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=task.threads)
-            del rgb16
             illum = _estimate_json(run.estimate, cam.name)
             illum["warnings"] = list(run.camera_warnings) + list(run.estimate.warnings)
             side = {"name": task.name, "illuminant": illum, "correction_matrix": M.tolist(),
+                    "rendering": pipeline.rendering_json(info),
                     "options": asdict(task.options)}
             if task.exactly_once:
                 _atomic_write(meta_path(task.out, ".json"), lambda p: _write_text(p, json.dumps(_clean(side))))
-            _atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt, p))
+            _atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt, p, meta=meta))
             if task.write_log:
                 with open(task.write_log, "a") as f:
                     f.write(json.dumps({"name": task.name, "out": os.path.basename(task.out),

@@ -9,6 +9,7 @@ chunks, and encodes.
 from __future__ import annotations
 
 import io
+import json
 import time
 from dataclasses import dataclass, field
 
@@ -48,6 +49,24 @@ def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str,
     return EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f)
 
 
+def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
+    """The same image and camera with the light fixed to a given camera RGB
+    (the file's as-shot white, or a surface the user says is white): the
+    spectrum is the 3-term daylight-model light with that response (as the
+    peer estimators do), so both renderings (DNG-matrix and spectral) work."""
+    from recovery.api import _finish, _spectrum_from_rgb
+
+    rgb = np.asarray(camera_rgb, float)
+    if rgb.shape != (run.camera.channels,) or not np.all(np.isfinite(rgb)) or not np.all(rgb > 0):
+        raise ApiError(422, "invalid_parameter", f"a white must be {run.camera.channels} positive camera values, "
+                       f"got {np.round(rgb, 6).tolist()}")
+    model = resolve_model(None, "light", min(3, run.camera.channels), run.camera.wavelengths)
+    w, spd = _spectrum_from_rgb(rgb, run.camera, model)
+    est = _finish(rgb, spd, w, run.camera, model, method,
+                  {"light_model": model.name + " (spectrum fitted to the given white)"}, [])
+    return EstimateRun(est, run.camera, list(run.camera_warnings), dict(run.timings_ms), run.factor)
+
+
 def illuminant_json(est: IlluminantEstimate) -> dict:
     cct, duv = est.cct_duv()
     return {
@@ -77,6 +96,8 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
         "image": {"kind": decoded.kind, "width": decoded.full_shape[1], "height": decoded.full_shape[0],
                   "make": decoded.make, "model": decoded.model},
     }
+    choice = rendering_choice(run, decoded)
+    out["rendering"] = {"rendering": choice["rendering"], "color_source": choice["color_source"]}
     lm = est.light_map
     if lm is not None:  # the light at the map's centres, as fractions of the image height and width
         rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
@@ -93,22 +114,95 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
     return out
 
 
-def correction_matrix(run: EstimateRun, target: str, output: str, surface_model: str | None = None
-                      ) -> tuple[np.ndarray, dict]:
+def rendering_choice(run: EstimateRun, decoded=None) -> dict:
+    """How the corrected image is rendered: ``"dng-matrix"`` (the DNG
+    specification's camera -> XYZ pipeline, :mod:`recovery.dng_color`) for a
+    camera known only by its colour matrix (DNG tags, or LibRaw's matrix for
+    other RAWs), ``"spectral"`` (Wandell 1985, eq. 22-25) for measured,
+    uploaded or generic sensitivities."""
+    from .metadata import color_profile
+
+    prof = color_profile(decoded) if decoded is not None else None
+    if prof is not None and run.camera.source == "matrix-derived":
+        return {"rendering": "dng-matrix", "color_source": prof.source, "profile": prof}
+    return {"rendering": "spectral", "color_source": run.camera.source, "profile": None}
+
+
+def _target_xy(target: str, est: IlluminantEstimate, white_xy, wavelengths) -> tuple[float, float]:
+    """Chromaticity the rendered white takes: D65 for ``D65``, the light's
+    own (no adaptation) for ``estimate``, else the named light's."""
+    from recovery.dng_color import D65_XY
+
+    if target == "D65":
+        return D65_XY
+    if target in ("estimate", "as-seen"):
+        return tuple(white_xy)
+    from models import observer
+
+    try:
+        spd = get_illuminant(target, wavelengths)
+    except KeyError as e:
+        raise ApiError(422, "invalid_parameter", f"target: {e.args[0]}") from None
+    xyz = observer("CIE 1931 2 Degree Standard Observer", wavelengths).T @ np.asarray(spd, float)
+    return tuple(xyz[:2] / xyz.sum())
+
+
+def correction_matrix(run: EstimateRun, target: str, output: str, surface_model: str | None = None,
+                      *, decoded=None, tone: str = "shoulder") -> tuple[np.ndarray, dict]:
     """Camera RGB (1.0 = saturation) -> linear display values.
 
+    Spectral rendering (measured, uploaded or generic sensitivities):
     ``M = Gamma^{-1} Lambda'_{E'} Lambda_E^{-1}`` (eq. 23 and 36 with a
     surface model of as many terms as sensors), scaled so that the
     brightest neutral the sensor records unclipped (the light's own camera
     RGB with its largest channel at saturation) renders with luminance 1:
     a fixed exposure, no auto-brightening. The surface model has C terms
     of ``surface_model`` (default PCA of the shipped reflectances).
+
+    DNG-matrix rendering (``decoded`` given, a camera known only by its
+    colour matrix, :func:`rendering_choice`): the DNG specification's
+    camera -> XYZ D50 for the estimated camera neutral
+    (:func:`recovery.dng_color.camera_to_xyz_d50`), Bradford to the target
+    white, ``Gamma^{-1}``, times ``2 ** BaselineExposure``; the same neutral
+    at saturation renders at luminance ``2 ** BaselineExposure``. When that
+    lifts the sensor's range above display white, ``tone="shoulder"`` (the
+    default) asks :func:`apply_matrix_inplace` to roll the highlights off
+    above a knee (:func:`recovery.highlights.highlight_shoulder`) rather than
+    clip them; ``tone="linear"`` is the specification's linear rendering.
+
+    ``info`` has ``rendering``, ``neutral`` (the light's camera RGB, largest
+    channel 1, for :func:`apply_matrix_inplace`'s highlight handling),
+    ``encoding`` and the rendering's figures.
     """
     cam, est = run.camera, run.estimate
     try:
         space = output_space(output, cam.wavelengths)
     except (ValueError, KeyError) as e:
         raise ApiError(422, "invalid_parameter", f"output: {e}") from None
+    neutral = np.asarray(est.rgb, float) / np.max(est.rgb)
+    choice = rendering_choice(run, decoded)
+    if choice["rendering"] == "dng-matrix" and np.all(neutral > 0) and space.Gamma is not None:
+        from recovery.dng_color import bradford, camera_to_xyz_d50, D50_XY
+
+        prof = choice["profile"]
+        M50, dinfo = camera_to_xyz_d50(prof, neutral)
+        wxy = _target_xy(target, est, dinfo["white_xy"], cam.wavelengths)
+        gain = 2.0 ** float(prof.baseline_exposure)
+        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50) * gain
+        info = {"rendering": "dng-matrix", "color_source": choice["color_source"], "encoding": space.encoding,
+                "neutral": neutral.tolist(), "white_xy": dinfo["white_xy"],
+                "temperature": dinfo["temperature"], "tint": dinfo["tint"],
+                "calibration_weight": dinfo["calibration_weight"], "forward_matrix": dinfo["forward_matrix"],
+                "baseline_exposure": float(prof.baseline_exposure), "target_white_xy": [float(v) for v in wxy]}
+        if prof.notes:
+            info["notes"] = list(prof.notes)
+        if gain > 1.0 and tone == "shoulder":
+            from recovery.highlights import SHOULDER_KNEE
+
+            info["shoulder"] = {"luminance": [float(v) for v in space.Gamma[1]], "knee": SHOULDER_KNEE,
+                                "peak": gain}
+        info["tone"] = "shoulder" if "shoulder" in info else "linear"
+        return M, info
     try:
         tgt = est.spectrum if target in ("estimate", "as-seen") else get_illuminant(target, cam.wavelengths)
     except KeyError as e:
@@ -120,7 +214,64 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
     lum = float(y[1]) if space.Gamma is None else float((space.Gamma @ y)[1])
     if not (np.isfinite(lum) and lum > 0):
         raise ApiError(422, "unrenderable", "the estimated light renders white with no luminance")
-    return M / lum, {"lighting_condition": cond, "encoding": space.encoding}
+    info = {"lighting_condition": cond, "encoding": space.encoding, "rendering": "spectral",
+            "color_source": cam.source}
+    if np.all(neutral > 0):
+        info["neutral"] = neutral.tolist()
+    return M / lum, info
+
+
+def rendering_json(info: dict) -> dict:
+    """The rendering choice and its figures, for headers and JSON bodies."""
+    keys = ("rendering", "color_source", "white_xy", "temperature", "tint", "calibration_weight",
+            "forward_matrix", "baseline_exposure", "tone", "target_white_xy", "crop", "notes")
+    return {k: info[k] for k in keys if k in info}
+
+
+def default_crop(decoded, img: np.ndarray) -> np.ndarray:
+    """The DNG DefaultCrop of a full-resolution image (a view), the file's
+    orientation taken into account; the image itself when there is none or
+    it does not fit."""
+    from .metadata import color_profile
+
+    prof = color_profile(decoded)
+    crop = None if prof is None else prof.default_crop
+    if not crop:
+        return img
+    top, left, h, w = crop
+    flip = int(getattr(decoded, "_postprocess", {}).get("user_flip", 0) or 0)
+    H, W = img.shape[:2]
+    sh, sw = (W, H) if flip & 4 else (H, W)          # the sensor's (unoriented) shape
+    if top < 0 or left < 0 or top + h > sh or left + w > sw or (h, w) == (sh, sw):
+        return img
+    from .rawio import _FLIP_OPS
+
+    rows = np.broadcast_to(np.arange(sh)[:, None], (sh, sw))
+    cols = np.broadcast_to(np.arange(sw)[None, :], (sh, sw))
+    op = _FLIP_OPS.get(flip, _FLIP_OPS[0])
+    r, c = op(rows), op(cols)                       # views: no memory
+    keep_r = (r[:, 0] >= top) & (r[:, 0] < top + h) if np.ptp(r[:, 0]) else (c[:, 0] >= left) & (c[:, 0] < left + w)
+    keep_c = (c[0] >= left) & (c[0] < left + w) if np.ptp(c[0]) else (r[0] >= top) & (r[0] < top + h)
+    ri, ci = np.flatnonzero(keep_r), np.flatnonzero(keep_c)
+    return img[ri[0]:ri[-1] + 1, ci[0]:ci[-1] + 1]
+
+
+def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, surface_model=None,
+                threads: int | None = None, timings: dict | None = None, tone: str = "shoulder"
+                ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The corrected full-resolution image: matrix, demosaic, DefaultCrop,
+    highlights, encoding. Returns ``(image, M, info)``."""
+    M, info = correction_matrix(run, target, output, surface_model, decoded=decoded, tone=tone)
+    t0 = time.perf_counter()
+    rgb16 = default_crop(decoded, decoded.full_linear("uint16"))
+    t1 = time.perf_counter()
+    out = apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=threads, neutral=info.get("neutral"),
+                               shoulder=info.get("shoulder"))
+    t2 = time.perf_counter()
+    if timings is not None:
+        timings.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3)
+    info["crop"] = [int(out.shape[0]), int(out.shape[1])]
+    return out, M, info
 
 
 def _encoding_lut(encoding: str | None, bits: int) -> np.ndarray:
@@ -135,7 +286,8 @@ def _encoding_lut(encoding: str | None, bits: int) -> np.ndarray:
 
 
 def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None, bits: int,
-                         rows_per_chunk: int = 256, threads: int | None = None) -> np.ndarray:
+                         rows_per_chunk: int = 256, threads: int | None = None,
+                         neutral=None, shoulder: dict | None = None) -> np.ndarray:
     """Apply ``M`` to a uint16 (H, W, 3) image whose 65535 is saturation and
     encode it, chunk by chunk on a few threads.
 
@@ -145,6 +297,15 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     intermediate costs at most 13 codes of a 16-bit sRGB output in the
     deepest shadows (the sRGB toe has slope 12.92), nothing in 8-bit output.
     uint16 output reuses the input buffer (memory stays at one image).
+
+    With ``neutral`` (the light's camera RGB) the pixels are first white-
+    balanced with clipped highlights made neutral
+    (:func:`recovery.highlights.balance_highlights`) and ``M diag(neutral)``
+    applied to the result, so a sensor-clipped pixel never renders with a
+    colour cast. With ``shoulder`` (``{"luminance": (3,), "knee": k}``, set
+    when an exposure lifts the sensor's range above display white) the
+    highlights are compressed by :func:`recovery.highlights.highlight_shoulder`
+    instead of clipping flat.
     """
     import os
     from concurrent.futures import ThreadPoolExecutor
@@ -154,13 +315,43 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     lut = _encoding_lut(encoding, bits)
     out = rgb16 if bits == 16 else np.empty(rgb16.shape, np.uint8)
     Mt = np.asarray(M, np.float32)
+    if neutral is not None:
+        from recovery.highlights import balance_highlights
+
+        n = np.asarray(neutral, float)
+        n = n / n.max()
+        A64 = np.asarray(M, float) @ np.diag(n)
+        A = (A64 * 65535.0).astype(np.float32)
+        inv = np.float32(1.0 / 65535.0)
+        # the white-balanced colour the matrix sends to display white (1, 1, 1)
+        # for the DNG rendering; near it for the spectral one)
+        try:
+            wb_white = np.linalg.solve(A64, np.ones(3))
+        except np.linalg.LinAlgError:
+            wb_white = None
+        if wb_white is None or not np.all(wb_white > 0):
+            wb_white = None
 
     def work(r):
-        lin = cv2.transform(rgb16[r:r + rows_per_chunk], Mt)
+        chunk = rgb16[r:r + rows_per_chunk]
+        if neutral is None:
+            lin = cv2.transform(np.ascontiguousarray(chunk), Mt)
+        else:
+            wb = balance_highlights(chunk.astype(np.float32) * inv, n, white=wb_white)
+            lin = cv2.transform(wb, A)
+            if shoulder is not None:
+                from recovery.highlights import highlight_shoulder
+
+                shp = lin.shape
+                highlight_shoulder(lin.reshape(-1, 3), shoulder["luminance"], shoulder["knee"],
+                                   shoulder["peak"], 65535.0)
+                lin = lin.reshape(shp)
+            np.clip(lin, 0.0, 65535.0, out=lin)
+            lin = (lin + np.float32(0.5)).astype(np.uint16)
         np.take(lut, lin, out=out[r:r + rows_per_chunk])
 
-    n = threads or min(4, os.cpu_count() or 1)
-    with ThreadPoolExecutor(n) as pool:
+    n_threads = threads or min(4, os.cpu_count() or 1)
+    with ThreadPoolExecutor(n_threads) as pool:
         list(pool.map(work, range(0, rgb16.shape[0], rows_per_chunk)))
     return out
 
@@ -168,17 +359,34 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
 FORMATS = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg"}
 
 
-def encode_image(img: np.ndarray, fmt: str, path: str | None = None) -> bytes | None:
+def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None) -> bytes | None:
     """PNG (8-bit or 16-bit), 16-bit TIFF or 8-bit JPEG of an RGB image, as
-    bytes, or written to ``path`` (TIFF straight from the array, no copy)."""
+    bytes, or written to ``path`` (TIFF straight from the array, no copy).
+
+    ``meta`` (:func:`output_meta`): ``icc`` (profile bytes), ``facts`` (EXIF
+    facts, :func:`service.outputs.output_facts`) and ``text`` (PNG text) are
+    embedded so other tools read the colours and the source right."""
+    from . import outputs
+
+    meta = meta or {}
+    icc, facts = meta.get("icc"), meta.get("facts")
     if fmt == "tiff":
         import tifffile
 
+        kw = {}
+        if icc:
+            kw["iccprofile"] = icc
+        if facts:
+            kw["extratags"] = outputs.tiff_extratags(facts)
+            if facts.get("ImageDescription"):
+                kw["description"] = facts["ImageDescription"]
+                kw["metadata"] = None
+            kw["software"] = facts.get("Software", "wandell-recovery")
         if path is not None:
-            tifffile.imwrite(path, img, photometric="rgb")
+            tifffile.imwrite(path, img, photometric="rgb", **kw)
             return None
         buf = io.BytesIO()
-        tifffile.imwrite(buf, img, photometric="rgb")
+        tifffile.imwrite(buf, img, photometric="rgb", **kw)
         return buf.getvalue()
     import cv2
 
@@ -187,10 +395,47 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None) -> bytes | 
                            [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise ApiError(422, "encode_failed", f"could not encode {fmt}")
+    data = enc.tobytes()
+    if icc or facts or meta.get("text"):
+        data = outputs.embed(data, fmt, icc, outputs.exif_block(facts) if facts else None, meta.get("text"))
     if path is not None:
-        enc.tofile(path)
+        with open(path, "wb") as f:
+            f.write(data)
         return None
-    return enc.tobytes()
+    return data
+
+
+def output_meta(decoded, output: str, estimate: dict | None) -> dict:
+    """What an output file carries: the ICC profile of ``output`` (sRGB,
+    linear sRGB, Display P3; none for the spectral display models), the
+    source's EXIF facts, orientation 1, and the estimate."""
+    from . import metadata, outputs
+
+    facts = outputs.output_facts(metadata.source_exif(decoded), estimate)
+    text = {"wandell:estimate": json.dumps(estimate, separators=(",", ":"))} if estimate is not None else None
+    return {"icc": outputs.shipped_icc(output), "facts": facts, "text": text}
+
+
+def temperature_tint(decoded, run: EstimateRun) -> dict:
+    """Camera Raw's Temperature/Tint of the estimated light: the camera
+    neutral -> xy through the file's colour matrices (DNG ``NeutralToXY``),
+    then Adobe's Robertson temperature and tint
+    (:func:`recovery.dng_color.xy_to_temperature_tint`). Without matrices,
+    the spectrum's CCT and ``3000 * Duv`` (approximate)."""
+    from recovery.dng_color import neutral_to_xy, xy_to_temperature_tint
+
+    from .metadata import color_profile
+
+    prof = color_profile(decoded) if decoded is not None else None
+    if prof is not None and run.camera.channels == 3:
+        xy = neutral_to_xy(prof, np.asarray(run.estimate.rgb, float))
+        t, tint = xy_to_temperature_tint(xy)
+        return {"temperature": t, "tint": tint, "xy": [float(xy[0]), float(xy[1])], "basis": prof.source}
+    cct, duv = run.estimate.cct_duv()
+    if cct is None:
+        raise ApiError(422, "no_temperature", "the estimated light is too far from the Planckian locus for a "
+                       "temperature/tint white balance")
+    return {"temperature": cct, "tint": 3000.0 * duv, "basis": "spectrum CCT/Duv (approximate)"}
 
 
 def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -> dict:

@@ -676,6 +676,12 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
                           f"{label} is a monochrome RAW ({num_colors} colour); colour analysis needs R, G, B")
     blacks = [float(b) for b in raw.black_level_per_channel]
     white = float(raw.white_level)
+    if raw.raw_type != rawpy.RawType.Flat and white <= 255 and raw.raw_pattern is None:
+        # e.g. a Nikon Coolscan NEF: 8-bit RGB per pixel, no sensor mosaic, no colour matrix
+        who = " ".join(x for x in (make, model) if x)
+        raise UploadError(415, "not_camera_raw",
+                          f"{label} is not a camera RAW: a scanned 8-bit RGB image"
+                          + (f" ({who})" if who else "") + "; it carries no linear sensor data to analyse")
     if not white > max(blacks):
         raise UploadError(422, "corrupt_file",
                           f"{label}: white level {white:g} is not above the black levels {blacks}")

@@ -75,27 +75,46 @@ async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _
     return JSONResponse(clean(body))
 
 
-def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, bits, settings):
+def _with_white(decoded, run, white: str):
+    """The run whose light renders the image: the estimate, or the file's
+    own as-shot white (the same rendering, for a side-by-side download)."""
+    if white == "estimate":
+        return run
+    if decoded.as_shot_neutral is None:
+        raise ApiError(422, "no_as_shot_white", "white=as-shot: the file records no as-shot white balance")
+    return pipeline.run_with_white(run, decoded.as_shot_neutral, "as-shot")
+
+
+def _estimate_summary(body: dict, info: dict | None = None) -> dict:
+    ill = body["illuminant"]
+    out = {"method": body["method"], "camera_rgb": ill["camera_rgb"], "wb_multipliers": ill["wb_multipliers"],
+           "cct": ill["cct"], "duv": ill["duv"], "camera": body["camera"]["name"]}
+    if info:
+        out["rendering"] = info.get("rendering")
+    return out
+
+
+def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, bits, settings,
+                        white="estimate"):
     decoded, run = _analyze_sync(data, filename, sens, camera, method, opts, settings)
     del data
-    M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"))
-    t0 = time.perf_counter()
-    rgb16 = decoded.full_linear("uint16")
-    t1 = time.perf_counter()
-    out = pipeline.apply_matrix_inplace(rgb16, M, info["encoding"], bits)
-    del rgb16
+    run = _with_white(decoded, run, white)
+    out, M, info = pipeline.render_full(decoded, run, target, output, bits, opts.get("surface_basis"),
+                                        timings=run.timings_ms)
     t2 = time.perf_counter()
     fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt)
     os.close(fd)
     try:
-        pipeline.encode_image(out, fmt, path)
+        summary = _estimate_summary(pipeline.analysis_json(run, decoded), info)
+        summary.update(white=white, target=target, output=output)
+        pipeline.encode_image(out, fmt, path, meta=pipeline.output_meta(decoded, output, summary))
     except BaseException:
         os.unlink(path)
         raise
     t3 = time.perf_counter()
     del out
-    run.timings_ms.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3, encode=(t3 - t2) * 1e3)
-    return decoded, run, M, path
+    run.timings_ms.update(encode=(t3 - t2) * 1e3)
+    return decoded, run, M, path, info
 
 
 @router.post("/white-balance")
@@ -103,8 +122,12 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
                         camera: str | None = Form(None), method: str = Form("auto"),
                         quality: str | None = Form(None, description="fast, balanced or accurate"),
                         target: str = Form("D65", description="light to render under, or 'estimate'"),
-                        output: str = Form("sRGB", description="sRGB, linear-sRGB or a display name"),
-                        format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16, jpeg"),
+                        output: str = Form("sRGB", description="sRGB, linear-sRGB, Display P3 or a display name"),
+                        format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16, jpeg, or xmp: "
+                                           "a Camera Raw sidecar (crs:WhiteBalance=Custom, Temperature, Tint) "
+                                           "to apply the estimate to the original RAW in another editor"),
+                        white: str = Form("estimate", description="estimate (this service's light) or as-shot "
+                                          "(the camera's own white, rendered the same way, to compare)"),
                         response: str = Form("image", description="image, or json for the estimate only"),
                         surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"), light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"),
                         region_size: int | None = Form(None), surface_model: str | None = Form(None),
@@ -113,35 +136,55 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
     from camera RGB to the display), with the estimate in the
     ``X-Illuminant`` header (JSON)."""
     t0 = time.perf_counter()
-    fmts = {"tiff": ("tiff", 16), "png": ("png", 8), "png16": ("png", 16), "jpeg": ("jpeg", 8), "jpg": ("jpeg", 8)}
+    fmts = {"tiff": ("tiff", 16), "png": ("png", 8), "png16": ("png", 16), "jpeg": ("jpeg", 8), "jpg": ("jpeg", 8),
+            "xmp": ("xmp", 0)}
+    if white not in ("estimate", "as-shot"):
+        raise ApiError(422, "invalid_parameter", f"white must be estimate or as-shot, not {white!r}")
     if format not in fmts:
         raise ApiError(422, "invalid_parameter", f"format {format!r} unknown; accepted: {sorted(fmts)}")
     if response not in ("image", "json"):
         raise ApiError(422, "invalid_parameter", "response must be image or json")
-    if output not in ("sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display"):
-        raise ApiError(422, "invalid_parameter",
-                       "output must be one of sRGB, linear-sRGB, Typical CRT Brainard 1997, Apple Studio Display")
+    if output not in ("sRGB", "linear-sRGB", "Display P3", "Typical CRT Brainard 1997", "Apple Studio Display"):
+        raise ApiError(422, "invalid_parameter", "output must be one of sRGB, linear-sRGB, Display P3, "
+                       "Typical CRT Brainard 1997, Apple Studio Display")
     opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model,
                             quality)
     data, sens = await _inputs(file, sensitivities, settings)
     await file.close()
     fmt, bits = fmts[format]
+    if fmt == "xmp":
+        decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts, settings)
+        run = _with_white(decoded, run, white)
+        tt = pipeline.temperature_tint(decoded, run)
+        from ..outputs import xmp_sidecar
+
+        summary = _estimate_summary(pipeline.analysis_json(run, decoded))
+        summary.update(temperature=tt["temperature"], tint=tt["tint"], basis=tt["basis"])
+        stem = os.path.splitext(os.path.basename(file.filename or "image"))[0] or "image"
+        return Response(xmp_sidecar(tt["temperature"], tt["tint"], summary), media_type="application/rdf+xml",
+                        headers={"Content-Disposition": f'attachment; filename="{stem}.xmp"',
+                                 "X-Illuminant": json.dumps(clean(summary), separators=(",", ":"))})
     if response == "json":
         decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts,
                                                settings)
-        M, _ = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"))
+        run = _with_white(decoded, run, white)
+        M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded)
         body = pipeline.analysis_json(run, decoded)
         body["correction_matrix"] = M.tolist()
+        body["rendering"] = pipeline.rendering_json(info)
         return JSONResponse(clean(body))
-    decoded, run, M, path = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
-                                                       method, opts, target, output, fmt, bits, settings)
+    decoded, run, M, path, info = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
+                                                  method, opts, target, output, fmt, bits, settings, white)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     header = {k: body[k] for k in ("method", "camera", "warnings", "timings_ms")}
     header["illuminant"] = {k: v for k, v in body["illuminant"].items() if k not in ("wavelengths", "spectrum")}
     header["correction_matrix"] = M.tolist()
+    header["rendering"] = pipeline.rendering_json(info)
+    header["white"] = white
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
-               "Content-Disposition": f'inline; filename="corrected.{"tif" if fmt == "tiff" else fmt}"'}
+               "Content-Disposition": f'inline; filename="{"as-shot" if white == "as-shot" else "corrected"}.'
+                                      f'{"tif" if fmt == "tiff" else "jpg" if fmt == "jpeg" else fmt}"'}
     # streamed from a temporary file (deleted after sending): the encoded
     # image never sits in memory next to the decoded one
     return FileResponse(path, media_type=pipeline.FORMATS[fmt], headers=headers,

@@ -136,11 +136,12 @@ def corrected_preview(decoded, run, target: str, output: str, surface_basis, max
     (:func:`service.pipeline.correction_matrix`, Wandell 1985, eq. 23 and 36)
     applied to the area-downsized estimation image (binned CFA cells for a
     RAW, no demosaic needed at preview size), encoded 8-bit."""
-    M, minfo = pipeline.correction_matrix(run, target, output, surface_basis)
+    M, minfo = pipeline.correction_matrix(run, target, output, surface_basis, decoded=decoded)
     small = _to_uint16(downsize_linear(decoded.estimation, max_side))
-    out = pipeline.apply_matrix_inplace(small, M, minfo["encoding"], 8)
+    out = pipeline.apply_matrix_inplace(small, M, minfo["encoding"], 8, neutral=minfo.get("neutral"),
+                                       shoulder=minfo.get("shoulder"))
     return out, {"wb": "corrected", "target": target, "output": output, "method": run.estimate.method,
-                 "correction_matrix": M.tolist(), "warnings": []}
+                 "correction_matrix": M.tolist(), "rendering": pipeline.rendering_json(minfo), "warnings": []}
 
 
 @router.post("/v1/preview", response_class=Response, responses={

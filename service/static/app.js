@@ -347,16 +347,18 @@ async function run() {
   }
 }
 
-async function downloadCorrected(format, ext) {
+async function downloadCorrected(format, ext, white = "estimate") {
   if (!current || !current.options) return;
   const o = current.options;
-  const fields = {format};
+  const fields = {format, white};
   for (const k of ["camera", "method", "quality", "target"]) if (o[k]) fields[k] = o[k];
   $("dl-status").textContent = `Rendering the full-resolution ${format.toUpperCase()}…`;
   $("error").hidden = true;
   try {
     const resp = await post("/v1/white-balance", formFor(current.file, fields));
-    saveBlob(await resp.blob(), `${stem(current.file.name)}-corrected.${ext}`);
+    const name = format === "xmp" ? `${stem(current.file.name)}.xmp`
+      : `${stem(current.file.name)}-${white === "as-shot" ? "as-shot" : "corrected"}.${ext}`;
+    saveBlob(await resp.blob(), name);
     $("dl-status").textContent = "";
   } catch (err) {
     $("dl-status").textContent = "";
@@ -507,6 +509,8 @@ document.addEventListener("DOMContentLoaded", () => {
   $("dl-tiff").addEventListener("click", () => downloadCorrected("tiff", "tif"));
   $("dl-png").addEventListener("click", () => downloadCorrected("png", "png"));
   $("dl-json").addEventListener("click", downloadEstimate);
+  $("dl-asshot").addEventListener("click", () => downloadCorrected("png", "png", "as-shot"));
+  $("dl-xmp").addEventListener("click", () => downloadCorrected("xmp", "xmp"));
   $("batch-files").addEventListener("change", (e) => chooseBatch(e.target.files));
   dropZone($("batch-drop"), chooseBatch);
   $("batch-run").addEventListener("click", startBatch);

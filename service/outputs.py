@@ -1,0 +1,330 @@
+"""What the output files carry so other tools read them right (issue 13,
+item 3): an ICC profile of the output space, the source's EXIF facts and the
+estimate; and an XMP sidecar with the white balance as Camera Raw's
+Temperature/Tint.
+
+ICC profiles (ICC.1:2001-04, version 2.1 display profiles, matrix/TRC) are
+generated deterministically by :func:`icc_profile` and shipped as package
+data (``service/icc/*.icc``, written by ``python -m service.outputs``); a
+test checks the shipped bytes equal a fresh generation and that LittleCMS
+(Pillow's ImageCms) reads them and maps colours as colour-science does.
+
+EXIF (CIPA DC-008) is written as a little-endian TIFF structure: IFD0 with
+Make, Model, Orientation (always 1: the pixels are already rotated, so the
+orientation is applied once), Software, DateTime, ImageDescription (the
+estimate as JSON), and an EXIF sub-IFD with the exposure facts of the
+source. JPEG gets it as APP1 ``Exif``, PNG as ``eXIf`` (PNG 1.5 extension),
+TIFF as tags of its own IFD0.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from importlib import resources
+
+import numpy as np
+
+__all__ = ["icc_profile", "shipped_icc", "ICC_FOR_OUTPUT", "exif_block", "embed", "xmp_sidecar"]
+
+D50_XYZ = (0.9642, 1.0, 0.8249)      # the ICC PCS white (s15Fixed16 rounding of D50)
+
+#: output name -> (ICC file, description, primaries, transfer)
+ICC_SPACES = {
+    "sRGB": ("sRGB.icc", "sRGB IEC61966-2.1 (wandell)", "sRGB", "srgb"),
+    "linear-sRGB": ("linear-sRGB.icc", "Linear sRGB (wandell)", "sRGB", "linear"),
+    "Display P3": ("DisplayP3.icc", "Display P3 (wandell)", "Display P3", "srgb"),
+}
+ICC_FOR_OUTPUT = {k: v[0] for k, v in ICC_SPACES.items()}
+
+
+def _s15(v: float) -> bytes:
+    return struct.pack(">i", int(round(v * 65536.0)))
+
+
+def _xyz_tag(xyz) -> bytes:
+    return b"XYZ " + b"\0" * 4 + b"".join(_s15(v) for v in xyz)
+
+
+def _curv(kind: str) -> bytes:
+    if kind == "linear":
+        return b"curv" + b"\0" * 4 + struct.pack(">I", 0)       # count 0: identity
+    x = np.linspace(0.0, 1.0, 1024)
+    y = np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)   # IEC 61966-2-1 decoding
+    table = np.rint(y * 65535.0).astype(">u2").tobytes()
+    return b"curv" + b"\0" * 4 + struct.pack(">I", 1024) + table
+
+
+def _desc(text: str) -> bytes:
+    a = text.encode("ascii") + b"\0"
+    return (b"desc" + b"\0" * 4 + struct.pack(">I", len(a)) + a + struct.pack(">II", 0, 0)
+            + struct.pack(">HB", 0, 0) + b"\0" * 67)
+
+
+def _text(text: str) -> bytes:
+    return b"text" + b"\0" * 4 + text.encode("ascii") + b"\0"
+
+
+def icc_profile(output: str) -> bytes:
+    """A v2.1 RGB display profile (matrix/TRC) for ``output`` (a key of
+    :data:`ICC_SPACES`): colorants are the space's RGB -> XYZ columns adapted
+    from its white to D50 by Bradford (as the ICC requires), media white D50,
+    ``chad`` the adaptation, TRC the sRGB curve (1024 entries) or identity.
+    Byte-for-byte deterministic (fixed date, no profile ID)."""
+    from recovery.dng_color import D50_XY, PRIMARIES, bradford, rgb_to_xyz_matrix
+
+    _, desc, prim, trc = ICC_SPACES[output]
+    chad = bradford(PRIMARIES[prim][1], D50_XY)
+    M = chad @ rgb_to_xyz_matrix(prim)
+    curv = _curv(trc)
+    sf32 = b"sf32" + b"\0" * 4 + b"".join(_s15(v) for v in chad.ravel())
+    tags = [(b"desc", _desc(desc)), (b"cprt", _text("No copyright, use freely")),
+            (b"wtpt", _xyz_tag(D50_XYZ)), (b"chad", sf32),
+            (b"rXYZ", _xyz_tag(M[:, 0])), (b"gXYZ", _xyz_tag(M[:, 1])), (b"bXYZ", _xyz_tag(M[:, 2])),
+            (b"rTRC", curv), (b"gTRC", curv), (b"bTRC", curv)]
+    table_len = 4 + 12 * len(tags)
+    offset = 128 + table_len
+    entries, blobs, seen = [], [], {}
+    for sig, data in tags:
+        if data in seen:                       # the three TRCs share one curve
+            entries.append((sig, *seen[data]))
+            continue
+        pad = (-offset) % 4
+        blobs.append(b"\0" * pad)
+        offset += pad
+        seen[data] = (offset, len(data))
+        entries.append((sig, offset, len(data)))
+        blobs.append(data)
+        offset += len(data)
+    body = struct.pack(">I", len(tags)) + b"".join(struct.pack(">4sII", s, o, n) for s, o, n in entries) \
+        + b"".join(blobs)
+    size = 128 + len(body)
+    size += (-size) % 4
+    header = (struct.pack(">I", size) + b"\0" * 4 + struct.pack(">I", 0x02100000) + b"mntrRGB XYZ "
+              + struct.pack(">6H", 2025, 1, 1, 0, 0, 0) + b"acsp" + b"\0" * 4 + struct.pack(">I", 0)
+              + b"\0" * 8 + b"\0" * 8 + struct.pack(">I", 0)
+              + b"".join(_s15(v) for v in D50_XYZ) + b"\0" * 4 + b"\0" * 16 + b"\0" * 28)
+    assert len(header) == 128
+    prof = header + body
+    return prof + b"\0" * (size - len(prof))
+
+
+def shipped_icc(output: str) -> bytes | None:
+    """The shipped profile for an output space (``None`` for outputs without
+    one, e.g. the spectral display models)."""
+    name = ICC_FOR_OUTPUT.get(output)
+    if name is None:
+        return None
+    return resources.files("service").joinpath("icc", name).read_bytes()
+
+
+# ---------------------------------------------------------------------------
+# EXIF
+# ---------------------------------------------------------------------------
+
+_ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 2, 3, 4, 5, 10
+#: name -> (tag, type, in EXIF sub-IFD)
+_EXIF_LAYOUT = {
+    "Make": (271, _ASCII, False), "Model": (272, _ASCII, False), "Orientation": (274, _SHORT, False),
+    "Software": (305, _ASCII, False), "DateTime": (306, _ASCII, False), "Artist": (315, _ASCII, False),
+    "ImageDescription": (270, _ASCII, False), "Copyright": (33432, _ASCII, False),
+    "ExposureTime": (33434, _RATIONAL, True), "FNumber": (33437, _RATIONAL, True),
+    "ISOSpeedRatings": (34855, _SHORT, True), "DateTimeOriginal": (36867, _ASCII, True),
+    "ExposureBiasValue": (37380, _SRATIONAL, True), "FocalLength": (37386, _RATIONAL, True),
+    "BodySerialNumber": (42033, _ASCII, True), "LensMake": (42035, _ASCII, True),
+    "LensModel": (42036, _ASCII, True),
+}
+
+
+def _rational(v, signed=False):
+    if isinstance(v, (tuple, list)) and len(v) == 2:
+        return int(v[0]), int(v[1]) or 1
+    from fractions import Fraction
+
+    f = Fraction(float(v)).limit_denominator(1_000_000)
+    return f.numerator, f.denominator
+
+
+def _encode_value(typ, v) -> tuple[int, bytes]:
+    if typ == _ASCII:
+        b = str(v).encode("utf-8", "replace") + b"\0"
+        return len(b), b
+    if typ == _SHORT:
+        vals = v if isinstance(v, (tuple, list)) else [v]
+        return len(vals), b"".join(struct.pack("<H", int(x) & 0xFFFF) for x in vals)
+    if typ == _LONG:
+        return 1, struct.pack("<I", int(v))
+    n, d = _rational(v, typ == _SRATIONAL)
+    return 1, struct.pack("<ii" if typ == _SRATIONAL else "<II", n, d)
+
+
+def _ifd(entries: list, start: int) -> tuple[bytes, bytes]:
+    """An IFD at ``start`` (offset in the TIFF structure) and its data area."""
+    entries = sorted(entries)
+    n = len(entries)
+    data_at = start + 2 + 12 * n + 4
+    head, data = [struct.pack("<H", n)], b""
+    for tag, typ, count, payload in entries:
+        if len(payload) <= 4:
+            head.append(struct.pack("<HHI", tag, typ, count) + payload.ljust(4, b"\0"))
+        else:
+            if (data_at + len(data)) % 2:
+                data += b"\0"
+            head.append(struct.pack("<HHII", tag, typ, count, data_at + len(data)))
+            data += payload
+    head.append(struct.pack("<I", 0))
+    return b"".join(head), data
+
+
+def exif_block(facts: dict) -> bytes:
+    """A little-endian TIFF structure (``II*\\0``) with the facts of
+    :data:`_EXIF_LAYOUT` found in ``facts``; unknown keys are ignored."""
+    main, sub = [], []
+    for name, v in facts.items():
+        if name not in _EXIF_LAYOUT or v is None:
+            continue
+        tag, typ, in_sub = _EXIF_LAYOUT[name]
+        try:
+            count, payload = _encode_value(typ, v)
+        except (TypeError, ValueError, OverflowError):
+            continue
+        (sub if in_sub else main).append((tag, typ, count, payload))
+    if sub:
+        main.append((34665, _LONG, 1, struct.pack("<I", 0)))        # fixed below
+    ifd0, data0 = _ifd(main, 8)
+    out = b"II*\0" + struct.pack("<I", 8) + ifd0 + data0
+    if sub:
+        if len(out) % 2:
+            out += b"\0"
+        sub_at = len(out)
+        main = [e if e[0] != 34665 else (34665, _LONG, 1, struct.pack("<I", sub_at)) for e in main]
+        ifd0, data0 = _ifd(main, 8)
+        out = b"II*\0" + struct.pack("<I", 8) + ifd0 + data0
+        out += b"\0" * (sub_at - len(out))
+        ifd1, data1 = _ifd(sub, sub_at)
+        out += ifd1 + data1
+    return out
+
+
+def output_facts(source_exif: dict, estimate: dict | None, software: str = "wandell-recovery") -> dict:
+    """The EXIF facts of an output: the source's, orientation 1 (the pixels
+    are already rotated), this software, and the estimate as JSON in
+    ImageDescription."""
+    facts = {k: v for k, v in source_exif.items() if k not in ("Orientation", "ImageDescription", "Software")}
+    facts["Orientation"] = 1
+    facts["Software"] = software
+    if estimate is not None:
+        facts["ImageDescription"] = "wandell estimate " + json.dumps(estimate, separators=(",", ":"))
+    return facts
+
+
+# ---------------------------------------------------------------------------
+# Embedding into encoded files
+# ---------------------------------------------------------------------------
+
+def _png_chunk(ctype: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + ctype + data + struct.pack(">I", zlib.crc32(ctype + data) & 0xFFFFFFFF)
+
+
+def embed(encoded: bytes, fmt: str, icc: bytes | None, exif: bytes | None, text: dict | None = None) -> bytes:
+    """Insert the ICC profile, EXIF and text into an encoded PNG or JPEG."""
+    if fmt == "png":
+        assert encoded[:8] == b"\x89PNG\r\n\x1a\n" and encoded[12:16] == b"IHDR"
+        ihdr_end = 8 + 12 + struct.unpack(">I", encoded[8:12])[0]
+        extra = b""
+        if icc:
+            extra += _png_chunk(b"iCCP", b"ICC profile\0\0" + zlib.compress(icc, 9))
+        if exif:
+            extra += _png_chunk(b"eXIf", exif)
+        for k, v in (text or {}).items():
+            extra += _png_chunk(b"iTXt", k.encode("latin-1") + b"\0\0\0\0\0" + v.encode("utf-8"))
+        return encoded[:ihdr_end] + extra + encoded[ihdr_end:]
+    if fmt == "jpeg":
+        assert encoded[:2] == b"\xff\xd8"
+        segs = b""
+        if exif:
+            payload = b"Exif\0\0" + exif
+            if len(payload) + 2 <= 0xFFFF:
+                segs += b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+        if icc:
+            chunk = 65519
+            parts = [icc[i:i + chunk] for i in range(0, len(icc), chunk)]
+            for i, p in enumerate(parts, 1):
+                payload = b"ICC_PROFILE\0" + bytes([i, len(parts)]) + p
+                segs += b"\xff\xe2" + struct.pack(">H", len(payload) + 2) + payload
+        # after SOI and a JFIF APP0 if present
+        pos = 2
+        if encoded[2:4] == b"\xff\xe0":
+            pos = 4 + struct.unpack(">H", encoded[4:6])[0]
+        return encoded[:pos] + segs + encoded[pos:]
+    raise ValueError(f"embed: unsupported format {fmt!r}")
+
+
+def tiff_extratags(facts: dict) -> list:
+    """tifffile ``extratags`` for the facts (IFD0 tags of the TIFF itself)."""
+    dtype = {_ASCII: "s", _SHORT: "H", _RATIONAL: "2I", _SRATIONAL: "2i"}
+    out = []
+    for name, v in facts.items():
+        if name not in _EXIF_LAYOUT or v is None or name in ("Software", "ImageDescription"):
+            continue
+        tag, typ, _ = _EXIF_LAYOUT[name]
+        try:
+            if typ == _ASCII:
+                out.append((tag, "s", 0, str(v), True))
+            elif typ == _SHORT:
+                out.append((tag, "H", 1, int(v if not isinstance(v, (list, tuple)) else v[0]), True))
+            else:
+                n, d = _rational(v, typ == _SRATIONAL)
+                out.append((tag, dtype[typ], 1, (n, d), True))
+        except (TypeError, ValueError):
+            continue
+    return out
+
+
+# ---------------------------------------------------------------------------
+# XMP sidecar
+# ---------------------------------------------------------------------------
+
+def xmp_sidecar(temperature: float, tint: float, estimate: dict | None = None) -> str:
+    """An XMP sidecar with Camera Raw settings: ``crs:WhiteBalance="Custom"``,
+    ``crs:Temperature`` (K, Camera Raw's 2000..50000 range) and ``crs:Tint``
+    (-150..150), which Lightroom/Camera Raw apply to the RAW of the same
+    name; the estimate itself under a ``wandell:`` namespace."""
+    t = int(round(min(max(float(temperature), 2000.0), 50000.0)))
+    ti = int(round(min(max(float(tint), -150.0), 150.0)))
+    extra = ""
+    if estimate is not None:
+        from xml.sax.saxutils import quoteattr
+
+        extra = f"\n   wandell:Estimate={quoteattr(json.dumps(estimate, separators=(',', ':')))}"
+    return f"""<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>
+<x:xmpmeta xmlns:x="adobe:ns:meta/" x:xmptk="wandell-recovery">
+ <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">
+  <rdf:Description rdf:about=""
+   xmlns:crs="http://ns.adobe.com/camera-raw-settings/1.0/"
+   xmlns:wandell="https://github.com/wandell-recovery/ns/1.0/"
+   crs:WhiteBalance="Custom"
+   crs:Temperature="{t}"
+   crs:Tint="{ti:+d}"
+   crs:HasSettings="True"{extra}/>
+ </rdf:RDF>
+</x:xmpmeta>
+<?xpacket end="w"?>
+"""
+
+
+def main() -> None:
+    """Write the ICC profiles into the package (``service/icc``)."""
+    import os
+
+    here = os.path.join(os.path.dirname(__file__), "icc")
+    os.makedirs(here, exist_ok=True)
+    for output, (name, *_rest) in ICC_SPACES.items():
+        with open(os.path.join(here, name), "wb") as f:
+            f.write(icc_profile(output))
+        print(os.path.join(here, name))
+
+
+if __name__ == "__main__":
+    main()

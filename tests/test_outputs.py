@@ -1,0 +1,141 @@
+"""Issue 13, item 3: outputs other tools read (ICC profile, EXIF, the
+estimate) and the Camera Raw XMP sidecar; the as-shot rendering download."""
+
+from __future__ import annotations
+
+import io
+import json
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from service import outputs, pipeline
+
+from .test_dng_render import real_file
+
+PIL = pytest.importorskip("PIL")
+from PIL import Image, ImageCms  # noqa: E402
+
+
+@pytest.mark.parametrize("output", sorted(outputs.ICC_SPACES))
+def test_shipped_icc_profiles_are_the_generated_ones(output):
+    assert outputs.shipped_icc(output) == outputs.icc_profile(output)
+
+
+def test_icc_profiles_map_colours_like_littlecms_srgb():
+    lab = ImageCms.createProfile("LAB")
+    rng = np.random.default_rng(0)
+    im = Image.fromarray(rng.integers(0, 256, (16, 16, 3), dtype=np.uint8))
+
+    def to_lab(profile):
+        t = ImageCms.buildTransform(profile, lab, "RGB", "LAB", renderingIntent=1)
+        return np.asarray(ImageCms.applyTransform(im, t)).astype(int)
+
+    ours = ImageCms.ImageCmsProfile(io.BytesIO(outputs.shipped_icc("sRGB")))
+    assert np.abs(to_lab(ours) - to_lab(ImageCms.createProfile("sRGB"))).max() <= 1
+
+    def via(name, rgb):
+        t = ImageCms.buildTransform(ImageCms.createProfile("sRGB"),
+                                    ImageCms.ImageCmsProfile(io.BytesIO(outputs.shipped_icc(name))),
+                                    "RGB", "RGB", renderingIntent=1)
+        return ImageCms.applyTransform(Image.new("RGB", (1, 1), rgb), t).getpixel((0, 0))
+
+    assert np.allclose(via("Display P3", (255, 0, 0)), (234, 51, 35), atol=1)    # sRGB red inside P3
+    assert np.allclose(via("linear-sRGB", (128, 128, 128)), (55, 55, 55), atol=1)
+
+
+FACTS = {"Make": "Nikon", "Model": "D800", "Orientation": 6, "ExposureTime": (1, 250), "FNumber": 5.6,
+         "ISOSpeedRatings": 400, "DateTimeOriginal": "2024:05:01 10:00:00"}
+
+
+@pytest.mark.parametrize("fmt,bits", [("png", 8), ("png", 16), ("jpeg", 8), ("tiff", 16)])
+def test_outputs_carry_icc_exif_and_the_estimate(fmt, bits, tmp_path):
+    img = np.full((8, 12, 3), 200 if bits == 8 else 50000, np.uint8 if bits == 8 else np.uint16)
+    est = {"method": "bayes", "camera_rgb": [0.4, 0.8, 0.4]}
+    meta = {"icc": outputs.shipped_icc("Display P3"), "facts": outputs.output_facts(FACTS, est),
+            "text": {"wandell:estimate": json.dumps(est)}}
+    path = tmp_path / f"x.{fmt}"
+    pipeline.encode_image(img, fmt, str(path), meta=meta)
+    if fmt == "tiff":
+        import tifffile
+
+        with tifffile.TiffFile(path) as tf:
+            tags = tf.pages[0].tags
+            assert tags[34675].value == meta["icc"]
+            assert tags[271].value == "Nikon" and tags[272].value == "D800"
+            assert tags[274].value == 1                               # orientation applied once
+            assert "bayes" in tags[270].value
+            assert np.array_equal(tf.asarray(), img)
+        return
+    with Image.open(path) as im:
+        assert im.info["icc_profile"] == meta["icc"]
+        exif = im.getexif()
+        assert exif[271] == "Nikon" and exif[272] == "D800" and exif[274] == 1
+        assert "bayes" in exif[270]
+        sub = exif.get_ifd(0x8769)
+        assert float(sub[33434]) == pytest.approx(1 / 250) and float(sub[33437]) == pytest.approx(5.6)
+        assert sub[34855] == 400 and sub[36867] == "2024:05:01 10:00:00"
+    if fmt == "png":
+        import cv2
+
+        back = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)[..., ::-1]
+        assert np.array_equal(back, img)                            # pixels untouched by the chunks
+
+
+def test_xmp_sidecar_is_camera_raw_settings():
+    text = outputs.xmp_sidecar(5012.4, -7.6, {"method": "bayes"})
+    root = ET.fromstring(text.split("?>", 1)[1].rsplit("<?xpacket", 1)[0])
+    crs = "{http://ns.adobe.com/camera-raw-settings/1.0/}"
+    d = root.find(".//{http://www.w3.org/1999/02/22-rdf-syntax-ns#}Description")
+    assert d.get(crs + "WhiteBalance") == "Custom"
+    assert d.get(crs + "Temperature") == "5012" and d.get(crs + "Tint") == "-8"
+
+
+@pytest.fixture(scope="module")
+def client():
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+
+    with TestClient(app) as c:
+        yield c
+
+
+def test_xmp_of_the_as_shot_white_is_adobes_as_shot_temperature(client):
+    """white=as-shot, format=xmp: the DNG's AsShotNeutral through its own
+    matrices gives Adobe's as-shot Temperature/Tint (recomputed here by the
+    module under test's inverse: the xy it reports maps back)."""
+    from recovery.dng_color import temperature_tint_to_xy
+
+    p = real_file("Blackmagic.dng")
+    r = client.post("/v1/white-balance", files={"file": (p.name, p.read_bytes())},
+                    data={"format": "xmp", "white": "as-shot"})
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"].startswith("application/rdf+xml")
+    h = json.loads(r.headers["x-illuminant"])
+    assert h["basis"] == "DNG tags"
+    assert 3900 < h["temperature"] < 4300 and 0 < h["tint"] < 15
+    assert f'crs:Temperature="{round(h["temperature"])}"' in r.text
+    xy = temperature_tint_to_xy(h["temperature"], h["tint"])
+    assert np.all(np.isfinite(xy))
+
+
+def test_as_shot_download_beside_the_corrected_one(client):
+    p = real_file("Blackmagic.dng")
+    data = p.read_bytes()
+    shots = {}
+    for white in ("estimate", "as-shot"):
+        r = client.post("/v1/white-balance", files={"file": (p.name, data)},
+                        data={"format": "jpeg", "white": white})
+        assert r.status_code == 200, r.text
+        h = json.loads(r.headers["x-illuminant"])
+        assert h["white"] == white and h["rendering"]["rendering"] == "dng-matrix"
+        assert ("as-shot" in r.headers["content-disposition"]) == (white == "as-shot")
+        im = Image.open(io.BytesIO(r.content))
+        assert im.size == (4096, 2160)                              # the DNG's DefaultCrop
+        assert len(im.info["icc_profile"]) > 0
+        shots[white] = np.asarray(im, float)
+    # the estimate is within a degree of the as-shot white: the two pictures agree closely
+    diff = np.abs(shots["estimate"].mean((0, 1)) - shots["as-shot"].mean((0, 1)))
+    assert diff.max() < 12, diff
