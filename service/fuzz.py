@@ -59,7 +59,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Mutation", "FuzzReport", "seed_dngs", "ifd_entries", "mutations", "memory_bound_mb", "run", "main"]
+__all__ = ["Mutation", "FuzzReport", "seed_dngs", "ifd_entries", "mutations", "memory_bound_mb", "run", "main",
+           "dng_mutations", "victim_dngs"]
 
 KINDS = ("truncate", "flip-header", "flip-ifd", "flip-value", "flip-strip", "tag-value", "tag-type",
          "huge-dims", "zero-dims", "bits", "strip-eof", "ifd-offset", "entry-count", "splice", "wrong-name")
@@ -285,6 +286,192 @@ def _mutate(i: int, kind: str, src: bytes, seeds: list[bytes], rng) -> Mutation:
             return m(f"damaged DNG named {name} ({ctype})", filename=name, content_type=ctype)
         return m(f"valid DNG named {name} ({ctype})", filename=name, content_type=ctype)
     raise ValueError(f"unknown mutation kind {kind!r}")
+
+
+# ---------------------------------------------------------------------------
+# Mutations of a real camera DNG (issue 10)
+# ---------------------------------------------------------------------------
+
+#: Kinds of :func:`dng_mutations`. Those from ``dng-truncate`` to
+#: ``dng-tile-tags`` damage the strips and tiles LibRaw decodes into its
+#: (uncleared) buffer: each of them leaked the previous upload's pixels
+#: before the strips and tiles were verified.
+DNG_KINDS = ("dng-truncate", "dng-zero-tail", "dng-no-soi", "dng-sof", "dng-jpeg-segment", "dng-tile-geometry",
+             "dng-tile-tags", "dng-ifd-flip", "dng-data", "dng-valid")
+
+TAG_TILE_WIDTH, TAG_TILE_LENGTH, TAG_TILE_OFFSETS, TAG_TILE_BYTES = 322, 323, 324, 325
+
+
+def _longs(data: bytes, bo: str, entry: tuple) -> list[int]:
+    _, typ, count, value_pos = entry
+    fmt = "H" if typ == 3 else "I"
+    return list(struct.unpack_from(f"{bo}{count}{fmt}", data, value_pos))
+
+
+def _jpeg_segments(data: bytes, start: int) -> dict:
+    """``{marker: position of its FF byte}`` of the JPEG at ``start``, up to
+    its SOS (the first of each marker)."""
+    out, p = {}, start + 2
+    while data[p] == 0xFF:
+        m = data[p + 1]
+        out.setdefault(m, p)
+        if m == 0xDA:
+            break
+        p += 2 + struct.unpack_from(">H", data, p + 2)[0]
+    return out
+
+
+def dng_mutations(data: bytes, seed: int = 0) -> list[Mutation]:
+    """Deterministic mutations of a tiled, JPEG-compressed camera DNG (such
+    as ``shared/data/raw/Blackmagic.dng``), one of every class that made
+    LibRaw decode part of the image from the previous decode's memory.
+
+    The tags are patched in place in IFD 0 (:func:`ifd_entries`), so the
+    mutated files keep the original layout:
+
+    ``dng-truncate``
+        cut inside the header, the IFD, the tag values, at and next to each
+        tile start, and 1-15 bytes before the end of the last tile;
+    ``dng-zero-tail``
+        every byte after a point inside tile 0 or 1 zeroed (length kept);
+    ``dng-no-soi``
+        one tile's SOI marker destroyed;
+    ``dng-sof``
+        a field of tile 0's JPEG frame header (precision, height, width,
+        components, marker type, length);
+    ``dng-jpeg-segment``
+        the length of tile 0's DQT or DHT segment 0 or 65535, or a Huffman
+        table of class 9;
+    ``dng-tile-geometry``
+        ImageWidth one more, TileWidth / TileLength 0, 1, 16, one less or
+        more, doubled, the image width, 2**32-1, or with a count of
+        2**27+1;
+    ``dng-tile-tags``
+        TileOffsets' count 1 or huge, the offsets 0, into the IFD, past the
+        end, one byte in, or huge, the tile tags renamed to strip tags;
+    ``dng-ifd-flip``
+        random bytes of the header and IFD 0 changed (``seed``);
+    ``dng-data``
+        random bytes of tile 0's entropy-coded data changed, 4 KiB of the
+        last tile zeroed, an EOI marker inside it: the structure is intact,
+        LibRaw decodes them or reports a data error;
+    ``dng-valid``
+        the file itself, and with its last 1 and 15 bytes cut when they
+        follow the last tile (they then belong to no tag).
+
+    Whatever the outcome, each must be the same whatever was decoded
+    before.
+
+    Parameters
+    ----------
+    data : bytes
+        A little- or big-endian DNG whose IFD 0 holds the raw image in tiles
+        (TileOffsets, TileByteCounts) of JPEG data.
+    seed : int
+
+    Returns
+    -------
+    list of Mutation
+        ``index`` counts from 0; ``filename`` ``real.dng``.
+    """
+    bo, ifd, ent = ifd_entries(data)
+    offs, cnts = _longs(data, bo, ent[TAG_TILE_OFFSETS]), _longs(data, bo, ent[TAG_TILE_BYTES])
+    (width,) = _longs(data, bo, ent[TAG_WIDTH])
+    (tile_w,) = _longs(data, bo, ent[TAG_TILE_WIDTH])
+    ifd_end = ifd + 2 + 12 * len(ent) + 4
+    data_end = max(o + c for o, c in zip(offs, cnts))
+    seg = _jpeg_segments(data, offs[0])
+    sof = next(p for m, p in seg.items() if 0xC0 <= m <= 0xCF and m not in (0xC4, 0xC8, 0xCC))
+    rng = np.random.default_rng((seed, 10))
+    out: list[Mutation] = []
+
+    def add(kind, what, d, **kw):
+        out.append(Mutation(len(out), kind, what, bytes(d), filename="real.dng", **kw))
+
+    def patched(fn):
+        d = bytearray(data)
+        fn(d)
+        return d
+
+    for cut in sorted({8, ifd + 100, ifd_end, ifd_end + 32, offs[0] - 1, offs[0], offs[0] + 1, sof + 6,
+                       *[o + k for o in offs[1:] for k in (-1, 0, 1)], *[data_end - k for k in (1, 2, 8, 15)]}):
+        add("dng-truncate", f"cut at byte {cut} of {len(data)}", data[:cut])
+    for start in (offs[0] + 5000, offs[1] + 1000):
+        add("dng-zero-tail", f"bytes from {start} zeroed", data[:start] + bytes(len(data) - start))
+    for t, o in enumerate(offs):
+        add("dng-no-soi", f"tile {t} SOI destroyed", patched(lambda d, o=o: d.__setitem__(slice(o, o + 2), b"\0\0")))
+    for name, k, val in [("precision 0", 4, b"\x00"), ("precision 255", 4, b"\xff"), ("height 0", 5, b"\0\0"),
+                         ("height 1", 5, b"\0\x01"), ("width 0", 7, b"\0\0"), ("width 1", 7, b"\0\x01"),
+                         ("components 0", 9, b"\x00"), ("components 255", 9, b"\xff"), ("SOF0", 1, b"\xc0"),
+                         ("SOF2 progressive", 1, b"\xc2"), ("length 0", 2, b"\0\0"), ("length 65535", 2, b"\xff\xff")]:
+        add("dng-sof", f"tile 0 frame header {name}",
+            patched(lambda d, k=k, val=val: d.__setitem__(slice(sof + k, sof + k + len(val)), val)))
+    for name, m, k, val in [("DQT length 0", 0xDB, 2, b"\0\0"), ("DQT length 65535", 0xDB, 2, b"\xff\xff"),
+                            ("DHT length 0", 0xC4, 2, b"\0\0"), ("DHT length 65535", 0xC4, 2, b"\xff\xff"),
+                            ("DHT class 9", 0xC4, 4, b"\x9f")]:
+        if m in seg:
+            p = seg[m] + k
+            add("dng-jpeg-segment", f"tile 0 {name}", patched(lambda d, p=p, val=val: d.__setitem__(
+                slice(p, p + len(val)), val)))
+    add("dng-tile-geometry", f"ImageWidth {width + 1}", patched(lambda d: _set_long(d, bo, ent, TAG_WIDTH, width + 1)))
+    for v in (0, 1, 16, tile_w - 1, tile_w + 1, 2 * tile_w, width, 2**32 - 1):
+        add("dng-tile-geometry", f"TileWidth {v}", patched(lambda d, v=v: _set_long(d, bo, ent, TAG_TILE_WIDTH, v)))
+    for v in (0, 2**32 - 1):
+        add("dng-tile-geometry", f"TileLength {v}", patched(lambda d, v=v: _set_long(d, bo, ent, TAG_TILE_LENGTH, v)))
+    pos = ent[TAG_TILE_WIDTH][0]
+    add("dng-tile-geometry", "TileWidth count 2**27+1",
+        patched(lambda d: struct.pack_into(bo + "I", d, pos + 4, 2**27 + 1)))
+    for c in (1, 2**24 - 1, 2**32 - 1):
+        add("dng-tile-tags", f"TileOffsets count {c}",
+            patched(lambda d, c=c: struct.pack_into(bo + "I", d, ent[TAG_TILE_OFFSETS][0] + 4, c)))
+    vpos = ent[TAG_TILE_OFFSETS][3]
+    n = len(offs)
+    for name, vals in [("0", [0] * n), ("into the IFD", [ifd] * n), ("past the end", [len(data) + 10] * n),
+                       ("one byte in", [o + 1 for o in offs]), ("huge", [2**32 - 16] * n)]:
+        add("dng-tile-tags", f"TileOffsets {name}",
+            patched(lambda d, vals=vals: struct.pack_into(f"{bo}{n}I", d, vpos, *vals)))
+
+    def as_strips(d):
+        for tag, new in ((TAG_TILE_OFFSETS, TAG_STRIP_OFFSETS), (TAG_TILE_BYTES, TAG_STRIP_BYTES),
+                         (TAG_TILE_WIDTH, 278), (TAG_TILE_LENGTH, 278)):
+            struct.pack_into(bo + "H", d, ent[tag][0], new)
+    add("dng-tile-tags", "tile tags renamed to strip tags", patched(as_strips))
+    for k in range(8):
+        d = bytearray(data)
+        where = sorted(int(p) for p in rng.integers(0, ifd_end, 1 + k % 4))
+        for p in where:
+            d[p] = int(rng.integers(256))
+        add("dng-ifd-flip", f"bytes {where} of the header and IFD changed", d)
+    add("dng-valid", "the file itself", data)
+    for k in (1, 15):
+        if len(data) - k >= data_end:
+            add("dng-valid", f"last {k} byte(s) cut (after the last tile)", data[:len(data) - k])
+    for k in range(4):
+        d = bytearray(data)
+        for p in rng.integers(offs[0] + 1024, offs[0] + cnts[0] - 4, 10 ** (k % 3 + 1)):   # entropy data
+            d[int(p)] = int(rng.integers(256))
+        add("dng-data", f"{10 ** (k % 3 + 1)} random bytes of tile 0's entropy-coded data changed", d)
+    t = offs[-1]
+    add("dng-data", "4 KiB of the last tile zeroed",
+        patched(lambda d: d.__setitem__(slice(t + 1000, t + 5096), bytes(4096))))
+    add("dng-data", "EOI marker inside the last tile",
+        patched(lambda d: d.__setitem__(slice(t + 5000, t + 5002), b"\xff\xd9")))
+    return out
+
+
+def victim_dngs(height: int, width: int) -> tuple[bytes, bytes]:
+    """Two different valid DNGs of ``height x width`` (a horizontal ramp
+    with a bright band, and a constant 12345): decoded just before a
+    mutation, they leave different pixels in LibRaw's freed buffers."""
+    from .dngwriter import mosaic, write_dng
+
+    rgb = np.empty((height, width, 3), np.uint16)
+    rgb[...] = (np.linspace(5000, 37500, width, dtype=np.float64)[None, :, None]).astype(np.uint16)
+    rgb[height // 3:height // 2] = 57000
+    a, b = io.BytesIO(), io.BytesIO()
+    write_dng(a, mosaic(rgb, "RGGB"), make="Victim", model="A")
+    write_dng(b, np.full((height, width), 12345, np.uint16), make="Victim", model="B")
+    return a.getvalue(), b.getvalue()
 
 
 # ---------------------------------------------------------------------------
