@@ -1,0 +1,64 @@
+"""Hostile inputs that used to get a 500 or an unreadable answer (issue 10,
+items 3 and 5, and DefaultScale of item 2): each is a 4xx with a JSON
+``{"error", "detail"}`` naming the problem, or an answer clients can read."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.dngwriter import mosaic, write_dng
+from service.rawio import decode_upload
+
+WL31 = ",".join(str(400 + 10 * i) for i in range(31))
+
+
+@pytest.fixture(scope="module")
+def client():
+    from service.app import app
+
+    with TestClient(app) as c:
+        yield c
+
+
+def _npy_header(shape, dtype="<f4") -> bytes:
+    """A version-1.0 ``.npy`` header declaring ``shape`` (npy_overflow.py)."""
+    hdr = "{'descr': '%s', 'fortran_order': False, 'shape': %r, }" % (dtype, tuple(shape))
+    hdr += " " * (63 - (10 + len(hdr)) % 64) + "\n"
+    return b"\x93NUMPY\x01\x00" + len(hdr).to_bytes(2, "little") + hdr.encode()
+
+
+@pytest.mark.parametrize("shape", [(2**32, 2**32, 31), (2**62 + 1, 4, 31), (2**63, 1, 31)])
+def test_npy_whose_shape_product_overflows_int64_is_refused(client, shape):
+    """2**32 * 2**32 * 31 wraps to 0 in int64 and passed the size check;
+    the exact product is far over any limit: 413."""
+    data = _npy_header(shape) + np.full(64, 0.5, "<f4").tobytes()
+    r = client.post("/v1/render", files={"file": ("c.npy", data)}, data={"wavelengths": WL31, "response": "json"})
+    assert r.status_code == 413, r.text
+    assert r.json()["error"] == "cube_too_large" and r.json()["detail"]
+
+
+@pytest.mark.parametrize("n", [2, 4, 5])
+def test_spectra_with_fewer_than_six_wavelengths_are_422(client, n):
+    """repro_render_fewbands.sh: colour-science's Sprague interpolation
+    asserts on fewer than 6 points (a 500 before)."""
+    csv = "\n".join(f"{400 + 300 * i / (n - 1):g},0.5" for i in range(n)).encode()
+    for form in ({"response": "json"}, {"response": "json", "strategy": "full"}):
+        r = client.post("/v1/render", files={"file": ("s.csv", csv)}, data=form)
+        assert r.status_code == 422, r.text
+        assert r.json()["error"] == "too_few_wavelengths" and f"{n} wavelength" in r.json()["detail"]
+    light = "\n".join(f"{380 + 400 * i / (n - 1):g},1" for i in range(n)).encode()
+    csv31 = "\n".join(f"{400 + 10 * i},0.5" for i in range(31)).encode()
+    r = client.post("/v1/render", files={"file": ("s.csv", csv31), "light_file": ("l.csv", light)},
+                    data={"response": "json"})
+    assert r.status_code == 422 and r.json()["error"] == "too_few_wavelengths", r.text
+
+
+def test_six_wavelengths_still_render(client):
+    csv = "\n".join(f"{400 + 60 * i},0.5" for i in range(6)).encode()
+    r = client.post("/v1/render", files={"file": ("s.csv", csv)}, data={"response": "json"})
+    assert r.status_code == 200, r.text
