@@ -453,14 +453,54 @@ def _tag(page, code):
     return None if t is None else t.value
 
 
+#: Longest string taken from a file (Make, Model, UniqueCameraModel): real
+#: camera names are under 40 characters.
+MAX_FILE_STRING = 64
+
+
+def file_string(value, limit: int = MAX_FILE_STRING) -> str | None:
+    """A string read from an uploaded file, safe to echo in a header, JSON or
+    the page.
+
+    Decoded as Latin-1 if bytes; every run of characters that are not
+    printable (NUL, CR/LF and other control characters, including C1) or
+    whitespace becomes one space; trimmed; cut to ``limit`` characters (the
+    last three ``...`` when cut).
+
+    Parameters
+    ----------
+    value : str, bytes or None
+    limit : int
+
+    Returns
+    -------
+    str or None
+        ``None`` when nothing printable is left.
+
+    Examples
+    --------
+    >>> file_string(b"A\\r\\nX-Injected: 1\\x00")
+    'A X-Injected: 1'
+    >>> len(file_string("M" * 65536))
+    64
+    """
+    if value is None:
+        return None
+    if isinstance(value, (bytes, bytearray)):
+        value = bytes(value).decode("latin-1")
+    text = " ".join("".join(c if c.isprintable() and not c.isspace() else " " for c in str(value)).split())
+    if len(text) > limit:
+        text = text[:limit - 3].rstrip() + "..."
+    return text or None
+
+
 def _ascii_tag(page, code) -> str | None:
     v = _tag(page, code)
-    if v is None:
-        return None
-    if isinstance(v, bytes):
-        v = v.decode("latin-1")
-    v = str(v).replace("\x00", " ").strip()
-    return v or None
+    if isinstance(v, bytes) and len(v) > 4 * MAX_FILE_STRING:
+        v = v[:4 * MAX_FILE_STRING]           # no need to scan 64 KiB of it
+    elif isinstance(v, str) and len(v) > 4 * MAX_FILE_STRING:
+        v = v[:4 * MAX_FILE_STRING]
+    return file_string(v)
 
 
 def _srational_matrix(value) -> np.ndarray | None:

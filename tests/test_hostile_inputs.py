@@ -62,3 +62,39 @@ def test_six_wavelengths_still_render(client):
     csv = "\n".join(f"{400 + 60 * i},0.5" for i in range(6)).encode()
     r = client.post("/v1/render", files={"file": ("s.csv", csv)}, data={"response": "json"})
     assert r.status_code == 200, r.text
+
+
+def _small_dng(**kw) -> bytes:
+    rgb = np.full((48, 64, 3), 9000, np.uint16)
+    rgb[..., 1] = 14000
+    buf = io.BytesIO()
+    write_dng(buf, mosaic(rgb, "RGGB"), white_level=16383, **kw)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("make, model", [
+    ("M" * 65536, "m" * 65536),                                   # repro_bigheader.sh
+    ("A\r\nX-Injected: 1\r\n", "B\r\n\r\n<html>"),
+    ("\x1b[31mred\x07", "tab\there\x7fnext"),
+])
+def test_file_strings_are_capped_and_printable(make, model):
+    d = decode_upload(_small_dng(make=make, model=model), "s.dng", max_pixels=10**8)
+    for s in (d.make, d.model):
+        assert s is not None and len(s) <= 64, s
+        assert s.isprintable() and s == s.strip(), repr(s)
+        assert not any(c in s for c in "\r\n\t\x00\x1b\x07\x7f")
+
+
+def test_a_64_kib_make_gives_a_header_clients_read(client):
+    """The X-Illuminant header echoes Make/Model (camera name, warnings):
+    with 64 KiB strings it was ~130 KiB, which curl and Python refuse. Every
+    file string is now at most 64 characters, so the header stays within
+    the 8 KiB that common servers and proxies accept for one header."""
+    data = _small_dng(make="M" * 65536, model="<script>alert(1)</script>\r\n" + "m" * 65536)
+    r = client.post("/v1/white-balance", files={"file": ("big.dng", data)}, data={"format": "png"})
+    assert r.status_code == 200, r.text[:300]
+    header = r.headers["x-illuminant"]
+    assert len(header) < 8192, len(header)
+    body = json.loads(header)
+    assert "\r" not in header and "\n" not in header
+    assert len(json.dumps(body)) < 8192
