@@ -972,6 +972,17 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
                           f"the limit is {max_pixels:,}")
     if s.height < 2 or s.width < 2:
         raise UploadError(422, "corrupt_file", f"{label} declares an image of {s.width}x{s.height} pixels")
+    aspect = float(s.pixel_aspect)
+    if not (math.isfinite(aspect) and aspect > 0):
+        raise UploadError(422, "corrupt_file", f"{label} declares a pixel aspect ratio of {aspect}")
+    # LibRaw stretches non-square pixels (DNG DefaultScale) to square ones when
+    # demosaicking: the image it makes, not the declared one, must fit the limit
+    out_h, out_w = _oriented_shape(int(s.height), int(s.width), 0, aspect)
+    if out_h * out_w > max_pixels:
+        raise UploadError(413, "too_many_pixels",
+                          f"{label} declares {s.width}x{s.height} pixels with a pixel aspect ratio of {aspect:.4g} "
+                          f"(DNG DefaultScale): {out_w}x{out_h} = {out_h * out_w:,} pixels once stretched to "
+                          f"square pixels; the limit is {max_pixels:,}")
 
     make = model = color_matrix = None
     if fmt in ("TIFF", "BigTIFF"):

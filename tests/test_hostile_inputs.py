@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.dngwriter import mosaic, write_dng
-from service.rawio import decode_upload
+from service.rawio import UploadError, decode_upload
 
 WL31 = ",".join(str(400 + 10 * i) for i in range(31))
 
@@ -98,3 +98,30 @@ def test_a_64_kib_make_gives_a_header_clients_read(client):
     body = json.loads(header)
     assert "\r" not in header and "\n" not in header
     assert len(json.dumps(body)) < 8192
+
+
+def _scaled_dng(h: int, w: int, scale) -> bytes:
+    """A DNG of ``h x w`` with DefaultScale ``scale`` (horizontal, vertical
+    as RATIONAL pairs)."""
+    buf = io.BytesIO()
+    write_dng(buf, mosaic(np.full((h, w, 3), 9000, np.uint16), "RGGB"), white_level=16383,
+              extratags=[(50718, 5, 2, scale, True)])
+    return buf.getvalue()
+
+
+def test_default_scale_counts_against_the_pixel_limit():
+    """repro_aspect.sh: DefaultScale 10:1 makes LibRaw stretch 64 x 48 to
+    640 x 48 = 30,720 pixels. With the limit between the declared 3,072 and
+    the stretched 30,720 pixels the file is a 413 before decoding; with the
+    limit above, it decodes to the stretched full-resolution shape."""
+    data = _scaled_dng(48, 64, (10, 1, 1, 1))
+    with pytest.raises(UploadError) as info:
+        decode_upload(data, "a.dng", max_pixels=20_000)
+    assert (info.value.status, info.value.code) == (413, "too_many_pixels"), info.value
+    assert "640x48" in info.value.detail and "DefaultScale" in info.value.detail
+    d = decode_upload(data, "a.dng", max_pixels=30_720)
+    assert d.full_shape == (48, 640)
+    # vertical stretch (1:10) counts the same way
+    with pytest.raises(UploadError) as info:
+        decode_upload(_scaled_dng(48, 64, (1, 1, 10, 1)), "a.dng", max_pixels=20_000)
+    assert info.value.status == 413 and "64x480" in info.value.detail
