@@ -3,7 +3,7 @@ JSON error, or a 200 with finite numbers when the mutation left the file
 valid; never a 5xx, never a hang; the service still answers afterwards and
 its memory stays bounded.
 
-``python -m service.fuzz [--n 2000] [--timeout 20] [--seed 0]``
+``python -m service.fuzz [--n 2000] [--timeout 20] [--seed 0] [--real-dng PATH]``
 
 The seeds are small valid DNGs written by :mod:`service.dngwriter` from
 spectral scenes (different cameras, lights and CFA patterns). Each mutation is
@@ -37,6 +37,12 @@ cycle so that any prefix of the sequence has every kind in it:
                     named ``.dng``
 =================  ==========================================================
 
+With ``--real-dng PATH`` (a real tiled, JPEG-compressed DNG such as
+``shared/data/raw/Blackmagic.dng``), :func:`dng_mutations` of it are sent
+too, each twice, after two different images (:func:`run_real_dng`): the two
+answers must be the same, or the decode depends on what came before (issue
+10: LibRaw's uncleared buffer).
+
 All requests go through the ASGI app in-process (``httpx.ASGITransport``),
 each under a timeout. Memory is the resident set size of this process
 (``psutil``), sampled after a warm-up (imports, colour data, caches) and at
@@ -60,7 +66,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["Mutation", "FuzzReport", "seed_dngs", "ifd_entries", "mutations", "memory_bound_mb", "run", "main",
-           "dng_mutations", "victim_dngs"]
+           "dng_mutations", "victim_dngs", "run_real_dng"]
 
 KINDS = ("truncate", "flip-header", "flip-ifd", "flip-value", "flip-strip", "tag-value", "tag-type",
          "huge-dims", "zero-dims", "bits", "strip-eof", "ifd-offset", "entry-count", "splice", "wrong-name")
@@ -101,11 +107,11 @@ class FuzzReport:
         return self.rss_end_mb - self.rss_warm_mb
 
     def table(self) -> str:
-        lines = [f"{'kind':12s} {'n':>5s}  statuses"]
-        for kind in KINDS:
+        lines = [f"{'kind':17s} {'n':>5s}  statuses"]
+        for kind in KINDS + DNG_KINDS:
             c = self.by_kind.get(kind)
             if c:
-                lines.append(f"{kind:12s} {sum(c.values()):5d}  "
+                lines.append(f"{kind:17s} {sum(c.values()):5d}  "
                              + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())))
         lat = np.array(self.latencies_s or [0.0])
         lines.append(f"\n{self.n} requests in {self.elapsed_s:.1f} s ({self.n / max(self.elapsed_s, 1e-9):.1f}/s); "
@@ -474,6 +480,108 @@ def victim_dngs(height: int, width: int) -> tuple[bytes, bytes]:
     return a.getvalue(), b.getvalue()
 
 
+def _without_timings(obj):
+    """``obj`` without its timings (keys ``ms``, ``ms_*``, ``*_ms``), which
+    vary from run to run."""
+    if isinstance(obj, dict):
+        return {k: _without_timings(v) for k, v in obj.items()
+                if not (k == "ms" or k.startswith("ms_") or k.endswith("_ms"))}
+    if isinstance(obj, list):
+        return [_without_timings(v) for v in obj]
+    return obj
+
+
+def _answer(r) -> tuple:
+    """Status and body of an answer, without the timings."""
+    try:
+        body = json.loads(r.text)
+    except ValueError:
+        return r.status_code, r.text
+    return r.status_code, _without_timings(body)
+
+
+async def _run_real(muts, victims, timeout: float, report: FuzzReport, app, progress) -> list:
+    import httpx
+
+    dependent = []
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://fuzz") as client:
+        async def post(data, name, mut=None):
+            t0 = time.perf_counter()
+            try:
+                files = {"file": (name, data, "image/x-adobe-dng")}
+                r = await asyncio.wait_for(client.post("/v1/analyze", files=files), timeout)
+            except asyncio.TimeoutError:
+                if mut is not None:
+                    report.failures.append(f"#{mut.index} {mut.kind} ({mut.what}): no answer in {timeout} s")
+                return None
+            except Exception as e:  # raised through the transport: a 500 in a real server
+                if mut is not None:
+                    report.failures.append(f"#{mut.index} {mut.kind} ({mut.what}): {type(e).__name__}: {e}"[:300])
+                return None
+            if mut is not None:
+                report.latencies_s.append(time.perf_counter() - t0)
+                report.n += 1
+                report.statuses[r.status_code] += 1
+                report.by_kind.setdefault(mut.kind, Counter())[r.status_code] += 1
+                problem = _check(mut, "/v1/analyze", r)
+                if problem:
+                    report.failures.append(problem)
+            return r
+
+        t0 = time.perf_counter()
+        for j, mut in enumerate(muts):
+            answers = []
+            for victim in victims:          # the same file after two different uploads
+                await post(victim, "victim.dng")
+                r = await post(mut.data, mut.filename, mut)
+                answers.append(None if r is None else _answer(r))
+            if answers[0] is not None and answers[0] != answers[1]:
+                dependent.append(mut)
+                report.failures.append(f"#{mut.index} {mut.kind} ({mut.what}): the answer depends on the previous "
+                                       f"upload ({answers[0][0]} then {answers[1][0]})")
+            if j == 0:
+                report.rss_warm_mb = _rss_mb()
+            report.rss_peak_mb = max(report.rss_peak_mb, _rss_mb())
+            if progress:
+                progress(j, report)
+        report.elapsed_s = time.perf_counter() - t0
+        report.rss_end_mb = _rss_mb()
+        report.health_after = (await asyncio.wait_for(client.get("/health"), timeout)).status_code
+    return dependent
+
+
+def run_real_dng(data: bytes, *, seed: int = 0, timeout: float = 60.0, every: int = 1, app=None, progress=None):
+    """:func:`dng_mutations` of a real DNG to ``/v1/analyze``, each twice:
+    once after a :func:`victim_dngs` upload, once after the other.
+
+    Parameters
+    ----------
+    data : bytes
+        The DNG (e.g. ``shared/data/raw/Blackmagic.dng``).
+    seed, timeout, app, progress
+        As :func:`run`.
+    every : int
+        Send every ``every``-th mutation only (1: all of them).
+
+    Returns
+    -------
+    (FuzzReport, list of Mutation)
+        The report (two requests per mutation) and the mutations whose
+        answer (status and body, timings left out) differed between the two:
+        a decode that depends on a previous upload.
+    """
+    if app is None:
+        from .app import app
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+    bo, _, ent = ifd_entries(data)
+    (w,), (h,) = _longs(data, bo, ent[TAG_WIDTH]), _longs(data, bo, ent[TAG_LENGTH])
+    report = FuzzReport()
+    muts = dng_mutations(data, seed)[::max(1, int(every))]
+    dependent = asyncio.run(_run_real(muts, victim_dngs(h, w), timeout, report, app, progress))
+    return report, dependent
+
+
 # ---------------------------------------------------------------------------
 # Running them against the app
 # ---------------------------------------------------------------------------
@@ -665,6 +773,9 @@ def main(argv=None) -> int:
                     help="also POST every k-th file to /v1/white-balance or /v1/surfaces")
     ap.add_argument("--max-rss-growth-mb", type=float, default=None,
                     help="default: the posterior-model cache's capacity + 64 MB (fuzz.memory_bound_mb)")
+    ap.add_argument("--real-dng", metavar="PATH", default=None,
+                    help="also send dng_mutations of this real DNG (e.g. ../shared/data/raw/Blackmagic.dng), each "
+                         "after two different images, and count the answers that depend on the previous upload")
     args = ap.parse_args(argv)
 
     def progress(j, rep):
@@ -676,6 +787,18 @@ def main(argv=None) -> int:
     bound = memory_bound_mb() if args.max_rss_growth_mb is None else args.max_rss_growth_mb
     print(f"RSS growth bound {bound:.0f} MB")
     ok = not rep.failures and rep.health_after == 200 and rep.rss_growth_mb <= bound
+    if args.real_dng:
+        with open(args.real_dng, "rb") as fh:
+            real, dependent = run_real_dng(fh.read(), seed=args.seed, timeout=args.timeout)
+        print(f"\nreal DNG {args.real_dng}: {real.n // 2} mutations, each sent after two different images")
+        print(real.table())
+        classes = Counter()
+        for s in real.statuses.elements():
+            classes[f"{s // 100}xx"] += 1
+        print(f"answers: {dict(sorted(classes.items()))}; hangs: "
+              f"{sum('no answer' in f for f in real.failures)}; decodes that depend on the previous upload: "
+              f"{len(dependent)}")
+        ok = ok and not real.failures and not dependent and real.health_after == 200
     print("OK" if ok else "FAILED")
     return 0 if ok else 1
 
