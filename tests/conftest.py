@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
+
+# The in-process clients' host names (Starlette's TestClient sends
+# "testserver", the httpx ASGI clients here "t" and "test"): served like the
+# names WANDELL_ALLOWED_HOSTS adds in a deployment. Tests of the Host check
+# itself set the variable through env_settings.
+os.environ.setdefault("WANDELL_ALLOWED_HOSTS", "testserver,t,test")
 
 from models import DEFAULT_WAVELENGTHS
 
