@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
 
 import numpy as np
 import pytest
@@ -54,3 +60,62 @@ def env_settings(monkeypatch):
     yield set_env
     monkeypatch.undo()
     get_settings.cache_clear()
+
+
+def unavailable(reason: str):
+    """Skip a test whose input is missing, but fail it when CI is set (CI must
+    run every test)."""
+    if os.environ.get("CI"):
+        pytest.fail(f"{reason}; CI is set, so this test must run")
+    pytest.skip(reason)
+
+
+@pytest.fixture(scope="session")
+def blackmagic_dng() -> bytes:
+    """The real Blackmagic DNG of the issue-10 reproductions (2176 x 4128)."""
+    path = os.environ.get("WANDELL_TEST_RAW_DIR", "/work/shared/data/raw") + "/Blackmagic.dng"
+    if not os.path.exists(path):
+        unavailable(f"{path} is not here (set WANDELL_TEST_RAW_DIR to the folder holding Blackmagic.dng)")
+    with open(path, "rb") as f:
+        return f.read()
+
+
+@contextlib.contextmanager
+def running_server(env: dict | None = None, timeout: float = 60.0):
+    """``python -m service`` (as the README starts it) on a free loopback
+    port with ``WANDELL_*`` from ``env``: yields ``(base URL, process, log
+    path)``, and stops that process (by its own id) afterwards."""
+    import httpx
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    log = tempfile.NamedTemporaryFile(prefix="wandell-server-", suffix=".log", delete=False)
+    full_env = {**os.environ, "WANDELL_HOST": "127.0.0.1", "WANDELL_PORT": str(port),
+                **{f"WANDELL_{k.upper()}": str(v) for k, v in (env or {}).items()}}
+    proc = subprocess.Popen([sys.executable, "-m", "service"], env=full_env, stdout=log, stderr=subprocess.STDOUT,
+                            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + timeout
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(f"the server exited with {proc.returncode}: {open(log.name).read()[-2000:]}")
+            try:
+                if httpx.get(base + "/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail(f"the server did not answer /health within {timeout} s")
+            time.sleep(0.2)
+        yield base, proc, log.name
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+        os.unlink(log.name)
