@@ -90,16 +90,46 @@ def _then_trim(call):
         trim_memory()
 
 
+async def _client_gone(request) -> None:
+    """Return when the client disconnects. Only after the body has been read
+    (FastAPI reads the form before the endpoint runs), so every message left
+    is ``http.disconnect``. Receiving is what makes the server look: uvicorn
+    stops reading a connection once its request is complete, so a reset is
+    only noticed while someone waits in ``receive()``."""
+    while (await request.receive())["type"] != "http.disconnect":
+        pass
+
+
 async def run_heavy(func, *args, request=None, **kwargs):
     """``func(*args, **kwargs)`` in a worker thread, at most
     ``max_concurrent_work`` of them at once (FIFO). With ``request`` (a
-    Starlette request), a client that disconnected while the job queued
-    gets no work done: 499 ``client_closed_request`` (nobody reads it)."""
+    Starlette request), a client that disconnects while its job waits for a
+    slot leaves the queue at once and gets no work done: 499
+    ``client_closed_request`` (nobody reads it)."""
     call = functools.partial(func, *args, **kwargs)
-    async with _limiter():
-        if request is not None and await request.is_disconnected():
+    limiter = _limiter()
+    if request is None:
+        async with limiter:
+            return await anyio.to_thread.run_sync(_then_trim, call)
+    acquired = gone = False
+    async with anyio.create_task_group() as tg:
+        async def watch():
+            nonlocal gone
+            await _client_gone(request)
+            gone = True
+            tg.cancel_scope.cancel()
+
+        tg.start_soon(watch)
+        await limiter.acquire()
+        acquired = True
+        tg.cancel_scope.cancel()
+    try:
+        if gone:
             log.warning("dropped queued work for %s %s: the client disconnected", request.method,
                         request.url.path)
             raise ApiError(499, "client_closed_request", "the client closed the connection before the work started")
         # the slot is held by this task; the thread comes from anyio's default pool
         return await anyio.to_thread.run_sync(_then_trim, call)
+    finally:
+        if acquired:
+            limiter.release()
