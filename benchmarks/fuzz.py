@@ -659,7 +659,7 @@ async def _run(muts, timeout: float, sample_every: int, warmup: int, report: Fuz
     import httpx
 
     transport = httpx.ASGITransport(app=app)
-    async with httpx.AsyncClient(transport=transport, base_url="http://fuzz") as client:
+    async with httpx.AsyncClient(transport=transport, base_url="http://localhost") as client:
         async def post(endpoint, mut, fields):
             t0 = time.perf_counter()
             try:
