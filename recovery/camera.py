@@ -33,6 +33,11 @@ class Camera:
     name : str
     source : str
         ``measured``, ``matrix-derived``, ``uploaded`` or ``generic``.
+    color_matrix : (3, 3) array_like, optional
+        The XYZ -> camera matrix the RAW file (DNG ColorMatrix) or LibRaw's
+        table gives for the model, when known; the learnt estimator
+        (:mod:`recovery.ffcc`) maps the camera to its canonical space with
+        it (fitted from the sensitivities when absent).
 
     Examples
     --------
@@ -46,6 +51,7 @@ class Camera:
     name: str = "custom"
     source: str = "uploaded"
     notes: tuple = field(default=(), compare=False)
+    color_matrix: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         wl = np.asarray(self.wavelengths, dtype=np.float64)
@@ -61,6 +67,11 @@ class Camera:
         wavelength_step(wl)  # validates increasing grid
         object.__setattr__(self, "wavelengths", wl)
         object.__setattr__(self, "sensitivities", r)
+        if self.color_matrix is not None:
+            m = np.asarray(self.color_matrix, dtype=np.float64)
+            if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+                raise InputError(f"color_matrix must be a finite 3 x 3 array, got {m.shape}")
+            object.__setattr__(self, "color_matrix", m)
 
     @classmethod
     def named(cls, name: str, wavelengths=None) -> "Camera":
@@ -85,7 +96,13 @@ class Camera:
             return self
         coarser = step > float(np.min(np.diff(self.wavelengths))) * 1.01
         sens = (resample_box if coarser else resample)(self.wavelengths, self.sensitivities, wl)
-        return Camera(wl, np.clip(sens, 0, None), self.name, self.source, self.notes)
+        return Camera(wl, np.clip(sens, 0, None), self.name, self.source, self.notes, self.color_matrix)
+
+    def with_color_matrix(self, color_matrix) -> "Camera":
+        """The same camera, with the file's XYZ -> camera matrix attached."""
+        if color_matrix is None:
+            return self
+        return Camera(self.wavelengths, self.sensitivities, self.name, self.source, self.notes, color_matrix)
 
     @property
     def channels(self) -> int:

@@ -30,6 +30,7 @@ __all__ = [
     "white_patch",
     "shades_of_gray",
     "gray_edge",
+    "bright_pixels",
     "PEERS",
     "MWResult",
     "maloney_wandell_pixels",
@@ -67,19 +68,29 @@ def shades_of_gray(image: np.ndarray, mask: np.ndarray | None = None, p: float =
 
 
 def gray_edge(image: np.ndarray, mask: np.ndarray | None = None, p: float = 6.0,
-              sigma: float = 1.0) -> np.ndarray:
-    """First-order gray edge (van de Weijer et al. 2007): the Minkowski
-    p-norm of the gradient magnitude of each Gaussian-smoothed channel.
-    Edges touching masked pixels are left out."""
+              sigma: float = 1.0, order: int = 1) -> np.ndarray:
+    """Gray edge (van de Weijer, Gevers & Gijsenij 2007): the Minkowski
+    p-norm of each Gaussian-smoothed channel's derivative magnitude, of the
+    first order (gradient, ``sqrt(gx^2 + gy^2)``) or the second
+    (``sqrt(gxx^2 + gyy^2 + 2 gxy^2)``). Edges touching masked pixels are
+    left out."""
+    if order not in (1, 2):
+        raise ValueError(f"gray edge order must be 1 or 2, got {order}")
     img = np.asarray(image, dtype=np.float64)
     scale = np.max(img[np.isfinite(img)]) if np.any(np.isfinite(img)) else 1.0
     img = np.where(np.isfinite(img), img, 0.0) / (scale or 1.0)
     h, w, c = img.shape
     mags = np.empty_like(img)
     for k in range(c):
-        gx = ndimage.gaussian_filter(img[..., k], sigma, order=(0, 1), mode="nearest")
-        gy = ndimage.gaussian_filter(img[..., k], sigma, order=(1, 0), mode="nearest")
-        mags[..., k] = np.hypot(gx, gy)
+        if order == 1:
+            gx = ndimage.gaussian_filter(img[..., k], sigma, order=(0, 1), mode="nearest")
+            gy = ndimage.gaussian_filter(img[..., k], sigma, order=(1, 0), mode="nearest")
+            mags[..., k] = np.hypot(gx, gy)
+        else:
+            gxx = ndimage.gaussian_filter(img[..., k], sigma, order=(0, 2), mode="nearest")
+            gyy = ndimage.gaussian_filter(img[..., k], sigma, order=(2, 0), mode="nearest")
+            gxy = ndimage.gaussian_filter(img[..., k], sigma, order=(1, 1), mode="nearest")
+            mags[..., k] = np.sqrt(gxx ** 2 + gyy ** 2 + 2 * gxy ** 2)
     m = None
     if mask is not None:
         m = ndimage.binary_erosion(mask, iterations=max(1, int(np.ceil(2 * sigma))), border_value=1)
@@ -90,6 +101,14 @@ def gray_edge(image: np.ndarray, mask: np.ndarray | None = None, p: float = 6.0,
         raise InsufficientSurfaceVariation("gray edge: the image has no edges")
     top = px.max()
     return scale * top * np.mean((px / top) ** p, axis=0) ** (1.0 / p)
+
+
+def bright_pixels(image: np.ndarray, mask: np.ndarray | None = None, fraction: float = 0.02) -> np.ndarray:
+    """Mean of the brightest ``fraction`` of the usable pixels, by
+    ``r + g + b`` (Cheng, Prasad & Brown 2014, bright pixels)."""
+    px = _masked(image, mask)
+    k = max(1, int(fraction * px.shape[0]))
+    return px[np.argpartition(px.sum(axis=1), -k)[-k:]].mean(axis=0)
 
 
 #: Name -> function(image, mask) -> camera rgb.

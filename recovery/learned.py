@@ -1,0 +1,457 @@
+"""Learnt illuminant estimation for any camera, from what its RAW says about it.
+
+Real scenes are not Mondrians of measured reflectances: large walls,
+shadows, highlights, skies and many near-neutral surfaces decide which
+simple statistic of an image points at its light. Each classical estimator
+is right for some scenes (gray world, shades of gray, max-RGB, gray edge of
+first and second order, bright pixels, gray pixels); this estimator learns,
+from real photographs with measured lights, how to combine them, in a space
+where what is learnt on some cameras holds for others:
+
+1. the camera's colour matrix (XYZ -> camera, from the DNG or LibRaw's
+   table; fitted to measured sensitivities otherwise) maps its linear data
+   to XYZ and on to one fixed *canonical* RGB, the Bradford cone space
+   (a sharpened, camera-like space chosen before looking at any data, so
+   no camera defines it), and a camera never seen is handled through its
+   matrix (the linear form of CCMNet's idea, Kim et al. 2025);
+2. the image is area-averaged to the resolution the model was trained at
+   (64 x 64 cells, the development thumbnails), saturated and dark pixels
+   left out, so a 24-megapixel RAW and a thumbnail give the same evidence;
+3. each classical estimate is turned into a log-chroma
+   ``(u, v) = (log g/r, log g/b)`` (a light change is a shift there, the
+   diagonal model);
+4. a small neural network (one hidden tanh layer; an ensemble of a few,
+   trained from fixed seeds) maps those estimates, taken relative to the
+   bright-pixel estimate, to the light's log-chroma: a learnt, nonlinear
+   "corrected moments" (Finlayson 2013) over many moments;
+5. the uncertainty is a Gaussian in log-chroma whose size grows with the
+   disagreement of the classical estimates and the ensemble, with a
+   calibration learnt on held-out cameras so that the reported 90 % region
+   holds the true light about 90 % of the time.
+
+Everything learnt ships in ``recovery/data/learned_illuminant.npz``, built
+deterministically by ``python -m benchmarks.train_illuminant`` from the
+development photographs (NUS 8-camera and Cube+), with a record of what it
+was trained on.
+
+References
+----------
+Finlayson (2013), Corrected-moment illuminant estimation, ICCV.
+Cheng, Prasad & Brown (2014), Illuminant estimation for color constancy:
+why spatial-domain methods work and the role of the color distribution,
+JOSA A 31(5) (bright pixels; the NUS 8-camera data).
+Cheng, Price, Cohen & Brown (2015), Effective learning-based illuminant
+estimation using simple features, CVPR.
+Finlayson & Trezzi (2004) shades of gray; van de Weijer, Gevers & Gijsenij
+(2007) gray edge; Qian et al. (2019) grey index (gray pixels).
+Kim et al. (2025), CCMNet: cross-camera colour constancy with calibrated
+colour correction matrices, ICCV.
+Barron & Tsai (2017), Fast Fourier color constancy, CVPR (log-chroma).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy import ndimage, optimize
+
+from .camera import Camera
+from .errors import InputError, InsufficientSurfaceVariation
+from .estimators import bright_pixels, gray_edge, gray_world, shades_of_gray, white_patch
+
+__all__ = ["LearnedModel", "LearnedResult", "FEATURE_NAMES", "load_model", "camera_color_matrix",
+           "canonical_transform", "estimation_image", "features", "estimate_learned", "fit_network",
+           "rgb_to_uv", "uv_to_rgb", "DEFAULT_MODEL_PATH", "CHI2_90"]
+
+DEFAULT_MODEL_PATH = Path(__file__).with_name("data") / "learned_illuminant.npz"
+
+#: chi-square quantile, 2 degrees of freedom, at 0.9: ``-2 log 0.1``
+CHI2_90 = float(-2.0 * np.log(0.1))
+
+#: XYZ -> canonical RGB: the Bradford cone fundamentals (Lam 1985), as in
+#: colour-science's ``CHROMATIC_ADAPTATION_TRANSFORMS["Bradford"]``.
+BRADFORD = np.array([[0.8951, 0.2664, -0.1614], [-0.7502, 1.7135, 0.0367], [0.0389, -0.0685, 1.0296]])
+
+#: Cells of the analysis image (the development thumbnails are 64 x 64).
+GRID = 64
+
+
+# --------------------------------------------------------------------------- log-chroma
+def rgb_to_uv(rgb) -> np.ndarray:
+    """rgb (..., 3), positive -> log-chroma ``(log g/r, log g/b)``."""
+    lg = np.log(np.asarray(rgb, float))
+    return np.stack([lg[..., 1] - lg[..., 0], lg[..., 1] - lg[..., 2]], axis=-1)
+
+
+def uv_to_rgb(uv) -> np.ndarray:
+    """Log-chroma -> rgb with ``r + g + b = 1``."""
+    uv = np.asarray(uv, float)
+    rgb = np.stack([np.exp(-uv[..., 0]), np.ones(uv.shape[:-1]), np.exp(-uv[..., 1])], axis=-1)
+    return rgb / rgb.sum(axis=-1, keepdims=True)
+
+
+# --------------------------------------------------------------------------- the camera
+def camera_color_matrix(camera: Camera) -> np.ndarray:
+    """The camera's XYZ -> camera 3 x 3 matrix, scaled like a DNG
+    ColorMatrix (D65 white maps to a largest channel of 1).
+
+    The RAW's or LibRaw's (``camera.color_matrix``) when there is one;
+    otherwise the least-squares fit ``R ~ cmfs @ M.T`` of the spectral
+    sensitivities to the CIE 1931 colour-matching functions, weighted by
+    D65 (the Luther approximation of a measured or uploaded camera).
+    """
+    m = getattr(camera, "color_matrix", None)
+    if m is None:
+        if camera.channels != 3:
+            raise InputError(f"the learnt estimator needs a 3-channel camera, got {camera.channels}")
+        m = _fitted_matrix(camera.wavelengths.tobytes(), camera.sensitivities.tobytes())
+    return normalised_matrix(m)
+
+
+def normalised_matrix(m) -> np.ndarray:
+    """``m`` scaled so the D65 white (Y = 1) gives a largest channel of 1."""
+    m = np.asarray(m, float)
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        raise InputError("colour matrix must be a finite 3 x 3 array")
+    top = float(np.max(m @ _D65_XYZ))
+    if not top > 0:
+        raise InputError("colour matrix maps D65 white to no positive camera response")
+    return m / top
+
+
+_D65_XYZ = np.array([0.95047, 1.0, 1.08883])
+
+
+@lru_cache(maxsize=32)
+def _fitted_matrix(wl_bytes: bytes, sens_bytes: bytes) -> np.ndarray:
+    from models import illuminant, observer
+
+    wl = np.frombuffer(wl_bytes)
+    r = np.frombuffer(sens_bytes).reshape(wl.size, 3)
+    cmfs = observer("CIE 1931 2 Degree Standard Observer", wl)
+    d65 = illuminant("D65", wl)
+    w = np.sqrt(d65 / d65.max())[:, None]
+    mt, *_ = np.linalg.lstsq(cmfs * w, r * w, rcond=None)
+    return mt.T
+
+
+def canonical_transform(color_matrix, canonical) -> np.ndarray:
+    """``K`` with ``canonical_rgb = K @ camera_rgb``: camera -> XYZ (the
+    inverse colour matrix) -> canonical RGB."""
+    m = normalised_matrix(color_matrix)
+    if abs(np.linalg.det(m)) < 1e-9:
+        raise InputError("colour matrix is singular")
+    return np.asarray(canonical, float) @ np.linalg.inv(m)
+
+
+# --------------------------------------------------------------------------- evidence
+def estimation_image(image, mask=None, grid: int = GRID, min_valid: float = 0.5):
+    """Area-average a linear image to ``grid x grid`` cells (the resolution
+    the model learnt at, whatever the aspect ratio, as the development
+    thumbnails were made), averaging only usable pixels; a cell with fewer
+    than ``min_valid`` usable pixels is left out. Smaller images are kept as
+    they are. Returns ``(cells (g, g, 3), usable (g, g))``."""
+    img = np.asarray(image, np.float32)
+    h, w = img.shape[:2]
+    m = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    img = np.where(m[..., None] & np.isfinite(img), img, 0.0).astype(np.float32)
+    if h <= grid and w <= grid:
+        return img.astype(float), m.copy()
+    gh, gw = min(grid, h), min(grid, w)
+    s = cv2.resize(img, (gw, gh), interpolation=cv2.INTER_AREA)
+    frac = cv2.resize(m.astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
+    ok = frac >= min_valid
+    cells = np.where(ok[..., None], s / np.maximum(frac, 1e-12)[..., None], 0.0)
+    return cells.astype(float), ok
+
+
+def _edge(img: np.ndarray, ok: np.ndarray, p: float, sigma: float, order: int) -> np.ndarray:
+    """Gray edge of the given order, NaN where the image has no edges."""
+    try:
+        return gray_edge(img, ok, p, sigma, order)
+    except InsufficientSurfaceVariation:
+        return np.full(3, np.nan)
+
+
+def _gray_pixels(img: np.ndarray, m: np.ndarray, q: float) -> np.ndarray:
+    """Mean of the pixels whose local log-contrast is most alike in the
+    three channels (gray pixels; Yang et al. 2015, Qian et al. 2019)."""
+    lg = np.log(np.clip(img, 1e-4, None))
+    c = np.stack([np.abs(ndimage.laplace(ndimage.gaussian_filter(lg[..., k], 0.5))) for k in range(3)], -1)
+    mm = m & np.all(c > 1e-3, axis=-1)
+    if mm.sum() < 10:
+        return img[m].mean(axis=0)
+    cc = c[mm]
+    gi = np.std(cc / cc.sum(axis=1, keepdims=True), axis=1)
+    k = max(1, int(q * gi.size))
+    return img[mm][np.argpartition(gi, k - 1)[:k]].mean(axis=0)
+
+
+#: The classical estimates the network combines, in order.
+FEATURE_NAMES = ("gray-world", "sog-2", "sog-4", "sog-8", "sog-16", "max-rgb", "p99", "p95",
+                 "gray-edge-1-p1", "gray-edge-1-p6", "gray-edge-1-p6-s2", "gray-edge-2-p6",
+                 "bright-0.5%", "bright-1%", "bright-2%", "bright-5%", "bright-10%",
+                 "gray-pixels-5%", "gray-pixels-20%")
+#: The reference estimate the others are taken relative to.
+REFERENCE = FEATURE_NAMES.index("bright-1%")
+
+
+def features(cells: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """(len(FEATURE_NAMES), 2) log-chroma of each classical estimate on the
+    canonical-space analysis image ``cells`` with usable cells ``ok``.
+
+    Raises
+    ------
+    InsufficientSurfaceVariation
+        Fewer than 16 usable cells.
+    """
+    img = np.clip(np.asarray(cells, float), 1e-6, None)
+    px = img[ok]
+    if px.shape[0] < 16:
+        raise InsufficientSurfaceVariation(f"only {px.shape[0]} usable cells (of {ok.size}) after leaving out "
+                                           "saturated, dark and out-of-gamut pixels")
+    est = [gray_world(px), *(shades_of_gray(px, None, p) for p in (2, 4, 8, 16)), white_patch(px),
+           np.percentile(px, 99, axis=0), np.percentile(px, 95, axis=0),
+           _edge(img, ok, 1, 1, 1), _edge(img, ok, 6, 1, 1), _edge(img, ok, 6, 2, 1), _edge(img, ok, 6, 1, 2),
+           *(bright_pixels(px, None, q) for q in (0.005, 0.01, 0.02, 0.05, 0.1)),
+           _gray_pixels(img, ok, 0.05), _gray_pixels(img, ok, 0.2)]
+    est = np.array(est)
+    # an estimate that could not be made (no edges) stands in as the reference
+    bad = ~np.all(np.isfinite(est) & (est > 0), axis=1)
+    est[bad] = est[REFERENCE]
+    return rgb_to_uv(est)
+
+
+def canonical_cells(image, mask, color_matrix, canonical):
+    """The analysis image of :func:`estimation_image`, in the canonical
+    space; cells that leave the canonical gamut (a channel <= 0) are left
+    out."""
+    cells, ok = estimation_image(image, mask)
+    K = canonical_transform(color_matrix, canonical)
+    can = cells @ K.T
+    top = float(can[ok].max()) if ok.any() else 0.0
+    ok = ok & np.all(can > 1e-4 * max(top, 1e-300), axis=-1)
+    return can, ok, K
+
+
+# --------------------------------------------------------------------------- the model
+@dataclass(frozen=True)
+class LearnedModel:
+    """Learnt parameters (see :func:`fit_network`).
+
+    Attributes
+    ----------
+    canonical : (3, 3) XYZ -> canonical RGB
+    mean, scale : (D,) standardisation of the inputs
+    layers : tuple of (W1 (D, H), b1 (H,), W2 (H, 2), b2 (2,)), one per ensemble member
+    sigma : (3,) uncertainty law: ``s^2 = exp(sigma[0]) * (spread^2 + exp(sigma[1])) ** sigma[2]``
+        the isotropic variance (log-chroma^2) of the light for an input
+        spread (see :func:`_spread`); calibrated on held-out cameras
+    info : dict, what it was trained on and how
+    """
+
+    canonical: np.ndarray
+    mean: np.ndarray
+    scale: np.ndarray
+    layers: tuple
+    sigma: np.ndarray
+    info: dict = field(default_factory=dict, compare=False)
+
+    def save(self, path) -> None:
+        arrays = {"canonical": self.canonical, "mean": self.mean, "scale": self.scale, "sigma": self.sigma,
+                  "members": np.array(len(self.layers))}
+        for i, (w1, b1, w2, b2) in enumerate(self.layers):
+            arrays.update({f"w1_{i}": w1, f"b1_{i}": b1, f"w2_{i}": w2, f"b2_{i}": b2})
+        np.savez_compressed(path, info=json.dumps(self.info, sort_keys=True), **arrays)
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """(N, D) inputs -> (members, N, 2) light log-chroma offsets."""
+        z = (np.atleast_2d(x) - self.mean) / self.scale
+        return np.stack([np.tanh(z @ w1 + b1) @ w2 + b2 for w1, b1, w2, b2 in self.layers])
+
+
+@lru_cache(maxsize=4)
+def load_model(path: str | None = None) -> LearnedModel:
+    """The shipped model (or one saved by :meth:`LearnedModel.save`)."""
+    p = Path(path) if path else DEFAULT_MODEL_PATH
+    if not p.exists():
+        raise InputError(f"no learnt illuminant model at {p} (rebuild it: python -m benchmarks.train_illuminant)")
+    with np.load(p, allow_pickle=False) as z:
+        layers = tuple((z[f"w1_{i}"], z[f"b1_{i}"], z[f"w2_{i}"], z[f"b2_{i}"]) for i in range(int(z["members"])))
+        return LearnedModel(z["canonical"], z["mean"], z["scale"], layers, z["sigma"], json.loads(str(z["info"])))
+
+
+def network_inputs(feats: np.ndarray) -> np.ndarray:
+    """(..., F, 2) estimates -> (..., 2F) inputs: each estimate relative to
+    the reference (bright pixels), then the reference itself."""
+    f = np.asarray(feats, float)
+    ref = f[..., REFERENCE, :]
+    rel = np.delete(f - ref[..., None, :], REFERENCE, axis=-2)
+    return np.concatenate([rel.reshape(*f.shape[:-2], -1), ref], axis=-1)
+
+
+def _spread(feats: np.ndarray, members: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Disagreement of the evidence: RMS distance of the classical
+    estimates and of the ensemble members from the estimate (log-chroma)."""
+    f = np.asarray(feats, float)
+    d_f = np.sqrt(np.mean(np.sum((f - uv[..., None, :]) ** 2, axis=-1), axis=-1))
+    d_m = np.sqrt(np.mean(np.sum((members - uv[None]) ** 2, axis=-1), axis=0))
+    return np.sqrt(d_f ** 2 + 4.0 * d_m ** 2)
+
+
+def variance_from_spread(spread, sigma) -> np.ndarray:
+    """Isotropic log-chroma variance of the light for an evidence spread."""
+    return np.exp(sigma[0]) * (np.asarray(spread, float) ** 2 + np.exp(sigma[1])) ** sigma[2]
+
+
+@dataclass
+class LearnedResult:
+    """Outcome of :func:`estimate_learned`: ``rgb`` the light in *camera*
+    RGB (sum 1); ``uv`` its canonical log-chroma and ``cov`` the calibrated
+    covariance; ``radius90_deg`` the angular radius of the reported 90 %
+    region in camera RGB; ``confidence`` the probability of an error below
+    3 degrees under it."""
+
+    rgb: np.ndarray
+    uv: np.ndarray
+    cov: np.ndarray
+    radius90_deg: float
+    confidence: float
+    n_cells: int
+    diagnostics: dict = field(default_factory=dict)
+
+
+def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = None) -> LearnedResult:
+    """Estimate the light of a linear camera image with the learnt model.
+
+    Parameters
+    ----------
+    image : (H, W, 3) linear camera RGB (any scale, black level removed)
+    mask : (H, W) bool usable pixels (not saturated, not dark), or None
+    color_matrix : (3, 3) XYZ -> camera (:func:`camera_color_matrix`)
+    model : default the shipped one
+
+    Raises
+    ------
+    InsufficientSurfaceVariation
+        Too few usable cells.
+    """
+    model = model or load_model()
+    img = np.asarray(image, float)
+    if img.ndim != 3 or img.shape[-1] != 3:
+        raise InputError(f"the learnt estimator needs an (H, W, 3) image, got {img.shape}")
+    can, ok, K = canonical_cells(img, mask, color_matrix, model.canonical)
+    f = features(can, ok)
+    ref = f[REFERENCE]
+    members = model.predict(network_inputs(f))[:, 0] + ref
+    uv = members.mean(axis=0)
+    spread = float(_spread(f, members, uv))
+    var = float(variance_from_spread(spread, model.sigma))
+    cov = np.eye(2) * var
+    cam = np.linalg.solve(K, uv_to_rgb(uv))
+    if not np.all(cam > 0):
+        cam = np.clip(cam, 1e-6, None)
+    cam = cam / cam.sum()
+    # angular radius of the 90 % region, measured along both log-chroma axes in camera RGB
+    r = np.sqrt(var * CHI2_90)
+    radius = max(_angle(cam, np.linalg.solve(K, uv_to_rgb(uv + d))) for d in ([r, 0], [0, r], [-r, 0], [0, -r]))
+    sigma_deg = radius / np.sqrt(CHI2_90)
+    conf = float(1.0 - np.exp(-9.0 / (2.0 * sigma_deg ** 2))) if sigma_deg > 0 else 1.0
+    return LearnedResult(cam, uv, cov, float(radius), conf, int(ok.sum()),
+                         {"evidence_spread": spread,
+                          "estimates": {n: [float(a), float(b)] for n, (a, b) in zip(FEATURE_NAMES, f)}})
+
+
+def _angle(a, b) -> float:
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    return float(np.degrees(2 * np.arctan2(np.linalg.norm(a - b), np.linalg.norm(a + b))))
+
+
+# --------------------------------------------------------------------------- learning
+def fit_network(x: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None, *, hidden: int = 16,
+                ridge: float = 1e-3, members: int = 3, maxiter: int = 500, seed: int = 0):
+    """Fit the ensemble: each member a one-hidden-layer tanh network
+    minimising the weighted mean Euclidean error in log-chroma (a smooth
+    stand-in for the angular error; ``sqrt(r^2 + 1e-4)``) plus a ridge
+    penalty, by L-BFGS with exact gradients from fixed seeds
+    (deterministic for given inputs).
+
+    Parameters
+    ----------
+    x : (N, D) inputs (:func:`network_inputs`)
+    y : (N, 2) targets: true log-chroma minus the reference estimate
+    weights : (N,) per-image weights (balance cameras), default equal
+
+    Returns
+    -------
+    mean, scale, layers
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    n, d = x.shape
+    w = np.ones(n) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    mean = x.mean(axis=0)
+    scale = x.std(axis=0) + 1e-9
+    z = (x - mean) / scale
+    H = int(hidden)
+    shapes = [(d, H), (H,), (H, 2), (2,)]
+    sizes = [int(np.prod(s)) for s in shapes]
+
+    def unpack(p):
+        out, i = [], 0
+        for s, k in zip(shapes, sizes):
+            out.append(p[i:i + k].reshape(s))
+            i += k
+        return out
+
+    def f(p):
+        w1, b1, w2, b2 = unpack(p)
+        a = np.tanh(z @ w1 + b1)
+        r = a @ w2 + b2 - y
+        e = np.sqrt((r ** 2).sum(axis=1) + 1e-4)
+        loss = float((w * e).sum() + ridge * ((w1 ** 2).sum() + (w2 ** 2).sum()))
+        dp = (w / e)[:, None] * r
+        gw2 = a.T @ dp + 2 * ridge * w2
+        da = dp @ w2.T * (1 - a ** 2)
+        gw1 = z.T @ da + 2 * ridge * w1
+        return loss, np.concatenate([gw1.ravel(), da.sum(axis=0), gw2.ravel(), dp.sum(axis=0)])
+
+    layers = []
+    for k in range(members):
+        rng = np.random.default_rng(seed + k)
+        p0 = np.concatenate([rng.normal(0, 1 / np.sqrt(d), d * H), np.zeros(H), rng.normal(0, 1 / np.sqrt(H), H * 2),
+                             np.zeros(2)])
+        res = optimize.minimize(f, p0, jac=True, method="L-BFGS-B", options={"maxiter": maxiter})
+        layers.append(tuple(unpack(res.x)))
+    return mean, scale, tuple(layers)
+
+
+def fit_uncertainty(spread: np.ndarray, err2: np.ndarray, coverage: float = 0.9) -> np.ndarray:
+    """Calibrate :func:`variance_from_spread` on held-out residuals: fit
+    ``log err^2 ~ a + c log(spread^2 + b)`` by least squares over a grid of
+    ``b``, then scale so that ``err^2 / s^2 <= CHI2_90`` for a ``coverage``
+    fraction of the images (the Gaussian's 90 % region holds the truth for
+    90 % of held-out images)."""
+    spread = np.asarray(spread, float)
+    err2 = np.maximum(np.asarray(err2, float), 1e-12)
+    best = None
+    for logb in np.linspace(-12, -4, 17):
+        xx = np.log(spread ** 2 + np.exp(logb))
+        A = np.c_[np.ones_like(xx), xx]
+        coef, *_ = np.linalg.lstsq(A, np.log(err2), rcond=None)
+        r = np.log(err2) - A @ coef
+        if best is None or (r ** 2).sum() < best[0]:
+            best = ((r ** 2).sum(), logb, coef)
+    _, logb, (a, c) = best
+    c = float(np.clip(c, 0.0, 2.0))
+    sig = np.array([a, logb, c])
+    ratio = err2 / variance_from_spread(spread, sig)
+    sig[0] += np.log(np.quantile(ratio, coverage) / CHI2_90)
+    return sig
