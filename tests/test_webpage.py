@@ -265,8 +265,9 @@ def test_batch_view_shows_progress_and_items(page, server, tmp_path):
     page.set_input_files("#batch-files", [str(f) for f in files])
     page.click("#batch-run")
     page.wait_for_selector("#batch-view", state="visible", timeout=30_000)
-    # finished when the cancel button goes away
-    page.wait_for_function("document.getElementById('batch-cancel').hidden", timeout=180_000)
+    # finished when the cancel button goes away (a hidden element: wait_for_selector's "hidden" state;
+    # wait_for_function would need eval, which the page's Content-Security-Policy forbids)
+    page.wait_for_selector("#batch-cancel", state="hidden", timeout=180_000)
     assert page.eval_on_selector("#batch-progress", "p => [p.value, p.max]") == [3, 3]
     rows = page.eval_on_selector_all("#batch-table tbody tr",
                                      "rs => rs.map(r => Array.from(r.cells, c => c.innerText))")
