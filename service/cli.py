@@ -42,6 +42,10 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
     ap.add_argument("--target", default="D65", help="light to render under, or 'estimate'")
     ap.add_argument("--output", default="sRGB", help="sRGB, linear-sRGB, Display P3 or a display name")
     ap.add_argument("--format", default="tiff", help="tiff (16-bit), png (8-bit), png16, jpeg")
+    ap.add_argument("--exposure", default="auto", metavar="EV|auto",
+                    help="auto (default): LibRaw's auto-brightness (the 99th percentile of the brightest "
+                         "channel is white); a number of EV overrides it (0: the sensor's brightest neutral is "
+                         "white, +1 doubles)")
     if batch:
         ap.add_argument("--lighting", default="per-image", help="per-image, or shared: one light for all")
         ap.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
@@ -53,7 +57,8 @@ def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
     return jobs.batch_options(camera=args.camera, method=args.method, quality=args.quality,
                               target=getattr(args, "target", None), output=getattr(args, "output", None),
                               format=getattr(args, "format", None), lighting=lighting,
-                              surface_model=args.surface_model, light_model=args.light_model)
+                              surface_model=args.surface_model, light_model=args.light_model,
+                              exposure=getattr(args, "exposure", None))
 
 
 def _limits():

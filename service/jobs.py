@@ -86,6 +86,7 @@ class BatchOptions:
     surface_dim: str | None = None
     light_dim: str | None = None
     region_size: int | None = None
+    exposure: float | None = None          # EV; None: the auto rule (pipeline.exposure_gain)
 
     @property
     def extension(self) -> str:
@@ -118,6 +119,14 @@ def batch_options(**kw) -> BatchOptions:
     unknown = set(kw) - set(BatchOptions.__dataclass_fields__)
     if unknown:
         raise JobError("invalid_parameter", f"unknown options {sorted(unknown)}")
+    if "exposure" in kw:
+        from .errors import ApiError
+        from .pipeline import parse_exposure
+
+        try:
+            kw["exposure"] = parse_exposure(kw["exposure"])
+        except ApiError as e:
+            raise JobError(e.code, e.detail, e.status) from None
     opts = BatchOptions(**kw)
     if opts.format not in FORMATS:
         raise JobError("invalid_parameter", f"format {opts.format!r} unknown; accepted: {sorted(FORMATS)}")
@@ -319,7 +328,8 @@ def process_item(task: ItemTask) -> dict:
                 run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
             fmt, bits, _ = FORMATS[task.options.format]
             out, M, info = pipeline.render_full(decoded, run, task.options.target, task.options.output, bits,
-                                                opts.get("surface_basis"), threads=task.threads)
+                                                opts.get("surface_basis"), threads=task.threads,
+                                                exposure=task.options.exposure)
             summary = {"method": run.estimate.method, "camera_rgb": run.estimate.rgb.tolist(),
                        "camera": cam.name, "rendering": info.get("rendering"), "target": task.options.target,
                        "output": task.options.output}

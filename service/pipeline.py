@@ -148,7 +148,8 @@ def _target_xy(target: str, est: IlluminantEstimate, white_xy, wavelengths) -> t
 
 
 def correction_matrix(run: EstimateRun, target: str, output: str, surface_model: str | None = None,
-                      *, decoded=None, tone: str = "shoulder") -> tuple[np.ndarray, dict]:
+                      *, decoded=None, tone: str = "shoulder", exposure: float | None = None
+                      ) -> tuple[np.ndarray, dict]:
     """Camera RGB (1.0 = saturation) -> linear display values.
 
     Spectral rendering (measured, uploaded or generic sensitivities):
@@ -156,19 +157,32 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
     surface model of as many terms as sensors), scaled so that the
     brightest neutral the sensor records unclipped (the light's own camera
     RGB with its largest channel at saturation) renders with luminance 1:
-    a fixed exposure, no auto-brightening. The surface model has C terms
-    of ``surface_model`` (default PCA of the shipped reflectances).
+    before the exposure (below). The surface model has C terms of
+    ``surface_model`` (default PCA of the shipped reflectances).
 
     DNG-matrix rendering (``decoded`` given, a camera known only by its
     colour matrix, :func:`rendering_choice`): the DNG specification's
     camera -> XYZ D50 for the estimated camera neutral
     (:func:`recovery.dng_color.camera_to_xyz_d50`), Bradford to the target
-    white, ``Gamma^{-1}``, times ``2 ** BaselineExposure``; the same neutral
-    at saturation renders at luminance ``2 ** BaselineExposure``. When that
-    lifts the sensor's range above display white, ``tone="shoulder"`` (the
-    default) asks :func:`apply_matrix_inplace` to roll the highlights off
-    above a knee (:func:`recovery.highlights.highlight_shoulder`) rather than
-    clip them; ``tone="linear"`` is the specification's linear rendering.
+    white, ``Gamma^{-1}``; the same neutral at saturation renders with
+    luminance 1 before the exposure.
+
+    Exposure (both renderings, :func:`exposure_gain`): ``exposure=None``
+    (the default, "auto") is LibRaw's auto-brightness rule, the same for
+    every file: the gain that sends the 99th percentile of the brightest
+    display channel to display white (dcraw/LibRaw ``auto_bright_thr`` =
+    0.01), at least 1 and at most 256; a number is the user's exposure in
+    EV on the same base (0: the brightest neutral the sensor records is
+    display white). The DNG BaselineExposure is reported, not applied
+    (linear, it made the Blackmagic file 2 stops brighter than LibRaw's
+    rendering). When the gain lifts the sensor's range above display white,
+    ``tone="shoulder"`` (the default) asks :func:`apply_matrix_inplace` to
+    roll the highlights off above a knee
+    (:func:`recovery.highlights.highlight_shoulder`) rather than clip them;
+    ``tone="linear"`` clips. Display-encoded outputs (sRGB, Display P3)
+    then take LibRaw's tone curve (``info["curve"] = "libraw"``,
+    :func:`display_curve`) unless ``tone="linear"``, so the picture is as
+    bright as LibRaw's default rendering at every level, not only at white.
 
     ``info`` has ``rendering``, ``neutral`` (the light's camera RGB, largest
     channel 1, for :func:`apply_matrix_inplace`'s highlight handling),
@@ -187,8 +201,7 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
         prof = choice["profile"]
         M50, dinfo = camera_to_xyz_d50(prof, neutral)
         wxy = _target_xy(target, est, dinfo["white_xy"], cam.wavelengths)
-        gain = 2.0 ** float(prof.baseline_exposure)
-        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50) * gain
+        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50)
         info = {"rendering": "dng-matrix", "color_source": choice["color_source"], "encoding": space.encoding,
                 "neutral": neutral.tolist(), "white_xy": dinfo["white_xy"],
                 "temperature": dinfo["temperature"], "tint": dinfo["tint"],
@@ -196,13 +209,7 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
                 "baseline_exposure": float(prof.baseline_exposure), "target_white_xy": [float(v) for v in wxy]}
         if prof.notes:
             info["notes"] = list(prof.notes)
-        if gain > 1.0 and tone == "shoulder":
-            from recovery.highlights import SHOULDER_KNEE
-
-            info["shoulder"] = {"luminance": [float(v) for v in space.Gamma[1]], "knee": SHOULDER_KNEE,
-                                "peak": gain}
-        info["tone"] = "shoulder" if "shoulder" in info else "linear"
-        return M, info
+        return _with_exposure(M, info, decoded, exposure, tone, space.Gamma)
     try:
         tgt = est.spectrum if target in ("estimate", "as-seen") else get_illuminant(target, cam.wavelengths)
     except KeyError as e:
@@ -218,13 +225,124 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
             "color_source": cam.source}
     if np.all(neutral > 0):
         info["neutral"] = neutral.tolist()
-    return M / lum, info
+    return _with_exposure(M / lum, info, decoded, exposure, tone, space.Gamma)
+
+
+#: LibRaw's ``auto_bright_thr``: the fraction of pixels auto-brightness lets reach display white.
+AUTO_BRIGHT_THR = 0.01
+#: LibRaw's bounds on the auto-brightness gain (its histogram search stops at 32 of 8192 bins:
+#: at most 256; it never darkens: at least 1).
+AUTO_BRIGHT_GAIN = (1.0, 256.0)
+#: Pixels of the estimation image the auto rule looks at (a regular subsample).
+AUTO_BRIGHT_PIXELS = 250_000
+#: The EV range a user's exposure may take.
+EXPOSURE_RANGE = (-10.0, 16.0)
+
+
+EXPOSURE_HELP = ("exposure in EV, or auto (default): auto is LibRaw's auto-brightness (the 99th "
+                 "percentile of the brightest display channel is display white); a number overrides it, "
+                 "0 rendering the brightest neutral the sensor records as display white, each +1 doubling")
+
+
+def parse_exposure(value) -> float | None:
+    """``None``/``""``/``"auto"`` -> ``None`` (the auto rule); a number of EV
+    in :data:`EXPOSURE_RANGE` -> float; anything else a 422."""
+    if value is None or (isinstance(value, str) and value.strip().lower() in ("", "auto")):
+        return None
+    try:
+        ev = float(value)
+    except (TypeError, ValueError):
+        ev = float("nan")
+    lo, hi = EXPOSURE_RANGE
+    if not (np.isfinite(ev) and lo <= ev <= hi):
+        raise ApiError(422, "invalid_parameter", f"exposure must be auto or a number of EV in {lo:g}..{hi:g}, "
+                       f"not {value!r}")
+    return ev
+
+
+def _highlight_white(A64: np.ndarray):
+    """The white-balanced colour a matrix sends to display white (1, 1, 1),
+    or ``None`` when it is not a positive colour."""
+    try:
+        wb_white = np.linalg.solve(A64, np.ones(3))
+    except np.linalg.LinAlgError:
+        return None
+    return wb_white if np.all(wb_white > 0) else None
+
+
+def display_linear(cam_rgb: np.ndarray, M: np.ndarray, neutral=None) -> np.ndarray:
+    """Linear display values of camera RGB ``(N, 3)`` (1.0 = saturation), as
+    :func:`apply_matrix_inplace` computes them before exposure, shoulder,
+    clipping and encoding (clipped highlights made neutral when ``neutral``
+    is given)."""
+    c = np.asarray(cam_rgb, np.float32).reshape(-1, 3)
+    if neutral is None:
+        return c @ np.asarray(M, np.float32).T
+    from recovery.highlights import balance_highlights
+
+    n = np.asarray(neutral, float)
+    n = n / n.max()
+    A64 = np.asarray(M, float) @ np.diag(n)
+    wb = balance_highlights(c, n, white=_highlight_white(A64))
+    return wb @ A64.astype(np.float32).T
+
+
+def exposure_gain(decoded, M: np.ndarray, neutral=None, exposure: float | None = None) -> tuple[float, dict]:
+    """The exposure gain on the linear display values, and how it was chosen.
+
+    ``exposure`` in EV (a user's choice): ``2 ** exposure``. ``None``:
+    LibRaw's auto-brightness (dcraw ``write_ppm_tiff``): per display channel
+    the level that :data:`AUTO_BRIGHT_THR` of the pixels exceed (values
+    clipped at white first, as LibRaw clips before its histogram), the
+    largest over the channels is sent to white; the gain is kept in
+    :data:`AUTO_BRIGHT_GAIN`. Measured on the estimation image (block-
+    averaged, the same for the full image and the preview), so the
+    rendering does not depend on the output size. Without an image the
+    gain is 1 (the brightest recordable neutral at display white)."""
+    if exposure is not None:
+        ev = float(exposure)
+        lo, hi = EXPOSURE_RANGE
+        if not (np.isfinite(ev) and lo <= ev <= hi):
+            raise ApiError(422, "invalid_parameter", f"exposure must be a number of EV in {lo:g}..{hi:g}, "
+                           f"or auto; got {exposure!r}")
+        return 2.0 ** ev, {"rule": "user", "ev": ev}
+    img = getattr(decoded, "estimation", None)
+    if not isinstance(img, np.ndarray) or img.ndim != 3 or img.shape[-1] != 3 or img.size == 0:
+        return 1.0, {"rule": "none", "ev": 0.0, "note": "no image to measure: the brightest recordable "
+                     "neutral renders as display white"}
+    flat = img.reshape(-1, 3)
+    step = max(1, flat.shape[0] // AUTO_BRIGHT_PIXELS)
+    sample = np.nan_to_num(np.clip(flat[::step], 0.0, 1.0))
+    lin = np.clip(display_linear(sample, M, neutral), 0.0, 1.0)
+    level = float(np.max(np.percentile(lin, 100.0 * (1.0 - AUTO_BRIGHT_THR), axis=0)))
+    lo, hi = AUTO_BRIGHT_GAIN
+    gain = float(np.clip(1.0 / level, lo, hi)) if level > 0 else hi
+    return gain, {"rule": "auto", "ev": float(np.log2(gain)),
+                  "description": f"LibRaw's auto-brightness: the {100 * (1 - AUTO_BRIGHT_THR):g}th percentile "
+                                 f"of the brightest display channel is display white (gain {lo:g}..{hi:g})",
+                  "percentile_level": level}
+
+
+def _with_exposure(M, info, decoded, exposure, tone, Gamma):
+    """``M`` times the exposure gain (:func:`exposure_gain`), with the
+    highlight shoulder when the gain lifts the sensor's range above white."""
+    gain, einfo = exposure_gain(decoded, M, info.get("neutral"), exposure)
+    info["exposure"] = einfo
+    if gain > 1.0 and tone == "shoulder":
+        from recovery.highlights import SHOULDER_KNEE
+
+        lum = Gamma[1] if Gamma is not None else np.array([0.2126, 0.7152, 0.0722])
+        info["shoulder"] = {"luminance": [float(v) for v in lum], "knee": SHOULDER_KNEE, "peak": gain}
+    info["tone"] = "shoulder" if "shoulder" in info else "linear"
+    if tone != "linear" and info.get("encoding") is not None:
+        info["curve"] = "libraw"        # display-encoded outputs take LibRaw's tone; linear ones stay linear
+    return M * gain, info
 
 
 def rendering_json(info: dict) -> dict:
     """The rendering choice and its figures, for headers and JSON bodies."""
     keys = ("rendering", "color_source", "white_xy", "temperature", "tint", "calibration_weight",
-            "forward_matrix", "baseline_exposure", "tone", "target_white_xy", "crop", "notes")
+            "forward_matrix", "baseline_exposure", "exposure", "tone", "curve", "target_white_xy", "crop", "notes")
     return {k: info[k] for k in keys if k in info}
 
 
@@ -257,16 +375,17 @@ def default_crop(decoded, img: np.ndarray) -> np.ndarray:
 
 
 def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, surface_model=None,
-                threads: int | None = None, timings: dict | None = None, tone: str = "shoulder"
-                ) -> tuple[np.ndarray, np.ndarray, dict]:
+                threads: int | None = None, timings: dict | None = None, tone: str = "shoulder",
+                exposure: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The corrected full-resolution image: matrix, demosaic, DefaultCrop,
-    highlights, encoding. Returns ``(image, M, info)``."""
-    M, info = correction_matrix(run, target, output, surface_model, decoded=decoded, tone=tone)
+    highlights, exposure, encoding. Returns ``(image, M, info)``."""
+    M, info = correction_matrix(run, target, output, surface_model, decoded=decoded, tone=tone,
+                                exposure=exposure)
     t0 = time.perf_counter()
     rgb16 = default_crop(decoded, decoded.full_linear("uint16"))
     t1 = time.perf_counter()
     out = apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=threads, neutral=info.get("neutral"),
-                               shoulder=info.get("shoulder"))
+                               shoulder=info.get("shoulder"), curve=info.get("curve"))
     t2 = time.perf_counter()
     if timings is not None:
         timings.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3)
@@ -274,12 +393,29 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
     return out, M, info
 
 
-def _encoding_lut(encoding: str | None, bits: int) -> np.ndarray:
+def display_curve(x: np.ndarray) -> np.ndarray:
+    """LibRaw's tone: its default output curve (``gamma=(2.222, 4.5)``, the
+    ITU-R BT.709 transfer function) read by a display as sRGB, as a curve on
+    linear values: ``sRGB_decode(BT709_encode(x))``. It maps 0 -> 0 and
+    1 -> 1, darkens the mid-tones (0.18 -> 0.14) and deepens the shadows, so
+    with LibRaw's auto-brightness gain the encoded image is as bright as
+    LibRaw's at every level."""
+    x = np.clip(np.asarray(x, float), 0.0, 1.0)
+    v = np.where(x < 0.018, 4.5 * x, 1.099 * x ** 0.45 - 0.099)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def _encoding_lut(encoding: str | None, bits: int, curve: str | None = None) -> np.ndarray:
     """16-bit linear code -> encoded ``bits``-bit code, through
-    colour-science's ``cctf_encoding`` of the colourspace."""
+    colour-science's ``cctf_encoding`` of the colourspace, after the tone
+    curve ``curve`` (``"libraw"``: :func:`display_curve`) if given."""
     import colour
 
     x = np.arange(65536) / 65535.0
+    if curve == "libraw":
+        x = display_curve(x)
+    elif curve is not None:
+        raise ValueError(f"unknown tone curve {curve!r}")
     y = x if encoding is None else np.asarray(colour.RGB_COLOURSPACES[encoding].cctf_encoding(x), float)
     top = 65535.0 if bits == 16 else 255.0
     return np.rint(np.clip(y, 0, 1) * top).astype(np.uint16 if bits == 16 else np.uint8)
@@ -287,7 +423,7 @@ def _encoding_lut(encoding: str | None, bits: int) -> np.ndarray:
 
 def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None, bits: int,
                          rows_per_chunk: int = 256, threads: int | None = None,
-                         neutral=None, shoulder: dict | None = None) -> np.ndarray:
+                         neutral=None, shoulder: dict | None = None, curve: str | None = None) -> np.ndarray:
     """Apply ``M`` to a uint16 (H, W, 3) image whose 65535 is saturation and
     encode it, chunk by chunk on a few threads.
 
@@ -305,14 +441,15 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     colour cast. With ``shoulder`` (``{"luminance": (3,), "knee": k}``, set
     when an exposure lifts the sensor's range above display white) the
     highlights are compressed by :func:`recovery.highlights.highlight_shoulder`
-    instead of clipping flat.
+    instead of clipping flat. ``curve`` (``"libraw"``) is the tone curve
+    applied before the transfer function (:func:`display_curve`).
     """
     import os
     from concurrent.futures import ThreadPoolExecutor
 
     import cv2
 
-    lut = _encoding_lut(encoding, bits)
+    lut = _encoding_lut(encoding, bits, curve)
     out = rgb16 if bits == 16 else np.empty(rgb16.shape, np.uint8)
     Mt = np.asarray(M, np.float32)
     if neutral is not None:
@@ -325,12 +462,7 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
         inv = np.float32(1.0 / 65535.0)
         # the white-balanced colour the matrix sends to display white (1, 1, 1)
         # for the DNG rendering; near it for the spectral one)
-        try:
-            wb_white = np.linalg.solve(A64, np.ones(3))
-        except np.linalg.LinAlgError:
-            wb_white = None
-        if wb_white is None or not np.all(wb_white > 0):
-            wb_white = None
+        wb_white = _highlight_white(A64)
 
     def work(r):
         chunk = rgb16[r:r + rows_per_chunk]

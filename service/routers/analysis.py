@@ -95,12 +95,12 @@ def _estimate_summary(body: dict, info: dict | None = None) -> dict:
 
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, bits, settings,
-                        white="estimate"):
+                        white="estimate", exposure=None):
     decoded, run = _analyze_sync(data, filename, sens, camera, method, opts, settings)
     del data
     run = _with_white(decoded, run, white)
     out, M, info = pipeline.render_full(decoded, run, target, output, bits, opts.get("surface_basis"),
-                                        timings=run.timings_ms)
+                                        timings=run.timings_ms, exposure=exposure)
     t2 = time.perf_counter()
     fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt)
     os.close(fd)
@@ -131,7 +131,9 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
                         response: str = Form("image", description="image, or json for the estimate only"),
                         surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"), light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"),
                         region_size: int | None = Form(None), surface_model: str | None = Form(None),
-                        light_model: str | None = Form(None), settings: Settings = Depends(get_settings)):
+                        light_model: str | None = Form(None),
+                        exposure: str = Form("auto", description=pipeline.EXPOSURE_HELP, examples=["auto", "1.5"]),
+                        settings: Settings = Depends(get_settings)):
     """The corrected image at full resolution (one 3x3 matrix per pixel
     from camera RGB to the display), with the estimate in the
     ``X-Illuminant`` header (JSON)."""
@@ -149,6 +151,7 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
                        "Typical CRT Brainard 1997, Apple Studio Display")
     opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model,
                             quality)
+    ev = pipeline.parse_exposure(exposure)
     data, sens = await _inputs(file, sensitivities, settings)
     await file.close()
     fmt, bits = fmts[format]
@@ -168,13 +171,14 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
         decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts,
                                                settings)
         run = _with_white(decoded, run, white)
-        M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded)
+        M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded,
+                                             exposure=ev)
         body = pipeline.analysis_json(run, decoded)
         body["correction_matrix"] = M.tolist()
         body["rendering"] = pipeline.rendering_json(info)
         return JSONResponse(clean(body))
     decoded, run, M, path, info = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
-                                                  method, opts, target, output, fmt, bits, settings, white)
+                                                  method, opts, target, output, fmt, bits, settings, white, ev)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     header = {k: body[k] for k in ("method", "camera", "warnings", "timings_ms")}
