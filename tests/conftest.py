@@ -2,10 +2,33 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from models import DEFAULT_WAVELENGTHS
+
+#: The shared folder next to the project (real camera files, reproductions).
+SHARED = Path(os.environ.get("WANDELL_SHARED_DIR", Path(__file__).resolve().parents[2] / "shared"))
+
+
+def unavailable(reason: str):
+    """Skip the test, saying why; fail it instead when the environment
+    variable ``CI`` is set (CI must run every test)."""
+    if os.environ.get("CI"):
+        pytest.fail(f"{reason}; CI is set, so this test must run")
+    pytest.skip(reason)
+
+
+def shared_file(relpath: str) -> Path:
+    """A file of the shared folder (:data:`SHARED`), or :func:`unavailable`
+    when it is absent."""
+    path = SHARED / relpath
+    if not path.is_file():
+        unavailable(f"{path} is absent (the shared data folder is not next to the project)")
+    return path
 
 
 def gaussian_sensors(centres, width=30.0, wavelengths=DEFAULT_WAVELENGTHS):

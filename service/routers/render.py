@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import time
 
 import numpy as np
@@ -26,6 +27,9 @@ router = APIRouter(prefix="/v1")
 MAX_N = 64
 FORMATS = {"tiff": ("tiff", 16), "png": ("png", 8), "png16": ("png", 16)}
 OUTPUTS = ("sRGB", "linear-sRGB")
+#: Fewest wavelengths a spectrum (or light) may have: colour-science
+#: resamples uniform data with Sprague (1880) interpolation, a 6-point rule.
+MIN_WAVELENGTHS = 6
 
 
 # --- parsing ----------------------------------------------------------------------
@@ -97,7 +101,9 @@ def load_npy(data: bytes, settings: Settings) -> np.ndarray:
     if len(shape) not in (2, 3):
         raise ApiError(422, "bad_shape", f"the array must be a cube H x W x N (or M x N spectra); got shape "
                        f"{tuple(shape)}")
-    count = int(np.prod(shape))
+    if any(int(s) < 0 for s in shape):
+        raise ApiError(422, "bad_shape", f"the array's shape {tuple(shape)} has a negative dimension")
+    count = math.prod(int(s) for s in shape)   # exact: numpy's product wraps round in int64
     if count > settings.max_render_values:
         raise ApiError(413, "cube_too_large", f"the array has {count} values, over the limit of "
                        f"{settings.max_render_values} (WANDELL_MAX_RENDER_VALUES)")
@@ -229,6 +235,9 @@ async def render(file: UploadFile = File(..., description=".npy reflectance cube
         if arr.shape[-1] != wl.size:
             raise ApiError(422, "wavelength_mismatch", f"the array has {arr.shape[-1]} bands (last axis) for "
                            f"{wl.size} wavelengths")
+        if wl.size < MIN_WAVELENGTHS:
+            raise ApiError(422, "too_few_wavelengths", f"the spectra have {wl.size} wavelength(s); at least "
+                           f"{MIN_WAVELENGTHS} are needed (they are interpolated with Sprague's 6-point rule)")
         if arr.size == 0:
             raise ApiError(422, "empty_input", "the spectra are empty")
         check_values(arr)
@@ -237,6 +246,9 @@ async def render(file: UploadFile = File(..., description=".npy reflectance cube
             light_wl, lv, _ = load_csv(light_data, "light_file")
             if lv.shape[0] != 1:
                 raise ApiError(422, "bad_csv", "light_file must have exactly one spectrum column")
+            if light_wl.size < MIN_WAVELENGTHS:
+                raise ApiError(422, "too_few_wavelengths", f"light_file has {light_wl.size} wavelength(s); at "
+                               f"least {MIN_WAVELENGTHS} are needed (Sprague's 6-point interpolation)")
             check_values(lv, "light values")
             light = lv[0]
         try:
