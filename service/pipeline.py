@@ -36,6 +36,7 @@ class EstimateRun:
     camera_warnings: list
     timings_ms: dict = field(default_factory=dict)
     factor: int = 1
+    neutral: dict | None = None     # set by with_neutral: where the user's white came from
 
 
 def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,
@@ -65,6 +66,77 @@ def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
     est = _finish(rgb, spd, w, run.camera, model, method,
                   {"light_model": model.name + " (spectrum fitted to the given white)"}, [])
     return EstimateRun(est, run.camera, list(run.camera_warnings), dict(run.timings_ms), run.factor)
+
+
+#: Above this angle between the light used and the file's as-shot white the answer warns.
+AS_SHOT_WARN_DEG = 5.0
+
+NEUTRAL_HELP = ("'use this as white': JSON [row, col] (a point) or [r0, c0, r1, c1] (a rectangle, end "
+                "exclusive) in full-resolution pixels of the image as decoded (before DefaultCrop); the light "
+                "is the mean camera RGB of the unclipped pixels there, rendered like an estimate")
+
+
+def parse_neutral(text) -> list[int] | None:
+    """``neutral``: JSON ``[row, col]`` or ``[r0, c0, r1, c1]`` (integers);
+    ``None`` when absent; otherwise a 422 saying what is accepted."""
+    if text is None or (isinstance(text, str) and not text.strip()):
+        return None
+    try:
+        val = json.loads(text) if isinstance(text, str) else text
+    except json.JSONDecodeError as e:
+        raise ApiError(422, "invalid_parameter", f"neutral is not valid JSON: {e.msg}; give [row, col] or "
+                       "[r0, c0, r1, c1]") from None
+    if (not isinstance(val, list) or len(val) not in (2, 4)
+            or not all(isinstance(x, int) and not isinstance(x, bool) for x in val)):
+        raise ApiError(422, "invalid_parameter", f"neutral must be [row, col] or [r0, c0, r1, c1] (integers), "
+                       f"got {text!r}")
+    return val
+
+
+def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
+    """The light's camera RGB from a surface the user says is white or grey:
+    the mean camera RGB of the unclipped cells of the estimation image under
+    the point or rectangle ``where`` (full-resolution pixels, as
+    :func:`surfaces_at`). 422 when it is outside the image or every cell
+    there is clipped or black."""
+    H, W = decoded.full_shape
+    r0, c0, r1, c1 = (where[0], where[1], where[0] + 1, where[1] + 1) if len(where) == 2 else where
+    if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
+        raise ApiError(422, "invalid_parameter", f"neutral {list(where)} is outside the {H}x{W} image: a point "
+                       f"needs 0 <= row < {H} and 0 <= col < {W}; a rectangle 0 <= r0 < r1 <= {H} and "
+                       f"0 <= c0 < c1 <= {W}")
+    img = decoded.estimation
+    h, w = img.shape[:2]
+    a0, b0 = min(int(r0 * h / H), h - 1), min(int(c0 * w / W), w - 1)
+    a1, b1 = max(a0 + 1, min(h, -(-r1 * h // H))), max(b0 + 1, min(w, -(-c1 * w // W)))
+    cells = np.asarray(img[a0:a1, b0:b1], float).reshape(-1, img.shape[-1])
+    sat = np.asarray(decoded.saturated[a0:a1, b0:b1]).ravel()
+    ok = ~sat & np.all(np.isfinite(cells), axis=1) & np.all(cells > 0, axis=1)
+    n_ok = int(ok.sum())
+    if n_ok == 0:
+        why = "clipped (saturated)" if sat.all() else "clipped or black"
+        raise ApiError(422, "unusable_neutral", f"every pixel of neutral {list(where)} is {why}: choose a "
+                       "white or grey surface that is not blown out")
+    rgb = cells[ok].mean(axis=0)
+    info = {"where": list(where), "cells_used": n_ok, "cells_clipped_or_black": int(ok.size - n_ok),
+            "camera_rgb": (rgb / np.linalg.norm(rgb)).tolist(), "level": float(rgb.max())}
+    if rgb.max() < 0.01:
+        info["warning"] = (f"the neutral surface is very dark ({100 * rgb.max():.2f} % of saturation): its colour "
+                           "is noisy")
+    return rgb, info
+
+
+def with_neutral(decoded, run: EstimateRun, where: list[int]) -> EstimateRun:
+    """The run whose light is the surface at ``where`` (:func:`neutral_white`),
+    rendered the same way as an estimate; ``neutral`` records where it came
+    from and its angle to the estimate it replaces."""
+    rgb, info = neutral_white(decoded, where)
+    if run.estimate is not None:
+        info["angle_to_estimate_deg"] = float(angular_error(rgb, run.estimate.rgb))
+        info["estimate_method"] = run.estimate.method
+    out = run_with_white(run, rgb, "neutral-surface")
+    out.neutral = info
+    return out
 
 
 def illuminant_json(est: IlluminantEstimate) -> dict:
@@ -109,8 +181,17 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
                             "camera_rgb": rgb.reshape(rr.shape + (-1,)).tolist()}
     if decoded.as_shot_neutral is not None and np.all(np.isfinite(decoded.as_shot_neutral)):
         asn = np.asarray(decoded.as_shot_neutral, float)
-        out["as_shot"] = {"camera_rgb": (asn / np.linalg.norm(asn)).tolist(),
-                          "angle_to_estimate_deg": float(angular_error(asn, est.rgb))}
+        ang = float(angular_error(asn, est.rgb))
+        out["as_shot"] = {"camera_rgb": (asn / np.linalg.norm(asn)).tolist(), "angle_to_estimate_deg": ang}
+        if ang > AS_SHOT_WARN_DEG:
+            what = "the white you chose" if run.neutral is not None else "the estimate"
+            out["warnings"].append(f"{what} is {ang:.1f} degrees from the camera's own as-shot white (more than "
+                                   f"{AS_SHOT_WARN_DEG:g}): check the picture, or use a white surface "
+                                   "('neutral') or white=as-shot")
+    if run.neutral is not None:
+        out["neutral"] = dict(run.neutral)
+        if out["neutral"].get("warning"):
+            out["warnings"].append(out["neutral"]["warning"])
     return out
 
 

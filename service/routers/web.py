@@ -167,6 +167,8 @@ async def preview(file: UploadFile = File(..., description="RAW file (anything L
                   output: str = Form("sRGB", description="corrected only: sRGB, linear-sRGB or a display"),
                   exposure: str = Form("auto", description="corrected only: " + pipeline.EXPOSURE_HELP,
                                        examples=["auto", "1.5"]),
+                  neutral: str | None = Form(None, description="corrected only: " + pipeline.NEUTRAL_HELP,
+                                             examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
                   settings: Settings = Depends(get_settings)):
     """A small 8-bit preview for the web page: the original as the camera's
     white balance renders it (``wb=camera``) or the corrected image
@@ -184,6 +186,7 @@ async def preview(file: UploadFile = File(..., description="RAW file (anything L
         raise ApiError(422, "invalid_parameter", f"output must be one of {', '.join(OUTPUTS)}")
     opts = estimate_options(method, None, None, None, False, None, None, quality)
     ev = pipeline.parse_exposure(exposure)
+    where = pipeline.parse_neutral(neutral)
     data = await read_upload(file, settings)
     name = file.filename
 
@@ -192,7 +195,7 @@ async def preview(file: UploadFile = File(..., description="RAW file (anything L
             decoded = _decode_only(data, name, settings)
             img, info = camera_wb_preview(decoded, data, max_side)
         else:
-            decoded, run = _analyze_sync(data, name, None, camera, method, opts, settings)
+            decoded, run = _analyze_sync(data, name, None, camera, method, opts, settings, where)
             img, info = corrected_preview(decoded, run, target, output, opts.get("surface_basis"), max_side, ev)
             info["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
         info.update(width=int(img.shape[1]), height=int(img.shape[0]),
