@@ -37,6 +37,7 @@ class EstimateRun:
     timings_ms: dict = field(default_factory=dict)
     factor: int = 1
     neutral: dict | None = None     # set by with_neutral: where the user's white came from
+    requested_method: str | None = None
 
 
 def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,
@@ -47,7 +48,84 @@ def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str,
     img, mask, f = block_average(decoded.estimation, ~decoded.saturated, analysis_pixels)
     est = estimate_illuminant(img, camera, method, mask=mask, **options)
     t1 = time.perf_counter()
-    return EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f)
+    run = EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f,
+                      requested_method=method)
+    if camera.source == "generic":
+        generic_cross_check(decoded, run, img, mask, method, options)
+        run.timings_ms["matrix_cross_check"] = (time.perf_counter() - t1) * 1e3
+    return run
+
+
+#: The angle (degrees) at which a white-balance error is commonly taken to
+#: become visible (Hordley & Finlayson 2006 use 2-3 degrees for "good";
+#: colour-constancy benchmarks quote 3): the generic camera's confidence is
+#: halved when its estimate is this far from the colour matrix's.
+VISIBLE_WB_ERROR_DEG = 3.0
+
+
+def generic_cross_check(decoded, run: EstimateRun, img, mask, method: str, options: dict) -> None:
+    """``camera=generic`` on a file that has a colour matrix: estimate again
+    with the matrix-derived camera (same image, mask, method and options),
+    report the angle between the two lights (both are camera RGB of this
+    sensor) in ``diagnostics["generic_vs_matrix_deg"]``, scale the reported
+    confidence by ``1 / (1 + (angle / 3 deg)^2)`` (1 when they agree, 1/2
+    at a just-visible 3 degrees, about 0.1 at 9 degrees; a method that
+    reports no confidence gets this factor as its confidence) and warn
+    when the angle exceeds 3 degrees. Nothing happens for a file without a
+    matrix (nothing to compare with)."""
+    from . import rawio
+
+    try:
+        mcam, _ = rawio.resolve_camera(decoded, "matrix")
+    except rawio.UploadError:
+        return
+    if mcam.source != "matrix-derived" or mcam.channels != run.camera.channels:
+        return
+    ref = estimate_illuminant(img, mcam, method, mask=mask, **options)
+    ang = float(angular_error(run.estimate.rgb, ref.rgb))
+    factor = 1.0 / (1.0 + (ang / VISIBLE_WB_ERROR_DEG) ** 2)
+    d = run.estimate.diagnostics
+    before = d.get("confidence")
+    d["generic_vs_matrix_deg"] = ang
+    d["matrix_estimate_camera_rgb"] = (ref.rgb / np.linalg.norm(ref.rgb)).tolist()
+    d["confidence_factor_generic"] = factor
+    if isinstance(before, (int, float)) and np.isfinite(before):
+        d["confidence_before_cross_check"] = float(before)
+        d["confidence"] = float(before) * factor
+    else:
+        d["confidence"] = factor
+    msg = (f"camera=generic: this estimate is {ang:.1f} degrees from the one made with the file's colour matrix "
+           f"(confidence x {factor:.2f})")
+    if ang > VISIBLE_WB_ERROR_DEG:
+        run.estimate.warnings.append(msg + "; camera=matrix (the default for this file) is the better choice")
+    else:
+        d["generic_cross_check"] = msg
+
+
+#: The literal method's own failure tests (recovery.api): subspace fit above
+#: its tolerance, a poorly determined light, a fallback.
+LITERAL_FIT_TOLERANCE = 0.1
+LITERAL_NULL_RATIO = 0.5
+
+
+def method_failure(est: IlluminantEstimate, requested: str | None = None) -> dict | None:
+    """When the literal Maloney-Wandell method was asked for (or ran) and
+    its own diagnostics say it failed: ``{"method", "reasons"}``, else
+    ``None``. The page flags the corrected image with it."""
+    d = est.diagnostics or {}
+    if "maloney-wandell" not in (requested, est.method):
+        return None
+    reasons = []
+    if d.get("failure"):
+        reasons.append(f"it could not run ({d['failure']}); {est.method} was used instead")
+    fit = d.get("subspace_fit_ratio")
+    if isinstance(fit, (int, float)) and np.isfinite(fit) and fit > LITERAL_FIT_TOLERANCE:
+        reasons.append(f"the data are not confined to a {d.get('D(S)', '?')}-dimensional surface subspace "
+                       f"(s ratio {fit:.3g} > {LITERAL_FIT_TOLERANCE:g})")
+    nr = d.get("pi_null_ratio")
+    if isinstance(nr, (int, float)) and np.isfinite(nr) and nr > LITERAL_NULL_RATIO:
+        reasons.append(f"the light is poorly determined (null-space ratio {nr:.3g} > {LITERAL_NULL_RATIO:g})")
+    return {"method": "maloney-wandell", "reasons": reasons} if reasons else None
 
 
 def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
@@ -170,6 +248,9 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
     }
     choice = rendering_choice(run, decoded)
     out["rendering"] = {"rendering": choice["rendering"], "color_source": choice["color_source"]}
+    failed = method_failure(est, run.requested_method)
+    if failed is not None:
+        out["method_failed"] = failed
     lm = est.light_map
     if lm is not None:  # the light at the map's centres, as fractions of the image height and width
         rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")

@@ -172,6 +172,10 @@ function diagnosticsInWords(j) {
     details.push(`The probable lights lie within about ${fmt(d.posterior_spread_deg, 1)}° of each other ` +
       "(angle between camera responses).");
   }
+  if (typeof d.generic_vs_matrix_deg === "number") {
+    details.push(`With the generic camera, the estimate is ${fmt(d.generic_vs_matrix_deg, 1)}° from the one made ` +
+      `with the file's colour matrix; the confidence was multiplied by ${fmt(d.confidence_factor_generic, 2)}.`);
+  }
   if (d.top_candidates) details.push(`Most probable lights of the candidate set: ${d.top_candidates}.`);
   if (typeof d.subspace_fit_ratio === "number") {
     const good = d.subspace_fit_ratio <= 0.1;
@@ -328,6 +332,10 @@ async function run() {
     $("corrected-note").textContent = cn.full_width ? `(preview ${cn.width}×${cn.height} of ${cn.full_width}×${cn.full_height})` : "";
     current.full = cn.full_width ? {w: cn.full_width, h: cn.full_height} : null;
     showNeutral(analysis);
+    const failed = analysis.method_failed;
+    $("corrected-flag").hidden = !failed;
+    $("corrected-flag").textContent = failed ? "Not trustworthy: the literal Maloney–Wandell method failed on this " +
+      `image by its own tests: ${failed.reasons.join("; ")}.` : "";
 
     const il = analysis.illuminant || {};
     lightFacts(il);
