@@ -3,7 +3,7 @@ JSON error, or a 200 with finite numbers when the mutation left the file
 valid; never a 5xx, never a hang; the service still answers afterwards and
 its memory stays bounded.
 
-``python -m service.fuzz [--n 2000] [--timeout 20] [--seed 0] [--real-dng PATH]``
+``python -m benchmarks.fuzz [--n 2000] [--timeout 20] [--seed 0] [--real-dng PATH]``
 
 The seeds are small valid DNGs written by :mod:`service.dngwriter` from
 spectral scenes (different cameras, lights and CFA patterns). Each mutation is
@@ -469,7 +469,7 @@ def victim_dngs(height: int, width: int) -> tuple[bytes, bytes]:
     """Two different valid DNGs of ``height x width`` (a horizontal ramp
     with a bright band, and a constant 12345): decoded just before a
     mutation, they leave different pixels in LibRaw's freed buffers."""
-    from .dngwriter import mosaic, write_dng
+    from testing.dngwriter import mosaic, write_dng
 
     rgb = np.empty((height, width, 3), np.uint16)
     rgb[...] = (np.linspace(5000, 37500, width, dtype=np.float64)[None, :, None]).astype(np.uint16)
@@ -572,7 +572,7 @@ def run_real_dng(data: bytes, *, seed: int = 0, timeout: float = 60.0, every: in
         a decode that depends on a previous upload.
     """
     if app is None:
-        from .app import app
+        from service.app import app
     logging.getLogger("tifffile").setLevel(logging.CRITICAL)
     bo, _, ent = ifd_entries(data)
     (w,), (h,) = _longs(data, bo, ent[TAG_WIDTH]), _longs(data, bo, ent[TAG_LENGTH])
@@ -659,7 +659,7 @@ async def _run(muts, timeout: float, sample_every: int, warmup: int, report: Fuz
     import httpx
 
     transport = httpx.ASGITransport(app=app)
-    async with httpx.AsyncClient(transport=transport, base_url="http://fuzz") as client:
+    async with httpx.AsyncClient(transport=transport, base_url="http://localhost") as client:
         async def post(endpoint, mut, fields):
             t0 = time.perf_counter()
             try:

@@ -25,8 +25,8 @@ class ApiError(Exception):
         self.status, self.code, self.detail = status, code, detail
 
 
-def error_response(status: int, code: str, detail) -> JSONResponse:
-    return JSONResponse(status_code=status, content={"error": code, "detail": detail})
+def error_response(status: int, code: str, detail, headers: dict | None = None) -> JSONResponse:
+    return JSONResponse(status_code=status, content={"error": code, "detail": detail}, headers=headers)
 
 
 #: OpenAPI schema of every error body (DESIGN.md: ``{"error": code, "detail": text}``).

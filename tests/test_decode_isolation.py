@@ -3,7 +3,7 @@
 LibRaw decodes into a buffer it does not clear: when strips or tiles are
 missing, outside the file or damaged, part of the image is whatever the
 previous decode left there, i.e. another user's photo. The mutations of a
-real CinemaDNG in :func:`service.fuzz.dng_mutations` cover every class that
+real CinemaDNG in :func:`benchmarks.fuzz.dng_mutations` cover every class that
 leaked (truncations, zeroed tails, destroyed SOI markers, damaged JPEG frame
 and table headers, tile geometry, tile offsets and counts, IFD bytes). Each
 is decoded right after two different images; the two results must be the
@@ -21,7 +21,7 @@ import io
 import numpy as np
 import pytest
 
-from service import fuzz
+from benchmarks import fuzz
 from service.rawio import UploadError, decode_upload
 
 from .conftest import shared_file

@@ -83,7 +83,7 @@ def test_real_dng_mutations_answer_the_same_whatever_came_before():
     kind is in that subset) through /v1/analyze, once after each of two
     different 9-Mpx images: the same status and body (timings aside) both
     times, 4xx JSON errors or 200s with finite numbers, never a 5xx or a
-    hang. ``python -m service.fuzz --real-dng`` sends all of them."""
+    hang. ``python -m benchmarks.fuzz --real-dng`` sends all of them."""
     data = shared_file("data/raw/Blackmagic.dng").read_bytes()
     assert {m.kind for m in fuzz.dng_mutations(data)[::3]} == set(fuzz.DNG_KINDS)
     rep, dependent = fuzz.run_real_dng(data, every=3, timeout=60.0)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.dngwriter import mosaic, write_dng
+from testing.dngwriter import mosaic, write_dng
 from service.rawio import UploadError, decode_upload
 
 WL31 = ",".join(str(400 + 10 * i) for i in range(31))

@@ -13,14 +13,14 @@ import math
 import time
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, Query, UploadFile
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 
 from ..deps import read_upload
 from ..errors import ApiError
 from ..jsonsafe import clean
 from ..settings import Settings, get_settings
+from ..workers import run_heavy
 
 router = APIRouter(prefix="/v1")
 
@@ -173,7 +173,7 @@ def _is_npy(data: bytes, filename: str | None) -> bool:
 
 
 @router.post("/render")
-async def render(file: UploadFile = File(..., description=".npy reflectance cube H x W x N (or M x N), or CSV: "
+async def render(request: Request, file: UploadFile = File(..., description=".npy reflectance cube H x W x N (or M x N), or CSV: "
                                           "first column wavelength (nm), one spectrum per further column, "
                                           "optional header row"),
                  wavelengths: str | None = Form(None, description="comma-separated nm; required for .npy"),
@@ -252,38 +252,44 @@ async def render(file: UploadFile = File(..., description=".npy reflectance cube
             check_values(lv, "light values")
             light = lv[0]
         try:
-            return render_spectra(arr, wl, light, strategy=strategy, n=n, output=output, adapt=adapt,
-                                  light_wavelengths=light_wl, max_error=max_error, **opts), names
+            result = render_spectra(arr, wl, light, strategy=strategy, n=n, output=output, adapt=adapt,
+                                    light_wavelengths=light_wl, max_error=max_error, **opts)
         except InputError as e:
             msg = str(e)
             code = "unknown_illuminant" if "illuminant" in msg else "invalid_input"
             raise ApiError(422, code, msg) from None
+        return _response(result, names)
 
-    result, names = await run_in_threadpool(work)
-    image, report = result.image, result.report
-    report["timings_ms"]["request"] = (time.perf_counter() - t0) * 1e3
-    if response == "json":
-        body = dict(report)
-        if names is not None:
-            body["spectra"] = [{"name": nm, output: v} for nm, v in zip(names, image.tolist())]
-        return JSONResponse(clean(body))
-    from ..pipeline import FORMATS as MEDIA, encode_image
+    def _response(result, names):
+        # in the worker thread too: a JSON report of millions of values or the
+        # image's quantisation and encoding would otherwise hold the event loop
+        image, report = result.image, result.report
+        report["timings_ms"]["request"] = (time.perf_counter() - t0) * 1e3
+        if response == "json":
+            body = dict(report)
+            if names is not None:
+                body["spectra"] = [{"name": nm, output: v} for nm, v in zip(names, image.tolist())]
+            return JSONResponse(clean(body))
+        from ..pipeline import FORMATS as MEDIA, encode_image
 
-    fmt, bits = FORMATS[format]
-    img = image if image.ndim == 3 else image[None]
-    scale = 65535 if bits == 16 else 255
-    q = np.empty(img.shape, np.uint16 if bits == 16 else np.uint8)
-    np.multiply(np.clip(img, 0, 1), scale, out=img)
-    np.rint(img, out=img)
-    q[...] = img
-    t1 = time.perf_counter()
-    payload = await run_in_threadpool(encode_image, q, fmt)
-    report["timings_ms"]["file_encode"] = (time.perf_counter() - t1) * 1e3
-    header = {k: v for k, v in report.items() if k != "tried"}
-    header["tried"] = len(report.get("tried", []))
-    headers = {"X-Render-Report": json.dumps(clean(header), separators=(",", ":")),
-               "Content-Disposition": f'inline; filename="render.{"tif" if fmt == "tiff" else "png"}"'}
-    return Response(payload, media_type=MEDIA[fmt], headers=headers)
+        fmt, bits = FORMATS[format]
+        img = image if image.ndim == 3 else image[None]
+        scale = 65535 if bits == 16 else 255
+        q = np.empty(img.shape, np.uint16 if bits == 16 else np.uint8)
+        np.multiply(np.clip(img, 0, 1), scale, out=img)
+        np.rint(img, out=img)
+        q[...] = img
+        t1 = time.perf_counter()
+        payload = encode_image(q, fmt)
+        report["timings_ms"]["file_encode"] = (time.perf_counter() - t1) * 1e3
+        header = {k: v for k, v in report.items() if k != "tried"}
+        header["tried"] = len(report.get("tried", []))
+        headers = {"X-Render-Report": json.dumps(clean(header), separators=(",", ":")),
+                   "Content-Disposition": f'inline; filename="render.{"tif" if fmt == "tiff" else "png"}"'}
+        return Response(payload, media_type=MEDIA[fmt], headers=headers)
+
+    # under the same bound as every other heavy request (service.workers)
+    return await run_heavy(work, request=request)
 
 
 @router.get("/sampling")
