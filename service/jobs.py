@@ -209,6 +209,8 @@ class ItemTask:
     threads: int = 1
     #: False (single-file CLI): no lock, no sidecar, an existing output is replaced
     exactly_once: bool = True
+    #: True (CLI --force): a finished output is computed again and replaced
+    force: bool = False
 
 
 def _estimate_json(est, camera_name: str) -> dict:
@@ -315,7 +317,7 @@ def process_item(task: ItemTask) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
-            if task.exactly_once and is_finished(task.out):  # written by an earlier run: adopt, never write twice
+            if task.exactly_once and not task.force and is_finished(task.out):  # written by an earlier run: adopt, never write twice
                 with open(meta_path(task.out, ".json")) as f:
                     side = json.load(f)
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
@@ -334,9 +336,10 @@ def process_item(task: ItemTask) -> dict:
                        "camera": cam.name, "rendering": info.get("rendering"), "target": task.options.target,
                        "output": task.options.output}
             meta = pipeline.output_meta(decoded, task.options.output, summary)
+            file_warnings = list(decoded.warnings)
             del decoded
             illum = _estimate_json(run.estimate, cam.name)
-            illum["warnings"] = list(run.camera_warnings) + list(run.estimate.warnings)
+            illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
             side = {"name": task.name, "illuminant": illum, "correction_matrix": M.tolist(),
                     "rendering": pipeline.rendering_json(info),
                     "options": asdict(task.options)}
