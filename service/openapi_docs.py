@@ -81,9 +81,8 @@ ENUMS = {
     ("/v1/preview", "output"): ["sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display"],
 }
 
-ERROR_SCHEMA = {"type": "object", "required": ["error", "detail"],
-                "properties": {"error": {"type": "string", "description": "machine-readable code"},
-                               "detail": {"type": "string", "description": "what is wrong, in words"}}}
+#: The error body's schema is service.errors' ``ErrorBody`` (added to the document there).
+ERROR_REF = "#/components/schemas/ErrorBody"
 _ERRORS = {
     "413": "too large: the upload is over WANDELL_MAX_UPLOAD_BYTES or the image over WANDELL_MAX_PIXELS "
            "(error file_too_large, too_large, too_many_pixels)",
@@ -141,7 +140,6 @@ def _fill(schema: dict, path: str, name: str, desc_holder: dict) -> None:
 def enrich(spec: dict) -> dict:
     """Complete the generated OpenAPI document in place (see module doc)."""
     comps = spec.setdefault("components", {}).setdefault("schemas", {})
-    comps.setdefault("Error", ERROR_SCHEMA)
     for path, ops in spec.get("paths", {}).items():
         for method, op in ops.items():
             for p in op.get("parameters", []):
@@ -160,7 +158,7 @@ def enrich(spec: dict) -> dict:
             for code in codes:
                 r = responses.setdefault(code, {})
                 r["description"] = _ERRORS[code]
-                r["content"] = {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}
+                r["content"] = {"application/json": {"schema": {"$ref": ERROR_REF}}}
     wb = spec.get("paths", {}).get("/v1/white-balance", {}).get("post")
     if wb is not None:
         ok = wb["responses"].setdefault("200", {})

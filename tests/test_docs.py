@@ -92,6 +92,6 @@ def test_white_balance_declares_images_header_and_errors(spec):
     assert "X-Illuminant" in ok["headers"] and "exposure" in ok["headers"]["X-Illuminant"]["description"]
     for code in ("413", "415", "422"):
         r = op["responses"][code]
-        assert r["description"] and r["content"]["application/json"]["schema"]["$ref"].endswith("/Error")
-    err = spec["components"]["schemas"]["Error"]
+        assert r["description"] and r["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
+    err = spec["components"]["schemas"]["ErrorBody"]
     assert set(err["required"]) == {"error", "detail"}
