@@ -24,7 +24,7 @@ from recovery.api import surfaces_from_estimate
 from service import pipeline
 from service.app import app
 from service.deps import estimate_options
-from service.dngwriter import scene_dng
+from testing.dngwriter import scene_dng
 from service.limits import FRAMING
 from service.routers import analysis
 from service.settings import get_settings
