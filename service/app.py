@@ -10,8 +10,12 @@ from .errors import install_error_handlers
 from .routers import analysis, batches, info, render, web
 
 app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=_doc,
-              lifespan=batches.lifespan)
+              lifespan=batches.lifespan, docs_url=None, redoc_url=None)
 install_error_handlers(app)
+# /docs offline: Swagger UI's assets from a package, served here; the OpenAPI completed
+from .openapi_docs import install as _install_docs  # noqa: E402
+
+_install_docs(app)
 app.include_router(info.router)
 app.include_router(analysis.router)
 app.include_router(batches.router)

@@ -12,10 +12,19 @@
     One corrected image (``POST /v1/white-balance``).
 
 Options are those of the API: ``--camera``, ``--method``, ``--quality``,
-``--target``, ``--output``, ``--format``, ``--lighting`` (per-image or
-shared), ``--surface-model``, ``--light-model``. Exit status: 0 when every
-item succeeded or was already done, 1 when something failed, 2 for a usage
-error.
+``--target``, ``--output``, ``--format``, ``--exposure``, ``--lighting``
+(per-image or shared), ``--surface-model``, ``--light-model``; plus
+``--force`` (batch: compute finished outputs again), ``--quiet`` (no
+progress bar or table; failures and warnings still on stderr) and
+``--version``. ``white-balance`` takes the format from OUT's extension
+(.tif/.tiff, .png, .jpg/.jpeg); ``--format`` must agree with it. A batch
+rerun whose options differ from those stored beside a finished output (its
+``.wandell/NAME.json`` sidecar) says so in the summary. Exit status: 0 when
+every item succeeded or was already done, 1 when something failed, 2 for a
+usage error.
+
+Start-up stays light (``wandell --help`` imports no numerical library): the
+heavy modules are imported by the command that needs them.
 """
 
 from __future__ import annotations
@@ -41,8 +50,18 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
         return
     ap.add_argument("--target", default="D65", help="light to render under, or 'estimate'")
     ap.add_argument("--output", default="sRGB", help="sRGB, linear-sRGB, Display P3 or a display name")
-    ap.add_argument("--format", default="tiff", help="tiff (16-bit), png (8-bit), png16, jpeg")
+    ap.add_argument("--format", default=None,
+                    help="tiff (16-bit), png (8-bit), png16, jpeg; white-balance: taken from OUT's extension "
+                         "(.tif, .png, .jpg), and an error if this disagrees; batch: default tiff")
+    ap.add_argument("--exposure", default="auto", metavar="EV|auto",
+                    help="auto (default): LibRaw's auto-brightness (the 99th percentile of the brightest "
+                         "channel is white); a number of EV overrides it (0: the sensor's brightest neutral is "
+                         "white, +1 doubles)")
+    ap.add_argument("-q", "--quiet", action="store_true",
+                    help="no progress bar and no summary table; failures, notes and warnings still go to stderr")
     if batch:
+        ap.add_argument("--force", action="store_true",
+                        help="compute finished outputs again (default: skip them, resumable)")
         ap.add_argument("--lighting", default="per-image", help="per-image, or shared: one light for all")
         ap.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
         ap.add_argument("--dask-scheduler", default=os.environ.get("WANDELL_DASK_SCHEDULER", ""),
@@ -53,7 +72,8 @@ def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
     return jobs.batch_options(camera=args.camera, method=args.method, quality=args.quality,
                               target=getattr(args, "target", None), output=getattr(args, "output", None),
                               format=getattr(args, "format", None), lighting=lighting,
-                              surface_model=args.surface_model, light_model=args.light_model)
+                              surface_model=args.surface_model, light_model=args.light_model,
+                              exposure=getattr(args, "exposure", None))
 
 
 def _limits():
@@ -92,7 +112,24 @@ class Progress:
             self.stream.write("\n")
 
 
-def _summary(rows: list[dict], stream) -> None:
+def _warnings_of(row: dict) -> list[str]:
+    ill = row.get("illuminant") or {}
+    return [str(w) for w in (ill.get("warnings") or [])]
+
+
+def _summary(rows: list[dict], stream, quiet: bool = False) -> None:
+    """The table (file, status, CCT, seconds, light or error), then notes
+    (options that differ from a finished output's) and warnings; with
+    ``quiet`` only failures, notes and warnings, on stderr."""
+    if quiet:
+        for r in rows:
+            if r["status"] == "failed":
+                sys.stderr.write(f"{r['name']}: failed: {r.get('error')}\n")
+            if r.get("note"):
+                sys.stderr.write(f"{r['name']}: note: {r['note']}\n")
+            for w in _warnings_of(r):
+                sys.stderr.write(f"{r['name']}: warning: {w}\n")
+        return
     w = max([4] + [len(r["name"]) for r in rows])
     stream.write(f"\n{'file':{w}s}  {'status':8s}  {'CCT K':>7s}  {'seconds':>7s}  light camera RGB / error\n")
     for r in rows:
@@ -104,8 +141,28 @@ def _summary(rows: list[dict], stream) -> None:
         stream.write(f"{r['name']:{w}s}  {r['status']:8s}  {'' if cct is None else f'{cct:7.0f}':>7s}  "
                      f"{'' if sec is None else f'{sec:7.2f}':>7s}  {what}\n")
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "skipped", "failed")}
+    notes = [(r["name"], r["note"]) for r in rows if r.get("note")]
+    if notes:
+        stream.write("\nnotes:\n" + "".join(f"  {n}: {t}\n" for n, t in notes))
+    warns = [(r["name"], w) for r in rows for w in _warnings_of(r)]
+    if warns:
+        stream.write("\nwarnings:\n" + "".join(f"  {n}: {t}\n" for n, t in warns))
     stream.write(f"\n{counts['done']} done, {counts['skipped']} skipped (already finished), "
                  f"{counts['failed']} failed, {len(rows)} in all\n")
+
+
+def options_difference(stored: dict | None, options: jobs.BatchOptions) -> str | None:
+    """How the options stored beside a finished output differ from this
+    run's (``None`` when they agree); options the older run did not know
+    count as their defaults."""
+    now = json.loads(options.to_json())
+    if not isinstance(stored, dict):
+        return "made by a run that did not record its options"
+    base = json.loads(jobs.BatchOptions().to_json())
+    before = {**base, **{k: v for k, v in stored.items() if k in base}}
+    diff = [f"{k}: {before[k]!r} -> {now[k]!r}" for k in sorted(now) if before.get(k) != now[k]
+            and k != "lighting"]
+    return "made with other options (" + "; ".join(diff) + ")" if diff else None
 
 
 def _inputs(in_dir: str) -> list[str]:
@@ -115,11 +172,15 @@ def _inputs(in_dir: str) -> list[str]:
 
 
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
-              dask_scheduler: str | None = None, executor=None, stream=None) -> list[dict]:
+              dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
+              quiet: bool = False) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
-    ``error``, ``seconds``)."""
-    stream = stream or sys.stderr
+    ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
+    ``note`` when they were made with other options) unless ``force``."""
+    import io
+
+    stream = io.StringIO() if quiet else (stream or sys.stderr)
     files = _inputs(in_dir)
     os.makedirs(out_dir, exist_ok=True)
     for stale in glob.glob(os.path.join(out_dir, ".*.part")):  # left by a killed run: never a result
@@ -131,14 +192,17 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
         name = os.path.basename(p)
         out = os.path.join(out_dir, jobs.unique(f"{os.path.splitext(name)[0]}.{options.extension}", seen))
         tasks.append(jobs.ItemTask(src=p, out=out, name=name, options=options, max_pixels=max_pixels,
-                                   estimation_pixels=est_pixels))
+                                   estimation_pixels=est_pixels, force=force))
     rows = {t.name: {"name": t.name, "status": "pending"} for t in tasks}
     todo = []
     for t in tasks:
-        if jobs.is_finished(t.out):
+        if not force and jobs.is_finished(t.out):
             with open(jobs.meta_path(t.out, ".json")) as f:
                 side = json.load(f)
             rows[t.name].update(status="skipped", illuminant=side.get("illuminant"))
+            diff = options_difference(side.get("options"), options)
+            if diff:
+                rows[t.name]["note"] = diff + "; --force to compute it again with these"
         else:
             todo.append(t)
     bar = Progress(len(tasks), stream)
@@ -149,7 +213,7 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
         executor = jobs.make_executor(workers or None, dask_scheduler or None)
     try:
         if todo and options.lighting == "shared":
-            light = _shared_light(tasks, options, out_dir, executor, rows, count)
+            light = _shared_light(tasks, options, out_dir, executor, rows, count, force)
             todo = [t for t in todo if rows[t.name]["status"] == "pending"]
             todo = [dataclasses.replace(t, light=light) for t in todo] if light else []
             for t in tasks:
@@ -176,12 +240,12 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     return [rows[t.name] for t in tasks]
 
 
-def _shared_light(tasks, options, out_dir, executor, rows, count) -> dict | None:
+def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = False) -> dict | None:
     """One light from all input images (finished ones included, so a resumed
     run corrects with the same light), kept in ``OUT_DIR/.wandell``."""
     path = os.path.join(out_dir, ".wandell", "shared-light.json")
     key = {"inputs": [os.path.basename(t.src) for t in tasks], "options": json.loads(options.to_json())}
-    if os.path.exists(path):
+    if os.path.exists(path) and not force:
         with open(path) as f:
             saved = json.load(f)
         if saved.get("key") == key:
@@ -210,17 +274,46 @@ def _shared_light(tasks, options, out_dir, executor, rows, count) -> dict | None
 
 
 def _cmd_batch(args) -> int:
+    if args.format is None:
+        args.format = "tiff"
     opts = _options(args, args.lighting)
     if not os.path.isdir(args.in_dir):
         raise jobs.JobError("folder_not_found", f"input folder {args.in_dir!r} does not exist")
     if not _inputs(args.in_dir):
         raise jobs.JobError("empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
-    rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler)
-    _summary(rows, sys.stdout)
+    rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
+                     quiet=args.quiet)
+    _summary(rows, sys.stdout, args.quiet)
     return 1 if any(r["status"] == "failed" for r in rows) else 0
 
 
+#: Output file extensions and the formats they mean (white-balance OUT).
+EXTENSION_FORMATS = {".tif": ("tiff",), ".tiff": ("tiff",), ".png": ("png", "png16"), ".jpg": ("jpeg", "jpg"),
+                     ".jpeg": ("jpeg", "jpg")}
+
+
+def format_for(out: str, given: str | None) -> str:
+    """The output format of ``white-balance OUT``: from OUT's extension;
+    ``--format`` must agree with it (png16 is the 16-bit choice for .png);
+    a name without an extension needs ``--format``."""
+    ext = os.path.splitext(out)[1].lower()
+    if not ext:
+        if given is None:
+            raise jobs.JobError("invalid_parameter", f"{out!r} has no extension: name it .tif, .png or .jpg, "
+                                "or give --format")
+        return given
+    if ext not in EXTENSION_FORMATS:
+        raise jobs.JobError("invalid_parameter", f"cannot write {ext!r} files: name the output .tif/.tiff "
+                            "(16-bit TIFF), .png (8-bit; --format png16 for 16-bit) or .jpg/.jpeg")
+    allowed = EXTENSION_FORMATS[ext]
+    if given is not None and given not in allowed:
+        raise jobs.JobError("format_mismatch", f"--format {given} disagrees with the output name {out!r} "
+                            f"({ext} is {' or '.join(allowed)}): change one of them")
+    return given or allowed[0]
+
+
 def _cmd_white_balance(args) -> int:
+    args.format = format_for(args.out, args.format)
     opts = _options(args)
     max_pixels, est_pixels = _limits()
     task = jobs.ItemTask(src=args.file, out=os.path.abspath(args.out), name=os.path.basename(args.file),
@@ -234,11 +327,12 @@ def _cmd_white_balance(args) -> int:
         try:
             tt = _write_xmp(args.file, res["illuminant"], opts, path)
             res["xmp"] = path
-            print(f"XMP sidecar: {path} (Temperature {tt['temperature']:.0f} K, Tint {tt['tint']:+.0f})")
+            if not args.quiet:
+                print(f"XMP sidecar: {path} (Temperature {tt['temperature']:.0f} K, Tint {tt['tint']:+.0f})")
         except Exception as e:  # noqa: BLE001 - the image is written; say why the sidecar is not
             res["status"] = "failed"
             res["error"] = f"xmp: {getattr(e, 'detail', e)}"
-    _summary([res], sys.stdout)
+    _summary([res], sys.stdout, args.quiet)
     return 0 if res["status"] == "done" else 1
 
 
@@ -283,9 +377,19 @@ def _cmd_analyze(args) -> int:
     return 0
 
 
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("wandell-recovery")
+    except metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="wandell", description="White balance and illuminant estimation of RAW "
                                  "files (Wandell 1985; Maloney & Wandell)")
+    ap.add_argument("--version", action="version", version=f"wandell {_version()}")
     sub = ap.add_subparsers(dest="command", required=True)
     b = sub.add_parser("batch", help="white-balance every RAW of IN_DIR into OUT_DIR (resumable)")
     b.add_argument("in_dir")

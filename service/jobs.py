@@ -86,6 +86,7 @@ class BatchOptions:
     surface_dim: str | None = None
     light_dim: str | None = None
     region_size: int | None = None
+    exposure: float | None = None          # EV; None: the auto rule (pipeline.exposure_gain)
 
     @property
     def extension(self) -> str:
@@ -118,6 +119,14 @@ def batch_options(**kw) -> BatchOptions:
     unknown = set(kw) - set(BatchOptions.__dataclass_fields__)
     if unknown:
         raise JobError("invalid_parameter", f"unknown options {sorted(unknown)}")
+    if "exposure" in kw:
+        from .errors import ApiError
+        from .pipeline import parse_exposure
+
+        try:
+            kw["exposure"] = parse_exposure(kw["exposure"])
+        except ApiError as e:
+            raise JobError(e.code, e.detail, e.status) from None
     opts = BatchOptions(**kw)
     if opts.format not in FORMATS:
         raise JobError("invalid_parameter", f"format {opts.format!r} unknown; accepted: {sorted(FORMATS)}")
@@ -200,6 +209,8 @@ class ItemTask:
     threads: int = 1
     #: False (single-file CLI): no lock, no sidecar, an existing output is replaced
     exactly_once: bool = True
+    #: True (CLI --force): a finished output is computed again and replaced
+    force: bool = False
 
 
 def _estimate_json(est, camera_name: str) -> dict:
@@ -306,7 +317,7 @@ def process_item(task: ItemTask) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
-            if task.exactly_once and is_finished(task.out):  # written by an earlier run: adopt, never write twice
+            if task.exactly_once and not task.force and is_finished(task.out):  # written by an earlier run: adopt, never write twice
                 with open(meta_path(task.out, ".json")) as f:
                     side = json.load(f)
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
@@ -319,14 +330,16 @@ def process_item(task: ItemTask) -> dict:
                 run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
             fmt, bits, _ = FORMATS[task.options.format]
             out, M, info = pipeline.render_full(decoded, run, task.options.target, task.options.output, bits,
-                                                opts.get("surface_basis"), threads=task.threads)
+                                                opts.get("surface_basis"), threads=task.threads,
+                                                exposure=task.options.exposure)
             summary = {"method": run.estimate.method, "camera_rgb": run.estimate.rgb.tolist(),
                        "camera": cam.name, "rendering": info.get("rendering"), "target": task.options.target,
                        "output": task.options.output}
             meta = pipeline.output_meta(decoded, task.options.output, summary)
+            file_warnings = list(decoded.warnings)
             del decoded
             illum = _estimate_json(run.estimate, cam.name)
-            illum["warnings"] = list(run.camera_warnings) + list(run.estimate.warnings)
+            illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
             side = {"name": task.name, "illuminant": illum, "correction_matrix": M.tolist(),
                     "rendering": pipeline.rendering_json(info),
                     "options": asdict(task.options)}

@@ -36,6 +36,8 @@ class EstimateRun:
     camera_warnings: list
     timings_ms: dict = field(default_factory=dict)
     factor: int = 1
+    neutral: dict | None = None     # set by with_neutral: where the user's white came from
+    requested_method: str | None = None
 
 
 def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,
@@ -46,7 +48,84 @@ def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str,
     img, mask, f = block_average(decoded.estimation, ~decoded.saturated, analysis_pixels)
     est = estimate_illuminant(img, camera, method, mask=mask, **options)
     t1 = time.perf_counter()
-    return EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f)
+    run = EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f,
+                      requested_method=method)
+    if camera.source == "generic":
+        generic_cross_check(decoded, run, img, mask, method, options)
+        run.timings_ms["matrix_cross_check"] = (time.perf_counter() - t1) * 1e3
+    return run
+
+
+#: The angle (degrees) at which a white-balance error is commonly taken to
+#: become visible (Hordley & Finlayson 2006 use 2-3 degrees for "good";
+#: colour-constancy benchmarks quote 3): the generic camera's confidence is
+#: halved when its estimate is this far from the colour matrix's.
+VISIBLE_WB_ERROR_DEG = 3.0
+
+
+def generic_cross_check(decoded, run: EstimateRun, img, mask, method: str, options: dict) -> None:
+    """``camera=generic`` on a file that has a colour matrix: estimate again
+    with the matrix-derived camera (same image, mask, method and options),
+    report the angle between the two lights (both are camera RGB of this
+    sensor) in ``diagnostics["generic_vs_matrix_deg"]``, scale the reported
+    confidence by ``1 / (1 + (angle / 3 deg)^2)`` (1 when they agree, 1/2
+    at a just-visible 3 degrees, about 0.1 at 9 degrees; a method that
+    reports no confidence gets this factor as its confidence) and warn
+    when the angle exceeds 3 degrees. Nothing happens for a file without a
+    matrix (nothing to compare with)."""
+    from . import rawio
+
+    try:
+        mcam, _ = rawio.resolve_camera(decoded, "matrix")
+    except rawio.UploadError:
+        return
+    if mcam.source != "matrix-derived" or mcam.channels != run.camera.channels:
+        return
+    ref = estimate_illuminant(img, mcam, method, mask=mask, **options)
+    ang = float(angular_error(run.estimate.rgb, ref.rgb))
+    factor = 1.0 / (1.0 + (ang / VISIBLE_WB_ERROR_DEG) ** 2)
+    d = run.estimate.diagnostics
+    before = d.get("confidence")
+    d["generic_vs_matrix_deg"] = ang
+    d["matrix_estimate_camera_rgb"] = (ref.rgb / np.linalg.norm(ref.rgb)).tolist()
+    d["confidence_factor_generic"] = factor
+    if isinstance(before, (int, float)) and np.isfinite(before):
+        d["confidence_before_cross_check"] = float(before)
+        d["confidence"] = float(before) * factor
+    else:
+        d["confidence"] = factor
+    msg = (f"camera=generic: this estimate is {ang:.1f} degrees from the one made with the file's colour matrix "
+           f"(confidence x {factor:.2f})")
+    if ang > VISIBLE_WB_ERROR_DEG:
+        run.estimate.warnings.append(msg + "; camera=matrix (the default for this file) is the better choice")
+    else:
+        d["generic_cross_check"] = msg
+
+
+#: The literal method's own failure tests (recovery.api): subspace fit above
+#: its tolerance, a poorly determined light, a fallback.
+LITERAL_FIT_TOLERANCE = 0.1
+LITERAL_NULL_RATIO = 0.5
+
+
+def method_failure(est: IlluminantEstimate, requested: str | None = None) -> dict | None:
+    """When the literal Maloney-Wandell method was asked for (or ran) and
+    its own diagnostics say it failed: ``{"method", "reasons"}``, else
+    ``None``. The page flags the corrected image with it."""
+    d = est.diagnostics or {}
+    if "maloney-wandell" not in (requested, est.method):
+        return None
+    reasons = []
+    if d.get("failure"):
+        reasons.append(f"it could not run ({d['failure']}); {est.method} was used instead")
+    fit = d.get("subspace_fit_ratio")
+    if isinstance(fit, (int, float)) and np.isfinite(fit) and fit > LITERAL_FIT_TOLERANCE:
+        reasons.append(f"the data are not confined to a {d.get('D(S)', '?')}-dimensional surface subspace "
+                       f"(s ratio {fit:.3g} > {LITERAL_FIT_TOLERANCE:g})")
+    nr = d.get("pi_null_ratio")
+    if isinstance(nr, (int, float)) and np.isfinite(nr) and nr > LITERAL_NULL_RATIO:
+        reasons.append(f"the light is poorly determined (null-space ratio {nr:.3g} > {LITERAL_NULL_RATIO:g})")
+    return {"method": "maloney-wandell", "reasons": reasons} if reasons else None
 
 
 def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
@@ -65,6 +144,77 @@ def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
     est = _finish(rgb, spd, w, run.camera, model, method,
                   {"light_model": model.name + " (spectrum fitted to the given white)"}, [])
     return EstimateRun(est, run.camera, list(run.camera_warnings), dict(run.timings_ms), run.factor)
+
+
+#: Above this angle between the light used and the file's as-shot white the answer warns.
+AS_SHOT_WARN_DEG = 5.0
+
+NEUTRAL_HELP = ("'use this as white': JSON [row, col] (a point) or [r0, c0, r1, c1] (a rectangle, end "
+                "exclusive) in full-resolution pixels of the image as decoded (before DefaultCrop); the light "
+                "is the mean camera RGB of the unclipped pixels there, rendered like an estimate")
+
+
+def parse_neutral(text) -> list[int] | None:
+    """``neutral``: JSON ``[row, col]`` or ``[r0, c0, r1, c1]`` (integers);
+    ``None`` when absent; otherwise a 422 saying what is accepted."""
+    if text is None or (isinstance(text, str) and not text.strip()):
+        return None
+    try:
+        val = json.loads(text) if isinstance(text, str) else text
+    except json.JSONDecodeError as e:
+        raise ApiError(422, "invalid_parameter", f"neutral is not valid JSON: {e.msg}; give [row, col] or "
+                       "[r0, c0, r1, c1]") from None
+    if (not isinstance(val, list) or len(val) not in (2, 4)
+            or not all(isinstance(x, int) and not isinstance(x, bool) for x in val)):
+        raise ApiError(422, "invalid_parameter", f"neutral must be [row, col] or [r0, c0, r1, c1] (integers), "
+                       f"got {text!r}")
+    return val
+
+
+def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
+    """The light's camera RGB from a surface the user says is white or grey:
+    the mean camera RGB of the unclipped cells of the estimation image under
+    the point or rectangle ``where`` (full-resolution pixels, as
+    :func:`surfaces_at`). 422 when it is outside the image or every cell
+    there is clipped or black."""
+    H, W = decoded.full_shape
+    r0, c0, r1, c1 = (where[0], where[1], where[0] + 1, where[1] + 1) if len(where) == 2 else where
+    if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
+        raise ApiError(422, "invalid_parameter", f"neutral {list(where)} is outside the {H}x{W} image: a point "
+                       f"needs 0 <= row < {H} and 0 <= col < {W}; a rectangle 0 <= r0 < r1 <= {H} and "
+                       f"0 <= c0 < c1 <= {W}")
+    img = decoded.estimation
+    h, w = img.shape[:2]
+    a0, b0 = min(int(r0 * h / H), h - 1), min(int(c0 * w / W), w - 1)
+    a1, b1 = max(a0 + 1, min(h, -(-r1 * h // H))), max(b0 + 1, min(w, -(-c1 * w // W)))
+    cells = np.asarray(img[a0:a1, b0:b1], float).reshape(-1, img.shape[-1])
+    sat = np.asarray(decoded.saturated[a0:a1, b0:b1]).ravel()
+    ok = ~sat & np.all(np.isfinite(cells), axis=1) & np.all(cells > 0, axis=1)
+    n_ok = int(ok.sum())
+    if n_ok == 0:
+        why = "clipped (saturated)" if sat.all() else "clipped or black"
+        raise ApiError(422, "unusable_neutral", f"every pixel of neutral {list(where)} is {why}: choose a "
+                       "white or grey surface that is not blown out")
+    rgb = cells[ok].mean(axis=0)
+    info = {"where": list(where), "cells_used": n_ok, "cells_clipped_or_black": int(ok.size - n_ok),
+            "camera_rgb": (rgb / np.linalg.norm(rgb)).tolist(), "level": float(rgb.max())}
+    if rgb.max() < 0.01:
+        info["warning"] = (f"the neutral surface is very dark ({100 * rgb.max():.2f} % of saturation): its colour "
+                           "is noisy")
+    return rgb, info
+
+
+def with_neutral(decoded, run: EstimateRun, where: list[int]) -> EstimateRun:
+    """The run whose light is the surface at ``where`` (:func:`neutral_white`),
+    rendered the same way as an estimate; ``neutral`` records where it came
+    from and its angle to the estimate it replaces."""
+    rgb, info = neutral_white(decoded, where)
+    if run.estimate is not None:
+        info["angle_to_estimate_deg"] = float(angular_error(rgb, run.estimate.rgb))
+        info["estimate_method"] = run.estimate.method
+    out = run_with_white(run, rgb, "neutral-surface")
+    out.neutral = info
+    return out
 
 
 def illuminant_json(est: IlluminantEstimate) -> dict:
@@ -98,6 +248,9 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
     }
     choice = rendering_choice(run, decoded)
     out["rendering"] = {"rendering": choice["rendering"], "color_source": choice["color_source"]}
+    failed = method_failure(est, run.requested_method)
+    if failed is not None:
+        out["method_failed"] = failed
     lm = est.light_map
     if lm is not None:  # the light at the map's centres, as fractions of the image height and width
         rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
@@ -109,8 +262,17 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
                             "camera_rgb": rgb.reshape(rr.shape + (-1,)).tolist()}
     if decoded.as_shot_neutral is not None and np.all(np.isfinite(decoded.as_shot_neutral)):
         asn = np.asarray(decoded.as_shot_neutral, float)
-        out["as_shot"] = {"camera_rgb": (asn / np.linalg.norm(asn)).tolist(),
-                          "angle_to_estimate_deg": float(angular_error(asn, est.rgb))}
+        ang = float(angular_error(asn, est.rgb))
+        out["as_shot"] = {"camera_rgb": (asn / np.linalg.norm(asn)).tolist(), "angle_to_estimate_deg": ang}
+        if ang > AS_SHOT_WARN_DEG:
+            what = "the white you chose" if run.neutral is not None else "the estimate"
+            out["warnings"].append(f"{what} is {ang:.1f} degrees from the camera's own as-shot white (more than "
+                                   f"{AS_SHOT_WARN_DEG:g}): check the picture, or use a white surface "
+                                   "('neutral') or white=as-shot")
+    if run.neutral is not None:
+        out["neutral"] = dict(run.neutral)
+        if out["neutral"].get("warning"):
+            out["warnings"].append(out["neutral"]["warning"])
     return out
 
 
@@ -148,7 +310,8 @@ def _target_xy(target: str, est: IlluminantEstimate, white_xy, wavelengths) -> t
 
 
 def correction_matrix(run: EstimateRun, target: str, output: str, surface_model: str | None = None,
-                      *, decoded=None, tone: str = "shoulder") -> tuple[np.ndarray, dict]:
+                      *, decoded=None, tone: str = "shoulder", exposure: float | None = None
+                      ) -> tuple[np.ndarray, dict]:
     """Camera RGB (1.0 = saturation) -> linear display values.
 
     Spectral rendering (measured, uploaded or generic sensitivities):
@@ -156,19 +319,32 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
     surface model of as many terms as sensors), scaled so that the
     brightest neutral the sensor records unclipped (the light's own camera
     RGB with its largest channel at saturation) renders with luminance 1:
-    a fixed exposure, no auto-brightening. The surface model has C terms
-    of ``surface_model`` (default PCA of the shipped reflectances).
+    before the exposure (below). The surface model has C terms of
+    ``surface_model`` (default PCA of the shipped reflectances).
 
     DNG-matrix rendering (``decoded`` given, a camera known only by its
     colour matrix, :func:`rendering_choice`): the DNG specification's
     camera -> XYZ D50 for the estimated camera neutral
     (:func:`recovery.dng_color.camera_to_xyz_d50`), Bradford to the target
-    white, ``Gamma^{-1}``, times ``2 ** BaselineExposure``; the same neutral
-    at saturation renders at luminance ``2 ** BaselineExposure``. When that
-    lifts the sensor's range above display white, ``tone="shoulder"`` (the
-    default) asks :func:`apply_matrix_inplace` to roll the highlights off
-    above a knee (:func:`recovery.highlights.highlight_shoulder`) rather than
-    clip them; ``tone="linear"`` is the specification's linear rendering.
+    white, ``Gamma^{-1}``; the same neutral at saturation renders with
+    luminance 1 before the exposure.
+
+    Exposure (both renderings, :func:`exposure_gain`): ``exposure=None``
+    (the default, "auto") is LibRaw's auto-brightness rule, the same for
+    every file: the gain that sends the 99th percentile of the brightest
+    display channel to display white (dcraw/LibRaw ``auto_bright_thr`` =
+    0.01), at least 1 and at most 256; a number is the user's exposure in
+    EV on the same base (0: the brightest neutral the sensor records is
+    display white). The DNG BaselineExposure is reported, not applied
+    (linear, it made the Blackmagic file 2 stops brighter than LibRaw's
+    rendering). When the gain lifts the sensor's range above display white,
+    ``tone="shoulder"`` (the default) asks :func:`apply_matrix_inplace` to
+    roll the highlights off above a knee
+    (:func:`recovery.highlights.highlight_shoulder`) rather than clip them;
+    ``tone="linear"`` clips. Display-encoded outputs (sRGB, Display P3)
+    then take LibRaw's tone curve (``info["curve"] = "libraw"``,
+    :func:`display_curve`) unless ``tone="linear"``, so the picture is as
+    bright as LibRaw's default rendering at every level, not only at white.
 
     ``info`` has ``rendering``, ``neutral`` (the light's camera RGB, largest
     channel 1, for :func:`apply_matrix_inplace`'s highlight handling),
@@ -187,8 +363,7 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
         prof = choice["profile"]
         M50, dinfo = camera_to_xyz_d50(prof, neutral)
         wxy = _target_xy(target, est, dinfo["white_xy"], cam.wavelengths)
-        gain = 2.0 ** float(prof.baseline_exposure)
-        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50) * gain
+        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50)
         info = {"rendering": "dng-matrix", "color_source": choice["color_source"], "encoding": space.encoding,
                 "neutral": neutral.tolist(), "white_xy": dinfo["white_xy"],
                 "temperature": dinfo["temperature"], "tint": dinfo["tint"],
@@ -196,13 +371,7 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
                 "baseline_exposure": float(prof.baseline_exposure), "target_white_xy": [float(v) for v in wxy]}
         if prof.notes:
             info["notes"] = list(prof.notes)
-        if gain > 1.0 and tone == "shoulder":
-            from recovery.highlights import SHOULDER_KNEE
-
-            info["shoulder"] = {"luminance": [float(v) for v in space.Gamma[1]], "knee": SHOULDER_KNEE,
-                                "peak": gain}
-        info["tone"] = "shoulder" if "shoulder" in info else "linear"
-        return M, info
+        return _with_exposure(M, info, decoded, exposure, tone, space.Gamma)
     try:
         tgt = est.spectrum if target in ("estimate", "as-seen") else get_illuminant(target, cam.wavelengths)
     except KeyError as e:
@@ -218,13 +387,124 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
             "color_source": cam.source}
     if np.all(neutral > 0):
         info["neutral"] = neutral.tolist()
-    return M / lum, info
+    return _with_exposure(M / lum, info, decoded, exposure, tone, space.Gamma)
+
+
+#: LibRaw's ``auto_bright_thr``: the fraction of pixels auto-brightness lets reach display white.
+AUTO_BRIGHT_THR = 0.01
+#: LibRaw's bounds on the auto-brightness gain (its histogram search stops at 32 of 8192 bins:
+#: at most 256; it never darkens: at least 1).
+AUTO_BRIGHT_GAIN = (1.0, 256.0)
+#: Pixels of the estimation image the auto rule looks at (a regular subsample).
+AUTO_BRIGHT_PIXELS = 250_000
+#: The EV range a user's exposure may take.
+EXPOSURE_RANGE = (-10.0, 16.0)
+
+
+EXPOSURE_HELP = ("exposure in EV, or auto (default): auto is LibRaw's auto-brightness (the 99th "
+                 "percentile of the brightest display channel is display white); a number overrides it, "
+                 "0 rendering the brightest neutral the sensor records as display white, each +1 doubling")
+
+
+def parse_exposure(value) -> float | None:
+    """``None``/``""``/``"auto"`` -> ``None`` (the auto rule); a number of EV
+    in :data:`EXPOSURE_RANGE` -> float; anything else a 422."""
+    if value is None or (isinstance(value, str) and value.strip().lower() in ("", "auto")):
+        return None
+    try:
+        ev = float(value)
+    except (TypeError, ValueError):
+        ev = float("nan")
+    lo, hi = EXPOSURE_RANGE
+    if not (np.isfinite(ev) and lo <= ev <= hi):
+        raise ApiError(422, "invalid_parameter", f"exposure must be auto or a number of EV in {lo:g}..{hi:g}, "
+                       f"not {value!r}")
+    return ev
+
+
+def _highlight_white(A64: np.ndarray):
+    """The white-balanced colour a matrix sends to display white (1, 1, 1),
+    or ``None`` when it is not a positive colour."""
+    try:
+        wb_white = np.linalg.solve(A64, np.ones(3))
+    except np.linalg.LinAlgError:
+        return None
+    return wb_white if np.all(wb_white > 0) else None
+
+
+def display_linear(cam_rgb: np.ndarray, M: np.ndarray, neutral=None) -> np.ndarray:
+    """Linear display values of camera RGB ``(N, 3)`` (1.0 = saturation), as
+    :func:`apply_matrix_inplace` computes them before exposure, shoulder,
+    clipping and encoding (clipped highlights made neutral when ``neutral``
+    is given)."""
+    c = np.asarray(cam_rgb, np.float32).reshape(-1, 3)
+    if neutral is None:
+        return c @ np.asarray(M, np.float32).T
+    from recovery.highlights import balance_highlights
+
+    n = np.asarray(neutral, float)
+    n = n / n.max()
+    A64 = np.asarray(M, float) @ np.diag(n)
+    wb = balance_highlights(c, n, white=_highlight_white(A64))
+    return wb @ A64.astype(np.float32).T
+
+
+def exposure_gain(decoded, M: np.ndarray, neutral=None, exposure: float | None = None) -> tuple[float, dict]:
+    """The exposure gain on the linear display values, and how it was chosen.
+
+    ``exposure`` in EV (a user's choice): ``2 ** exposure``. ``None``:
+    LibRaw's auto-brightness (dcraw ``write_ppm_tiff``): per display channel
+    the level that :data:`AUTO_BRIGHT_THR` of the pixels exceed (values
+    clipped at white first, as LibRaw clips before its histogram), the
+    largest over the channels is sent to white; the gain is kept in
+    :data:`AUTO_BRIGHT_GAIN`. Measured on the estimation image (block-
+    averaged, the same for the full image and the preview), so the
+    rendering does not depend on the output size. Without an image the
+    gain is 1 (the brightest recordable neutral at display white)."""
+    if exposure is not None:
+        ev = float(exposure)
+        lo, hi = EXPOSURE_RANGE
+        if not (np.isfinite(ev) and lo <= ev <= hi):
+            raise ApiError(422, "invalid_parameter", f"exposure must be a number of EV in {lo:g}..{hi:g}, "
+                           f"or auto; got {exposure!r}")
+        return 2.0 ** ev, {"rule": "user", "ev": ev}
+    img = getattr(decoded, "estimation", None)
+    if not isinstance(img, np.ndarray) or img.ndim != 3 or img.shape[-1] != 3 or img.size == 0:
+        return 1.0, {"rule": "none", "ev": 0.0, "note": "no image to measure: the brightest recordable "
+                     "neutral renders as display white"}
+    flat = img.reshape(-1, 3)
+    step = max(1, flat.shape[0] // AUTO_BRIGHT_PIXELS)
+    sample = np.nan_to_num(np.clip(flat[::step], 0.0, 1.0))
+    lin = np.clip(display_linear(sample, M, neutral), 0.0, 1.0)
+    level = float(np.max(np.percentile(lin, 100.0 * (1.0 - AUTO_BRIGHT_THR), axis=0)))
+    lo, hi = AUTO_BRIGHT_GAIN
+    gain = float(np.clip(1.0 / level, lo, hi)) if level > 0 else hi
+    return gain, {"rule": "auto", "ev": float(np.log2(gain)),
+                  "description": f"LibRaw's auto-brightness: the {100 * (1 - AUTO_BRIGHT_THR):g}th percentile "
+                                 f"of the brightest display channel is display white (gain {lo:g}..{hi:g})",
+                  "percentile_level": level}
+
+
+def _with_exposure(M, info, decoded, exposure, tone, Gamma):
+    """``M`` times the exposure gain (:func:`exposure_gain`), with the
+    highlight shoulder when the gain lifts the sensor's range above white."""
+    gain, einfo = exposure_gain(decoded, M, info.get("neutral"), exposure)
+    info["exposure"] = einfo
+    if gain > 1.0 and tone == "shoulder":
+        from recovery.highlights import SHOULDER_KNEE
+
+        lum = Gamma[1] if Gamma is not None else np.array([0.2126, 0.7152, 0.0722])
+        info["shoulder"] = {"luminance": [float(v) for v in lum], "knee": SHOULDER_KNEE, "peak": gain}
+    info["tone"] = "shoulder" if "shoulder" in info else "linear"
+    if tone != "linear" and info.get("encoding") is not None:
+        info["curve"] = "libraw"        # display-encoded outputs take LibRaw's tone; linear ones stay linear
+    return M * gain, info
 
 
 def rendering_json(info: dict) -> dict:
     """The rendering choice and its figures, for headers and JSON bodies."""
     keys = ("rendering", "color_source", "white_xy", "temperature", "tint", "calibration_weight",
-            "forward_matrix", "baseline_exposure", "tone", "target_white_xy", "crop", "notes")
+            "forward_matrix", "baseline_exposure", "exposure", "tone", "curve", "target_white_xy", "crop", "notes")
     return {k: info[k] for k in keys if k in info}
 
 
@@ -257,16 +537,17 @@ def default_crop(decoded, img: np.ndarray) -> np.ndarray:
 
 
 def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, surface_model=None,
-                threads: int | None = None, timings: dict | None = None, tone: str = "shoulder"
-                ) -> tuple[np.ndarray, np.ndarray, dict]:
+                threads: int | None = None, timings: dict | None = None, tone: str = "shoulder",
+                exposure: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The corrected full-resolution image: matrix, demosaic, DefaultCrop,
-    highlights, encoding. Returns ``(image, M, info)``."""
-    M, info = correction_matrix(run, target, output, surface_model, decoded=decoded, tone=tone)
+    highlights, exposure, encoding. Returns ``(image, M, info)``."""
+    M, info = correction_matrix(run, target, output, surface_model, decoded=decoded, tone=tone,
+                                exposure=exposure)
     t0 = time.perf_counter()
     rgb16 = default_crop(decoded, decoded.full_linear("uint16"))
     t1 = time.perf_counter()
     out = apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=threads, neutral=info.get("neutral"),
-                               shoulder=info.get("shoulder"))
+                               shoulder=info.get("shoulder"), curve=info.get("curve"))
     t2 = time.perf_counter()
     if timings is not None:
         timings.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3)
@@ -274,12 +555,29 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
     return out, M, info
 
 
-def _encoding_lut(encoding: str | None, bits: int) -> np.ndarray:
+def display_curve(x: np.ndarray) -> np.ndarray:
+    """LibRaw's tone: its default output curve (``gamma=(2.222, 4.5)``, the
+    ITU-R BT.709 transfer function) read by a display as sRGB, as a curve on
+    linear values: ``sRGB_decode(BT709_encode(x))``. It maps 0 -> 0 and
+    1 -> 1, darkens the mid-tones (0.18 -> 0.14) and deepens the shadows, so
+    with LibRaw's auto-brightness gain the encoded image is as bright as
+    LibRaw's at every level."""
+    x = np.clip(np.asarray(x, float), 0.0, 1.0)
+    v = np.where(x < 0.018, 4.5 * x, 1.099 * x ** 0.45 - 0.099)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def _encoding_lut(encoding: str | None, bits: int, curve: str | None = None) -> np.ndarray:
     """16-bit linear code -> encoded ``bits``-bit code, through
-    colour-science's ``cctf_encoding`` of the colourspace."""
+    colour-science's ``cctf_encoding`` of the colourspace, after the tone
+    curve ``curve`` (``"libraw"``: :func:`display_curve`) if given."""
     import colour
 
     x = np.arange(65536) / 65535.0
+    if curve == "libraw":
+        x = display_curve(x)
+    elif curve is not None:
+        raise ValueError(f"unknown tone curve {curve!r}")
     y = x if encoding is None else np.asarray(colour.RGB_COLOURSPACES[encoding].cctf_encoding(x), float)
     top = 65535.0 if bits == 16 else 255.0
     return np.rint(np.clip(y, 0, 1) * top).astype(np.uint16 if bits == 16 else np.uint8)
@@ -287,7 +585,7 @@ def _encoding_lut(encoding: str | None, bits: int) -> np.ndarray:
 
 def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None, bits: int,
                          rows_per_chunk: int = 256, threads: int | None = None,
-                         neutral=None, shoulder: dict | None = None) -> np.ndarray:
+                         neutral=None, shoulder: dict | None = None, curve: str | None = None) -> np.ndarray:
     """Apply ``M`` to a uint16 (H, W, 3) image whose 65535 is saturation and
     encode it, chunk by chunk on a few threads.
 
@@ -305,14 +603,15 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     colour cast. With ``shoulder`` (``{"luminance": (3,), "knee": k}``, set
     when an exposure lifts the sensor's range above display white) the
     highlights are compressed by :func:`recovery.highlights.highlight_shoulder`
-    instead of clipping flat.
+    instead of clipping flat. ``curve`` (``"libraw"``) is the tone curve
+    applied before the transfer function (:func:`display_curve`).
     """
     import os
     from concurrent.futures import ThreadPoolExecutor
 
     import cv2
 
-    lut = _encoding_lut(encoding, bits)
+    lut = _encoding_lut(encoding, bits, curve)
     out = rgb16 if bits == 16 else np.empty(rgb16.shape, np.uint8)
     Mt = np.asarray(M, np.float32)
     if neutral is not None:
@@ -325,12 +624,7 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
         inv = np.float32(1.0 / 65535.0)
         # the white-balanced colour the matrix sends to display white (1, 1, 1)
         # for the DNG rendering; near it for the spectral one)
-        try:
-            wb_white = np.linalg.solve(A64, np.ones(3))
-        except np.linalg.LinAlgError:
-            wb_white = None
-        if wb_white is None or not np.all(wb_white > 0):
-            wb_white = None
+        wb_white = _highlight_white(A64)
 
     def work(r):
         chunk = rgb16[r:r + rows_per_chunk]

@@ -188,11 +188,15 @@ def reference_rendering(path: Path, cam_rgb: np.ndarray) -> np.ndarray:
 def _render(decoded, run, tone, output="linear-sRGB"):
     """The service's rendering of the estimation image (binned CFA cells,
     no demosaic: the comparison is about colour, not interpolation),
-    16-bit linear output as float."""
-    from service import pipeline
+    16-bit linear output as float, at the specification's exposure
+    (BaselineExposure, given as the user's exposure: the default is the
+    auto rule)."""
+    from service import metadata, pipeline
     from service.routers.web import _to_uint16
 
-    M, info = pipeline.correction_matrix(run, "D65", output, decoded=decoded, tone=tone)
+    be = metadata.color_profile(decoded).baseline_exposure
+    M, info = pipeline.correction_matrix(run, "D65", output, decoded=decoded, tone=tone, exposure=be)
+    assert info["exposure"] == {"rule": "user", "ev": be}
     img16 = _to_uint16(decoded.estimation)
     out = pipeline.apply_matrix_inplace(img16, M, info["encoding"], 16, neutral=info.get("neutral"),
                                         shoulder=info.get("shoulder"))
@@ -248,27 +252,47 @@ def _median_luminance(srgb8: np.ndarray) -> float:
     return float(np.median(lin @ np.array([0.2126, 0.7152, 0.0722])))
 
 
-def test_blackmagic_estimate_is_not_darker_than_libraw(blackmagic):
-    """Rendered through the estimated light, the median luminance is at most
-    1/3 stop below LibRaw's default rendering with the camera's white
-    balance (rawpy ``postprocess(use_camera_wb=True)``: auto-brightness,
-    sRGB)."""
+def _ours_8bit(d, run, **kw):
+    from service import pipeline
+    from service.routers.web import _to_uint16
+
+    M, info = pipeline.correction_matrix(run, "D65", "sRGB", decoded=d, **kw)
+    out = pipeline.apply_matrix_inplace(_to_uint16(d.estimation), M, info["encoding"], 8,
+                                        neutral=info.get("neutral"), shoulder=info.get("shoulder"),
+                                        curve=info.get("curve"))
+    return out, info
+
+
+def test_blackmagic_exposure_matches_libraw(blackmagic):
+    """Issue 13, task A: rendered through the estimated light with the
+    default (auto) exposure, the median luminance is within 1/3 stop of
+    LibRaw's default rendering with the camera's white balance (rawpy
+    ``postprocess(use_camera_wb=True)``: auto-brightness, BT.709 curve),
+    measured in the same run. Before the rule: +2.05 stops (BaselineExposure
+    applied linearly), and -0.59 before that; measured after: -0.01 on the
+    full image. The user's exposure overrides the rule: +1 EV is twice the
+    linear luminance of 0 EV at the median (the curve is undone first)."""
     import rawpy
 
     from service import pipeline
 
     path, d, cam, warns = blackmagic
     run = pipeline.run_estimate(d, cam, warns, method="auto", options={"white_level": 1.0})
-    M, info = pipeline.correction_matrix(run, "D65", "sRGB", decoded=d)
-    img16 = __import__("service.routers.web", fromlist=["_to_uint16"])._to_uint16(d.estimation)
-    ours = pipeline.apply_matrix_inplace(img16, M, info["encoding"], 8, neutral=info.get("neutral"),
-                                         shoulder=info.get("shoulder"))
+    ours, info = _ours_8bit(d, run)
+    assert info["exposure"]["rule"] == "auto" and info["curve"] == "libraw"
     with rawpy.imread(str(path)) as raw:
         theirs = raw.postprocess(use_camera_wb=True, half_size=True)
     stops = np.log2(_median_luminance(ours) / _median_luminance(theirs))
     print(f"median luminance: ours {_median_luminance(ours):.4f}, LibRaw {_median_luminance(theirs):.4f}, "
-          f"{stops:+.2f} stops")
-    assert stops >= -1 / 3, stops
+          f"{stops:+.2f} stops; auto exposure {info['exposure']['ev']:+.2f} EV")
+    assert abs(stops) <= 1 / 3, stops
+    # the user's exposure replaces the rule; 0 and +1 EV differ by one stop before the tone curve
+    lin = []
+    for ev in (0.0, 1.0):
+        out, inf = _ours_8bit(d, run, tone="linear", exposure=ev)
+        assert inf["exposure"] == {"rule": "user", "ev": ev} and "curve" not in inf
+        lin.append(_median_luminance(out))
+    assert np.log2(lin[1] / lin[0]) == pytest.approx(1.0, abs=0.05)
 
 
 def test_blackmagic_glints_render_neutral(blackmagic):
@@ -284,7 +308,8 @@ def test_blackmagic_glints_render_neutral(blackmagic):
     assert clipped.sum() > 20, "the file's glints are gone: the test would prove nothing"
     from service.routers.web import _to_uint16
 
+    assert info["exposure"]["rule"] == "auto" and info["exposure"]["ev"] > 0.5    # the default, brightened
     out = pipeline.apply_matrix_inplace(_to_uint16(est), M, info["encoding"], 8, neutral=info.get("neutral"),
-                                        shoulder=info.get("shoulder")).astype(int)
+                                        shoulder=info.get("shoulder"), curve=info.get("curve")).astype(int)
     spread = out[clipped].max(axis=1) - out[clipped].min(axis=1)
     assert spread.max() <= 2, (spread.max(), out[clipped][spread.argmax()])

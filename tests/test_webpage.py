@@ -265,8 +265,9 @@ def test_batch_view_shows_progress_and_items(page, server, tmp_path):
     page.set_input_files("#batch-files", [str(f) for f in files])
     page.click("#batch-run")
     page.wait_for_selector("#batch-view", state="visible", timeout=30_000)
-    # finished when the cancel button goes away
-    page.wait_for_function("document.getElementById('batch-cancel').hidden", timeout=180_000)
+    # finished when the cancel button goes away (a hidden element: wait_for_selector's "hidden" state;
+    # wait_for_function would need eval, which the page's Content-Security-Policy forbids)
+    page.wait_for_selector("#batch-cancel", state="hidden", timeout=180_000)
     assert page.eval_on_selector("#batch-progress", "p => [p.value, p.max]") == [3, 3]
     rows = page.eval_on_selector_all("#batch-table tbody tr",
                                      "rs => rs.map(r => Array.from(r.cells, c => c.innerText))")
@@ -278,3 +279,27 @@ def test_batch_view_shows_progress_and_items(page, server, tmp_path):
     assert "2 done, 1 failed, 0 pending of 3" in page.inner_text("#batch-status")
     assert page.is_visible("#batch-zip")
     _screenshot(page, tmp_path, "wandell-webpage-batch.png")
+
+
+def test_phone_width_has_no_horizontal_scroll_and_a_click_sets_the_white(browser, server, tmp_path):
+    """Issue 13, items 4 and 7: at 375 px nothing is wider than the screen
+    (before the fix the options' fieldset was 395 px), with the results
+    shown; a click on the corrected image fixes the white from there."""
+    ctx = browser.new_context(viewport={"width": 375, "height": 800})
+    pg = ctx.new_page()
+    pg.goto(server + "/")
+    pg.set_input_files("#file", str(_dng(tmp_path / "scene.dng")))
+    pg.wait_for_selector("#result", state="visible", timeout=90_000)
+    assert pg.evaluate("document.documentElement.scrollWidth") <= 375
+    img = pg.locator("#img-corrected")
+    img.scroll_into_view_if_needed()
+    box = img.bounding_box()
+    img.click(position={"x": box["width"] * 0.3, "y": box["height"] * 0.3})
+    for _ in range(180):
+        if (pg.locator("#neutral-note").text_content() or "").startswith("White fixed"):
+            break
+        pg.wait_for_timeout(500)
+    assert pg.locator("#neutral-note").text_content().startswith("White fixed")
+    assert pg.locator("#neutral-clear").is_visible()
+    assert pg.evaluate("document.documentElement.scrollWidth") <= 375
+    ctx.close()

@@ -45,10 +45,12 @@ async def _inputs(file, sensitivities, settings):
     return data, sens
 
 
-def _analyze_sync(data, filename, sens, camera, method, opts, settings):
+def _analyze_sync(data, filename, sens, camera, method, opts, settings, neutral=None):
     decoded, cam, cam_warn, t_dec = _decode(data, filename, sens, camera, settings)
     run = pipeline.run_estimate(decoded, cam, cam_warn, method=method, options=opts)
     run.timings_ms["decode"] = t_dec
+    if neutral is not None:
+        run = pipeline.with_neutral(decoded, run, neutral)
     return decoded, run
 
 
@@ -62,23 +64,30 @@ async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: Upl
                   spatial: str | None = Form(None, description="auto (decide from the image), true (light map) or false (one light)"),
                   surface_model: str | None = Form(None, description="pca or fourier"),
                   light_model: str | None = Form(None, description="daylight, illuminant-pca or fourier"),
+                  neutral: str | None = Form(None, description=pipeline.NEUTRAL_HELP,
+                                             examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
                   settings: Settings = Depends(get_settings)):
     """Estimate the scene light: camera RGB, white-balance multipliers,
-    relative spectrum, CCT/Duv, the method that ran, diagnostics, timings."""
+    relative spectrum, CCT/Duv, the method that ran, diagnostics, timings.
+    With ``neutral`` the light is the one of that surface instead (method
+    ``neutral-surface``, ``neutral`` says where, how many cells and its
+    angle to the estimate)."""
     t0 = time.perf_counter()
     opts = estimate_options(method, surface_dim, light_dim, region_size, spatial, surface_model, light_model,
                             quality)
+    where = pipeline.parse_neutral(neutral)
     data, sens = await _inputs(file, sensitivities, settings)
     decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts, settings,
-                                   request=request)
+                                   where, request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     return JSONResponse(clean(body))
 
 
 def _with_white(decoded, run, white: str):
-    """The run whose light renders the image: the estimate, or the file's
-    own as-shot white (the same rendering, for a side-by-side download)."""
+    """The run whose light renders the image: the estimate (or the user's
+    neutral surface), or the file's own as-shot white (the same rendering,
+    for a side-by-side download)."""
     if white == "estimate":
         return run
     if decoded.as_shot_neutral is None:
@@ -96,12 +105,12 @@ def _estimate_summary(body: dict, info: dict | None = None) -> dict:
 
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, bits, settings,
-                        white="estimate"):
-    decoded, run = _analyze_sync(data, filename, sens, camera, method, opts, settings)
+                        white="estimate", exposure=None, neutral=None):
+    decoded, run = _analyze_sync(data, filename, sens, camera, method, opts, settings, neutral)
     del data
     run = _with_white(decoded, run, white)
     out, M, info = pipeline.render_full(decoded, run, target, output, bits, opts.get("surface_basis"),
-                                        timings=run.timings_ms)
+                                        timings=run.timings_ms, exposure=exposure)
     t2 = time.perf_counter()
     fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt)
     os.close(fd)
@@ -132,7 +141,11 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                         response: str = Form("image", description="image, or json for the estimate only"),
                         surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"), light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"),
                         region_size: int | None = Form(None), surface_model: str | None = Form(None),
-                        light_model: str | None = Form(None), settings: Settings = Depends(get_settings)):
+                        light_model: str | None = Form(None),
+                        exposure: str = Form("auto", description=pipeline.EXPOSURE_HELP, examples=["auto", "1.5"]),
+                        neutral: str | None = Form(None, description=pipeline.NEUTRAL_HELP,
+                                                   examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
+                        settings: Settings = Depends(get_settings)):
     """The corrected image at full resolution (one 3x3 matrix per pixel
     from camera RGB to the display), with the estimate in the
     ``X-Illuminant`` header (JSON)."""
@@ -150,12 +163,17 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                        "Typical CRT Brainard 1997, Apple Studio Display")
     opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model,
                             quality)
+    ev = pipeline.parse_exposure(exposure)
+    where = pipeline.parse_neutral(neutral)
+    if where is not None and white != "estimate":
+        raise ApiError(422, "invalid_parameter", "neutral fixes the white from a surface; it cannot be combined "
+                       f"with white={white!r}")
     data, sens = await _inputs(file, sensitivities, settings)
     await file.close()
     fmt, bits = fmts[format]
     if fmt == "xmp":
         decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts, settings,
-                                       request=request)
+                                       where, request=request)
         run = _with_white(decoded, run, white)
         tt = pipeline.temperature_tint(decoded, run)
         from ..outputs import xmp_sidecar
@@ -168,23 +186,26 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                                  "X-Illuminant": json.dumps(clean(summary), separators=(",", ":"))})
     if response == "json":
         decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts,
-                                               settings, request=request)
+                                       settings, where, request=request)
         run = _with_white(decoded, run, white)
-        M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded)
+        M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded,
+                                             exposure=ev)
         body = pipeline.analysis_json(run, decoded)
         body["correction_matrix"] = M.tolist()
         body["rendering"] = pipeline.rendering_json(info)
         return JSONResponse(clean(body))
     decoded, run, M, path, info = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
-                                                  method, opts, target, output, fmt, bits, settings, white,
-                                                  request=request)
+                                                  method, opts, target, output, fmt, bits, settings, white, ev,
+                                                  where, request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     header = {k: body[k] for k in ("method", "camera", "warnings", "timings_ms")}
     header["illuminant"] = {k: v for k, v in body["illuminant"].items() if k not in ("wavelengths", "spectrum")}
     header["correction_matrix"] = M.tolist()
     header["rendering"] = pipeline.rendering_json(info)
-    header["white"] = white
+    header["white"] = "neutral" if where is not None else white
+    if "neutral" in body:
+        header["neutral"] = body["neutral"]
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
                "Content-Disposition": f'inline; filename="{"as-shot" if white == "as-shot" else "corrected"}.'
                                       f'{"tif" if fmt == "tiff" else "jpg" if fmt == "jpeg" else fmt}"'}

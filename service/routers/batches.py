@@ -21,7 +21,7 @@ from fastapi import APIRouter, Depends, File, Form, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
-from .. import jobs
+from .. import jobs, pipeline
 from ..errors import ApiError
 from ..jsonsafe import clean
 from ..settings import Settings, get_settings
@@ -126,7 +126,9 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
                        format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16, jpeg"),
                        surface_dim: str | None = Form(None), light_dim: str | None = Form(None),
                        region_size: int | None = Form(None), surface_model: str | None = Form(None),
-                       light_model: str | None = Form(None), settings: Settings = Depends(get_settings)):
+                       light_model: str | None = Form(None),
+                       exposure: str = Form("auto", description=pipeline.EXPOSURE_HELP, examples=["auto", "1.5"]),
+                       settings: Settings = Depends(get_settings)):
     """Start a batch: several ``files`` fields, or a ``folder`` under the
     server's batch root, with the white-balance options. Answers ``{"id"}``
     at once (202); follow it with ``GET /v1/batches/{id}``."""
@@ -137,7 +139,7 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
         opts = jobs.batch_options(camera=camera, method=method, quality=quality, target=target, output=output,
                                   format=format, lighting=lighting, surface_model=surface_model,
                                   light_model=light_model, surface_dim=surface_dim, light_dim=light_dim,
-                                  region_size=region_size)
+                                  region_size=region_size, exposure=exposure)
         sources = jobs.folder_sources(settings.batch_root, folder) if folder else None
     except jobs.JobError as e:
         raise _job_error(e) from None

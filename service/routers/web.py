@@ -138,16 +138,16 @@ def camera_wb_preview(decoded, data: bytes, max_side: int) -> tuple[np.ndarray, 
     return pipeline.apply_matrix_inplace(small, np.eye(3), "sRGB", 8), info
 
 
-def corrected_preview(decoded, run, target: str, output: str, surface_basis, max_side: int
-                      ) -> tuple[np.ndarray, dict]:
+def corrected_preview(decoded, run, target: str, output: str, surface_basis, max_side: int,
+                      exposure: float | None = None) -> tuple[np.ndarray, dict]:
     """The corrected image, downsized: the 3x3 matrix of ``/v1/white-balance``
     (:func:`service.pipeline.correction_matrix`, Wandell 1985, eq. 23 and 36)
     applied to the area-downsized estimation image (binned CFA cells for a
     RAW, no demosaic needed at preview size), encoded 8-bit."""
-    M, minfo = pipeline.correction_matrix(run, target, output, surface_basis, decoded=decoded)
+    M, minfo = pipeline.correction_matrix(run, target, output, surface_basis, decoded=decoded, exposure=exposure)
     small = _to_uint16(downsize_linear(decoded.estimation, max_side))
     out = pipeline.apply_matrix_inplace(small, M, minfo["encoding"], 8, neutral=minfo.get("neutral"),
-                                       shoulder=minfo.get("shoulder"))
+                                       shoulder=minfo.get("shoulder"), curve=minfo.get("curve"))
     return out, {"wb": "corrected", "target": target, "output": output, "method": run.estimate.method,
                  "correction_matrix": M.tolist(), "rendering": pipeline.rendering_json(minfo), "warnings": []}
 
@@ -173,6 +173,10 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
                   quality: str | None = Form(None, description="corrected only: fast, balanced or accurate"),
                   target: str = Form("D65", description="corrected only: light to render under, or 'estimate'"),
                   output: str = Form("sRGB", description="corrected only: sRGB, linear-sRGB or a display"),
+                  exposure: str = Form("auto", description="corrected only: " + pipeline.EXPOSURE_HELP,
+                                       examples=["auto", "1.5"]),
+                  neutral: str | None = Form(None, description="corrected only: " + pipeline.NEUTRAL_HELP,
+                                             examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
                   settings: Settings = Depends(get_settings)):
     """A small 8-bit preview for the web page: the original as the camera's
     white balance renders it (``wb=camera``) or the corrected image
@@ -189,6 +193,8 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
     if output not in OUTPUTS:
         raise ApiError(422, "invalid_parameter", f"output must be one of {', '.join(OUTPUTS)}")
     opts = estimate_options(method, None, None, None, False, None, None, quality)
+    ev = pipeline.parse_exposure(exposure)
+    where = pipeline.parse_neutral(neutral)
     data = await read_upload(file, settings)
     name = file.filename
 
@@ -197,8 +203,8 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
             decoded = _decode_only(data, name, settings)
             img, info = camera_wb_preview(decoded, data, max_side)
         else:
-            decoded, run = _analyze_sync(data, name, None, camera, method, opts, settings)
-            img, info = corrected_preview(decoded, run, target, output, opts.get("surface_basis"), max_side)
+            decoded, run = _analyze_sync(data, name, None, camera, method, opts, settings, where)
+            img, info = corrected_preview(decoded, run, target, output, opts.get("surface_basis"), max_side, ev)
             info["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
         info.update(width=int(img.shape[1]), height=int(img.shape[0]),
                     full_width=int(decoded.full_shape[1]), full_height=int(decoded.full_shape[0]))

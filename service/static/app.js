@@ -172,6 +172,10 @@ function diagnosticsInWords(j) {
     details.push(`The probable lights lie within about ${fmt(d.posterior_spread_deg, 1)}° of each other ` +
       "(angle between camera responses).");
   }
+  if (typeof d.generic_vs_matrix_deg === "number") {
+    details.push(`With the generic camera, the estimate is ${fmt(d.generic_vs_matrix_deg, 1)}° from the one made ` +
+      `with the file's colour matrix; the confidence was multiplied by ${fmt(d.confidence_factor_generic, 2)}.`);
+  }
   if (d.top_candidates) details.push(`Most probable lights of the candidate set: ${d.top_candidates}.`);
   if (typeof d.subspace_fit_ratio === "number") {
     const good = d.subspace_fit_ratio <= 0.1;
@@ -307,6 +311,7 @@ async function run() {
   const t0 = performance.now();
   const analyzeOpts = {};
   for (const k of ["camera", "method", "quality"]) if (opts[k]) analyzeOpts[k] = opts[k];
+  if (current.neutral) analyzeOpts.neutral = JSON.stringify(current.neutral);
   const previewOpts = Object.assign({}, analyzeOpts, {target: opts.target || "D65", format: "jpeg", max_side: "1024"});
   try {
     const [analysis, original, corrected] = await Promise.all([
@@ -325,6 +330,12 @@ async function run() {
     $("original-note").textContent = (on.warnings || []).join("; ");
     $("corrected-target").textContent = opts.target === "estimate" ? "the estimated light (as seen)" : (opts.target || "D65");
     $("corrected-note").textContent = cn.full_width ? `(preview ${cn.width}×${cn.height} of ${cn.full_width}×${cn.full_height})` : "";
+    current.full = cn.full_width ? {w: cn.full_width, h: cn.full_height} : null;
+    showNeutral(analysis);
+    const failed = analysis.method_failed;
+    $("corrected-flag").hidden = !failed;
+    $("corrected-flag").textContent = failed ? "Not trustworthy: the literal Maloney–Wandell method failed on this " +
+      `image by its own tests: ${failed.reasons.join("; ")}.` : "";
 
     const il = analysis.illuminant || {};
     lightFacts(il);
@@ -352,6 +363,7 @@ async function downloadCorrected(format, ext, white = "estimate") {
   const o = current.options;
   const fields = {format, white};
   for (const k of ["camera", "method", "quality", "target"]) if (o[k]) fields[k] = o[k];
+  if (current.neutral && white === "estimate") fields.neutral = JSON.stringify(current.neutral);
   $("dl-status").textContent = `Rendering the full-resolution ${format.toUpperCase()}…`;
   $("error").hidden = true;
   try {
@@ -363,6 +375,34 @@ async function downloadCorrected(format, ext, white = "estimate") {
   } catch (err) {
     $("dl-status").textContent = "";
     showError($("error"), err);
+  }
+}
+
+// "Use this as white": a click on either image fixes the light from a small
+// square around that point (about 1 % of the long side), in full-resolution
+// pixels (the previews' X-Preview header gives the full size).
+function neutralFromClick(img, ev) {
+  if (!current || !current.full) return;
+  const box = img.getBoundingClientRect();
+  if (!box.width || !box.height) return;
+  const {w: W, h: H} = current.full;
+  const fx = Math.min(Math.max((ev.clientX - box.left) / box.width, 0), 1);
+  const fy = Math.min(Math.max((ev.clientY - box.top) / box.height, 0), 1);
+  const r = Math.min(H - 1, Math.floor(fy * H)), c = Math.min(W - 1, Math.floor(fx * W));
+  const half = Math.max(2, Math.round(0.005 * Math.max(W, H)));
+  current.neutral = [Math.max(0, r - half), Math.max(0, c - half), Math.min(H, r + half + 1), Math.min(W, c + half + 1)];
+  run();
+}
+
+function showNeutral(analysis) {
+  const n = analysis && analysis.neutral;
+  $("neutral-clear").hidden = !current.neutral;
+  if (n) {
+    const ang = typeof n.angle_to_estimate_deg === "number" ? `, ${fmt(n.angle_to_estimate_deg, 1)}° from the estimate` : "";
+    $("neutral-note").textContent = `White fixed from the surface at rows ${n.where[0]}–${n.where[2]}, ` +
+      `columns ${n.where[1]}–${n.where[3]} (${n.cells_used} cells${ang}). Click elsewhere to change it.`;
+  } else {
+    $("neutral-note").textContent = "Click a white or grey surface in either image to use it as white.";
   }
 }
 
@@ -509,6 +549,8 @@ document.addEventListener("DOMContentLoaded", () => {
   $("file").addEventListener("change", (e) => chooseFile(e.target.files[0]));
   dropZone($("drop"), (files) => chooseFile(files[0]));
   $("run").addEventListener("click", run);
+  for (const id of ["img-original", "img-corrected"]) $(id).addEventListener("click", (e) => neutralFromClick($(id), e));
+  $("neutral-clear").addEventListener("click", () => { if (current) { current.neutral = null; run(); } });
   $("dl-tiff").addEventListener("click", () => downloadCorrected("tiff", "tif"));
   $("dl-png").addEventListener("click", () => downloadCorrected("png", "png"));
   $("dl-json").addEventListener("click", downloadEstimate);

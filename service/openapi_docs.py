@@ -1,0 +1,209 @@
+"""The API's documentation, served offline (issue 13, item 7).
+
+``/docs`` is FastAPI's Swagger UI page with its script and style sheet served
+by the app itself from the ``swagger-ui-bundle-v2`` package (Swagger UI 5,
+which reads the OpenAPI 3.1 FastAPI writes): nothing is fetched from another
+host. :func:`enrich` completes the generated OpenAPI document: every
+parameter gets a description, its enumeration where the choices are fixed,
+and examples; uploads declare their 413/415/422 answers (``{"error",
+"detail"}``); ``/v1/white-balance`` declares its image media types and the
+``X-Illuminant`` header.
+"""
+
+from __future__ import annotations
+
+import os
+
+#: The two Swagger UI files the page needs, and their media types.
+SWAGGER_FILES = {"swagger-ui-bundle.js": "text/javascript; charset=utf-8",
+                 "swagger-ui.css": "text/css; charset=utf-8"}
+SWAGGER_PREFIX = "/docs-assets"
+
+_METHODS = ["auto", "bayes", "maloney-wandell", "gray-world", "white-patch", "shades-of-gray", "gray-edge"]
+_OUTPUTS = ["sRGB", "linear-sRGB", "Display P3", "Typical CRT Brainard 1997", "Apple Studio Display"]
+
+#: name -> (description, enum or None, examples); a router's own description wins.
+PARAMS = {
+    "file": ("the image: a camera RAW (DNG, CR2, NEF, ARW, ... anything LibRaw reads) or a linear 16-bit "
+             "TIFF/PNG", None, None),
+    "sensitivities": ("optional camera sensitivities CSV: wavelength (nm), then one column per channel", None, None),
+    "camera": ("measured camera name (see GET /v1/cameras), 'matrix' (the file's colour matrix) or 'generic'; "
+               "default: from the file", None, ["matrix", "generic", "Nikon 5100 (NPL)"]),
+    "method": ("the estimator: auto (light posterior), bayes, maloney-wandell (the literal subspace method), "
+               "or a classical peer", _METHODS, ["auto", "maloney-wandell"]),
+    "quality": ("speed/accuracy preset", ["fast", "balanced", "accurate"], ["balanced"]),
+    "surface_dim": ("surface model terms D(S): 1..C-1, or auto (BIC)", None, ["2", "auto"]),
+    "light_dim": ("light model terms D(E): 1..D(S)+1, or auto (BIC)", None, ["3", "auto"]),
+    "region_size": ("region side in pixels for a light map (default: a quarter of the shorter side)", None, [64]),
+    "spatial": ("auto (decide from the image), true (a light map) or false (one light)",
+                ["auto", "true", "false"], ["auto"]),
+    "surface_model": ("surface reflectance basis", ["pca", "fourier"], ["pca"]),
+    "light_model": ("light spectrum basis", ["daylight", "illuminant-pca", "fourier"], ["daylight"]),
+    "target": ("light to render under (a CIE illuminant name), or estimate (as seen)", None, ["D65", "estimate"]),
+    "output": ("output space or display", _OUTPUTS, ["sRGB"]),
+    "white": ("estimate (this service's light, or neutral) or as-shot (the camera's own white, same rendering)",
+              ["estimate", "as-shot"], ["estimate"]),
+    "response": ("image, or json for the estimate and correction matrix only", ["image", "json"], ["image"]),
+    "lighting": ("per-image, or shared: one light estimated from all the images", ["per-image", "shared"],
+                 ["per-image"]),
+    "folder": ("a folder relative to WANDELL_BATCH_ROOT (instead of files)", None, ["shoot-2026-05"]),
+    "files": ("several image files (instead of folder)", None, None),
+    "wb": ("camera: the file's own white balance as LibRaw renders it; corrected: this service's correction",
+           ["camera", "corrected"], ["corrected"]),
+    "max_side": ("longest side of the preview in pixels, 16..4096", None, [1024]),
+    "points": ("JSON [[row, col], ...] in full-resolution pixels", None, ["[[100, 200], [300, 400]]"]),
+    "rects": ("JSON [[r0, c0, r1, c1], ...] (end exclusive)", None, ["[[0, 0, 50, 80]]"]),
+    "grid": ("a coarse grid, rows x columns", None, ["8x6"]),
+    "batch_id": ("the batch id answered by POST /v1/batches", None, ["3f9c1d2e"]),
+    "item": ("an item's index in the batch (0-based)", None, [0]),
+    "strategy": ("a sampling rule (GET /v1/sampling lists them), auto or full", None, ["auto", "full"]),
+    "n": ("number of samples, 1..64", None, [8]),
+    "wavelengths": ("the cube's wavelengths in nm, comma-separated, strictly increasing", None,
+                    ["400,410,420,430,440,450,460,470,480,490,500"]),
+    "illuminant": ("a CIE illuminant name to light the reflectances with", None, ["D65", "A"]),
+    "light_file": ("optional light spectrum CSV: wavelength (nm), power", None, None),
+    "channel": ("which colour-matching channel the rule is built for", ["A", "C1", "C2", "XYZ"], ["XYZ"]),
+    "degrees": ("Borges' degree sequence for x, y, z, each 0..12", None, ["2,2,2"]),
+    "adapt": ("refine the sampling until max_error is met", None, [False]),
+    "max_error": ("the largest colour error accepted when adapt is true (CIELAB units)", None, [1.0]),
+    "exposure": ("exposure in EV, or auto", None, ["auto", "1.5"]),
+    "neutral": ("a surface to use as white: [row, col] or [r0, c0, r1, c1]", None, ["[1200, 2040]"]),
+}
+
+#: (path, name) -> enumeration where one name means different sets.
+ENUMS = {
+    ("/v1/white-balance", "format"): ["tiff", "png", "png16", "jpeg", "jpg", "xmp"],
+    ("/v1/preview", "format"): ["jpeg", "jpg", "png"],
+    ("/v1/surfaces", "format"): ["json", "csv"],
+    ("/v1/batches", "format"): ["tiff", "png", "png16", "jpeg"],
+    ("/v1/render", "format"): ["tiff", "png", "png16"],
+    ("/v1/render", "output"): ["sRGB", "linear-sRGB"],
+    ("/v1/preview", "output"): ["sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display"],
+}
+
+#: The error body's schema is service.errors' ``ErrorBody`` (added to the document there).
+ERROR_REF = "#/components/schemas/ErrorBody"
+_ERRORS = {
+    "413": "too large: the upload is over WANDELL_MAX_UPLOAD_BYTES or the image over WANDELL_MAX_PIXELS "
+           "(error file_too_large, too_large, too_many_pixels)",
+    "415": "not a format the service reads: not a camera RAW or a linear 16-bit TIFF/PNG (e.g. an 8-bit JPEG, "
+           "or 'not a camera RAW: a scanned 8-bit RGB image')",
+    "422": "a bad option (error invalid_parameter and the accepted values), or a truncated/corrupt or unusable "
+           "file (corrupt_file, no_color_matrix, unusable_neutral, ...)",
+}
+
+X_ILLUMINANT = ("JSON: the estimate (method, camera, illuminant camera_rgb/wb_multipliers/cct/duv), warnings, "
+                "timings_ms, correction_matrix, white (estimate, as-shot or neutral), neutral (where the white "
+                "came from) and rendering: rendering (dng-matrix or spectral), color_source, exposure {rule: "
+                "auto (LibRaw's auto-brightness: the 99th percentile of the brightest display channel is white) "
+                "or user, ev}, curve (libraw: LibRaw's BT.709 tone as a display shows it), tone, white_xy, "
+                "temperature, tint")
+
+
+def swagger_path() -> str | None:
+    """The folder of the packaged Swagger UI, or ``None`` without the package."""
+    try:
+        import swagger_ui_bundle
+    except ImportError:
+        return None
+    return getattr(swagger_ui_bundle, "swagger_ui_path", None) or getattr(swagger_ui_bundle, "swagger_ui_5_path",
+                                                                          None)
+
+
+def _is_file(schema: dict) -> bool:
+    """An upload field (binary, possibly optional or a list)."""
+    parts = [schema] + list(schema.get("anyOf", []))
+    parts += [p.get("items", {}) for p in parts if p.get("type") == "array"]
+    return any(p.get("format") == "binary" or p.get("contentMediaType") == "application/octet-stream"
+               for p in parts)
+
+
+def _fill(schema: dict, path: str, name: str, desc_holder: dict) -> None:
+    desc, enum, examples = PARAMS.get(name, (None, None, None))
+    enum = ENUMS.get((path, name), enum)
+    if not desc_holder.get("description") and desc:
+        desc_holder["description"] = desc
+    target = schema
+    if "anyOf" in schema:          # Optional[...]: enumerate on the string branch
+        target = next((s for s in schema["anyOf"] if s.get("type") in ("string", "integer")), schema)
+    if enum and "enum" not in target and target.get("type") == "string":
+        target["enum"] = list(enum)
+    if "examples" not in schema and "example" not in desc_holder and not _is_file(schema):
+        if examples:
+            schema["examples"] = list(examples)
+        elif enum:
+            schema["examples"] = [enum[0]]
+        elif "default" in schema and schema["default"] is not None:
+            schema["examples"] = [schema["default"]]
+
+
+def enrich(spec: dict) -> dict:
+    """Complete the generated OpenAPI document in place (see module doc)."""
+    comps = spec.setdefault("components", {}).setdefault("schemas", {})
+    for path, ops in spec.get("paths", {}).items():
+        for method, op in ops.items():
+            for p in op.get("parameters", []):
+                _fill(p.setdefault("schema", {}), path, p["name"], p)
+            body = op.get("requestBody", {}).get("content", {})
+            upload = False
+            for ct, c in body.items():
+                ref = c.get("schema", {}).get("$ref", "")
+                sch = comps.get(ref.split("/")[-1], {})
+                for name, prop in sch.get("properties", {}).items():
+                    _fill(prop, path, name, prop)
+                    if _is_file(prop):
+                        upload = True
+            responses = op.setdefault("responses", {})
+            codes = ("413", "415", "422") if upload else ("422",)
+            for code in codes:
+                r = responses.setdefault(code, {})
+                r["description"] = _ERRORS[code]
+                r["content"] = {"application/json": {"schema": {"$ref": ERROR_REF}}}
+    wb = spec.get("paths", {}).get("/v1/white-balance", {}).get("post")
+    if wb is not None:
+        ok = wb["responses"].setdefault("200", {})
+        ok["description"] = ("the corrected image at full resolution (format: tiff 16-bit, png 8-bit, png16, "
+                             "jpeg), or a Camera Raw XMP sidecar (format=xmp), or JSON (response=json)")
+        ok["content"] = {"image/tiff": {"schema": {"type": "string", "format": "binary"}},
+                         "image/png": {"schema": {"type": "string", "format": "binary"}},
+                         "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
+                         "application/rdf+xml": {"schema": {"type": "string"}},
+                         "application/json": {"schema": {"type": "object"}}}
+        ok["headers"] = {"X-Illuminant": {"description": X_ILLUMINANT, "schema": {"type": "string"}}}
+    return spec
+
+
+def install(app) -> None:
+    """``/docs`` (offline Swagger UI), its two assets, and the enriched OpenAPI."""
+    from fastapi.openapi.docs import get_swagger_ui_html
+    from fastapi.responses import Response
+
+    from .errors import ApiError
+
+    @app.get("/docs", include_in_schema=False)
+    def docs():
+        if swagger_path() is None:
+            raise ApiError(503, "docs_unavailable", "the swagger-ui-bundle-v2 package is not installed; the "
+                           "OpenAPI document is at /openapi.json")
+        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title}: REST API",
+                                   swagger_js_url=f"{SWAGGER_PREFIX}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{SWAGGER_PREFIX}/swagger-ui.css",
+                                   swagger_favicon_url="data:,")
+
+    @app.get(SWAGGER_PREFIX + "/{name}", include_in_schema=False)
+    def docs_asset(name: str):
+        root = swagger_path()
+        if name not in SWAGGER_FILES or root is None:
+            raise ApiError(404, "not_found", f"no documentation asset {name!r}; served: {sorted(SWAGGER_FILES)}")
+        with open(os.path.join(root, name), "rb") as f:
+            return Response(f.read(), media_type=SWAGGER_FILES[name],
+                            headers={"Cache-Control": "public, max-age=86400"})
+
+    original = app.openapi
+
+    def openapi():
+        if app.openapi_schema is None:
+            app.openapi_schema = enrich(original())
+        return app.openapi_schema
+
+    app.openapi = openapi
