@@ -33,7 +33,7 @@ from recovery import learned as L
 
 from .realdata import REAL_DIR, angular_error, error_stats, load_real, usable_mask
 
-SETTINGS = {"hidden": 16, "ridge": 1e-3, "members": 3, "maxiter": 500, "seed": 0}
+SETTINGS = {"hidden": 16, "ridge": 1e-2, "members": 3, "maxiter": 500, "seed": 0}
 
 
 def dataset_features(rs, canonical=L.BRADFORD):
