@@ -34,6 +34,7 @@ __all__ = [
     "display_intensities",
     "adjust_light_for_gamut",
     "encode",
+    "correction_matrix",
 ]
 
 
@@ -194,3 +195,114 @@ def encode(values: np.ndarray, encoding: str | None) -> np.ndarray:
 
     return np.asarray(colour.RGB_COLOURSPACES[encoding].cctf_encoding(np.clip(values, 0, 1)),
                       dtype=values.dtype)
+
+
+def _target_spectrum(target, light_spectrum: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
+    """The light to render under: the estimated light itself for
+    ``"estimate"``/``"as-seen"`` (no adaptation), a named light, or a spectrum."""
+    from models import illuminant as get_illuminant
+
+    from .errors import InputError
+
+    if isinstance(target, str):
+        if target in ("estimate", "as-seen"):
+            return np.asarray(light_spectrum, float)
+        try:
+            return np.asarray(get_illuminant(target, wavelengths), float)
+        except KeyError as e:
+            raise InputError(f"target: {e.args[0]}", code="invalid_parameter") from None
+    return np.asarray(target, float)
+
+
+def _target_xy(target, white_xy, wavelengths) -> tuple[float, float]:
+    """Chromaticity the rendered white takes (DNG rendering): D65 for
+    ``D65``, the light's own (no adaptation) for ``estimate``, else the
+    named light's."""
+    from .dng_color import D65_XY
+
+    if isinstance(target, str) and target == "D65":
+        return D65_XY
+    if isinstance(target, str) and target in ("estimate", "as-seen"):
+        return tuple(white_xy)
+    spd = _target_spectrum(target, None, wavelengths)
+    xyz = get_observer("CIE 1931 2 Degree Standard Observer", wavelengths).T @ spd
+    return tuple(xyz[:2] / xyz.sum())
+
+
+def correction_matrix(camera, light_rgb, light_spectrum: np.ndarray, target, space: OutputSpace,
+                      surface_basis: np.ndarray | None = None, *, profile=None, tone: str = "shoulder",
+                      exposure: bool = True) -> tuple[np.ndarray, dict]:
+    """Camera RGB (1.0 = saturation) -> linear output values for one light:
+    the one 3x3 matrix of Wandell (1985), Fig. 6, with its exposure rule.
+
+    Spectral rendering (``profile`` None: measured, uploaded or generic
+    sensitivities): ``M = Gamma^{-1} Lambda'_{E'} Lambda_E^{-1}``
+    (:func:`synthesis_matrix`, eq. 23 and 36 with ``surface_basis``, a
+    surface model of as many terms as sensors). With ``exposure`` it is
+    scaled so that the brightest neutral the sensor records unclipped (the
+    light's own camera RGB ``light_rgb`` with its largest channel at
+    saturation) renders with luminance 1: a fixed exposure, no
+    auto-brightening; without, white has Y = 1 up to the image's exposure
+    (:func:`recovery.render`).
+
+    DNG-matrix rendering (``profile``, a
+    :class:`~recovery.dng_color.ColorProfile`: a camera known only by its
+    colour matrix): the DNG specification's camera -> XYZ D50 for the
+    estimated camera neutral (:func:`recovery.dng_color.camera_to_xyz_d50`),
+    Bradford to the target white, ``Gamma^{-1}``, times
+    ``2 ** BaselineExposure``; the same neutral at saturation renders at
+    luminance ``2 ** BaselineExposure``. When that lifts the sensor's range
+    above display white, ``tone="shoulder"`` (the default) asks for the
+    highlights to roll off above a knee
+    (:func:`recovery.highlights.highlight_shoulder`, ``info["shoulder"]``)
+    rather than clip; ``tone="linear"`` is the specification's linear
+    rendering. Used when the neutral is positive and the output has
+    primaries; otherwise the spectral rendering.
+
+    ``target``: a light name, ``"estimate"``/``"as-seen"`` (the light
+    itself) or a spectrum. ``info`` has ``rendering``, ``neutral`` (the
+    light's camera RGB, largest channel 1, for the highlight handling),
+    ``encoding`` and the rendering's figures. Raises
+    :class:`~recovery.errors.InputError` (``invalid_parameter`` for an
+    unknown target, ``unrenderable`` when white has no luminance).
+    """
+    from .errors import InputError
+
+    wl = np.asarray(camera.wavelengths, float)
+    neutral = None
+    if light_rgb is not None:
+        rgb = np.asarray(light_rgb, float)
+        neutral = rgb / np.max(rgb)
+    if profile is not None and neutral is not None and np.all(neutral > 0) and space.Gamma is not None:
+        from .dng_color import D50_XY, bradford, camera_to_xyz_d50
+
+        M50, dinfo = camera_to_xyz_d50(profile, neutral)
+        wxy = _target_xy(target, dinfo["white_xy"], wl)
+        gain = 2.0 ** float(profile.baseline_exposure)
+        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50) * gain
+        info = {"rendering": "dng-matrix", "encoding": space.encoding,
+                "neutral": neutral.tolist(), "white_xy": dinfo["white_xy"],
+                "temperature": dinfo["temperature"], "tint": dinfo["tint"],
+                "calibration_weight": dinfo["calibration_weight"], "forward_matrix": dinfo["forward_matrix"],
+                "baseline_exposure": float(profile.baseline_exposure), "target_white_xy": [float(v) for v in wxy]}
+        if profile.notes:
+            info["notes"] = list(profile.notes)
+        if gain > 1.0 and tone == "shoulder":
+            from .highlights import SHOULDER_KNEE
+
+            info["shoulder"] = {"luminance": [float(v) for v in space.Gamma[1]], "knee": SHOULDER_KNEE,
+                                "peak": gain}
+        info["tone"] = "shoulder" if "shoulder" in info else "linear"
+        return M, info
+    tgt = _target_spectrum(target, light_spectrum, wl)
+    M, cond = synthesis_matrix(camera.sensitivities, wl, light_spectrum, tgt, surface_basis, space)
+    info = {"lighting_condition": cond, "encoding": space.encoding, "rendering": "spectral"}
+    if not exposure:
+        return M, info
+    y = M @ neutral
+    lum = float(y[1]) if space.Gamma is None else float((space.Gamma @ y)[1])
+    if not (np.isfinite(lum) and lum > 0):
+        raise InputError("the estimated light renders white with no luminance", code="unrenderable")
+    if np.all(neutral > 0):
+        info["neutral"] = neutral.tolist()
+    return M / lum, info
