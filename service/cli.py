@@ -29,6 +29,7 @@ import sys
 import time
 
 from . import jobs
+from .errors import ServiceError, service_error
 
 
 def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
@@ -56,10 +57,15 @@ def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
                               surface_model=args.surface_model, light_model=args.light_model)
 
 
-def _limits():
+def _settings():
+    """The service settings (``WANDELL_*``): the pixel limits of decoding."""
     from .settings import get_settings
 
-    s = get_settings()
+    return get_settings()
+
+
+def _limits():
+    s = _settings()
     return s.max_pixels, s.estimation_pixels
 
 
@@ -201,20 +207,20 @@ def _shared_light(tasks, options, out_dir, executor, rows, count) -> dict | None
         return None
     cam = samples[0]["camera"].name
     if any(s["camera"].name != cam for s in samples):
-        raise jobs.JobError("camera_mismatch", "shared lighting pools images of one camera; this folder mixes "
-                            f"{sorted({s['camera'].name for s in samples})}")
+        raise ServiceError(422, "camera_mismatch", "shared lighting pools images of one camera; this folder "
+                           f"mixes {sorted({s['camera'].name for s in samples})}")
     light = executor.submit(jobs.shared_light, samples, options).result()
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    jobs._atomic_write(path, lambda p: jobs._write_text(p, json.dumps({"key": key, "light": light})))
+    jobs.atomic_write(path, lambda p: jobs.write_text(p, json.dumps({"key": key, "light": light})))
     return light
 
 
 def _cmd_batch(args) -> int:
     opts = _options(args, args.lighting)
     if not os.path.isdir(args.in_dir):
-        raise jobs.JobError("folder_not_found", f"input folder {args.in_dir!r} does not exist")
+        raise ServiceError(422, "folder_not_found", f"input folder {args.in_dir!r} does not exist")
     if not _inputs(args.in_dir):
-        raise jobs.JobError("empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
+        raise ServiceError(422, "empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
     rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler)
     _summary(rows, sys.stdout)
     return 1 if any(r["status"] == "failed" for r in rows) else 0
@@ -244,40 +250,32 @@ def _cmd_white_balance(args) -> int:
 
 def _write_xmp(src: str, illuminant: dict, opts, path: str) -> dict:
     """The Camera Raw sidecar of a finished item (its estimated light's
-    camera RGB through the file's colour matrices, pipeline.temperature_tint)."""
-    from . import pipeline, rawio
-    from .outputs import xmp_sidecar
+    camera RGB through the file's colour matrices, pipeline.xmp_sidecar)."""
+    from . import pipeline
 
-    max_pixels, est_pixels = _limits()
     with open(src, "rb") as f:
-        decoded = rawio.decode_upload(f.read(), os.path.basename(src), max_pixels=max_pixels,
-                                      estimation_pixels=est_pixels)
-    cam, warns = rawio.resolve_camera(decoded, opts.camera)
+        decoded, cam, warns, _ = pipeline.open_image(f.read(), os.path.basename(src), _settings(), opts.camera)
     run = pipeline.run_with_white(pipeline.EstimateRun(None, cam, warns), illuminant["camera_rgb"],
                                   illuminant.get("method", "estimate"))
-    tt = pipeline.temperature_tint(decoded, run)
-    summary = {"method": illuminant.get("method"), "camera_rgb": illuminant["camera_rgb"],
-               "temperature": tt["temperature"], "tint": tt["tint"], "basis": tt["basis"]}
+    text, tt, _ = pipeline.xmp_sidecar(decoded, run)
     with open(path, "w", encoding="utf-8") as f:
-        f.write(xmp_sidecar(tt["temperature"], tt["tint"], summary))
+        f.write(text)
     return tt
 
 
 def _cmd_analyze(args) -> int:
-    from . import pipeline, rawio
+    from . import pipeline
     from .jsonsafe import clean
 
     opts = _options(args)
-    max_pixels, est_pixels = _limits()
     try:
-        with open(args.file, "rb") as f:
-            data = f.read()
-        decoded = rawio.decode_upload(data, os.path.basename(args.file), max_pixels=max_pixels,
-                                      estimation_pixels=est_pixels)
-        cam, warns = rawio.resolve_camera(decoded, opts.camera)
-        run = pipeline.run_estimate(decoded, cam, warns, method=opts.method, options=opts.estimate_kwargs())
-    except rawio.UploadError as e:
-        print(f"error: {e.code}: {e.detail}", file=sys.stderr)
+        decoded, run = pipeline.analyze_file(args.file, _settings(), camera=opts.camera, method=opts.method,
+                                             options=opts.estimate_kwargs())
+    except Exception as e:  # noqa: BLE001 - a bad file or option: say what, exit 1
+        err = service_error(e)
+        if err is None:
+            raise
+        print(f"error: {err.code}: {err.detail}", file=sys.stderr)
         return 1
     print(json.dumps(clean(pipeline.analysis_json(run, decoded)), indent=1))
     return 0
@@ -308,7 +306,7 @@ def main(argv=None) -> int:
         if args.command == "analyze":
             return _cmd_analyze(args)
         return _cmd_white_balance(args)
-    except jobs.JobError as e:
+    except ServiceError as e:
         print(f"error: {e.code}: {e.detail}", file=sys.stderr)
         return 2
     except OSError as e:

@@ -1,9 +1,25 @@
-"""The service's glue: decoded upload -> estimate -> JSON / corrected image.
+"""The service's one pipeline: upload -> decode -> camera -> estimate ->
+correction matrix -> apply -> encode, and the JSON of each step.
 
-Thin by design: every number comes from :mod:`recovery`; this module only
-chooses resolutions, applies the one 3x3 matrix per pixel (Wandell 1985,
-Fig. 6: for a fixed light camera RGB to display RGB is one matrix) in
-chunks, and encodes.
+The REST routers (:mod:`service.routers.analysis`, :mod:`service.routers.web`),
+the batch worker (:mod:`service.jobs`) and the CLI (:mod:`service.cli`) all
+go through :func:`analyze` (decode + choose the camera + estimate) and
+:func:`write_corrected` (matrix, apply, encode to a file). Thin by design:
+every number comes from :mod:`recovery` (the camera from
+:mod:`recovery.cameras`, the matrix with its exposure rule from
+:func:`recovery.synthesis.correction_matrix`); this module chooses
+resolutions, applies the one 3x3 matrix per pixel (Wandell 1985, Fig. 6: for
+a fixed light camera RGB to display RGB is one matrix) in chunks, and
+encodes. Its errors are :class:`~service.errors.ServiceError`; recovery
+errors pass through (the edges map them, :func:`service.errors.service_error`).
+
+Analysis resolution, the one rule: a RAW is binned to 2x2 CFA cells and
+area-averaged to at most ``WANDELL_ESTIMATION_PIXELS`` (default 1 megapixel,
+:attr:`service.settings.Settings.estimation_pixels`): that is the full
+analysis resolution. The estimate then runs on that image block-averaged to
+:func:`recovery.analysis_pixels` of the ``quality`` preset: 4096 pixels for
+``fast``, 65536 for ``balanced``, all of it for ``accurate``, and
+:data:`recovery.DEFAULT_ANALYSIS_PIXELS` (250,000) when no quality is given.
 """
 
 from __future__ import annotations
@@ -15,18 +31,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models import illuminant as get_illuminant
-from recovery import Camera, IlluminantEstimate, angular_error, estimate_illuminant
+from recovery import Camera, IlluminantEstimate, analysis_pixels, angular_error, estimate_illuminant
 from recovery.api import resolve_model, surfaces_from_estimate
 from recovery.resolution import block_average
-from recovery.synthesis import output_space, synthesis_matrix
+from recovery.synthesis import correction_matrix as _recovery_correction_matrix, output_space
 
-from .errors import ApiError
-
-#: Estimation runs on at most this many pixels (block-averaged; the
-#: subspace method is unchanged by averaging because mixtures of surfaces
-#: under one light stay in the same subspace, eq. 29).
-ANALYSIS_PIXELS = 250_000
+from .errors import ServiceError
+from .options import FORMATS, MEDIA_TYPES, Format
 
 
 @dataclass
@@ -38,12 +49,57 @@ class EstimateRun:
     factor: int = 1
 
 
-def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,
-                 analysis_pixels: int = ANALYSIS_PIXELS) -> EstimateRun:
-    """Estimate the light on the (block-averaged) estimation image of an
-    upload, saturated cells excluded."""
+def decode(data: bytes, filename: str | None, limits):
+    """The upload decoded (:func:`service.rawio.decode_upload`) within
+    ``limits`` (anything with ``max_pixels`` and ``estimation_pixels``: the
+    settings, a batch item)."""
+    from . import rawio
+
+    return rawio.decode_upload(data, filename, max_pixels=limits.max_pixels,
+                               estimation_pixels=limits.estimation_pixels)
+
+
+def open_image(data: bytes, filename: str | None, limits, camera: str | None = None,
+               sensitivities: bytes | None = None):
+    """Decode and choose the camera (:func:`recovery.cameras.resolve_camera`):
+    ``(decoded, camera, warnings, milliseconds)``."""
+    from recovery.cameras import resolve_camera
+
     t0 = time.perf_counter()
-    img, mask, f = block_average(decoded.estimation, ~decoded.saturated, analysis_pixels)
+    decoded = decode(data, filename, limits)
+    cam, warns = resolve_camera(decoded, camera, sensitivities)
+    return decoded, cam, warns, (time.perf_counter() - t0) * 1e3
+
+
+def analyze(data: bytes, filename: str | None, limits, *, camera: str | None = None,
+            sensitivities: bytes | None = None, method: str = "auto", options: dict | None = None):
+    """Decode, choose the camera, estimate the light: ``(decoded, run)``."""
+    decoded, cam, warns, ms = open_image(data, filename, limits, camera, sensitivities)
+    run = run_estimate(decoded, cam, warns, method=method, options=options or {})
+    run.timings_ms["decode"] = ms
+    return decoded, run
+
+
+def analyze_file(path: str, limits, *, name: str | None = None, **kw):
+    """:func:`analyze` of a file on disk."""
+    import os
+
+    with open(path, "rb") as f:
+        data = f.read()
+    return analyze(data, name or os.path.basename(path), limits, **kw)
+
+
+def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,
+                 pixels: int | None = None) -> EstimateRun:
+    """Estimate the light on the estimation image of an upload, block-
+    averaged to the analysis resolution of ``options["quality"]``
+    (:func:`recovery.analysis_pixels`; ``pixels`` overrides it), saturated
+    cells excluded. Block averaging leaves the subspace method unchanged:
+    mixtures of surfaces under one light stay in the same subspace (eq. 29)."""
+    t0 = time.perf_counter()
+    if pixels is None:
+        pixels = analysis_pixels(options.get("quality"))
+    img, mask, f = block_average(decoded.estimation, ~decoded.saturated, pixels)
     est = estimate_illuminant(img, camera, method, mask=mask, **options)
     t1 = time.perf_counter()
     return EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f)
@@ -58,8 +114,8 @@ def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
 
     rgb = np.asarray(camera_rgb, float)
     if rgb.shape != (run.camera.channels,) or not np.all(np.isfinite(rgb)) or not np.all(rgb > 0):
-        raise ApiError(422, "invalid_parameter", f"a white must be {run.camera.channels} positive camera values, "
-                       f"got {np.round(rgb, 6).tolist()}")
+        raise ServiceError(422, "invalid_parameter", f"a white must be {run.camera.channels} positive camera "
+                           f"values, got {np.round(rgb, 6).tolist()}")
     model = resolve_model(None, "light", min(3, run.camera.channels), run.camera.wavelengths)
     w, spd = _spectrum_from_rgb(rgb, run.camera, model)
     est = _finish(rgb, spd, w, run.camera, model, method,
@@ -128,97 +184,25 @@ def rendering_choice(run: EstimateRun, decoded=None) -> dict:
     return {"rendering": "spectral", "color_source": run.camera.source, "profile": None}
 
 
-def _target_xy(target: str, est: IlluminantEstimate, white_xy, wavelengths) -> tuple[float, float]:
-    """Chromaticity the rendered white takes: D65 for ``D65``, the light's
-    own (no adaptation) for ``estimate``, else the named light's."""
-    from recovery.dng_color import D65_XY
-
-    if target == "D65":
-        return D65_XY
-    if target in ("estimate", "as-seen"):
-        return tuple(white_xy)
-    from models import observer
-
-    try:
-        spd = get_illuminant(target, wavelengths)
-    except KeyError as e:
-        raise ApiError(422, "invalid_parameter", f"target: {e.args[0]}") from None
-    xyz = observer("CIE 1931 2 Degree Standard Observer", wavelengths).T @ np.asarray(spd, float)
-    return tuple(xyz[:2] / xyz.sum())
-
-
 def correction_matrix(run: EstimateRun, target: str, output: str, surface_model: str | None = None,
                       *, decoded=None, tone: str = "shoulder") -> tuple[np.ndarray, dict]:
-    """Camera RGB (1.0 = saturation) -> linear display values.
-
-    Spectral rendering (measured, uploaded or generic sensitivities):
-    ``M = Gamma^{-1} Lambda'_{E'} Lambda_E^{-1}`` (eq. 23 and 36 with a
-    surface model of as many terms as sensors), scaled so that the
-    brightest neutral the sensor records unclipped (the light's own camera
-    RGB with its largest channel at saturation) renders with luminance 1:
-    a fixed exposure, no auto-brightening. The surface model has C terms
-    of ``surface_model`` (default PCA of the shipped reflectances).
-
-    DNG-matrix rendering (``decoded`` given, a camera known only by its
-    colour matrix, :func:`rendering_choice`): the DNG specification's
-    camera -> XYZ D50 for the estimated camera neutral
-    (:func:`recovery.dng_color.camera_to_xyz_d50`), Bradford to the target
-    white, ``Gamma^{-1}``, times ``2 ** BaselineExposure``; the same neutral
-    at saturation renders at luminance ``2 ** BaselineExposure``. When that
-    lifts the sensor's range above display white, ``tone="shoulder"`` (the
-    default) asks :func:`apply_matrix_inplace` to roll the highlights off
-    above a knee (:func:`recovery.highlights.highlight_shoulder`) rather than
-    clip them; ``tone="linear"`` is the specification's linear rendering.
-
-    ``info`` has ``rendering``, ``neutral`` (the light's camera RGB, largest
-    channel 1, for :func:`apply_matrix_inplace`'s highlight handling),
-    ``encoding`` and the rendering's figures.
-    """
+    """Camera RGB (1.0 = saturation) -> linear display values for ``run``'s
+    light, by :func:`recovery.synthesis.correction_matrix` (its exposure
+    rule, and the DNG-matrix rendering for a camera known only by its colour
+    matrix, :func:`rendering_choice`, when ``decoded`` is given). The
+    surface model has C terms of ``surface_model`` (default PCA of the
+    shipped reflectances). ``info`` adds ``color_source``."""
     cam, est = run.camera, run.estimate
     try:
         space = output_space(output, cam.wavelengths)
     except (ValueError, KeyError) as e:
-        raise ApiError(422, "invalid_parameter", f"output: {e}") from None
-    neutral = np.asarray(est.rgb, float) / np.max(est.rgb)
+        raise ServiceError(422, "invalid_parameter", f"output: {e}") from None
     choice = rendering_choice(run, decoded)
-    if choice["rendering"] == "dng-matrix" and np.all(neutral > 0) and space.Gamma is not None:
-        from recovery.dng_color import bradford, camera_to_xyz_d50, D50_XY
-
-        prof = choice["profile"]
-        M50, dinfo = camera_to_xyz_d50(prof, neutral)
-        wxy = _target_xy(target, est, dinfo["white_xy"], cam.wavelengths)
-        gain = 2.0 ** float(prof.baseline_exposure)
-        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50) * gain
-        info = {"rendering": "dng-matrix", "color_source": choice["color_source"], "encoding": space.encoding,
-                "neutral": neutral.tolist(), "white_xy": dinfo["white_xy"],
-                "temperature": dinfo["temperature"], "tint": dinfo["tint"],
-                "calibration_weight": dinfo["calibration_weight"], "forward_matrix": dinfo["forward_matrix"],
-                "baseline_exposure": float(prof.baseline_exposure), "target_white_xy": [float(v) for v in wxy]}
-        if prof.notes:
-            info["notes"] = list(prof.notes)
-        if gain > 1.0 and tone == "shoulder":
-            from recovery.highlights import SHOULDER_KNEE
-
-            info["shoulder"] = {"luminance": [float(v) for v in space.Gamma[1]], "knee": SHOULDER_KNEE,
-                                "peak": gain}
-        info["tone"] = "shoulder" if "shoulder" in info else "linear"
-        return M, info
-    try:
-        tgt = est.spectrum if target in ("estimate", "as-seen") else get_illuminant(target, cam.wavelengths)
-    except KeyError as e:
-        raise ApiError(422, "invalid_parameter", f"target: {e.args[0]}") from None
     S = resolve_model(surface_model, "surface", cam.channels, cam.wavelengths).basis
-    M, cond = synthesis_matrix(cam.sensitivities, cam.wavelengths, est.spectrum, tgt, S, space)
-    white = est.rgb / np.max(est.rgb)
-    y = (M @ white)
-    lum = float(y[1]) if space.Gamma is None else float((space.Gamma @ y)[1])
-    if not (np.isfinite(lum) and lum > 0):
-        raise ApiError(422, "unrenderable", "the estimated light renders white with no luminance")
-    info = {"lighting_condition": cond, "encoding": space.encoding, "rendering": "spectral",
-            "color_source": cam.source}
-    if np.all(neutral > 0):
-        info["neutral"] = neutral.tolist()
-    return M / lum, info
+    M, info = _recovery_correction_matrix(cam, est.rgb, est.spectrum, target, space, S,
+                                          profile=choice["profile"], tone=tone)
+    info["color_source"] = choice["color_source"] if info["rendering"] == "dng-matrix" else cam.source
+    return M, info
 
 
 def rendering_json(info: dict) -> dict:
@@ -244,11 +228,11 @@ def default_crop(decoded, img: np.ndarray) -> np.ndarray:
     sh, sw = (W, H) if flip & 4 else (H, W)          # the sensor's (unoriented) shape
     if top < 0 or left < 0 or top + h > sh or left + w > sw or (h, w) == (sh, sw):
         return img
-    from .rawio import _FLIP_OPS
+    from .rawio import FLIP_OPS
 
     rows = np.broadcast_to(np.arange(sh)[:, None], (sh, sw))
     cols = np.broadcast_to(np.arange(sw)[None, :], (sh, sw))
-    op = _FLIP_OPS.get(flip, _FLIP_OPS[0])
+    op = FLIP_OPS.get(flip, FLIP_OPS[0])
     r, c = op(rows), op(cols)                       # views: no memory
     keep_r = (r[:, 0] >= top) & (r[:, 0] < top + h) if np.ptp(r[:, 0]) else (c[:, 0] >= left) & (c[:, 0] < left + w)
     keep_c = (c[0] >= left) & (c[0] < left + w) if np.ptp(c[0]) else (r[0] >= top) & (r[0] < top + h)
@@ -272,6 +256,52 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
         timings.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3)
     info["crop"] = [int(out.shape[0]), int(out.shape[1])]
     return out, M, info
+
+
+def estimate_summary(run: EstimateRun, info: dict | None = None, **extra) -> dict:
+    """The estimate in short (the ``X-Illuminant`` of an XMP download, the
+    JSON an output file carries, the XMP sidecar's): method, camera RGB,
+    multipliers, CCT/Duv, camera name, and the rendering when ``info``."""
+    est = run.estimate
+    cct, duv = est.cct_duv()
+    out = {"method": est.method, "camera_rgb": est.rgb.tolist(), "wb_multipliers": est.wb_multipliers.tolist(),
+           "cct": cct, "duv": duv, "camera": run.camera.name}
+    if info:
+        out["rendering"] = info.get("rendering")
+    out.update(extra)
+    return out
+
+
+def render_corrected(decoded, run: EstimateRun, *, target: str, output: str, fmt: Format,
+                     surface_basis=None, threads: int | None = None, white: str = "estimate"
+                     ) -> tuple[np.ndarray, np.ndarray, dict, dict]:
+    """Correction matrix -> apply: the corrected full-resolution image in
+    ``fmt``'s bits (:data:`service.options.FORMATS`) and what its file
+    carries (ICC profile, the source's EXIF, the estimate: :func:`output_meta`).
+    Returns ``(image, M, info, meta)``; timings go to ``run.timings_ms``."""
+    out, M, info = render_full(decoded, run, target, output, fmt.bits, surface_basis, threads=threads,
+                               timings=run.timings_ms)
+    summary = estimate_summary(run, info, white=white, target=target, output=output)
+    return out, M, info, output_meta(decoded, output, summary)
+
+
+def write_corrected(decoded, run: EstimateRun, path: str, **kw) -> tuple[np.ndarray, dict]:
+    """:func:`render_corrected`, encoded to ``path``: ``(M, info)``."""
+    out, M, info, meta = render_corrected(decoded, run, **kw)
+    t0 = time.perf_counter()
+    encode_image(out, kw["fmt"].encoder, path, meta=meta)
+    run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
+    return M, info
+
+
+def xmp_sidecar(decoded, run: EstimateRun) -> tuple[str, dict, dict]:
+    """The Camera Raw XMP sidecar of ``run``'s light (Temperature/Tint by
+    :func:`temperature_tint`): ``(text, temperature_tint, summary)``."""
+    from .outputs import xmp_sidecar as _xmp
+
+    tt = temperature_tint(decoded, run)
+    summary = estimate_summary(run, temperature=tt["temperature"], tint=tt["tint"], basis=tt["basis"])
+    return _xmp(tt["temperature"], tt["tint"], summary), tt, summary
 
 
 def _encoding_lut(encoding: str | None, bits: int) -> np.ndarray:
@@ -356,9 +386,6 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     return out
 
 
-FORMATS = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg"}
-
-
 def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None) -> bytes | None:
     """PNG (8-bit or 16-bit), 16-bit TIFF or 8-bit JPEG of an RGB image, as
     bytes, or written to ``path`` (TIFF straight from the array, no copy).
@@ -394,7 +421,7 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
     ok, enc = cv2.imencode(".png" if fmt == "png" else ".jpg", bgr,
                            [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
-        raise ApiError(422, "encode_failed", f"could not encode {fmt}")
+        raise ServiceError(422, "encode_failed", f"could not encode {fmt}")
     data = enc.tobytes()
     if icc or facts or meta.get("text"):
         data = outputs.embed(data, fmt, icc, outputs.exif_block(facts) if facts else None, meta.get("text"))
@@ -433,7 +460,7 @@ def temperature_tint(decoded, run: EstimateRun) -> dict:
         return {"temperature": t, "tint": tint, "xy": [float(xy[0]), float(xy[1])], "basis": prof.source}
     cct, duv = run.estimate.cct_duv()
     if cct is None:
-        raise ApiError(422, "no_temperature", "the estimated light is too far from the Planckian locus for a "
+        raise ServiceError(422, "no_temperature", "the estimated light is too far from the Planckian locus for a "
                        "temperature/tint white balance")
     return {"temperature": cct, "tint": 3000.0 * duv, "basis": "spectrum CCT/Duv (approximate)"}
 
@@ -469,14 +496,14 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
 
     def to_est(r, c):
         if not (0 <= r < H and 0 <= c < W):
-            raise ApiError(422, "invalid_parameter", f"point ({r}, {c}) outside the {H}x{W} image")
+            raise ServiceError(422, "invalid_parameter", f"point ({r}, {c}) outside the {H}x{W} image")
         return min(int(r * sy), h - 1), min(int(c * sx), w - 1)
 
     for r, c in points:
         add("point", [r, c], [to_est(r, c)])
     for r0, c0, r1, c1 in rects:
         if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
-            raise ApiError(422, "invalid_parameter", f"rectangle {[r0, c0, r1, c1]} must satisfy "
+            raise ServiceError(422, "invalid_parameter", f"rectangle {[r0, c0, r1, c1]} must satisfy "
                            f"0 <= r0 < r1 <= {H} and 0 <= c0 < c1 <= {W}")
         a0, b0 = to_est(r0, c0)
         a1, b1 = to_est(r1 - 1, c1 - 1)

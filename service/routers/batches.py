@@ -19,7 +19,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
 from .. import jobs
-from ..errors import ApiError
+from ..errors import ServiceError
 from ..jsonsafe import clean
 from ..settings import Settings, get_settings
 
@@ -62,10 +62,6 @@ async def lifespan(app):
         await run_in_threadpool(stop_runner)
 
 
-def _job_error(e: jobs.JobError) -> ApiError:
-    return ApiError(e.status, e.code, e.detail)
-
-
 async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) -> list[tuple[str, str]]:
     """Stream each upload to ``dest`` (per-file size limit), returning
     ``(name, path)`` pairs."""
@@ -78,12 +74,12 @@ async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) 
             while chunk := await f.read(1 << 20):
                 size += len(chunk)
                 if size > settings.max_upload_bytes:
-                    raise ApiError(413, "file_too_large", f"{name!r} exceeds the upload limit of "
+                    raise ServiceError(413, "file_too_large", f"{name!r} exceeds the upload limit of "
                                    f"{settings.max_upload_bytes} bytes")
                 fh.write(chunk)
         await f.close()
         if size == 0:
-            raise ApiError(422, "empty_file", f"{name!r} is empty")
+            raise ServiceError(422, "empty_file", f"{name!r} is empty")
         out.append((name, path))
     return out
 
@@ -106,18 +102,15 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
     at once (202); follow it with ``GET /v1/batches/{id}``."""
     files = [f for f in (files or []) if f is not None and (f.filename or f.size)]
     if bool(files) == bool(folder):
-        raise ApiError(422, "invalid_parameter", "give either files (one or more 'files' fields) or folder")
-    try:
-        opts = jobs.batch_options(camera=camera, method=method, quality=quality, target=target, output=output,
-                                  format=format, lighting=lighting, surface_model=surface_model,
-                                  light_model=light_model, surface_dim=surface_dim, light_dim=light_dim,
-                                  region_size=region_size)
-        sources = jobs.folder_sources(settings.batch_root, folder) if folder else None
-    except jobs.JobError as e:
-        raise _job_error(e) from None
+        raise ServiceError(422, "invalid_parameter", "give either files (one or more 'files' fields) or folder")
+    opts = jobs.batch_options(camera=camera, method=method, quality=quality, target=target, output=output,
+                              format=format, lighting=lighting, surface_model=surface_model,
+                              light_model=light_model, surface_dim=surface_dim, light_dim=light_dim,
+                              region_size=region_size)
+    sources = jobs.folder_sources(settings.batch_root, folder) if folder else None
     n = len(sources) if sources is not None else len(files)
     if n > settings.max_batch_items:
-        raise ApiError(413, "too_many_items", f"{n} items exceed the batch limit of {settings.max_batch_items}")
+        raise ServiceError(413, "too_many_items", f"{n} items exceed the batch limit of {settings.max_batch_items}")
     runner = get_runner(settings)
     store = runner.store
     bid = store.new_batch_id()
@@ -138,7 +131,7 @@ def _progress(bid: str) -> dict:
     runner = get_runner()
     doc = runner.store.progress(bid)
     if doc is None:
-        raise ApiError(404, "not_found", f"no batch {bid!r}")
+        raise ServiceError(404, "not_found", f"no batch {bid!r}")
     if runner.executor_error and doc["status"] in ("queued", "running"):
         doc["runner_error"] = runner.executor_error
     for it in doc["items"]:
@@ -159,12 +152,12 @@ def batch_item(batch_id: str, item: str):
     """Download one result, by item name or index."""
     store = get_runner().store
     if store.batch(batch_id) is None:
-        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     row = store.item(batch_id, item)
     if row is None:
-        raise ApiError(404, "not_found", f"batch {batch_id!r} has no item {item!r} (a name or an index)")
+        raise ServiceError(404, "not_found", f"batch {batch_id!r} has no item {item!r} (a name or an index)")
     if row["status"] != "done" or not os.path.exists(row["out"]):
-        raise ApiError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
+        raise ServiceError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
                        + (f": {row['error']}" if row["error"] else ""))
     fmt = jobs.BatchOptions.from_json(store.batch(batch_id)["options"]).format
     media = {"tiff": "image/tiff", "png": "image/png", "png16": "image/png"}.get(fmt, "image/jpeg")
@@ -208,11 +201,11 @@ def batch_zip(batch_id: str):
     """Every finished result in one zip, streamed (not built in memory)."""
     store = get_runner().store
     if store.batch(batch_id) is None:
-        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     entries = [(os.path.basename(r["out"]), r["out"]) for r in store.items(batch_id)
                if r["status"] == "done" and os.path.exists(r["out"])]
     if not entries:
-        raise ApiError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
+        raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
     return StreamingResponse(_zip_stream(entries), media_type="application/zip",
                              headers={"Content-Disposition": f'attachment; filename="batch-{batch_id}.zip"'})
 
@@ -222,6 +215,6 @@ def cancel_batch(batch_id: str):
     """Cancel: pending items are dropped, running ones finish and are kept."""
     runner = get_runner()
     if runner.store.batch(batch_id) is None:
-        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     runner.cancel(batch_id)
     return JSONResponse(clean(_progress(batch_id)))
