@@ -3,7 +3,7 @@ JSON error, or a 200 with finite numbers when the mutation left the file
 valid; never a 5xx, never a hang; the service still answers afterwards and
 its memory stays bounded.
 
-``python -m service.fuzz [--n 2000] [--timeout 20] [--seed 0]``
+``python -m benchmarks.fuzz [--n 2000] [--timeout 20] [--seed 0] [--real-dng PATH]``
 
 The seeds are small valid DNGs written by :mod:`testing.dngwriter` from
 spectral scenes (different cameras, lights and CFA patterns). Each mutation is
@@ -37,6 +37,12 @@ cycle so that any prefix of the sequence has every kind in it:
                     named ``.dng``
 =================  ==========================================================
 
+With ``--real-dng PATH`` (a real tiled, JPEG-compressed DNG such as
+``shared/data/raw/Blackmagic.dng``), :func:`dng_mutations` of it are sent
+too, each twice, after two different images (:func:`run_real_dng`): the two
+answers must be the same, or the decode depends on what came before (issue
+10: LibRaw's uncleared buffer).
+
 All requests go through the ASGI app in-process (``httpx.ASGITransport``),
 each under a timeout. Memory is the resident set size of this process
 (``psutil``), sampled after a warm-up (imports, colour data, caches) and at
@@ -59,7 +65,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Mutation", "FuzzReport", "seed_dngs", "ifd_entries", "mutations", "memory_bound_mb", "run", "main"]
+__all__ = ["Mutation", "FuzzReport", "seed_dngs", "ifd_entries", "mutations", "memory_bound_mb", "run", "main",
+           "dng_mutations", "victim_dngs", "run_real_dng"]
 
 KINDS = ("truncate", "flip-header", "flip-ifd", "flip-value", "flip-strip", "tag-value", "tag-type",
          "huge-dims", "zero-dims", "bits", "strip-eof", "ifd-offset", "entry-count", "splice", "wrong-name")
@@ -100,11 +107,11 @@ class FuzzReport:
         return self.rss_end_mb - self.rss_warm_mb
 
     def table(self) -> str:
-        lines = [f"{'kind':12s} {'n':>5s}  statuses"]
-        for kind in KINDS:
+        lines = [f"{'kind':17s} {'n':>5s}  statuses"]
+        for kind in KINDS + DNG_KINDS:
             c = self.by_kind.get(kind)
             if c:
-                lines.append(f"{kind:12s} {sum(c.values()):5d}  "
+                lines.append(f"{kind:17s} {sum(c.values()):5d}  "
                              + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())))
         lat = np.array(self.latencies_s or [0.0])
         lines.append(f"\n{self.n} requests in {self.elapsed_s:.1f} s ({self.n / max(self.elapsed_s, 1e-9):.1f}/s); "
@@ -288,6 +295,294 @@ def _mutate(i: int, kind: str, src: bytes, seeds: list[bytes], rng) -> Mutation:
 
 
 # ---------------------------------------------------------------------------
+# Mutations of a real camera DNG (issue 10)
+# ---------------------------------------------------------------------------
+
+#: Kinds of :func:`dng_mutations`. Those from ``dng-truncate`` to
+#: ``dng-tile-tags`` damage the strips and tiles LibRaw decodes into its
+#: (uncleared) buffer: each of them leaked the previous upload's pixels
+#: before the strips and tiles were verified.
+DNG_KINDS = ("dng-truncate", "dng-zero-tail", "dng-no-soi", "dng-sof", "dng-jpeg-segment", "dng-tile-geometry",
+             "dng-tile-tags", "dng-ifd-flip", "dng-data", "dng-valid")
+
+TAG_TILE_WIDTH, TAG_TILE_LENGTH, TAG_TILE_OFFSETS, TAG_TILE_BYTES = 322, 323, 324, 325
+
+
+def _longs(data: bytes, bo: str, entry: tuple) -> list[int]:
+    _, typ, count, value_pos = entry
+    fmt = "H" if typ == 3 else "I"
+    return list(struct.unpack_from(f"{bo}{count}{fmt}", data, value_pos))
+
+
+def _jpeg_segments(data: bytes, start: int) -> dict:
+    """``{marker: position of its FF byte}`` of the JPEG at ``start``, up to
+    its SOS (the first of each marker)."""
+    out, p = {}, start + 2
+    while data[p] == 0xFF:
+        m = data[p + 1]
+        out.setdefault(m, p)
+        if m == 0xDA:
+            break
+        p += 2 + struct.unpack_from(">H", data, p + 2)[0]
+    return out
+
+
+def dng_mutations(data: bytes, seed: int = 0) -> list[Mutation]:
+    """Deterministic mutations of a tiled, JPEG-compressed camera DNG (such
+    as ``shared/data/raw/Blackmagic.dng``), one of every class that made
+    LibRaw decode part of the image from the previous decode's memory.
+
+    The tags are patched in place in IFD 0 (:func:`ifd_entries`), so the
+    mutated files keep the original layout:
+
+    ``dng-truncate``
+        cut inside the header, the IFD, the tag values, at and next to each
+        tile start, and 1-15 bytes before the end of the last tile;
+    ``dng-zero-tail``
+        every byte after a point inside tile 0 or 1 zeroed (length kept);
+    ``dng-no-soi``
+        one tile's SOI marker destroyed;
+    ``dng-sof``
+        a field of tile 0's JPEG frame header (precision, height, width,
+        components, marker type, length);
+    ``dng-jpeg-segment``
+        the length of tile 0's DQT or DHT segment 0 or 65535, or a Huffman
+        table of class 9;
+    ``dng-tile-geometry``
+        ImageWidth one more, TileWidth / TileLength 0, 1, 16, one less or
+        more, doubled, the image width, 2**32-1, or with a count of
+        2**27+1;
+    ``dng-tile-tags``
+        TileOffsets' count 1 or huge, the offsets 0, into the IFD, past the
+        end, one byte in, or huge, the tile tags renamed to strip tags;
+    ``dng-ifd-flip``
+        random bytes of the header and IFD 0 changed (``seed``);
+    ``dng-data``
+        random bytes of tile 0's entropy-coded data changed, 4 KiB of the
+        last tile zeroed, an EOI marker inside it: the structure is intact,
+        LibRaw decodes them or reports a data error;
+    ``dng-valid``
+        the file itself, and with its last 1 and 15 bytes cut when they
+        follow the last tile (they then belong to no tag).
+
+    Whatever the outcome, each must be the same whatever was decoded
+    before.
+
+    Parameters
+    ----------
+    data : bytes
+        A little- or big-endian DNG whose IFD 0 holds the raw image in tiles
+        (TileOffsets, TileByteCounts) of JPEG data.
+    seed : int
+
+    Returns
+    -------
+    list of Mutation
+        ``index`` counts from 0; ``filename`` ``real.dng``.
+    """
+    bo, ifd, ent = ifd_entries(data)
+    offs, cnts = _longs(data, bo, ent[TAG_TILE_OFFSETS]), _longs(data, bo, ent[TAG_TILE_BYTES])
+    (width,) = _longs(data, bo, ent[TAG_WIDTH])
+    (tile_w,) = _longs(data, bo, ent[TAG_TILE_WIDTH])
+    ifd_end = ifd + 2 + 12 * len(ent) + 4
+    data_end = max(o + c for o, c in zip(offs, cnts))
+    seg = _jpeg_segments(data, offs[0])
+    sof = next(p for m, p in seg.items() if 0xC0 <= m <= 0xCF and m not in (0xC4, 0xC8, 0xCC))
+    rng = np.random.default_rng((seed, 10))
+    out: list[Mutation] = []
+
+    def add(kind, what, d, **kw):
+        out.append(Mutation(len(out), kind, what, bytes(d), filename="real.dng", **kw))
+
+    def patched(fn):
+        d = bytearray(data)
+        fn(d)
+        return d
+
+    for cut in sorted({8, ifd + 100, ifd_end, ifd_end + 32, offs[0] - 1, offs[0], offs[0] + 1, sof + 6,
+                       *[o + k for o in offs[1:] for k in (-1, 0, 1)], *[data_end - k for k in (1, 2, 8, 15)]}):
+        add("dng-truncate", f"cut at byte {cut} of {len(data)}", data[:cut])
+    for start in (offs[0] + 5000, offs[1] + 1000):
+        add("dng-zero-tail", f"bytes from {start} zeroed", data[:start] + bytes(len(data) - start))
+    for t, o in enumerate(offs):
+        add("dng-no-soi", f"tile {t} SOI destroyed", patched(lambda d, o=o: d.__setitem__(slice(o, o + 2), b"\0\0")))
+    for name, k, val in [("precision 0", 4, b"\x00"), ("precision 255", 4, b"\xff"), ("height 0", 5, b"\0\0"),
+                         ("height 1", 5, b"\0\x01"), ("width 0", 7, b"\0\0"), ("width 1", 7, b"\0\x01"),
+                         ("components 0", 9, b"\x00"), ("components 255", 9, b"\xff"), ("SOF0", 1, b"\xc0"),
+                         ("SOF2 progressive", 1, b"\xc2"), ("length 0", 2, b"\0\0"), ("length 65535", 2, b"\xff\xff")]:
+        add("dng-sof", f"tile 0 frame header {name}",
+            patched(lambda d, k=k, val=val: d.__setitem__(slice(sof + k, sof + k + len(val)), val)))
+    for name, m, k, val in [("DQT length 0", 0xDB, 2, b"\0\0"), ("DQT length 65535", 0xDB, 2, b"\xff\xff"),
+                            ("DHT length 0", 0xC4, 2, b"\0\0"), ("DHT length 65535", 0xC4, 2, b"\xff\xff"),
+                            ("DHT class 9", 0xC4, 4, b"\x9f")]:
+        if m in seg:
+            p = seg[m] + k
+            add("dng-jpeg-segment", f"tile 0 {name}", patched(lambda d, p=p, val=val: d.__setitem__(
+                slice(p, p + len(val)), val)))
+    add("dng-tile-geometry", f"ImageWidth {width + 1}", patched(lambda d: _set_long(d, bo, ent, TAG_WIDTH, width + 1)))
+    for v in (0, 1, 16, tile_w - 1, tile_w + 1, 2 * tile_w, width, 2**32 - 1):
+        add("dng-tile-geometry", f"TileWidth {v}", patched(lambda d, v=v: _set_long(d, bo, ent, TAG_TILE_WIDTH, v)))
+    for v in (0, 2**32 - 1):
+        add("dng-tile-geometry", f"TileLength {v}", patched(lambda d, v=v: _set_long(d, bo, ent, TAG_TILE_LENGTH, v)))
+    pos = ent[TAG_TILE_WIDTH][0]
+    add("dng-tile-geometry", "TileWidth count 2**27+1",
+        patched(lambda d: struct.pack_into(bo + "I", d, pos + 4, 2**27 + 1)))
+    for c in (1, 2**24 - 1, 2**32 - 1):
+        add("dng-tile-tags", f"TileOffsets count {c}",
+            patched(lambda d, c=c: struct.pack_into(bo + "I", d, ent[TAG_TILE_OFFSETS][0] + 4, c)))
+    vpos = ent[TAG_TILE_OFFSETS][3]
+    n = len(offs)
+    for name, vals in [("0", [0] * n), ("into the IFD", [ifd] * n), ("past the end", [len(data) + 10] * n),
+                       ("one byte in", [o + 1 for o in offs]), ("huge", [2**32 - 16] * n)]:
+        add("dng-tile-tags", f"TileOffsets {name}",
+            patched(lambda d, vals=vals: struct.pack_into(f"{bo}{n}I", d, vpos, *vals)))
+
+    def as_strips(d):
+        for tag, new in ((TAG_TILE_OFFSETS, TAG_STRIP_OFFSETS), (TAG_TILE_BYTES, TAG_STRIP_BYTES),
+                         (TAG_TILE_WIDTH, 278), (TAG_TILE_LENGTH, 278)):
+            struct.pack_into(bo + "H", d, ent[tag][0], new)
+    add("dng-tile-tags", "tile tags renamed to strip tags", patched(as_strips))
+    for k in range(8):
+        d = bytearray(data)
+        where = sorted(int(p) for p in rng.integers(0, ifd_end, 1 + k % 4))
+        for p in where:
+            d[p] = int(rng.integers(256))
+        add("dng-ifd-flip", f"bytes {where} of the header and IFD changed", d)
+    add("dng-valid", "the file itself", data)
+    for k in (1, 15):
+        if len(data) - k >= data_end:
+            add("dng-valid", f"last {k} byte(s) cut (after the last tile)", data[:len(data) - k])
+    for k in range(4):
+        d = bytearray(data)
+        for p in rng.integers(offs[0] + 1024, offs[0] + cnts[0] - 4, 10 ** (k % 3 + 1)):   # entropy data
+            d[int(p)] = int(rng.integers(256))
+        add("dng-data", f"{10 ** (k % 3 + 1)} random bytes of tile 0's entropy-coded data changed", d)
+    t = offs[-1]
+    add("dng-data", "4 KiB of the last tile zeroed",
+        patched(lambda d: d.__setitem__(slice(t + 1000, t + 5096), bytes(4096))))
+    add("dng-data", "EOI marker inside the last tile",
+        patched(lambda d: d.__setitem__(slice(t + 5000, t + 5002), b"\xff\xd9")))
+    return out
+
+
+def victim_dngs(height: int, width: int) -> tuple[bytes, bytes]:
+    """Two different valid DNGs of ``height x width`` (a horizontal ramp
+    with a bright band, and a constant 12345): decoded just before a
+    mutation, they leave different pixels in LibRaw's freed buffers."""
+    from testing.dngwriter import mosaic, write_dng
+
+    rgb = np.empty((height, width, 3), np.uint16)
+    rgb[...] = (np.linspace(5000, 37500, width, dtype=np.float64)[None, :, None]).astype(np.uint16)
+    rgb[height // 3:height // 2] = 57000
+    a, b = io.BytesIO(), io.BytesIO()
+    write_dng(a, mosaic(rgb, "RGGB"), make="Victim", model="A")
+    write_dng(b, np.full((height, width), 12345, np.uint16), make="Victim", model="B")
+    return a.getvalue(), b.getvalue()
+
+
+def _without_timings(obj):
+    """``obj`` without its timings (keys ``ms``, ``ms_*``, ``*_ms``), which
+    vary from run to run."""
+    if isinstance(obj, dict):
+        return {k: _without_timings(v) for k, v in obj.items()
+                if not (k == "ms" or k.startswith("ms_") or k.endswith("_ms"))}
+    if isinstance(obj, list):
+        return [_without_timings(v) for v in obj]
+    return obj
+
+
+def _answer(r) -> tuple:
+    """Status and body of an answer, without the timings."""
+    try:
+        body = json.loads(r.text)
+    except ValueError:
+        return r.status_code, r.text
+    return r.status_code, _without_timings(body)
+
+
+async def _run_real(muts, victims, timeout: float, report: FuzzReport, app, progress) -> list:
+    import httpx
+
+    dependent = []
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://fuzz") as client:
+        async def post(data, name, mut=None):
+            t0 = time.perf_counter()
+            try:
+                files = {"file": (name, data, "image/x-adobe-dng")}
+                r = await asyncio.wait_for(client.post("/v1/analyze", files=files), timeout)
+            except asyncio.TimeoutError:
+                if mut is not None:
+                    report.failures.append(f"#{mut.index} {mut.kind} ({mut.what}): no answer in {timeout} s")
+                return None
+            except Exception as e:  # raised through the transport: a 500 in a real server
+                if mut is not None:
+                    report.failures.append(f"#{mut.index} {mut.kind} ({mut.what}): {type(e).__name__}: {e}"[:300])
+                return None
+            if mut is not None:
+                report.latencies_s.append(time.perf_counter() - t0)
+                report.n += 1
+                report.statuses[r.status_code] += 1
+                report.by_kind.setdefault(mut.kind, Counter())[r.status_code] += 1
+                problem = _check(mut, "/v1/analyze", r)
+                if problem:
+                    report.failures.append(problem)
+            return r
+
+        t0 = time.perf_counter()
+        for j, mut in enumerate(muts):
+            answers = []
+            for victim in victims:          # the same file after two different uploads
+                await post(victim, "victim.dng")
+                r = await post(mut.data, mut.filename, mut)
+                answers.append(None if r is None else _answer(r))
+            if answers[0] is not None and answers[0] != answers[1]:
+                dependent.append(mut)
+                report.failures.append(f"#{mut.index} {mut.kind} ({mut.what}): the answer depends on the previous "
+                                       f"upload ({answers[0][0]} then {answers[1][0]})")
+            if j == 0:
+                report.rss_warm_mb = _rss_mb()
+            report.rss_peak_mb = max(report.rss_peak_mb, _rss_mb())
+            if progress:
+                progress(j, report)
+        report.elapsed_s = time.perf_counter() - t0
+        report.rss_end_mb = _rss_mb()
+        report.health_after = (await asyncio.wait_for(client.get("/health"), timeout)).status_code
+    return dependent
+
+
+def run_real_dng(data: bytes, *, seed: int = 0, timeout: float = 60.0, every: int = 1, app=None, progress=None):
+    """:func:`dng_mutations` of a real DNG to ``/v1/analyze``, each twice:
+    once after a :func:`victim_dngs` upload, once after the other.
+
+    Parameters
+    ----------
+    data : bytes
+        The DNG (e.g. ``shared/data/raw/Blackmagic.dng``).
+    seed, timeout, app, progress
+        As :func:`run`.
+    every : int
+        Send every ``every``-th mutation only (1: all of them).
+
+    Returns
+    -------
+    (FuzzReport, list of Mutation)
+        The report (two requests per mutation) and the mutations whose
+        answer (status and body, timings left out) differed between the two:
+        a decode that depends on a previous upload.
+    """
+    if app is None:
+        from service.app import app
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+    bo, _, ent = ifd_entries(data)
+    (w,), (h,) = _longs(data, bo, ent[TAG_WIDTH]), _longs(data, bo, ent[TAG_LENGTH])
+    report = FuzzReport()
+    muts = dng_mutations(data, seed)[::max(1, int(every))]
+    dependent = asyncio.run(_run_real(muts, victim_dngs(h, w), timeout, report, app, progress))
+    return report, dependent
+
+
+# ---------------------------------------------------------------------------
 # Running them against the app
 # ---------------------------------------------------------------------------
 
@@ -364,7 +659,7 @@ async def _run(muts, timeout: float, sample_every: int, warmup: int, report: Fuz
     import httpx
 
     transport = httpx.ASGITransport(app=app)
-    async with httpx.AsyncClient(transport=transport, base_url="http://fuzz") as client:
+    async with httpx.AsyncClient(transport=transport, base_url="http://localhost") as client:
         async def post(endpoint, mut, fields):
             t0 = time.perf_counter()
             try:
@@ -478,6 +773,9 @@ def main(argv=None) -> int:
                     help="also POST every k-th file to /v1/white-balance or /v1/surfaces")
     ap.add_argument("--max-rss-growth-mb", type=float, default=None,
                     help="default: the posterior-model cache's capacity + 64 MB (fuzz.memory_bound_mb)")
+    ap.add_argument("--real-dng", metavar="PATH", default=None,
+                    help="also send dng_mutations of this real DNG (e.g. ../shared/data/raw/Blackmagic.dng), each "
+                         "after two different images, and count the answers that depend on the previous upload")
     args = ap.parse_args(argv)
 
     def progress(j, rep):
@@ -489,6 +787,18 @@ def main(argv=None) -> int:
     bound = memory_bound_mb() if args.max_rss_growth_mb is None else args.max_rss_growth_mb
     print(f"RSS growth bound {bound:.0f} MB")
     ok = not rep.failures and rep.health_after == 200 and rep.rss_growth_mb <= bound
+    if args.real_dng:
+        with open(args.real_dng, "rb") as fh:
+            real, dependent = run_real_dng(fh.read(), seed=args.seed, timeout=args.timeout)
+        print(f"\nreal DNG {args.real_dng}: {real.n // 2} mutations, each sent after two different images")
+        print(real.table())
+        classes = Counter()
+        for s in real.statuses.elements():
+            classes[f"{s // 100}xx"] += 1
+        print(f"answers: {dict(sorted(classes.items()))}; hangs: "
+              f"{sum('no answer' in f for f in real.failures)}; decodes that depend on the previous upload: "
+              f"{len(dependent)}")
+        ok = ok and not real.failures and not dependent and real.health_after == 200
     print("OK" if ok else "FAILED")
     return 0 if ok else 1
 

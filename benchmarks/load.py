@@ -1,6 +1,6 @@
 """Concurrent white-balance load on a real server over loopback (issue 6).
 
-``python -m service.load [--n 50] [--height 512 --width 768] [--url URL [--pid PID]]``
+``python -m benchmarks.load [--n 50] [--height 512 --width 768] [--url URL [--pid PID]]``
 
 Writes ``n`` DNGs with :mod:`testing.dngwriter`, one per light (different
 CIE, fluorescent, LED and high-pressure lights, so that every file has its

@@ -23,3 +23,8 @@ app.include_router(web.router)
 from .limits import UploadLimitMiddleware  # noqa: E402
 
 app.add_middleware(UploadLimitMiddleware)
+
+# outermost: Host and Origin are checked before anything else runs
+from .security import HostOriginMiddleware  # noqa: E402
+
+app.add_middleware(HostOriginMiddleware)

@@ -59,10 +59,10 @@ def service_error(exc: BaseException) -> ServiceError | None:
     return None
 
 
-def error_response(status: int, code: str, detail):
+def error_response(status: int, code: str, detail, headers: dict | None = None):
     from fastapi.responses import JSONResponse
 
-    return JSONResponse(status_code=status, content={"error": code, "detail": detail})
+    return JSONResponse(status_code=status, content={"error": code, "detail": detail}, headers=headers)
 
 
 #: OpenAPI schema of every error body (DESIGN.md: ``{"error": code, "detail": text}``).

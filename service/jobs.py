@@ -497,11 +497,33 @@ CREATE INDEX IF NOT EXISTS items_status ON items(batch_id, status);
 """
 
 
+#: Longest file name, in UTF-8 bytes, the batch endpoint accepts (the usual
+#: file-system limit, NAME_MAX); longer ones are refused (422).
+MAX_NAME_BYTES = 255
+#: Longest name the service itself gives a file on disk (inputs, outputs):
+#: room for the ``.<name>.XXXXXXXX.part`` temporaries and ``.json``/``.lock``
+#: sidecars next to them within NAME_MAX.
+DISK_NAME_BYTES = 200
+
+
+def clip_name(name: str, limit: int = DISK_NAME_BYTES) -> str:
+    """``name`` cut to at most ``limit`` UTF-8 bytes on a character boundary,
+    keeping its extension (so the format is still recognised)."""
+    if len(name.encode("utf-8")) <= limit:
+        return name
+    stem, ext = os.path.splitext(name)
+    if len(ext.encode("utf-8")) > limit // 4:
+        stem, ext = name, ""
+    return stem.encode("utf-8")[:limit - len(ext.encode("utf-8"))].decode("utf-8", "ignore") + ext
+
+
 def safe_name(name: str) -> str:
-    """A file name with no directory part and no control characters."""
+    """A file name with no directory part, no control characters and no
+    unpaired surrogates, at most :data:`MAX_NAME_BYTES` bytes."""
     base = os.path.basename(str(name).replace("\\", "/")) or "file"
+    base = base.encode("utf-8", "replace").decode("utf-8")
     base = re.sub(r"[\x00-\x1f/]", "_", base).strip() or "file"
-    return base[:200]
+    return clip_name(base, MAX_NAME_BYTES)
 
 
 class JobStore:
@@ -513,7 +535,90 @@ class JobStore:
         os.makedirs(os.path.join(self.data_dir, "batches"), exist_ok=True)
         self.path = os.path.join(self.data_dir, "jobs.sqlite")
         self._local = threading.local()
-        self._db().executescript(_SCHEMA)
+        #: where a damaged store was moved at start-up, and the batches whose
+        #: results were re-registered from disk (None: it opened cleanly)
+        self.recovered: dict | None = None
+        try:
+            self._open_checked()
+        except sqlite3.DatabaseError as e:
+            self._recover(e)
+
+    def _open_checked(self) -> None:
+        db = self._db()
+        check = db.execute("PRAGMA quick_check").fetchone()[0]
+        if check != "ok":
+            raise sqlite3.DatabaseError(f"quick_check: {check}")
+        db.executescript(_SCHEMA)
+
+    def _recover(self, error: Exception) -> None:
+        """A damaged ``jobs.sqlite`` (and its WAL) is moved aside, kept for
+        inspection, and a fresh store started; the results already on disk
+        are registered again (:meth:`adopt_from_disk`), so they stay
+        reachable. Single-file endpoints never depended on the store."""
+        import logging
+
+        db = getattr(self._local, "db", None)
+        if db is not None:
+            with contextlib.suppress(Exception):
+                db.close()
+            self._local.db = None
+        aside = f"{self.path}.damaged-{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
+        for suffix in ("", "-wal", "-shm"):
+            if os.path.exists(self.path + suffix):
+                os.replace(self.path + suffix, aside + suffix)
+        logging.getLogger("service.jobs").error("the job store %s was damaged (%s: %s); moved to %s and a fresh "
+                                                "store started", self.path, type(error).__name__, error, aside)
+        self._open_checked()
+        adopted = self.adopt_from_disk()
+        self.recovered = {"damaged_copy": aside, "error": f"{type(error).__name__}: {error}",
+                          "batches_recovered": adopted}
+
+    def adopt_from_disk(self) -> int:
+        """Register every batch directory the store does not know, from what
+        is on disk: each finished output (its ``.json`` sidecar names the
+        item and holds the estimate and options) as a ``done`` item, each
+        input without an output as ``failed``. Returns how many batches."""
+        root = os.path.join(self.data_dir, "batches")
+        n = 0
+        for bid in sorted(os.listdir(root)):
+            bdir = os.path.join(root, bid)
+            if not os.path.isdir(bdir) or self.batch(bid) is not None:
+                continue
+            out_dir, in_dir = os.path.join(bdir, "out"), os.path.join(bdir, "in")
+            rows, options, done_names = [], None, set()
+            if os.path.isdir(out_dir):
+                for entry in sorted(os.listdir(out_dir)):
+                    out = os.path.join(out_dir, entry)
+                    if entry.startswith(".") or not is_finished(out):
+                        continue
+                    try:
+                        with open(meta_path(out, ".json")) as f:
+                            side = json.load(f)
+                        options = options or BatchOptions(**side.get("options", {}))
+                    except (OSError, ValueError, TypeError):
+                        continue
+                    name = str(side.get("name") or entry)
+                    done_names.add(name)
+                    rows.append((name, "", out, "done", None, json.dumps(side.get("illuminant"))))
+            if os.path.isdir(in_dir):
+                for entry in sorted(os.listdir(in_dir)):
+                    name = entry.split("-", 1)[1] if re.match(r"\d{5}-", entry) else entry
+                    if name not in done_names:
+                        rows.append((name, os.path.join(in_dir, entry), os.path.join(out_dir, name), "failed",
+                                     "store_recovered: the job store was damaged before this item finished; "
+                                     "submit it again", None))
+            if not rows:
+                continue
+            now = time.time()
+            with self._tx() as db:
+                db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir) "
+                           "VALUES (?, ?, ?, ?, 'done', ?, ?)",
+                           (bid, os.path.getmtime(bdir), now, now, (options or BatchOptions()).to_json(), bdir))
+                db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, illuminant, "
+                               "finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                               [(bid, i, *r, now) for i, r in enumerate(rows)])
+            n += 1
+        return n
 
     def _db(self) -> sqlite3.Connection:
         db = getattr(self._local, "db", None)
@@ -555,7 +660,8 @@ class JobStore:
         for i, (name, src) in enumerate(sources):
             nm = unique(safe_name(name), seen)
             stem = os.path.splitext(nm)[0]
-            out = unique(f"{stem}.{options.extension}", outs)
+            # the output's name on disk stays short enough for its temporaries and sidecars
+            out = unique(clip_name(f"{stem}.{options.extension}", DISK_NAME_BYTES - 12), outs)
             rows.append((batch_id, i, nm, os.path.abspath(src), os.path.join(out_dir, out)))
         with self._tx() as db:
             db.execute("INSERT INTO batches (id, created, status, options, dir) VALUES (?, ?, 'queued', ?, ?)",
@@ -639,6 +745,22 @@ class JobStore:
         with self._tx() as db:
             db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
                        "AND status = 'running'", (time.time(), batch_id, idx))
+
+    def expired_inputs(self, retention_s: float) -> list[str]:
+        """The upload folders (``<batch>/in``) of batches finished or cancelled
+        more than ``retention_s`` seconds ago with nothing still running and
+        something left to remove. Folder-mode sources are never listed: they
+        are the user's files, outside the data directory."""
+        rows = self._db().execute(
+            "SELECT id FROM batches WHERE status IN ('done', 'cancelled') AND finished IS NOT NULL "
+            "AND finished <= ? AND id NOT IN (SELECT batch_id FROM items WHERE status = 'running')",
+            (time.time() - retention_s,)).fetchall()
+        out = []
+        for r in rows:
+            d = os.path.join(self.batch_dir(r["id"]), "in")
+            if os.path.isdir(d) and os.listdir(d):
+                out.append(d)
+        return out
 
     def set_light(self, batch_id: str, light: dict | None, error: str | None = None) -> None:
         with self._tx() as db:
@@ -732,6 +854,8 @@ class RunnerConfig:
     dask_scheduler: str | None = None
     dask_timeout: float = 20.0
     poll_s: float = 0.2
+    #: seconds a finished or cancelled batch's uploaded inputs are kept (< 0: kept forever)
+    input_retention_s: float = 24 * 3600.0
     extra: dict = field(default_factory=dict)
 
 
@@ -756,6 +880,7 @@ class BatchRunner:
         self._light_jobs: dict = {}        # batch -> Future of the shared light
         #: why items are not running (e.g. no Dask scheduler), shown in progress
         self.executor_error: str | None = None
+        self._next_cleanup = 0.0
 
     @property
     def executor(self):
@@ -817,7 +942,23 @@ class BatchRunner:
             self._wake.wait(self.config.poll_s)
             self._wake.clear()
 
+    def remove_expired_inputs(self) -> list[str]:
+        """Delete the uploaded inputs of batches past their retention period
+        (results and the store's records are kept). Returns the folders."""
+        import shutil
+
+        if self.config.input_retention_s < 0:
+            return []
+        gone = self.store.expired_inputs(self.config.input_retention_s)
+        for d in gone:
+            shutil.rmtree(d, ignore_errors=True)
+        return gone
+
     def _tick(self) -> None:
+        now = time.monotonic()
+        if now >= self._next_cleanup:  # at most every 30 s (sooner for a short retention)
+            self._next_cleanup = now + min(30.0, max(self.config.poll_s, self.config.input_retention_s / 4))
+            self.remove_expired_inputs()
         active = self.store.active_batches()[: max(1, self.config.max_concurrent_batches)]
         for bid in active:
             self.store.start_batch(bid)

@@ -11,22 +11,113 @@ The allowance is the upload limit plus :data:`FRAMING` bytes of multipart
 framing and form fields for the whole body (as before this middleware);
 each file field is checked against the limit on its own in
 :func:`service.deps.read_upload`.
+
+``POST /v1/batches`` takes many files, so its body allowance is the upload
+limit times the batch limit; there the multipart stream is also followed as
+it arrives (:class:`_PartCounter`): a file part that passes the upload
+limit, or a file beyond the batch limit (``max_batch_items``, and at most
+:data:`FORM_MAX_FILES`, the form parser's own), is refused at once with 413
+``file_too_large`` / ``too_many_items``, before the rest is spooled to disk.
+
+A body that stops arriving (no byte for ``Settings.body_timeout`` seconds,
+``WANDELL_BODY_TIMEOUT``) is cut off with a 408 ``body_timeout``: a slow or
+stalled upload cannot hold a connection and a spooled file indefinitely.
+Every cut-off answer says ``Connection: close``, so the server drops the
+connection instead of waiting for the rest of the body.
 """
 
 from __future__ import annotations
 
+import anyio
+
 from .errors import error_response
 from .settings import get_settings
 
-__all__ = ["FRAMING", "UploadLimitMiddleware"]
+__all__ = ["FORM_MAX_FILES", "FRAMING", "UploadLimitMiddleware"]
 
 #: Bytes allowed on top of the upload limit for multipart boundaries, part
 #: headers and the small form fields.
 FRAMING = 1024 * 1024
 
+#: Files Starlette's form parser accepts in one request (its ``max_files``);
+#: more are refused here as ``too_many_items`` (413), not its plain 400.
+FORM_MAX_FILES = 1000
 
-class _BodyTooLarge(Exception):
-    pass
+
+class _CutOff(Exception):
+    """The body is refused part-way: ``status``, ``code``, ``detail``."""
+
+    def __init__(self, status: int, code: str, detail: str):
+        super().__init__(detail)
+        self.status, self.code, self.detail = status, code, detail
+
+
+class _PartCounter:
+    """Follows a multipart body as it arrives (python-multipart, callbacks
+    only, nothing stored) and raises :class:`_CutOff` as soon as one file
+    part exceeds ``max_bytes`` or the request holds more than ``max_files``
+    files. A body it cannot parse is left to the form parser's own errors."""
+
+    def __init__(self, content_type: bytes, max_bytes: int, max_files: int):
+        from python_multipart.multipart import MultipartParser, parse_options_header
+
+        _, params = parse_options_header(content_type)
+        boundary = params.get(b"boundary")
+        self.max_bytes, self.max_files = max_bytes, max_files
+        self.files = self.size = 0
+        self.header = b""
+        self.name = ""
+        self.is_file = False
+        self.failed = boundary is None
+        self.parser = None if self.failed else MultipartParser(boundary, {
+            "on_part_begin": self._begin, "on_header_field": self._field, "on_header_value": self._value,
+            "on_header_end": self._header_end, "on_headers_finished": self._headers_done,
+            "on_part_data": self._data})
+        self._field_name = b""
+
+    def _begin(self):
+        self.size, self.is_file, self.name = 0, False, ""
+
+    def _field(self, data, start, end):
+        self._field_name += data[start:end]
+
+    def _value(self, data, start, end):
+        self.header += data[start:end]
+
+    def _header_end(self):
+        from python_multipart.multipart import parse_options_header
+
+        if self._field_name.lower() == b"content-disposition":
+            _, params = parse_options_header(self.header)
+            filename = params.get(b"filename")
+            if filename:
+                self.is_file = True
+                self.name = filename.decode("utf-8", "replace")[:100]
+        self._field_name, self.header = b"", b""
+
+    def _headers_done(self):
+        if self.is_file:
+            self.files += 1
+            if self.files > self.max_files:
+                raise _CutOff(413, "too_many_items", f"more than {self.max_files} files in one batch "
+                              "(the batch limit)")
+
+    def _data(self, data, start, end):
+        if self.is_file:
+            self.size += end - start
+            if self.size > self.max_bytes:
+                raise _CutOff(413, "file_too_large", f"{self.name!r} exceeds the upload limit of "
+                              f"{self.max_bytes} bytes (stopped reading)")
+
+    def feed(self, chunk: bytes) -> None:
+        if self.failed or not chunk:
+            return
+        try:
+            self.parser.write(chunk)
+        except _CutOff:
+            raise
+        except Exception:  # malformed framing: the form parser answers it
+            self.failed = True
 
 
 class UploadLimitMiddleware:
@@ -58,32 +149,62 @@ class UploadLimitMiddleware:
                                      f"limit of {upload} bytes")(scope, receive, send)
                 return
 
+        counter = None
+        if scope.get("path") == "/v1/batches" and scope.get("method") == "POST":
+            ctype = dict(scope.get("headers") or ()).get(b"content-type", b"")
+            if ctype.lower().startswith(b"multipart/"):
+                counter = _PartCounter(ctype, upload, min(max(1, settings.max_batch_items), FORM_MAX_FILES))
+        timeout = settings.body_timeout if settings.body_timeout > 0 else None
+
         received = 0
-        exceeded = False
+        body_done = False
+        cut: _CutOff | None = None
         started = False
 
         async def counting_receive():
-            nonlocal received, exceeded
-            message = await receive()
+            nonlocal received, cut, body_done
+            if cut is not None:
+                raise cut
+            if body_done or timeout is None:
+                message = await receive()
+            else:
+                try:
+                    with anyio.fail_after(timeout):
+                        message = await receive()
+                except TimeoutError:
+                    cut = _CutOff(408, "body_timeout", f"no part of the request body arrived for {timeout:g} s "
+                                  "(WANDELL_BODY_TIMEOUT); the upload was stopped")
+                    raise cut from None
             if message["type"] == "http.request":
-                received += len(message.get("body", b""))
+                body = message.get("body", b"")
+                received += len(body)
+                body_done = not message.get("more_body", False)
                 if received > allowed:
-                    exceeded = True
-                    raise _BodyTooLarge()
+                    cut = _CutOff(413, "file_too_large", f"request body exceeds the upload limit of {upload} "
+                                  "bytes (stopped reading)")
+                    raise cut
+                if counter is not None:
+                    try:
+                        counter.feed(body)
+                    except _CutOff as e:
+                        cut = e
+                        raise
             return message
 
-        too_large = error_response(413, "file_too_large", f"request body exceeds the upload limit of {upload} "
-                                   "bytes (stopped reading)")
+        async def answer_cut():
+            nonlocal started
+            if not started:
+                started = True
+                await error_response(cut.status, cut.code, cut.detail, headers={"Connection": "close"})(
+                    scope, receive, send)
 
         async def guarded_send(message):
             nonlocal started
-            if exceeded:
+            if cut is not None:
                 # whatever the app made of the interrupted body (FastAPI turns
                 # a failing receive into a 400 "error parsing the body"), the
                 # client is told the real reason, once
-                if not started:
-                    started = True
-                    await too_large(scope, receive, send)
+                await answer_cut()
                 return
             if message["type"] == "http.response.start":
                 started = True
@@ -91,7 +212,5 @@ class UploadLimitMiddleware:
 
         try:
             await self.app(scope, counting_receive, guarded_send)
-        except _BodyTooLarge:
-            if not started:
-                started = True
-                await too_large(scope, receive, send)
+        except _CutOff:
+            await answer_cut()

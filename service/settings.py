@@ -33,6 +33,18 @@ class Settings:
     dask_scheduler: str = ""
     #: POST /v1/render refuses spectral data with more values (H x W x N) (413)
     max_render_values: int = 64_000_000
+    #: POST /v1/surfaces answers at most this many points + rectangles + grid cells (413 too_many_regions)
+    max_surface_regions: int = 10_000
+    #: Host header names served besides the bound host, localhost and 127.0.0.1 (comma-separated; others: 400)
+    allowed_hosts: str = ""
+    #: origins (scheme://host:port) allowed to send POST/DELETE besides the page's own (comma-separated; others: 403)
+    allowed_origins: str = ""
+    #: seconds an idle connection is kept open (before and between requests)
+    keep_alive_timeout: float = 5.0
+    #: seconds a request body may go without sending a byte before it is cut off (408)
+    body_timeout: float = 30.0
+    #: seconds the uploaded inputs of a finished or cancelled batch are kept (results are kept)
+    batch_input_retention: float = 24 * 3600.0
 
 
 @lru_cache
@@ -53,4 +65,10 @@ def get_settings() -> Settings:
         max_concurrent_batches=int(env.get("WANDELL_MAX_CONCURRENT_BATCHES", Settings.max_concurrent_batches)),
         dask_scheduler=env.get("WANDELL_DASK_SCHEDULER", Settings.dask_scheduler),
         max_render_values=int(env.get("WANDELL_MAX_RENDER_VALUES", Settings.max_render_values)),
+        max_surface_regions=int(env.get("WANDELL_MAX_SURFACE_REGIONS", Settings.max_surface_regions)),
+        allowed_hosts=env.get("WANDELL_ALLOWED_HOSTS", Settings.allowed_hosts),
+        allowed_origins=env.get("WANDELL_ALLOWED_ORIGINS", Settings.allowed_origins),
+        keep_alive_timeout=float(env.get("WANDELL_KEEP_ALIVE_TIMEOUT", Settings.keep_alive_timeout)),
+        body_timeout=float(env.get("WANDELL_BODY_TIMEOUT", Settings.body_timeout)),
+        batch_input_retention=float(env.get("WANDELL_BATCH_INPUT_RETENTION", Settings.batch_input_retention)),
     )

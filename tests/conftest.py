@@ -2,10 +2,45 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+# The in-process clients' host names (Starlette's TestClient sends
+# "testserver", the httpx ASGI clients here "t" and "test"): served like the
+# names WANDELL_ALLOWED_HOSTS adds in a deployment. Tests of the Host check
+# itself set the variable through env_settings.
+os.environ.setdefault("WANDELL_ALLOWED_HOSTS", "testserver,t,test")
+
 from models import DEFAULT_WAVELENGTHS
+
+#: The shared folder next to the project (real camera files, reproductions).
+SHARED = Path(os.environ.get("WANDELL_SHARED_DIR", Path(__file__).resolve().parents[2] / "shared"))
+
+
+def unavailable(reason: str):
+    """Skip the test, saying why; fail it instead when the environment
+    variable ``CI`` is set (CI must run every test)."""
+    if os.environ.get("CI"):
+        pytest.fail(f"{reason}; CI is set, so this test must run")
+    pytest.skip(reason)
+
+
+def shared_file(relpath: str) -> Path:
+    """A file of the shared folder (:data:`SHARED`), or :func:`unavailable`
+    when it is absent."""
+    path = SHARED / relpath
+    if not path.is_file():
+        unavailable(f"{path} is absent (the shared data folder is not next to the project)")
+    return path
 
 
 def gaussian_sensors(centres, width=30.0, wavelengths=DEFAULT_WAVELENGTHS):
@@ -46,3 +81,52 @@ def env_settings(monkeypatch):
     yield set_env
     monkeypatch.undo()
     get_settings.cache_clear()
+
+
+@pytest.fixture(scope="session")
+def blackmagic_dng() -> bytes:
+    """The real Blackmagic DNG of the issue-10 reproductions (2176 x 4128)."""
+    path = shared_file("data/raw/Blackmagic.dng")
+    with open(path, "rb") as f:
+        return f.read()
+
+
+@contextlib.contextmanager
+def running_server(env: dict | None = None, timeout: float = 60.0):
+    """``python -m service`` (as the README starts it) on a free loopback
+    port with ``WANDELL_*`` from ``env``: yields ``(base URL, process, log
+    path)``, and stops that process (by its own id) afterwards."""
+    import httpx
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    log = tempfile.NamedTemporaryFile(prefix="wandell-server-", suffix=".log", delete=False)
+    full_env = {**os.environ, "WANDELL_HOST": "127.0.0.1", "WANDELL_PORT": str(port),
+                **{f"WANDELL_{k.upper()}": str(v) for k, v in (env or {}).items()}}
+    proc = subprocess.Popen([sys.executable, "-m", "service"], env=full_env, stdout=log, stderr=subprocess.STDOUT,
+                            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + timeout
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(f"the server exited with {proc.returncode}: {open(log.name).read()[-2000:]}")
+            try:
+                if httpx.get(base + "/health", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail(f"the server did not answer /health within {timeout} s")
+            time.sleep(0.2)
+        yield base, proc, log.name
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+        os.unlink(log.name)

@@ -1,5 +1,6 @@
-"""2,000 mutated RAW files through the ASGI app (issue 6), and the mutation
-generator itself."""
+"""2,000 mutated RAW files through the ASGI app (issue 6), mutations of a real
+DNG each sent after two different images (issue 10), and the mutation
+generators themselves."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from fastapi.testclient import TestClient
 
 from benchmarks import fuzz
 from service.app import app
+
+from .conftest import shared_file
 
 N_FUZZ = int(os.environ.get("WANDELL_FUZZ_N", "2000"))
 
@@ -73,3 +76,20 @@ def test_two_thousand_mutated_raws_never_crash_the_service():
     # the mutations reach both outcomes: refusals and files that stay valid
     assert rep.statuses[200] > 0 and sum(v for s, v in rep.statuses.items() if s >= 400) > N_FUZZ // 4
     assert rep.rss_growth_mb < bound, f"RSS grew {rep.rss_growth_mb:.0f} MB, bound {bound:.0f} MB"
+
+
+def test_real_dng_mutations_answer_the_same_whatever_came_before():
+    """Every 3rd mutation of the real CinemaDNG (fuzz.dng_mutations: every
+    kind is in that subset) through /v1/analyze, once after each of two
+    different 9-Mpx images: the same status and body (timings aside) both
+    times, 4xx JSON errors or 200s with finite numbers, never a 5xx or a
+    hang. ``python -m benchmarks.fuzz --real-dng`` sends all of them."""
+    data = shared_file("data/raw/Blackmagic.dng").read_bytes()
+    assert {m.kind for m in fuzz.dng_mutations(data)[::3]} == set(fuzz.DNG_KINDS)
+    rep, dependent = fuzz.run_real_dng(data, every=3, timeout=60.0)
+    print(rep.table())
+    assert dependent == [] and rep.failures == []
+    assert rep.n == 2 * len(fuzz.dng_mutations(data)[::3])
+    assert all(400 <= s < 500 or s == 200 for s in rep.statuses), rep.statuses
+    assert rep.statuses[200] > 0 and rep.statuses[422] > 0
+    assert rep.health_after == 200

@@ -9,7 +9,7 @@ import os
 import tempfile
 import time
 
-from fastapi import APIRouter, Depends, File, Form, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response
 from starlette.background import BackgroundTask
 
@@ -40,7 +40,7 @@ def analyze_upload(data, filename, sens, camera, method, opts, settings):
 
 
 @router.post("/analyze")
-async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
+async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                   camera: str | None = Form(None, description="measured camera name, 'matrix' or 'generic'"),
                   method: str = Form("auto"),
                   quality: str | None = Form(None, description="fast, balanced or accurate (measured trade-off)"),
@@ -56,7 +56,8 @@ async def analyze(file: UploadFile = _FILE, sensitivities: UploadFile | None = _
     opts = estimate_options(method, surface_dim, light_dim, region_size, spatial, surface_model, light_model,
                             quality)
     data, sens = await _inputs(file, sensitivities, settings)
-    decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings)
+    decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
+                                   request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     return JSONResponse(clean(body))
@@ -89,7 +90,7 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
 
 
 @router.post("/white-balance")
-async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
+async def white_balance(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                         camera: str | None = Form(None), method: str = Form("auto"),
                         quality: str | None = Form(None, description="fast, balanced or accurate"),
                         target: str = Form("D65", description="light to render under, or 'estimate'"),
@@ -118,7 +119,8 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
     data, sens = await _inputs(file, sensitivities, settings)
     await file.close()
     if fmt.encoder == "xmp":
-        decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings)
+        decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
+                                       request=request)
         run = _with_white(decoded, run, white)
         text, _, summary = pipeline.xmp_sidecar(decoded, run)
         stem = os.path.splitext(os.path.basename(file.filename or "image"))[0] or "image"
@@ -126,7 +128,8 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
                         headers={"Content-Disposition": f'attachment; filename="{stem}.xmp"',
                                  "X-Illuminant": json.dumps(clean(summary), separators=(",", ":"))})
     if response == "json":
-        decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings)
+        decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
+                                       request=request)
         run = _with_white(decoded, run, white)
         M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded)
         body = pipeline.analysis_json(run, decoded)
@@ -134,7 +137,8 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
         body["rendering"] = pipeline.rendering_json(info)
         return JSONResponse(clean(body))
     decoded, run, M, path, info = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
-                                                  method, opts, target, output, fmt, settings, white)
+                                                  method, opts, target, output, fmt, settings, white,
+                                                  request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     header = {k: body[k] for k in ("method", "camera", "warnings", "timings_ms")}
@@ -152,7 +156,7 @@ async def white_balance(file: UploadFile = _FILE, sensitivities: UploadFile | No
 
 
 @router.post("/surfaces")
-async def surfaces(file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
+async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                    camera: str | None = Form(None), method: str = Form("auto"),
                    points: str | None = Form(None, description='JSON [[row, col], ...] in full-resolution pixels'),
                    rects: str | None = Form(None, description="JSON [[r0, c0, r1, c1], ...] (end exclusive)"),
@@ -161,12 +165,18 @@ async def surfaces(file: UploadFile = _FILE, sensitivities: UploadFile | None = 
                    surface_model: str | None = Form(None, description="pca or fourier (C terms)"),
                    settings: Settings = Depends(get_settings)):
     """Reflectance spectra at points, rectangle means or a coarse grid, with
-    per-estimate warnings."""
+    per-estimate warnings. At most ``WANDELL_MAX_SURFACE_REGIONS`` points,
+    rectangles and grid cells together (413 ``too_many_regions``); a
+    rectangle costs the same whatever its area (a summed-area table)."""
     pts = parse_json_list(points, "points", 2)
     rcs = parse_json_list(rects, "rects", 4)
     grd = parse_grid(grid)
     if not (pts or rcs or grd):
         raise ServiceError(422, "invalid_parameter", "give at least one of points, rects or grid")
+    n_regions = len(pts) + len(rcs) + (grd[0] * grd[1] if grd else 0)
+    if n_regions > settings.max_surface_regions:
+        raise ServiceError(413, "too_many_regions", f"{n_regions} points, rectangles and grid cells; at most "
+                       f"{settings.max_surface_regions} per request (WANDELL_MAX_SURFACE_REGIONS)")
     if format not in ("json", "csv"):
         raise ServiceError(422, "invalid_parameter", "format must be json or csv")
     opts = estimate_options(method, None, None, None, False, surface_model)
@@ -179,15 +189,15 @@ async def surfaces(file: UploadFile = _FILE, sensitivities: UploadFile | None = 
         res["method"] = run.estimate.method
         res["camera"] = pipeline.camera_json(run.camera)
         res["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
-        return res
+        # the body is rendered here too, not on the event loop (10,000 entries are ~1 MB)
+        if format == "csv":
+            buf = io.StringIO()
+            w = csv.writer(buf)
+            w.writerow(["kind", "where", "warnings"] + [f"{x:g}" for x in res["wavelengths"]])
+            for s in res["surfaces"]:
+                w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
+                           + [f"{v:.6g}" for v in s["reflectance"]])
+            return Response(buf.getvalue(), media_type="text/csv")
+        return JSONResponse(clean(res))
 
-    res = await run_heavy(work)
-    if format == "csv":
-        buf = io.StringIO()
-        w = csv.writer(buf)
-        w.writerow(["kind", "where", "warnings"] + [f"{x:g}" for x in res["wavelengths"]])
-        for s in res["surfaces"]:
-            w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
-                       + [f"{v:.6g}" for v in s["reflectance"]])
-        return Response(buf.getvalue(), media_type="text/csv")
-    return JSONResponse(clean(res))
+    return await run_heavy(work, request=request)

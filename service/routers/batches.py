@@ -9,8 +9,11 @@ an app used without its lifespan still works.
 from __future__ import annotations
 
 import contextlib
+import errno
+import logging
 import os
 import shutil
+import sqlite3
 import threading
 import zipfile
 
@@ -24,6 +27,7 @@ from ..jsonsafe import clean
 from ..settings import Settings, get_settings
 
 router = APIRouter(prefix="/v1", tags=["batches"])
+log = logging.getLogger("service")
 
 _runner: jobs.BatchRunner | None = None
 _runner_lock = threading.Lock()
@@ -37,10 +41,27 @@ def get_runner(settings: Settings | None = None) -> jobs.BatchRunner:
             s = settings or get_settings()
             cfg = jobs.RunnerConfig(data_dir=s.data_dir or jobs.default_data_dir(), workers=s.batch_workers,
                                     max_concurrent_batches=s.max_concurrent_batches, max_pixels=s.max_pixels,
-                                    estimation_pixels=s.estimation_pixels, dask_scheduler=s.dask_scheduler or None)
-            _runner = jobs.BatchRunner(cfg)
-            _runner.start()
+                                    estimation_pixels=s.estimation_pixels, dask_scheduler=s.dask_scheduler or None,
+                                    input_retention_s=s.batch_input_retention)
+            try:
+                runner = jobs.BatchRunner(cfg)
+                runner.start()
+            except (OSError, sqlite3.Error) as e:  # e.g. an unwritable data directory
+                raise ServiceError(503, "job_store_unavailable", f"the batch job store under {cfg.data_dir!r} cannot "
+                               f"be opened ({type(e).__name__}: {e}); single-file endpoints still work") from None
+            _runner = runner
         return _runner
+
+
+def store_health() -> dict:
+    """The job store's state for ``/health``: ``ok``, ``recovered`` (a damaged
+    store was moved aside at start-up: where to, and why) or ``not_started``."""
+    runner = _runner
+    if runner is None:
+        return {"status": "not_started"}
+    if runner.store.recovered:
+        return {"status": "recovered", **runner.store.recovered}
+    return {"status": "ok"}
 
 
 def stop_runner() -> None:
@@ -54,8 +75,13 @@ def stop_runner() -> None:
 
 @contextlib.asynccontextmanager
 async def lifespan(app):
-    """Start the batch runner with the app (resuming unfinished batches)."""
-    await run_in_threadpool(get_runner)
+    """Start the batch runner with the app (resuming unfinished batches). A
+    store that cannot be opened even after recovery does not stop the
+    service: the batch endpoints answer 503 until it can be."""
+    try:
+        await run_in_threadpool(get_runner)
+    except ServiceError as e:
+        log.error("batch runner not started: %s", e.detail)
     try:
         yield
     finally:
@@ -68,7 +94,7 @@ async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) 
     out = []
     for i, f in enumerate(files):
         name = jobs.safe_name(f.filename or f"file{i}")
-        path = os.path.join(dest, f"{i:05d}-{name}")
+        path = os.path.join(dest, f"{i:05d}-{jobs.clip_name(name)}")
         size = 0
         with open(path, "wb") as fh:
             while chunk := await f.read(1 << 20):
@@ -111,20 +137,43 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
     n = len(sources) if sources is not None else len(files)
     if n > settings.max_batch_items:
         raise ServiceError(413, "too_many_items", f"{n} items exceed the batch limit of {settings.max_batch_items}")
+    for f in files:
+        base = os.path.basename((f.filename or "").replace("\\", "/"))
+        if len(base.encode("utf-8", "surrogatepass")) > jobs.MAX_NAME_BYTES:
+            raise ServiceError(422, "name_too_long", f"file name {base[:60]!r}... is {len(base.encode('utf-8', 'surrogatepass'))} "
+                           f"bytes; at most {jobs.MAX_NAME_BYTES} (UTF-8)")
+    if sources is not None:  # folder mode: the same per-file limit as an upload
+        big = [name for name, path in sources if os.path.getsize(path) > settings.max_upload_bytes]
+        if big:
+            raise ServiceError(413, "file_too_large", f"{len(big)} file(s) in the folder exceed the upload limit of "
+                           f"{settings.max_upload_bytes} bytes: {', '.join(map(repr, big[:5]))}")
     runner = get_runner(settings)
     store = runner.store
-    bid = store.new_batch_id()
+    bid = None
     try:
+        bid = store.new_batch_id()
         if sources is None:
             sources = await _save_uploads(files, os.path.join(store.batch_dir(bid), "in"), settings)
         store.create_batch(bid, opts, sources)
-    except BaseException:
-        shutil.rmtree(store.batch_dir(bid), ignore_errors=True)
+    except BaseException as e:
+        if bid is not None:
+            shutil.rmtree(store.batch_dir(bid), ignore_errors=True)
+        if _disk_full(e):
+            log.error("batch not created, the data directory is full: %s", e)
+            raise ServiceError(507, "insufficient_storage", f"the service's data directory is full ({e}); nothing "
+                           "was kept of this batch, try again when space is freed") from None
         raise
     runner.wake()
     return JSONResponse(status_code=202, content={"id": bid, "status": "queued",
                                                   "counts": {"done": 0, "failed": 0, "pending": n},
                                                   "lighting": opts.lighting, "url": f"/v1/batches/{bid}"})
+
+
+def _disk_full(e: BaseException) -> bool:
+    """No space (or quota) left, from the file system or from SQLite."""
+    if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    return isinstance(e, sqlite3.OperationalError) and "full" in str(e).lower()
 
 
 def _progress(bid: str) -> dict:

@@ -14,11 +14,15 @@ router = APIRouter()
 
 @router.get("/health")
 def health(settings: Settings = Depends(get_settings)) -> dict:
-    """Liveness: the service is up and the numerical core imports."""
+    """Liveness: the service is up and the numerical core imports;
+    ``job_store`` says whether the batch store opened cleanly (``recovered``:
+    a damaged one was moved aside at start-up, with where to)."""
     import recovery  # noqa: F401
 
+    from .batches import store_health
+
     return {"status": "ok", "version": "0.1.0", "max_upload_bytes": settings.max_upload_bytes,
-            "max_pixels": settings.max_pixels}
+            "max_pixels": settings.max_pixels, "job_store": store_health()}
 
 
 @router.get("/v1/cameras")

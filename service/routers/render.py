@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import time
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, Query, UploadFile
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 
 from ..deps import read_upload
@@ -21,10 +21,14 @@ from ..errors import ServiceError
 from ..jsonsafe import clean
 from ..options import MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, check_output, choose_format
 from ..settings import Settings, get_settings
+from ..workers import run_heavy
 
 router = APIRouter(prefix="/v1")
 
 MAX_N = 64
+#: Fewest wavelengths a spectrum (or light) may have: colour-science
+#: resamples uniform data with Sprague (1880) interpolation, a 6-point rule.
+MIN_WAVELENGTHS = 6
 
 
 # --- parsing ----------------------------------------------------------------------
@@ -96,7 +100,9 @@ def load_npy(data: bytes, settings: Settings) -> np.ndarray:
     if len(shape) not in (2, 3):
         raise ServiceError(422, "bad_shape", f"the array must be a cube H x W x N (or M x N spectra); got shape "
                        f"{tuple(shape)}")
-    count = int(np.prod(shape))
+    if any(int(s) < 0 for s in shape):
+        raise ServiceError(422, "bad_shape", f"the array's shape {tuple(shape)} has a negative dimension")
+    count = math.prod(int(s) for s in shape)   # exact: numpy's product wraps round in int64
     if count > settings.max_render_values:
         raise ServiceError(413, "cube_too_large", f"the array has {count} values, over the limit of "
                        f"{settings.max_render_values} (WANDELL_MAX_RENDER_VALUES)")
@@ -147,7 +153,7 @@ def _is_npy(data: bytes, filename: str | None) -> bool:
 
 
 @router.post("/render")
-async def render(file: UploadFile = File(..., description=".npy reflectance cube H x W x N (or M x N), or CSV: "
+async def render(request: Request, file: UploadFile = File(..., description=".npy reflectance cube H x W x N (or M x N), or CSV: "
                                           "first column wavelength (nm), one spectrum per further column, "
                                           "optional header row"),
                  wavelengths: str | None = Form(None, description="comma-separated nm; required for .npy"),
@@ -207,6 +213,9 @@ async def render(file: UploadFile = File(..., description=".npy reflectance cube
         if arr.shape[-1] != wl.size:
             raise ServiceError(422, "wavelength_mismatch", f"the array has {arr.shape[-1]} bands (last axis) for "
                            f"{wl.size} wavelengths")
+        if wl.size < MIN_WAVELENGTHS:
+            raise ServiceError(422, "too_few_wavelengths", f"the spectra have {wl.size} wavelength(s); at least "
+                           f"{MIN_WAVELENGTHS} are needed (they are interpolated with Sprague's 6-point rule)")
         if arr.size == 0:
             raise ServiceError(422, "empty_input", "the spectra are empty")
         check_values(arr)
@@ -215,41 +224,50 @@ async def render(file: UploadFile = File(..., description=".npy reflectance cube
             light_wl, lv, _ = load_csv(light_data, "light_file")
             if lv.shape[0] != 1:
                 raise ServiceError(422, "bad_csv", "light_file must have exactly one spectrum column")
+            if light_wl.size < MIN_WAVELENGTHS:
+                raise ServiceError(422, "too_few_wavelengths", f"light_file has {light_wl.size} wavelength(s); at "
+                               f"least {MIN_WAVELENGTHS} are needed (Sprague's 6-point interpolation)")
             check_values(lv, "light values")
             light = lv[0]
         try:
-            return render_spectra(arr, wl, light, strategy=strategy, n=n, output=output, adapt=adapt,
-                                  light_wavelengths=light_wl, max_error=max_error, **opts), names
+            result = render_spectra(arr, wl, light, strategy=strategy, n=n, output=output, adapt=adapt,
+                                    light_wavelengths=light_wl, max_error=max_error, **opts)
         except InputError as e:
             msg = str(e)
             code = "unknown_illuminant" if "illuminant" in msg else "invalid_input"
             raise ServiceError(422, code, msg) from None
+        return _response(result, names)
 
-    result, names = await run_in_threadpool(work)
-    image, report = result.image, result.report
-    report["timings_ms"]["request"] = (time.perf_counter() - t0) * 1e3
-    if response == "json":
-        body = dict(report)
-        if names is not None:
-            body["spectra"] = [{"name": nm, output: v} for nm, v in zip(names, image.tolist())]
-        return JSONResponse(clean(body))
-    from ..pipeline import encode_image
+    def _response(result, names):
+        # in the worker thread too: a JSON report of millions of values or the
+        # image's quantisation and encoding would otherwise hold the event loop
+        image, report = result.image, result.report
+        report["timings_ms"]["request"] = (time.perf_counter() - t0) * 1e3
+        if response == "json":
+            body = dict(report)
+            if names is not None:
+                body["spectra"] = [{"name": nm, output: v} for nm, v in zip(names, image.tolist())]
+            return JSONResponse(clean(body))
+        from ..pipeline import encode_image
 
-    bits = fmt.bits
-    img = image if image.ndim == 3 else image[None]
-    scale = 65535 if bits == 16 else 255
-    q = np.empty(img.shape, np.uint16 if bits == 16 else np.uint8)
-    np.multiply(np.clip(img, 0, 1), scale, out=img)
-    np.rint(img, out=img)
-    q[...] = img
-    t1 = time.perf_counter()
-    payload = await run_in_threadpool(encode_image, q, fmt.encoder)
-    report["timings_ms"]["file_encode"] = (time.perf_counter() - t1) * 1e3
-    header = {k: v for k, v in report.items() if k != "tried"}
-    header["tried"] = len(report.get("tried", []))
-    headers = {"X-Render-Report": json.dumps(clean(header), separators=(",", ":")),
-               "Content-Disposition": f'inline; filename="render.{fmt.extension}"'}
-    return Response(payload, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
+        bits = fmt.bits
+        img = image if image.ndim == 3 else image[None]
+        scale = 65535 if bits == 16 else 255
+        q = np.empty(img.shape, np.uint16 if bits == 16 else np.uint8)
+        np.multiply(np.clip(img, 0, 1), scale, out=img)
+        np.rint(img, out=img)
+        q[...] = img
+        t1 = time.perf_counter()
+        payload = encode_image(q, fmt.encoder)
+        report["timings_ms"]["file_encode"] = (time.perf_counter() - t1) * 1e3
+        header = {k: v for k, v in report.items() if k != "tried"}
+        header["tried"] = len(report.get("tried", []))
+        headers = {"X-Render-Report": json.dumps(clean(header), separators=(",", ":")),
+                   "Content-Disposition": f'inline; filename="render.{fmt.extension}"'}
+        return Response(payload, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
+
+    # under the same bound as every other heavy request (service.workers)
+    return await run_heavy(work, request=request)
 
 
 @router.get("/sampling")

@@ -16,7 +16,7 @@ import time
 from importlib import resources
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.responses import HTMLResponse, Response
 
 from .. import pipeline
@@ -37,6 +37,13 @@ STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "style.css": "text/c
 PREVIEW_MAX_SIDE = 1024
 PREVIEW_SIDE_RANGE = (16, 4096)
 
+#: The page's Content-Security-Policy: its own script and style sheet only (no
+#: inline script or style, nothing from another host), images also from the
+#: ``blob:`` URLs the script makes of the previews, never inside a frame.
+CSP = ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; "
+       "connect-src 'self'; object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'")
+
+
 def _static_text(name: str) -> str:
     return resources.files("service").joinpath("static", name).read_text(encoding="utf-8")
 
@@ -44,7 +51,8 @@ def _static_text(name: str) -> str:
 @router.get("/", response_class=HTMLResponse, include_in_schema=False)
 def index() -> HTMLResponse:
     """The web page: upload a RAW, compare, read the diagnostics, run a batch."""
-    return HTMLResponse(_static_text("index.html"), headers={"Cache-Control": "no-cache"})
+    return HTMLResponse(_static_text("index.html"), headers={"Cache-Control": "no-cache",
+                                                             "Content-Security-Policy": CSP})
 
 
 @router.get("/static/{name}", include_in_schema=False)
@@ -148,7 +156,7 @@ def corrected_preview(decoded, run, target: str, output: str, surface_basis, max
                          "correction matrix, method and target (corrected)."},
     415: {"description": "not a format the service reads"},
     422: {"description": "bad option or unusable file"}})
-async def preview(file: UploadFile = File(..., description="RAW file (anything LibRaw reads) or linear "
+async def preview(request: Request, file: UploadFile = File(..., description="RAW file (anything LibRaw reads) or linear "
                                                            "16-bit TIFF/PNG"),
                   wb: str = Form("camera", description="camera: the file's own as-shot white balance as "
                                  "LibRaw renders it (the original); corrected: this service's correction, "
@@ -189,7 +197,7 @@ async def preview(file: UploadFile = File(..., description="RAW file (anything L
                     full_width=int(decoded.full_shape[1]), full_height=int(decoded.full_shape[0]))
         return pipeline.encode_image(img, fmt), info
 
-    body, info = await run_heavy(work)
+    body, info = await run_heavy(work, request=request)
     info["ms"] = (time.perf_counter() - t0) * 1e3
     return Response(body, media_type=MEDIA_TYPES[fmt],
                     headers={"X-Preview": json.dumps(clean(info), separators=(",", ":")),

@@ -503,6 +503,9 @@ function dropZone(zone, onFiles) {
 
 document.addEventListener("DOMContentLoaded", () => {
   loadOptions();
+  // the options form never submits (Enter in a field would reload the page); a
+  // listener, not an inline onsubmit, which the page's Content-Security-Policy refuses
+  $("options").addEventListener("submit", (e) => e.preventDefault());
   $("file").addEventListener("change", (e) => chooseFile(e.target.files[0]));
   dropZone($("drop"), (files) => chooseFile(files[0]));
   $("run").addEventListener("click", run);
