@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 
 from service import jobs
 from service.app import app
-from service.dngwriter import scene_dng
+from testing.dngwriter import scene_dng
 from service.routers import batches
 
 

@@ -23,8 +23,8 @@ from fastapi.testclient import TestClient
 from recovery.api import surfaces_from_estimate
 from service import pipeline
 from service.app import app
-from service.deps import estimate_options
-from service.dngwriter import scene_dng
+from service.options import estimate_options
+from testing.dngwriter import scene_dng
 from service.limits import FRAMING
 from service.routers import analysis
 from service.settings import get_settings
