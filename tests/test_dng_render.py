@@ -1,7 +1,7 @@
 """Issue 13, item 1: cameras known only by their colour matrices are rendered
 by the DNG specification's camera -> XYZ pipeline (recovery.dng_color).
 
-The real-file tests read ``/work/shared/data/raw/Blackmagic.dng`` (skipped
+The real-file tests read ``../shared/data/raw/Blackmagic.dng`` (skipped
 with a reason when absent; failing when ``CI`` is set). Their reference is
 computed here from the specification's formulas (DNG 1.4.0.0, chapter 6)
 with tifffile and colour-science, independently of recovery.dng_color.
@@ -9,7 +9,6 @@ with tifffile and colour-science, independently of recovery.dng_color.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -17,18 +16,11 @@ import pytest
 
 from recovery import dng_color as dc
 
-RAW_DIR = Path(os.environ.get("WANDELL_REAL_RAW_DIR", "/work/shared/data/raw"))
-
+from .conftest import shared_file
 
 def real_file(name: str) -> Path:
     """A file of the shared real-camera folder; skip without it (fail under CI)."""
-    p = RAW_DIR / name
-    if not p.is_file():
-        reason = f"{p} is not available (the shared real-camera files)"
-        if os.environ.get("CI"):
-            pytest.fail(reason + "; CI is set, so the real-file tests must run")
-        pytest.skip(reason)
-    return p
+    return shared_file(f"data/raw/{name}")
 
 
 # ---------------------------------------------------------------------------
