@@ -505,7 +505,7 @@ async def _run_real(muts, victims, timeout: float, report: FuzzReport, app, prog
 
     dependent = []
     transport = httpx.ASGITransport(app=app)
-    async with httpx.AsyncClient(transport=transport, base_url="http://fuzz") as client:
+    async with httpx.AsyncClient(transport=transport, base_url="http://localhost") as client:
         async def post(data, name, mut=None):
             t0 = time.perf_counter()
             try:
