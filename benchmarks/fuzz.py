@@ -5,7 +5,7 @@ its memory stays bounded.
 
 ``python -m benchmarks.fuzz [--n 2000] [--timeout 20] [--seed 0] [--real-dng PATH]``
 
-The seeds are small valid DNGs written by :mod:`service.dngwriter` from
+The seeds are small valid DNGs written by :mod:`testing.dngwriter` from
 spectral scenes (different cameras, lights and CFA patterns). Each mutation is
 a deterministic function of ``(seed, index)`` (:func:`mutations`); the kinds
 cycle so that any prefix of the sequence has every kind in it:

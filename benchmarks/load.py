@@ -2,7 +2,7 @@
 
 ``python -m benchmarks.load [--n 50] [--height 512 --width 768] [--url URL [--pid PID]]``
 
-Writes ``n`` DNGs with :mod:`service.dngwriter`, one per light (different
+Writes ``n`` DNGs with :mod:`testing.dngwriter`, one per light (different
 CIE, fluorescent, LED and high-pressure lights, so that every file has its
 own true light), starts the service with uvicorn on a free loopback port
 (or targets ``--url``, e.g. a server started by hand), and:
@@ -42,7 +42,9 @@ from urllib.parse import urlparse
 
 import numpy as np
 
-__all__ = ["LoadReport", "make_inputs", "run_load", "main"]
+from recovery import angular_error
+
+__all__ = ["LoadReport", "make_inputs", "run_load", "status_kb", "reset_peak", "main"]
 
 #: Lights left out: under HP1 (low-pressure-sodium-like, nearly
 #: monochromatic) the estimate is off by 17 degrees on these scenes,
@@ -117,7 +119,8 @@ def make_inputs(n: int, height: int, width: int, camera: str = "Nikon 5100 (NPL)
     return out
 
 
-def _status_kb(pid: int, name: str) -> int:
+def status_kb(pid: int, name: str) -> int:
+    """A ``/proc/PID/status`` figure in kB (``VmRSS``, ``VmHWM``), 0 if absent."""
     with open(f"/proc/{pid}/status") as f:
         for line in f:
             if line.startswith(name + ":"):
@@ -125,19 +128,14 @@ def _status_kb(pid: int, name: str) -> int:
     return 0
 
 
-def _reset_peak(pid: int) -> bool:
+def reset_peak(pid: int) -> bool:
+    """Reset the process's peak RSS (``VmHWM``); False where not allowed."""
     try:
         with open(f"/proc/{pid}/clear_refs", "w") as f:
             f.write("5")
         return True
     except OSError:
         return False
-
-
-def _angle_deg(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    c = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 async def _burst(base: str, inputs, timeout: float, fields: dict):
@@ -189,12 +187,12 @@ def run_load(base: str, inputs, *, pid: int | None = None, timeout: float = 600.
                 continue
             reference[inp.name] = np.asarray(r.json()["illuminant"]["camera_rgb"], float)
     if pid is not None:
-        rep.rss_before_mb = _status_kb(pid, "VmRSS") / 1024
-        if not _reset_peak(pid):
+        rep.rss_before_mb = status_kb(pid, "VmRSS") / 1024
+        if not reset_peak(pid):
             pid = None
     results, rep.wall_s = asyncio.run(_burst(base, inputs, timeout, {"format": "tiff"}))
     if pid is not None:
-        rep.peak_rss_mb = _status_kb(pid, "VmHWM") / 1024
+        rep.peak_rss_mb = status_kb(pid, "VmHWM") / 1024
     for inp, r, dt, err in results:
         rep.latencies_s.append(dt)
         where = f"{inp.name} ({inp.light})"
@@ -214,7 +212,7 @@ def run_load(base: str, inputs, *, pid: int | None = None, timeout: float = 600.
             rep.failures.append(f"{where}: estimate {est.tolist()} differs from this file's own reference "
                                 f"{ref.tolist()} (leak between requests?)")
             continue
-        angle = _angle_deg(est, inp.light_rgb)
+        angle = float(angular_error(est, inp.light_rgb))
         rep.angles_deg.append(angle)
         if not angle <= max_angle:
             rep.failures.append(f"{where}: estimate {angle:.2f} deg from the file's true light (> {max_angle})")

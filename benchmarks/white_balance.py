@@ -78,7 +78,7 @@ def main(argv=None) -> None:
 
     import httpx
 
-    from .load import _reset_peak, _status_kb, start_server
+    from .load import reset_peak, status_kb, start_server
 
     with tempfile.TemporaryDirectory() as tmp:
         path = write_bench_dng(tmp, args)
@@ -101,12 +101,12 @@ def main(argv=None) -> None:
             def timed(pid, fn):
                 times, peaks, extra = [], [], []
                 for _ in range(args.repeat):
-                    before = _status_kb(pid, "VmRSS")
-                    _reset_peak(pid)
+                    before = status_kb(pid, "VmRSS")
+                    reset_peak(pid)
                     t0 = time.perf_counter()
                     out = fn()
                     times.append(time.perf_counter() - t0)
-                    peaks.append((_status_kb(pid, "VmHWM") - before) / 1024)
+                    peaks.append((status_kb(pid, "VmHWM") - before) / 1024)
                     extra.append(out)
                 return statistics.median(times), max(peaks), extra
 

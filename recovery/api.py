@@ -19,25 +19,17 @@ from models import illuminant as get_illuminant
 
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation, ModelDimensionError
+from .metrics import angular_error
 from .estimators import PEERS, maloney_wandell_pixels
 from .lighting import lighting_matrix, lighting_matrix_from_spectrum, lighting_tensor
 from .regions import LightMap, bilinear, estimate_light_map
 from .subspace import check_dimensions, surface_weights
-from .synthesis import adjust_light_for_gamut, encode, output_space, synthesis_matrix
+from .synthesis import adjust_light_for_gamut, correction_matrix, encode, output_space, synthesis_matrix
 
 __all__ = ["IlluminantEstimate", "AnalysisResult", "estimate_illuminant", "analyze", "surfaces_from_estimate",
            "render",
-           "METHODS", "ESTIMATORS", "QUALITY_PRESETS", "resolve_model", "angular_error"]
-
-def angular_error(a, b) -> np.ndarray:
-    """Angle in degrees between vectors (last axis), computed as
-    ``2 atan2(|a^ - b^|, |a^ + b^|)``, accurate for tiny angles."""
-    a = np.asarray(a, float)
-    b = np.asarray(b, float)
-    an = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    bn = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    return np.degrees(2 * np.arctan2(np.linalg.norm(an - bn, axis=-1), np.linalg.norm(an + bn, axis=-1)))
-
+           "METHODS", "ESTIMATORS", "QUALITY_PRESETS", "DEFAULT_ANALYSIS_PIXELS", "analysis_pixels",
+           "resolve_model", "angular_error"]
 
 # --------------------------------------------------------------------------- models
 def resolve_model(spec, kind: str, dimension: int | None, wavelengths: np.ndarray) -> LinearModel:
@@ -580,6 +572,21 @@ QUALITY_PRESETS = {
     "accurate": {"analysis_pixels": None, "wavelength_step": 10.0},
 }
 
+#: Pixels the estimate runs on when no ``quality`` is asked for (the image
+#: block-averaged to at most this many, :func:`recovery.resolution.block_average`).
+DEFAULT_ANALYSIS_PIXELS = 250_000
+
+
+def analysis_pixels(quality: str | None = None) -> int | None:
+    """The analysis resolution of a ``quality`` preset: at most this many
+    block-averaged pixels (``None``: all of them, ``quality="accurate"``);
+    :data:`DEFAULT_ANALYSIS_PIXELS` without a preset."""
+    if quality is None:
+        return DEFAULT_ANALYSIS_PIXELS
+    if quality not in QUALITY_PRESETS:
+        raise InputError(f"quality must be one of {list(QUALITY_PRESETS)}, not {quality!r}")
+    return QUALITY_PRESETS[quality]["analysis_pixels"]
+
 
 def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality: str | None = None,
                         analysis_pixels: int | None = None, wavelength_step: float | None = None,
@@ -835,7 +842,8 @@ def render(image, camera: Camera, estimate: IlluminantEstimate, target="D65", ou
             t, ginfo = adjust_light_for_gamut(flat, camera.sensitivities, camera.wavelengths, light, t, S, space,
                                               resolve_model("daylight", "light", 3, camera.wavelengths).basis)
             info["gamut_adjustment"] = ginfo
-        M, cond = synthesis_matrix(camera.sensitivities, camera.wavelengths, light, t, S, space)
+        M, minfo = correction_matrix(camera, None, light, t, space, S, normalize=False)
+        cond = minfo["lighting_condition"]
         if C <= 4 and M.shape[0] <= 4 and flat.shape[0] > 0:  # OpenCV: multithreaded, no temporaries
             import cv2
 

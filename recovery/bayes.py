@@ -126,6 +126,7 @@ from .camera import Camera
 from .errors import InputError
 from .estimators import shades_of_gray
 from .illuminant_prior import CandidateLights, default_candidates
+from .metrics import angular_error
 
 __all__ = ["estimate_bayes", "BayesModel", "bayes_model", "helmert", "modulated_spectrum", "DEFAULTS"]
 
@@ -674,14 +675,6 @@ def _entropy(p: np.ndarray) -> float:
     return float(-(q * np.log(q)).sum())
 
 
-def _angle(a, b) -> np.ndarray:
-    a = np.asarray(a, float)
-    b = np.asarray(b, float)
-    an = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    bn = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    return np.degrees(2 * np.arctan2(np.linalg.norm(an - bn, axis=-1), np.linalg.norm(an + bn, axis=-1)))
-
-
 def _fallback(px_all: np.ndarray, ok: np.ndarray, camera: Camera, reason: str, t0: float, diag: dict):
     """Shades of gray (p = 6) on whatever finite positive pixels there are;
     a flat response if there are none. Never NaN."""
@@ -910,21 +903,21 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
     spectrum = spd / spd.mean() if spd.mean() > 0 else None
 
     # evidence accounting
-    ang = _angle(chroma[sig], mean_chroma[None])
+    ang = angular_error(chroma[sig], mean_chroma[None])
     spread = float(np.sqrt(np.sum(post[sig] * ang ** 2) / post[sig].sum()))
     # P(error < 3 deg) as a logistic function of the posterior spread,
     # fitted on held-out synthetic scenes (surfaces, lights and cameras the
     # statistics were not built from), not on the development benchmark
     confidence = float(1.0 / (1.0 + np.exp(-(CONFIDENCE_COEF[0] + CONFIDENCE_COEF[1] * np.log(max(spread, 1e-3))))))
-    shift_chroma = float(_angle(post_prior @ chroma, post_chroma @ chroma))
-    shift_light = float(_angle(post_chroma @ chroma, mean_chroma)) if use_light else 0.0
+    shift_chroma = float(angular_error(post_prior @ chroma, post_chroma @ chroma))
+    shift_light = float(angular_error(post_chroma @ chroma, mean_chroma)) if use_light else 0.0
     best = int(np.argmax(post))
     best_name = names[best] if best < M else f"off-set light near {names[nearest[best]]}"
     topk = np.argsort(post)[::-1][:5]
     top_txt = ", ".join(f"{(names[i] if i < M else 'near ' + names[nearest[i]])} {post[i]:.2f}" for i in topk
                         if post[i] > 0.005)
     prior_mean = post_prior @ chroma
-    prior_spread = float(np.sqrt(post_prior @ _angle(chroma, prior_mean[None]) ** 2))
+    prior_spread = float(np.sqrt(post_prior @ angular_error(chroma, prior_mean[None]) ** 2))
     n_col = float(wgt.sum())
     if spread > 0.7 * prior_spread or n_col < 2:
         why = (f"mostly the prior over plausible lights: {n_col:.1f} distinct colour(s) say little "

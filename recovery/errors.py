@@ -10,6 +10,11 @@ class RecoveryError(ValueError):
 
     code = "recovery_error"
 
+    @property
+    def detail(self) -> str:
+        """What was wrong, in words."""
+        return str(self)
+
 
 class ModelDimensionError(RecoveryError):
     """D(S) >= C or D(E) > D(S) + 1 (Wandell 1985, 'A condition on the number
@@ -26,6 +31,13 @@ class InsufficientSurfaceVariation(RecoveryError):
 
 
 class InputError(RecoveryError):
-    """The image or an option is malformed (shape, channels, values)."""
+    """The image, an option or a table is malformed (shape, channels,
+    values); ``code`` names the rule (default ``bad_input``; e.g.
+    ``bad_csv``, ``bad_color_matrix``, ``unknown_camera``)."""
 
     code = "bad_input"
+
+    def __init__(self, message: str = "", code: str | None = None):
+        super().__init__(message)
+        if code is not None:
+            self.code = code

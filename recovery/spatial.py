@@ -60,6 +60,7 @@ from scipy.special import logsumexp
 
 from .bayes import estimate_bayes, helmert, modulated_spectrum
 from .errors import InputError
+from .metrics import angular_error
 from .regions import LightMap
 
 __all__ = ["SPATIAL_MODES", "parse_spatial", "chromaticity_trend", "region_posteriors", "log_bayes_factor",
@@ -178,8 +179,7 @@ def chromaticity_trend(image: np.ndarray, mask: np.ndarray | None = None, *, dar
     for sgn in (1.0, -1.0):
         delta = grads[0] * (h - 1) + sgn * grads[1] * (w - 1)
         other = ref * np.exp(Hm.T @ delta)
-        cos = float(ref @ other / (np.linalg.norm(ref) * np.linalg.norm(other)))
-        eff = max(eff, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))))
+        eff = max(eff, float(angular_error(ref, other)))
     logp = float(stats.chi2.logsf(chi2, dof) / np.log(10))
     out.update(defined=True, gradient_row=[float(x) for x in grads[0]], gradient_col=[float(x) for x in grads[1]],
                se_row=[float(x) if np.isfinite(x) else None for x in ses[0]],
@@ -251,12 +251,6 @@ def log_bayes_factor(regions: list) -> tuple[float, int]:
     Ls = np.asarray(Ls)
     lbf = float(sum(logsumexp(lp + L) for L in Ls) - logsumexp(lp + Ls.sum(axis=0)))
     return (lbf if np.isfinite(lbf) else 0.0), len(Ls)
-
-
-def _angle(a, b) -> float:
-    a = np.asarray(a, float) / np.linalg.norm(a)
-    b = np.asarray(b, float) / np.linalg.norm(b)
-    return float(np.degrees(2 * np.arctan2(np.linalg.norm(a - b), np.linalg.norm(a + b))))
 
 
 def _trend_map(shape, trend: dict, camera, rgb, spectrum, centroid, points: int = 5) -> LightMap:
@@ -334,7 +328,7 @@ def choose_light_model(image: np.ndarray, mask: np.ndarray | None, camera, rgb, 
     summary = [{"centre": [float((x + 0.5) * f - 0.5) for x in r["centre"]],
                 "distinct_colours": float(r["diagnostics"].get("distinct_colours") or 0.0),
                 "posterior_spread_deg": r["diagnostics"].get("posterior_spread_deg"),
-                "angle_to_one_light_deg": _angle(r["rgb"], rgb) if r["spectrum"] is not None else None,
+                "angle_to_one_light_deg": float(angular_error(r["rgb"], rgb)) if r["spectrum"] is not None else None,
                 "estimator": r["diagnostics"].get("method")} for r in regions]
     trend_says = bool(trend["defined"] and trend["log10_p"] < TREND_LOG10_P
                       and trend["effect_deg"] > TREND_MIN_EFFECT_DEG)

@@ -34,6 +34,11 @@ __all__ = [
     "display_intensities",
     "adjust_light_for_gamut",
     "encode",
+    "correction_matrix",
+    "exposure_gain",
+    "display_linear",
+    "display_curve",
+    "highlight_white",
 ]
 
 
@@ -194,3 +199,232 @@ def encode(values: np.ndarray, encoding: str | None) -> np.ndarray:
 
     return np.asarray(colour.RGB_COLOURSPACES[encoding].cctf_encoding(np.clip(values, 0, 1)),
                       dtype=values.dtype)
+
+
+def _target_spectrum(target, light_spectrum: np.ndarray, wavelengths: np.ndarray) -> np.ndarray:
+    """The light to render under: the estimated light itself for
+    ``"estimate"``/``"as-seen"`` (no adaptation), a named light, or a spectrum."""
+    from models import illuminant as get_illuminant
+
+    from .errors import InputError
+
+    if isinstance(target, str):
+        if target in ("estimate", "as-seen"):
+            return np.asarray(light_spectrum, float)
+        try:
+            return np.asarray(get_illuminant(target, wavelengths), float)
+        except KeyError as e:
+            raise InputError(f"target: {e.args[0]}", code="invalid_parameter") from None
+    return np.asarray(target, float)
+
+
+def _target_xy(target, white_xy, wavelengths) -> tuple[float, float]:
+    """Chromaticity the rendered white takes (DNG rendering): D65 for
+    ``D65``, the light's own (no adaptation) for ``estimate``, else the
+    named light's."""
+    from .dng_color import D65_XY
+
+    if isinstance(target, str) and target == "D65":
+        return D65_XY
+    if isinstance(target, str) and target in ("estimate", "as-seen"):
+        return tuple(white_xy)
+    spd = _target_spectrum(target, None, wavelengths)
+    xyz = get_observer("CIE 1931 2 Degree Standard Observer", wavelengths).T @ spd
+    return tuple(xyz[:2] / xyz.sum())
+
+
+#: LibRaw's ``auto_bright_thr``: the fraction of pixels auto-brightness lets reach display white.
+AUTO_BRIGHT_THR = 0.01
+#: LibRaw's bounds on the auto-brightness gain (its histogram search stops at 32 of 8192 bins:
+#: at most 256; it never darkens: at least 1).
+AUTO_BRIGHT_GAIN = (1.0, 256.0)
+#: Pixels of the image the auto rule looks at (a regular subsample).
+AUTO_BRIGHT_PIXELS = 250_000
+#: The EV range a user's exposure may take.
+EXPOSURE_RANGE = (-10.0, 16.0)
+
+
+def highlight_white(A64: np.ndarray):
+    """The white-balanced colour a matrix sends to display white (1, 1, 1),
+    or ``None`` when it is not a positive colour."""
+    try:
+        wb_white = np.linalg.solve(A64, np.ones(3))
+    except np.linalg.LinAlgError:
+        return None
+    return wb_white if np.all(wb_white > 0) else None
+
+
+def display_linear(cam_rgb: np.ndarray, M: np.ndarray, neutral=None) -> np.ndarray:
+    """Linear display values of camera RGB ``(N, 3)`` (1.0 = saturation), as
+    the service applies ``M`` before exposure, shoulder, clipping and
+    encoding (clipped highlights made neutral,
+    :func:`recovery.highlights.balance_highlights`, when ``neutral`` is
+    given)."""
+    c = np.asarray(cam_rgb, np.float32).reshape(-1, 3)
+    if neutral is None:
+        return c @ np.asarray(M, np.float32).T
+    from .highlights import balance_highlights
+
+    n = np.asarray(neutral, float)
+    n = n / n.max()
+    A64 = np.asarray(M, float) @ np.diag(n)
+    wb = balance_highlights(c, n, white=highlight_white(A64))
+    return wb @ A64.astype(np.float32).T
+
+
+def exposure_gain(image, M: np.ndarray, neutral=None, exposure: float | None = None) -> tuple[float, dict]:
+    """The exposure gain on the linear display values of ``M``, and how it
+    was chosen.
+
+    ``exposure`` in EV (a user's choice, in :data:`EXPOSURE_RANGE`):
+    ``2 ** exposure``. ``None``: LibRaw's auto-brightness (dcraw
+    ``write_ppm_tiff``): per display channel the level that
+    :data:`AUTO_BRIGHT_THR` of the pixels of ``image`` (camera RGB, 1.0 =
+    saturation) exceed (values clipped at white first, as LibRaw clips
+    before its histogram), the largest over the channels is sent to white;
+    the gain is kept in :data:`AUTO_BRIGHT_GAIN`. Without an image the gain
+    is 1 (the brightest recordable neutral at display white). Raises
+    :class:`~recovery.errors.InputError` (``invalid_parameter``) for an
+    exposure out of range."""
+    if exposure is not None:
+        from .errors import InputError
+
+        try:
+            ev = float(exposure)
+        except (TypeError, ValueError):
+            ev = float("nan")
+        lo, hi = EXPOSURE_RANGE
+        if not (np.isfinite(ev) and lo <= ev <= hi):
+            raise InputError(f"exposure must be a number of EV in {lo:g}..{hi:g}, or auto; got {exposure!r}",
+                             code="invalid_parameter")
+        return 2.0 ** ev, {"rule": "user", "ev": ev}
+    if not isinstance(image, np.ndarray) or image.ndim != 3 or image.shape[-1] != 3 or image.size == 0:
+        return 1.0, {"rule": "none", "ev": 0.0, "note": "no image to measure: the brightest recordable "
+                     "neutral renders as display white"}
+    flat = image.reshape(-1, 3)
+    step = max(1, flat.shape[0] // AUTO_BRIGHT_PIXELS)
+    sample = np.nan_to_num(np.clip(flat[::step], 0.0, 1.0))
+    lin = np.clip(display_linear(sample, M, neutral), 0.0, 1.0)
+    level = float(np.max(np.percentile(lin, 100.0 * (1.0 - AUTO_BRIGHT_THR), axis=0)))
+    lo, hi = AUTO_BRIGHT_GAIN
+    gain = float(np.clip(1.0 / level, lo, hi)) if level > 0 else hi
+    return gain, {"rule": "auto", "ev": float(np.log2(gain)),
+                  "description": f"LibRaw's auto-brightness: the {100 * (1 - AUTO_BRIGHT_THR):g}th percentile "
+                                 f"of the brightest display channel is display white (gain {lo:g}..{hi:g})",
+                  "percentile_level": level}
+
+
+def display_curve(x: np.ndarray) -> np.ndarray:
+    """LibRaw's tone: its default output curve (``gamma=(2.222, 4.5)``, the
+    ITU-R BT.709 transfer function) read by a display as sRGB, as a curve on
+    linear values: ``sRGB_decode(BT709_encode(x))``. It maps 0 -> 0 and
+    1 -> 1, darkens the mid-tones (0.18 -> 0.14) and deepens the shadows, so
+    with LibRaw's auto-brightness gain the encoded image is as bright as
+    LibRaw's at every level."""
+    x = np.clip(np.asarray(x, float), 0.0, 1.0)
+    v = np.where(x < 0.018, 4.5 * x, 1.099 * x ** 0.45 - 0.099)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def _with_exposure(M, info, image, exposure, tone, Gamma):
+    """``M`` times the exposure gain (:func:`exposure_gain`), with the
+    highlight shoulder when the gain lifts the sensor's range above white
+    and LibRaw's tone curve for display-encoded outputs."""
+    gain, einfo = exposure_gain(image, M, info.get("neutral"), exposure)
+    info["exposure"] = einfo
+    if gain > 1.0 and tone == "shoulder":
+        from .highlights import SHOULDER_KNEE
+
+        lum = Gamma[1] if Gamma is not None else np.array([0.2126, 0.7152, 0.0722])
+        info["shoulder"] = {"luminance": [float(v) for v in lum], "knee": SHOULDER_KNEE, "peak": gain}
+    info["tone"] = "shoulder" if "shoulder" in info else "linear"
+    if tone != "linear" and info.get("encoding") is not None:
+        info["curve"] = "libraw"        # display-encoded outputs take LibRaw's tone; linear ones stay linear
+    return M * gain, info
+
+
+def correction_matrix(camera, light_rgb, light_spectrum: np.ndarray, target, space: OutputSpace,
+                      surface_basis: np.ndarray | None = None, *, profile=None, tone: str = "shoulder",
+                      exposure: float | None = None, image: np.ndarray | None = None,
+                      normalize: bool = True) -> tuple[np.ndarray, dict]:
+    """Camera RGB (1.0 = saturation) -> linear output values for one light:
+    the one 3x3 matrix of Wandell (1985), Fig. 6, with its exposure rule.
+
+    Spectral rendering (``profile`` None: measured, uploaded or generic
+    sensitivities): ``M = Gamma^{-1} Lambda'_{E'} Lambda_E^{-1}``
+    (:func:`synthesis_matrix`, eq. 23 and 36 with ``surface_basis``, a
+    surface model of as many terms as sensors). With ``normalize`` it is
+    scaled so that the brightest neutral the sensor records unclipped (the
+    light's own camera RGB ``light_rgb`` with its largest channel at
+    saturation) renders with luminance 1 before the exposure (below);
+    without, white has Y = 1 up to the image's exposure and no exposure
+    rule applies (:func:`recovery.render`).
+
+    DNG-matrix rendering (``profile``, a
+    :class:`~recovery.dng_color.ColorProfile`: a camera known only by its
+    colour matrix): the DNG specification's camera -> XYZ D50 for the
+    estimated camera neutral (:func:`recovery.dng_color.camera_to_xyz_d50`),
+    Bradford to the target white, ``Gamma^{-1}``; the same neutral at
+    saturation renders with luminance 1 before the exposure. Used when the
+    neutral is positive and the output has primaries; otherwise the
+    spectral rendering.
+
+    Exposure (both renderings, :func:`exposure_gain`): ``exposure=None``
+    (the default, "auto") is LibRaw's auto-brightness rule measured on
+    ``image`` (the camera RGB the picture is made of; none: gain 1), the
+    same for every file: the gain that sends the 99th percentile of the
+    brightest display channel to display white (dcraw/LibRaw
+    ``auto_bright_thr`` = 0.01), at least 1 and at most 256; a number is the
+    user's exposure in EV on the same base (0: the brightest neutral the
+    sensor records is display white). The DNG BaselineExposure is reported,
+    not applied (linear, it made the Blackmagic file 2 stops brighter than
+    LibRaw's rendering). When the gain lifts the sensor's range above
+    display white, ``tone="shoulder"`` (the default) asks for the
+    highlights to roll off above a knee
+    (:func:`recovery.highlights.highlight_shoulder`, ``info["shoulder"]``)
+    rather than clip; ``tone="linear"`` clips. Display-encoded outputs
+    (sRGB, Display P3) then take LibRaw's tone curve (``info["curve"] =
+    "libraw"``, :func:`display_curve`) unless ``tone="linear"``, so the
+    picture is as bright as LibRaw's default rendering at every level.
+
+    ``target``: a light name, ``"estimate"``/``"as-seen"`` (the light
+    itself) or a spectrum. ``info`` has ``rendering``, ``neutral`` (the
+    light's camera RGB, largest channel 1, for the highlight handling),
+    ``encoding``, ``exposure``, ``tone`` and the rendering's figures. Raises
+    :class:`~recovery.errors.InputError` (``invalid_parameter`` for an
+    unknown target or an exposure out of range, ``unrenderable`` when white
+    has no luminance).
+    """
+    from .errors import InputError
+
+    wl = np.asarray(camera.wavelengths, float)
+    neutral = None
+    if light_rgb is not None:
+        rgb = np.asarray(light_rgb, float)
+        neutral = rgb / np.max(rgb)
+    if profile is not None and neutral is not None and np.all(neutral > 0) and space.Gamma is not None:
+        from .dng_color import D50_XY, bradford, camera_to_xyz_d50
+
+        M50, dinfo = camera_to_xyz_d50(profile, neutral)
+        wxy = _target_xy(target, dinfo["white_xy"], wl)
+        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50)
+        info = {"rendering": "dng-matrix", "encoding": space.encoding,
+                "neutral": neutral.tolist(), "white_xy": dinfo["white_xy"],
+                "temperature": dinfo["temperature"], "tint": dinfo["tint"],
+                "calibration_weight": dinfo["calibration_weight"], "forward_matrix": dinfo["forward_matrix"],
+                "baseline_exposure": float(profile.baseline_exposure), "target_white_xy": [float(v) for v in wxy]}
+        if profile.notes:
+            info["notes"] = list(profile.notes)
+        return _with_exposure(M, info, image, exposure, tone, space.Gamma)
+    tgt = _target_spectrum(target, light_spectrum, wl)
+    M, cond = synthesis_matrix(camera.sensitivities, wl, light_spectrum, tgt, surface_basis, space)
+    info = {"lighting_condition": cond, "encoding": space.encoding, "rendering": "spectral"}
+    if not normalize:
+        return M, info
+    y = M @ neutral
+    lum = float(y[1]) if space.Gamma is None else float((space.Gamma @ y)[1])
+    if not (np.isfinite(lum) and lum > 0):
+        raise InputError("the estimated light renders white with no luminance", code="unrenderable")
+    if np.all(neutral > 0):
+        info["neutral"] = neutral.tolist()
+    return _with_exposure(M / lum, info, image, exposure, tone, space.Gamma)

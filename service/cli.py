@@ -38,6 +38,7 @@ import sys
 import time
 
 from . import jobs
+from .errors import ServiceError, service_error
 
 
 def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
@@ -76,10 +77,15 @@ def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
                               exposure=getattr(args, "exposure", None))
 
 
-def _limits():
+def _settings():
+    """The service settings (``WANDELL_*``): the pixel limits of decoding."""
     from .settings import get_settings
 
-    s = get_settings()
+    return get_settings()
+
+
+def _limits():
+    s = _settings()
     return s.max_pixels, s.estimation_pixels
 
 
@@ -250,7 +256,7 @@ def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = 
             saved = json.load(f)
         if saved.get("key") == key:
             return saved["light"]
-    pixels = max(4096, jobs.SHARED_POOL_PIXELS // max(1, len(tasks)))
+    pixels = max(4096, jobs.shared_pool_pixels() // max(1, len(tasks)))
     futs = [(t, executor.submit(jobs.estimation_sample, t, pixels)) for t in tasks]
     samples = []
     for t, f in futs:
@@ -265,11 +271,11 @@ def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = 
         return None
     cam = samples[0]["camera"].name
     if any(s["camera"].name != cam for s in samples):
-        raise jobs.JobError("camera_mismatch", "shared lighting pools images of one camera; this folder mixes "
-                            f"{sorted({s['camera'].name for s in samples})}")
+        raise ServiceError(422, "camera_mismatch", "shared lighting pools images of one camera; this folder "
+                           f"mixes {sorted({s['camera'].name for s in samples})}")
     light = executor.submit(jobs.shared_light, samples, options).result()
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    jobs._atomic_write(path, lambda p: jobs._write_text(p, json.dumps({"key": key, "light": light})))
+    jobs.atomic_write(path, lambda p: jobs.write_text(p, json.dumps({"key": key, "light": light})))
     return light
 
 
@@ -278,9 +284,9 @@ def _cmd_batch(args) -> int:
         args.format = "tiff"
     opts = _options(args, args.lighting)
     if not os.path.isdir(args.in_dir):
-        raise jobs.JobError("folder_not_found", f"input folder {args.in_dir!r} does not exist")
+        raise ServiceError(422, "folder_not_found", f"input folder {args.in_dir!r} does not exist")
     if not _inputs(args.in_dir):
-        raise jobs.JobError("empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
+        raise ServiceError(422, "empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
     rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
                      quiet=args.quiet)
     _summary(rows, sys.stdout, args.quiet)
@@ -299,16 +305,16 @@ def format_for(out: str, given: str | None) -> str:
     ext = os.path.splitext(out)[1].lower()
     if not ext:
         if given is None:
-            raise jobs.JobError("invalid_parameter", f"{out!r} has no extension: name it .tif, .png or .jpg, "
-                                "or give --format")
+            raise ServiceError(422, "invalid_parameter", f"{out!r} has no extension: name it .tif, .png or "
+                               ".jpg, or give --format")
         return given
     if ext not in EXTENSION_FORMATS:
-        raise jobs.JobError("invalid_parameter", f"cannot write {ext!r} files: name the output .tif/.tiff "
-                            "(16-bit TIFF), .png (8-bit; --format png16 for 16-bit) or .jpg/.jpeg")
+        raise ServiceError(422, "invalid_parameter", f"cannot write {ext!r} files: name the output .tif/.tiff "
+                           "(16-bit TIFF), .png (8-bit; --format png16 for 16-bit) or .jpg/.jpeg")
     allowed = EXTENSION_FORMATS[ext]
     if given is not None and given not in allowed:
-        raise jobs.JobError("format_mismatch", f"--format {given} disagrees with the output name {out!r} "
-                            f"({ext} is {' or '.join(allowed)}): change one of them")
+        raise ServiceError(422, "format_mismatch", f"--format {given} disagrees with the output name {out!r} "
+                           f"({ext} is {' or '.join(allowed)}): change one of them")
     return given or allowed[0]
 
 
@@ -338,40 +344,32 @@ def _cmd_white_balance(args) -> int:
 
 def _write_xmp(src: str, illuminant: dict, opts, path: str) -> dict:
     """The Camera Raw sidecar of a finished item (its estimated light's
-    camera RGB through the file's colour matrices, pipeline.temperature_tint)."""
-    from . import pipeline, rawio
-    from .outputs import xmp_sidecar
+    camera RGB through the file's colour matrices, pipeline.xmp_sidecar)."""
+    from . import pipeline
 
-    max_pixels, est_pixels = _limits()
     with open(src, "rb") as f:
-        decoded = rawio.decode_upload(f.read(), os.path.basename(src), max_pixels=max_pixels,
-                                      estimation_pixels=est_pixels)
-    cam, warns = rawio.resolve_camera(decoded, opts.camera)
+        decoded, cam, warns, _ = pipeline.open_image(f.read(), os.path.basename(src), _settings(), opts.camera)
     run = pipeline.run_with_white(pipeline.EstimateRun(None, cam, warns), illuminant["camera_rgb"],
                                   illuminant.get("method", "estimate"))
-    tt = pipeline.temperature_tint(decoded, run)
-    summary = {"method": illuminant.get("method"), "camera_rgb": illuminant["camera_rgb"],
-               "temperature": tt["temperature"], "tint": tt["tint"], "basis": tt["basis"]}
+    text, tt, _ = pipeline.xmp_sidecar(decoded, run)
     with open(path, "w", encoding="utf-8") as f:
-        f.write(xmp_sidecar(tt["temperature"], tt["tint"], summary))
+        f.write(text)
     return tt
 
 
 def _cmd_analyze(args) -> int:
-    from . import pipeline, rawio
+    from . import pipeline
     from .jsonsafe import clean
 
     opts = _options(args)
-    max_pixels, est_pixels = _limits()
     try:
-        with open(args.file, "rb") as f:
-            data = f.read()
-        decoded = rawio.decode_upload(data, os.path.basename(args.file), max_pixels=max_pixels,
-                                      estimation_pixels=est_pixels)
-        cam, warns = rawio.resolve_camera(decoded, opts.camera)
-        run = pipeline.run_estimate(decoded, cam, warns, method=opts.method, options=opts.estimate_kwargs())
-    except rawio.UploadError as e:
-        print(f"error: {e.code}: {e.detail}", file=sys.stderr)
+        decoded, run = pipeline.analyze_file(args.file, _settings(), camera=opts.camera, method=opts.method,
+                                             options=opts.estimate_kwargs())
+    except Exception as e:  # noqa: BLE001 - a bad file or option: say what, exit 1
+        err = service_error(e)
+        if err is None:
+            raise
+        print(f"error: {err.code}: {err.detail}", file=sys.stderr)
         return 1
     print(json.dumps(clean(pipeline.analysis_json(run, decoded)), indent=1))
     return 0
@@ -412,7 +410,7 @@ def main(argv=None) -> int:
         if args.command == "analyze":
             return _cmd_analyze(args)
         return _cmd_white_balance(args)
-    except jobs.JobError as e:
+    except ServiceError as e:
         print(f"error: {e.code}: {e.detail}", file=sys.stderr)
         return 2
     except OSError as e:

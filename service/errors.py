@@ -1,31 +1,67 @@
-"""Error responses: every failure the client caused is a 4xx with a JSON body
-``{"error": code, "detail": text}`` (DESIGN.md); nothing else escapes as a
-500 with an HTML page."""
+"""The service's one error type and its responses: every failure the client
+caused is a 4xx with a JSON body ``{"error": code, "detail": text}``
+(docs/DESIGN.md); nothing else escapes as a 500 with an HTML page.
+
+:class:`ServiceError` is raised by every layer of the service (decoding,
+option validation, the pipeline, the batch jobs, the CLI); the recovery
+errors (:mod:`recovery.errors`) are mapped to it by :func:`service_error`.
+Importing this module does not import the web stack: the FastAPI handlers
+import it when they are installed.
+"""
 
 from __future__ import annotations
 
 import logging
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
-from starlette.exceptions import HTTPException as StarletteHTTPException
-
-from recovery.errors import RecoveryError
-
 log = logging.getLogger("service")
 
+__all__ = ["ServiceError", "service_error", "error_response", "install_error_handlers"]
 
-class ApiError(Exception):
-    """A client error with an HTTP status, a machine-readable code and a
-    human-readable detail."""
+
+class ServiceError(Exception):
+    """A request the service refuses.
+
+    Parameters
+    ----------
+    status : int
+        The HTTP status to answer with: 403, 404, 413 (too large), 415 (a
+        format the service does not read) or 422 (readable, unusable).
+    code : str
+        Machine-readable error code (``empty_file``, ``unsupported_format``,
+        ``corrupt_file``, ``too_many_pixels``, ``invalid_parameter``,
+        ``bad_csv``, ``unknown_camera``, ...).
+    detail : str
+        What was wrong, in words a user can act on.
+    """
 
     def __init__(self, status: int, code: str, detail: str):
         super().__init__(detail)
-        self.status, self.code, self.detail = status, code, detail
+        self.status = int(status)
+        self.code = str(code)
+        self.detail = str(detail)
+
+    def __repr__(self) -> str:
+        return f"ServiceError({self.status}, {self.code!r}, {self.detail!r})"
+
+    def __str__(self) -> str:
+        return self.detail
 
 
-def error_response(status: int, code: str, detail, headers: dict | None = None) -> JSONResponse:
+def service_error(exc: BaseException) -> ServiceError | None:
+    """The :class:`ServiceError` an exception answers as: itself, a recovery
+    error as a 422 with its code, anything else ``None`` (a bug)."""
+    if isinstance(exc, ServiceError):
+        return exc
+    from recovery.errors import RecoveryError  # here: the CLI's start-up imports no numerical library
+
+    if isinstance(exc, RecoveryError):
+        return ServiceError(422, exc.code, str(exc))
+    return None
+
+
+def error_response(status: int, code: str, detail, headers: dict | None = None):
+    from fastapi.responses import JSONResponse
+
     return JSONResponse(status_code=status, content={"error": code, "detail": detail}, headers=headers)
 
 
@@ -41,7 +77,7 @@ ERROR_BODY_SCHEMA = {
 }
 
 
-def document_error_responses(app: FastAPI) -> None:
+def document_error_responses(app) -> None:
     """Make the app's OpenAPI schema say what its errors really look like.
 
     FastAPI documents a 422 with its own ``HTTPValidationError`` body (a list
@@ -72,17 +108,21 @@ def document_error_responses(app: FastAPI) -> None:
     app.openapi = openapi
 
 
-def install_error_handlers(app: FastAPI) -> None:
+def install_error_handlers(app) -> None:
     """Map every exception type to its JSON error body (and document it)."""
+    from fastapi import Request
+    from fastapi.exceptions import RequestValidationError
+    from starlette.exceptions import HTTPException as StarletteHTTPException
+
+    from recovery.errors import RecoveryError
+
     document_error_responses(app)
 
-    @app.exception_handler(ApiError)
-    async def _api(_: Request, exc: ApiError):
-        return error_response(exc.status, exc.code, exc.detail)
-
+    @app.exception_handler(ServiceError)
     @app.exception_handler(RecoveryError)
-    async def _recovery(_: Request, exc: RecoveryError):
-        return error_response(422, exc.code, str(exc))
+    async def _service(_: Request, exc: Exception):
+        err = service_error(exc)
+        return error_response(err.status, err.code, err.detail)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError):

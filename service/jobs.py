@@ -1,10 +1,13 @@
 """Batch jobs: a SQLite job store, the per-item function, a runner on a local
 process pool or a Dask cluster, resume after a crash (issue 6).
 
-No FastAPI here: the HTTP router (:mod:`service.routers.batches`) and the
-CLI (:mod:`service.cli`) both drive this module.
+No FastAPI here (options are validated by :mod:`service.options`, errors are
+:class:`~service.errors.ServiceError`): the HTTP router
+(:mod:`service.routers.batches`) and the CLI (:mod:`service.cli`) both drive
+this module.
 
 Every item is the white-balance pipeline of ``POST /v1/white-balance``
+(:func:`service.pipeline.analyze` and :func:`service.pipeline.render_corrected`)
 (Wandell 1985, Fig. 6 and eq. 22-25/36: estimate the light, then one 3x3
 matrix per pixel from camera RGB to the display). In ``shared`` lighting
 mode the light is estimated once from all the images of the batch pooled
@@ -38,31 +41,30 @@ import uuid
 from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 
+from .errors import ServiceError, service_error
+from .options import FORMATS, IMAGE_FORMATS, check_camera_name, check_output, check_target, choose_format, \
+    estimate_options, parse_exposure
+
 #: The environment variables that cap the internal thread pools of the
 #: numerical libraries; set to 1 in every pool worker so that N workers use
 #: N cores and do not fight over them.
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
               "VECLIB_MAXIMUM_THREADS", "OPENCV_FOR_THREADS_NUM")
 
-FORMATS = {"tiff": ("tiff", 16, "tif"), "png": ("png", 8, "png"), "png16": ("png", 16, "png"),
-           "jpeg": ("jpeg", 8, "jpg"), "jpg": ("jpeg", 8, "jpg")}
-OUTPUTS = ("sRGB", "linear-sRGB", "Display P3", "Typical CRT Brainard 1997", "Apple Studio Display")
 LIGHTING = ("per-image", "shared")
-#: Pixels of pooled estimation data in ``shared`` mode (split between the
-#: images): the same budget as one image's estimation (pipeline.ANALYSIS_PIXELS).
-SHARED_POOL_PIXELS = 250_000
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".rw2", ".orf",
                 ".pef", ".srw", ".x3f", ".3fr", ".iiq", ".erf", ".kdc", ".dcr", ".mrw", ".mos", ".rwl",
                 ".tif", ".tiff", ".png")
 
 
-class JobError(Exception):
-    """A request the job layer refuses: ``code`` machine-readable, ``detail``
-    in words, ``status`` the HTTP status the router answers with."""
+def shared_pool_pixels() -> int:
+    """Pixels of pooled estimation data in ``shared`` mode (split between the
+    images): the same budget as one image's estimation without a quality
+    preset (:data:`recovery.DEFAULT_ANALYSIS_PIXELS`; imported here, not at
+    the top, so that the CLI's start-up imports no numerical library)."""
+    from recovery import DEFAULT_ANALYSIS_PIXELS
 
-    def __init__(self, code: str, detail: str, status: int = 422):
-        super().__init__(detail)
-        self.code, self.detail, self.status = code, detail, status
+    return DEFAULT_ANALYSIS_PIXELS
 
 
 # ---------------------------------------------------------------------------
@@ -86,23 +88,17 @@ class BatchOptions:
     surface_dim: str | None = None
     light_dim: str | None = None
     region_size: int | None = None
-    exposure: float | None = None          # EV; None: the auto rule (pipeline.exposure_gain)
+    exposure: float | None = None          # EV; None: the auto rule (recovery.synthesis.exposure_gain)
 
     @property
     def extension(self) -> str:
-        return FORMATS[self.format][2]
+        return FORMATS[self.format].extension
 
     def estimate_kwargs(self) -> dict:
         """Keyword options of :func:`recovery.estimate_illuminant` (the same
         validation as the white-balance endpoint)."""
-        from .deps import estimate_options
-        from .errors import ApiError
-
-        try:
-            return estimate_options(self.method, self.surface_dim, self.light_dim, self.region_size, False,
-                                    self.surface_model, self.light_model, self.quality)
-        except ApiError as e:
-            raise JobError(e.code, e.detail, e.status) from None
+        return estimate_options(self.method, self.surface_dim, self.light_dim, self.region_size, False,
+                                self.surface_model, self.light_model, self.quality)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
@@ -113,44 +109,22 @@ class BatchOptions:
 
 
 def batch_options(**kw) -> BatchOptions:
-    """Validated :class:`BatchOptions`; :class:`JobError` (422) naming the
-    bad option and what is accepted."""
+    """Validated :class:`BatchOptions`; :class:`~service.errors.ServiceError`
+    (422) naming the bad option and what is accepted."""
     kw = {k: v for k, v in kw.items() if v is not None and v != ""}
     unknown = set(kw) - set(BatchOptions.__dataclass_fields__)
     if unknown:
-        raise JobError("invalid_parameter", f"unknown options {sorted(unknown)}")
+        raise ServiceError(422, "invalid_parameter", f"unknown options {sorted(unknown)}")
     if "exposure" in kw:
-        from .errors import ApiError
-        from .pipeline import parse_exposure
-
-        try:
-            kw["exposure"] = parse_exposure(kw["exposure"])
-        except ApiError as e:
-            raise JobError(e.code, e.detail, e.status) from None
+        kw["exposure"] = parse_exposure(kw["exposure"])
     opts = BatchOptions(**kw)
-    if opts.format not in FORMATS:
-        raise JobError("invalid_parameter", f"format {opts.format!r} unknown; accepted: {sorted(FORMATS)}")
-    if opts.output not in OUTPUTS:
-        raise JobError("invalid_parameter", f"output {opts.output!r} unknown; accepted: {list(OUTPUTS)}")
+    choose_format(opts.format, IMAGE_FORMATS)
+    check_output(opts.output)
     if opts.lighting not in LIGHTING:
-        raise JobError("invalid_parameter", f"lighting {opts.lighting!r} unknown; accepted: {list(LIGHTING)}")
-    if opts.target not in ("estimate", "as-seen"):
-        from models import illuminant
-
-        try:
-            illuminant(opts.target)
-        except KeyError as e:
-            raise JobError("invalid_parameter", f"target: {e.args[0]}") from None
-    if opts.camera not in (None, "auto", "matrix", "generic"):
-        from models import camera_names, canonical_camera_name
-
-        try:
-            known = canonical_camera_name(opts.camera) is not None
-        except (KeyError, ValueError):
-            known = False
-        if not known:
-            raise JobError("invalid_parameter", f"camera {opts.camera!r} unknown; accepted: "
-                           f"{list(camera_names()) + ['matrix', 'generic', 'auto']}")
+        raise ServiceError(422, "invalid_parameter",
+                           f"lighting {opts.lighting!r} unknown; accepted: {list(LIGHTING)}")
+    check_target(opts.target)
+    check_camera_name(opts.camera)
     opts.estimate_kwargs()
     return opts
 
@@ -214,10 +188,9 @@ class ItemTask:
 
 
 def _estimate_json(est, camera_name: str) -> dict:
-    cct, duv = est.cct_duv()
-    return {"camera_rgb": est.rgb.tolist(), "wb_multipliers": est.wb_multipliers.tolist(),
-            "wavelengths": est.wavelengths.tolist(), "spectrum": est.spectrum.tolist(), "cct": cct, "duv": duv,
-            "method": est.method, "camera": camera_name}
+    from .pipeline import illuminant_json
+
+    return dict(illuminant_json(est), method=est.method, camera=camera_name)
 
 
 def _estimate_from_json(light: dict, camera):
@@ -237,25 +210,21 @@ def _estimate_from_json(light: dict, camera):
                               {"lighting": "shared"}, [])
 
 
-def _decode(path: str, task_like) -> tuple:
-    from . import rawio
+def _open(task: "ItemTask") -> tuple:
+    """Decode an item's file and choose its camera (:func:`service.pipeline.open_image`)."""
+    from . import pipeline
 
-    with open(path, "rb") as f:
+    with open(task.src, "rb") as f:
         data = f.read()
-    decoded = rawio.decode_upload(data, getattr(task_like, "name", None) or os.path.basename(path),
-                                  max_pixels=task_like.max_pixels,
-                                  estimation_pixels=task_like.estimation_pixels)
-    cam, warns = rawio.resolve_camera(decoded, task_like.options.camera)
+    decoded, cam, warns, _ = pipeline.open_image(data, task.name or os.path.basename(task.src), task,
+                                                 task.options.camera)
     return decoded, cam, warns
 
 
 def _error_text(exc: BaseException) -> str:
-    from . import rawio
-
-    if isinstance(exc, rawio.UploadError):
-        return f"{exc.code}: {exc.detail}"
-    if isinstance(exc, JobError):
-        return f"{exc.code}: {exc.detail}"
+    err = service_error(exc)
+    if err is not None:
+        return f"{err.code}: {err.detail}"
     code = getattr(exc, "code", None)
     detail = getattr(exc, "detail", None) or str(exc)
     return f"{code or type(exc).__name__}: {detail}"
@@ -281,7 +250,9 @@ def _item_lock(out: str):
         os.close(fd)  # closing releases the lock
 
 
-def _atomic_write(path: str, write) -> None:
+def atomic_write(path: str, write) -> None:
+    """``write(tmp)`` a temporary file beside ``path``, fsync it, then
+    rename it to ``path``: the final name only ever holds a complete file."""
     d, base = os.path.split(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=".part", dir=d or ".")
     os.close(fd)
@@ -322,20 +293,17 @@ def process_item(task: ItemTask) -> dict:
                     side = json.load(f)
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
                         "seconds": time.perf_counter() - t0}
-            decoded, cam, warns = _decode(task.src, task)
+            decoded, cam, warns = _open(task)
             opts = task.options.estimate_kwargs()
             if task.light is None:
                 run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
             else:
                 run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
-            fmt, bits, _ = FORMATS[task.options.format]
-            out, M, info = pipeline.render_full(decoded, run, task.options.target, task.options.output, bits,
-                                                opts.get("surface_basis"), threads=task.threads,
-                                                exposure=task.options.exposure)
-            summary = {"method": run.estimate.method, "camera_rgb": run.estimate.rgb.tolist(),
-                       "camera": cam.name, "rendering": info.get("rendering"), "target": task.options.target,
-                       "output": task.options.output}
-            meta = pipeline.output_meta(decoded, task.options.output, summary)
+            fmt = FORMATS[task.options.format]
+            out, M, info, meta = pipeline.render_corrected(decoded, run, target=task.options.target,
+                                                           output=task.options.output, fmt=fmt,
+                                                           surface_basis=opts.get("surface_basis"),
+                                                           threads=task.threads, exposure=task.options.exposure)
             file_warnings = list(decoded.warnings)
             del decoded
             illum = _estimate_json(run.estimate, cam.name)
@@ -344,8 +312,8 @@ def process_item(task: ItemTask) -> dict:
                     "rendering": pipeline.rendering_json(info),
                     "options": asdict(task.options)}
             if task.exactly_once:
-                _atomic_write(meta_path(task.out, ".json"), lambda p: _write_text(p, json.dumps(_clean(side))))
-            _atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt, p, meta=meta))
+                atomic_write(meta_path(task.out, ".json"), lambda p: write_text(p, json.dumps(_clean(side))))
+            atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta))
             if task.write_log:
                 with open(task.write_log, "a") as f:
                     f.write(json.dumps({"name": task.name, "out": os.path.basename(task.out),
@@ -358,7 +326,8 @@ def process_item(task: ItemTask) -> dict:
         return {"status": "failed", "error": _error_text(exc)}
 
 
-def _write_text(path: str, text: str) -> None:
+def write_text(path: str, text: str) -> None:
+    """Write ``text`` to ``path`` (for :func:`atomic_write`)."""
     with open(path, "w") as f:
         f.write(text)
 
@@ -377,7 +346,7 @@ def estimation_sample(task: ItemTask, pixels: int) -> dict:
     from recovery.resolution import block_average
 
     try:
-        decoded, cam, _ = _decode(task.src, task)
+        decoded, cam, _ = _open(task)
         img, mask, _ = block_average(decoded.estimation, ~decoded.saturated, pixels)
         return {"status": "ok", "image": img, "mask": mask, "camera": cam}
     except MemoryError:
@@ -1060,7 +1029,7 @@ class BatchRunner:
         fut = self._light_jobs.get(bid)
         if fut is None:
             rows = [r for r in self.store.items(bid) if r["status"] in ("pending", "running", "done")]
-            pixels = max(4096, SHARED_POOL_PIXELS // max(1, len(rows)))
+            pixels = max(4096, shared_pool_pixels() // max(1, len(rows)))
             futs = [(r, self.executor.submit(estimation_sample, self._task(r, options, None), pixels)) for r in rows]
             self._light_jobs[bid] = (futs, None)
             return
@@ -1113,16 +1082,16 @@ def folder_sources(root: str, folder: str) -> list[tuple[str, str]]:
     anything that resolves outside the root (``..``, absolute paths,
     symlinks leading out)."""
     if not root:
-        raise JobError("folder_mode_disabled", "folder batches need a server-side root: set "
-                       "WANDELL_BATCH_ROOT; upload the files instead", 403)
+        raise ServiceError(403, "folder_mode_disabled", "folder batches need a server-side root: set "
+                           "WANDELL_BATCH_ROOT; upload the files instead")
     if os.path.isabs(folder) or folder.startswith(("/", "\\")) or "\x00" in folder:
-        raise JobError("path_outside_root", f"folder must be relative to the batch root, got {folder!r}", 403)
+        raise ServiceError(403, "path_outside_root", f"folder must be relative to the batch root, got {folder!r}")
     rootr = os.path.realpath(root)
     target = os.path.realpath(os.path.join(rootr, folder))
     if os.path.commonpath([rootr, target]) != rootr:
-        raise JobError("path_outside_root", f"folder {folder!r} is outside the batch root", 403)
+        raise ServiceError(403, "path_outside_root", f"folder {folder!r} is outside the batch root")
     if not os.path.isdir(target):
-        raise JobError("folder_not_found", f"folder {folder!r} does not exist under the batch root", 404)
+        raise ServiceError(404, "folder_not_found", f"folder {folder!r} does not exist under the batch root")
     out = []
     for entry in sorted(os.listdir(target)):
         p = os.path.join(target, entry)
@@ -1132,7 +1101,7 @@ def folder_sources(root: str, folder: str) -> list[tuple[str, str]]:
         if os.path.isfile(real) and entry.lower().endswith(RAW_SUFFIXES) and not entry.startswith("."):
             out.append((entry, real))
     if not out:
-        raise JobError("empty_folder", f"folder {folder!r} holds no RAW/TIFF/PNG files "
-                       f"({', '.join(RAW_SUFFIXES[:6])}, ...)")
+        raise ServiceError(422, "empty_folder", f"folder {folder!r} holds no RAW/TIFF/PNG files "
+                           f"({', '.join(RAW_SUFFIXES[:6])}, ...)")
     return out
 

@@ -178,12 +178,12 @@ def install(app) -> None:
     from fastapi.openapi.docs import get_swagger_ui_html
     from fastapi.responses import Response
 
-    from .errors import ApiError
+    from .errors import ServiceError
 
     @app.get("/docs", include_in_schema=False)
     def docs():
         if swagger_path() is None:
-            raise ApiError(503, "docs_unavailable", "the swagger-ui-bundle-v2 package is not installed; the "
+            raise ServiceError(503, "docs_unavailable", "the swagger-ui-bundle-v2 package is not installed; the "
                            "OpenAPI document is at /openapi.json")
         return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title}: REST API",
                                    swagger_js_url=f"{SWAGGER_PREFIX}/swagger-ui-bundle.js",
@@ -194,7 +194,7 @@ def install(app) -> None:
     def docs_asset(name: str):
         root = swagger_path()
         if name not in SWAGGER_FILES or root is None:
-            raise ApiError(404, "not_found", f"no documentation asset {name!r}; served: {sorted(SWAGGER_FILES)}")
+            raise ServiceError(404, "not_found", f"no documentation asset {name!r}; served: {sorted(SWAGGER_FILES)}")
         with open(os.path.join(root, name), "rb") as f:
             return Response(f.read(), media_type=SWAGGER_FILES[name],
                             headers={"Cache-Control": "public, max-age=86400"})

@@ -1,9 +1,25 @@
-"""The service's glue: decoded upload -> estimate -> JSON / corrected image.
+"""The service's one pipeline: upload -> decode -> camera -> estimate ->
+correction matrix -> apply -> encode, and the JSON of each step.
 
-Thin by design: every number comes from :mod:`recovery`; this module only
-chooses resolutions, applies the one 3x3 matrix per pixel (Wandell 1985,
-Fig. 6: for a fixed light camera RGB to display RGB is one matrix) in
-chunks, and encodes.
+The REST routers (:mod:`service.routers.analysis`, :mod:`service.routers.web`),
+the batch worker (:mod:`service.jobs`) and the CLI (:mod:`service.cli`) all
+go through :func:`analyze` (decode + choose the camera + estimate) and
+:func:`write_corrected` (matrix, apply, encode to a file). Thin by design:
+every number comes from :mod:`recovery` (the camera from
+:mod:`recovery.cameras`, the matrix with its exposure rule from
+:func:`recovery.synthesis.correction_matrix`); this module chooses
+resolutions, applies the one 3x3 matrix per pixel (Wandell 1985, Fig. 6: for
+a fixed light camera RGB to display RGB is one matrix) in chunks, and
+encodes. Its errors are :class:`~service.errors.ServiceError`; recovery
+errors pass through (the edges map them, :func:`service.errors.service_error`).
+
+Analysis resolution, the one rule: a RAW is binned to 2x2 CFA cells and
+area-averaged to at most ``WANDELL_ESTIMATION_PIXELS`` (default 1 megapixel,
+:attr:`service.settings.Settings.estimation_pixels`): that is the full
+analysis resolution. The estimate then runs on that image block-averaged to
+:func:`recovery.analysis_pixels` of the ``quality`` preset: 4096 pixels for
+``fast``, 65536 for ``balanced``, all of it for ``accurate``, and
+:data:`recovery.DEFAULT_ANALYSIS_PIXELS` (250,000) when no quality is given.
 """
 
 from __future__ import annotations
@@ -15,18 +31,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models import illuminant as get_illuminant
-from recovery import Camera, IlluminantEstimate, angular_error, estimate_illuminant
+from recovery import Camera, IlluminantEstimate, analysis_pixels, angular_error, estimate_illuminant
 from recovery.api import resolve_model, surfaces_from_estimate
 from recovery.resolution import block_average
-from recovery.synthesis import output_space, synthesis_matrix
+from recovery.synthesis import correction_matrix as _recovery_correction_matrix, display_curve, highlight_white, \
+    output_space
+from recovery.synthesis import exposure_gain as _recovery_exposure_gain
 
-from .errors import ApiError
-
-#: Estimation runs on at most this many pixels (block-averaged; the
-#: subspace method is unchanged by averaging because mixtures of surfaces
-#: under one light stay in the same subspace, eq. 29).
-ANALYSIS_PIXELS = 250_000
+from .errors import ServiceError
+from .options import FORMATS, MEDIA_TYPES, Format
 
 
 @dataclass
@@ -40,12 +53,63 @@ class EstimateRun:
     requested_method: str | None = None
 
 
-def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,
-                 analysis_pixels: int = ANALYSIS_PIXELS) -> EstimateRun:
-    """Estimate the light on the (block-averaged) estimation image of an
-    upload, saturated cells excluded."""
+def decode(data: bytes, filename: str | None, limits):
+    """The upload decoded (:func:`service.rawio.decode_upload`) within
+    ``limits`` (anything with ``max_pixels`` and ``estimation_pixels``: the
+    settings, a batch item)."""
+    from . import rawio
+
+    return rawio.decode_upload(data, filename, max_pixels=limits.max_pixels,
+                               estimation_pixels=limits.estimation_pixels)
+
+
+def open_image(data: bytes, filename: str | None, limits, camera: str | None = None,
+               sensitivities: bytes | None = None):
+    """Decode and choose the camera (:func:`recovery.cameras.resolve_camera`):
+    ``(decoded, camera, warnings, milliseconds)``."""
+    from recovery.cameras import resolve_camera
+
     t0 = time.perf_counter()
-    img, mask, f = block_average(decoded.estimation, ~decoded.saturated, analysis_pixels)
+    decoded = decode(data, filename, limits)
+    cam, warns = resolve_camera(decoded, camera, sensitivities)
+    return decoded, cam, warns, (time.perf_counter() - t0) * 1e3
+
+
+def analyze(data: bytes, filename: str | None, limits, *, camera: str | None = None,
+            sensitivities: bytes | None = None, method: str = "auto", options: dict | None = None,
+            neutral: list[int] | None = None):
+    """Decode, choose the camera, estimate the light: ``(decoded, run)``.
+    With ``neutral`` (a point or rectangle the user says is white,
+    :func:`service.options.parse_neutral`) the light is that surface's
+    (:func:`with_neutral`), rendered like an estimate."""
+    decoded, cam, warns, ms = open_image(data, filename, limits, camera, sensitivities)
+    run = run_estimate(decoded, cam, warns, method=method, options=options or {})
+    run.timings_ms["decode"] = ms
+    if neutral is not None:
+        run = with_neutral(decoded, run, neutral)
+    return decoded, run
+
+
+def analyze_file(path: str, limits, *, name: str | None = None, **kw):
+    """:func:`analyze` of a file on disk."""
+    import os
+
+    with open(path, "rb") as f:
+        data = f.read()
+    return analyze(data, name or os.path.basename(path), limits, **kw)
+
+
+def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,
+                 pixels: int | None = None) -> EstimateRun:
+    """Estimate the light on the estimation image of an upload, block-
+    averaged to the analysis resolution of ``options["quality"]``
+    (:func:`recovery.analysis_pixels`; ``pixels`` overrides it), saturated
+    cells excluded. Block averaging leaves the subspace method unchanged:
+    mixtures of surfaces under one light stay in the same subspace (eq. 29)."""
+    t0 = time.perf_counter()
+    if pixels is None:
+        pixels = analysis_pixels(options.get("quality"))
+    img, mask, f = block_average(decoded.estimation, ~decoded.saturated, pixels)
     est = estimate_illuminant(img, camera, method, mask=mask, **options)
     t1 = time.perf_counter()
     run = EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f,
@@ -73,11 +137,12 @@ def generic_cross_check(decoded, run: EstimateRun, img, mask, method: str, optio
     reports no confidence gets this factor as its confidence) and warn
     when the angle exceeds 3 degrees. Nothing happens for a file without a
     matrix (nothing to compare with)."""
-    from . import rawio
+    from recovery.cameras import resolve_camera
+    from recovery.errors import RecoveryError
 
     try:
-        mcam, _ = rawio.resolve_camera(decoded, "matrix")
-    except rawio.UploadError:
+        mcam, _ = resolve_camera(decoded, "matrix")
+    except RecoveryError:
         return
     if mcam.source != "matrix-derived" or mcam.channels != run.camera.channels:
         return
@@ -137,8 +202,8 @@ def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
 
     rgb = np.asarray(camera_rgb, float)
     if rgb.shape != (run.camera.channels,) or not np.all(np.isfinite(rgb)) or not np.all(rgb > 0):
-        raise ApiError(422, "invalid_parameter", f"a white must be {run.camera.channels} positive camera values, "
-                       f"got {np.round(rgb, 6).tolist()}")
+        raise ServiceError(422, "invalid_parameter", f"a white must be {run.camera.channels} positive camera "
+                           f"values, got {np.round(rgb, 6).tolist()}")
     model = resolve_model(None, "light", min(3, run.camera.channels), run.camera.wavelengths)
     w, spd = _spectrum_from_rgb(rgb, run.camera, model)
     est = _finish(rgb, spd, w, run.camera, model, method,
@@ -148,27 +213,6 @@ def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
 
 #: Above this angle between the light used and the file's as-shot white the answer warns.
 AS_SHOT_WARN_DEG = 5.0
-
-NEUTRAL_HELP = ("'use this as white': JSON [row, col] (a point) or [r0, c0, r1, c1] (a rectangle, end "
-                "exclusive) in full-resolution pixels of the image as decoded (before DefaultCrop); the light "
-                "is the mean camera RGB of the unclipped pixels there, rendered like an estimate")
-
-
-def parse_neutral(text) -> list[int] | None:
-    """``neutral``: JSON ``[row, col]`` or ``[r0, c0, r1, c1]`` (integers);
-    ``None`` when absent; otherwise a 422 saying what is accepted."""
-    if text is None or (isinstance(text, str) and not text.strip()):
-        return None
-    try:
-        val = json.loads(text) if isinstance(text, str) else text
-    except json.JSONDecodeError as e:
-        raise ApiError(422, "invalid_parameter", f"neutral is not valid JSON: {e.msg}; give [row, col] or "
-                       "[r0, c0, r1, c1]") from None
-    if (not isinstance(val, list) or len(val) not in (2, 4)
-            or not all(isinstance(x, int) and not isinstance(x, bool) for x in val)):
-        raise ApiError(422, "invalid_parameter", f"neutral must be [row, col] or [r0, c0, r1, c1] (integers), "
-                       f"got {text!r}")
-    return val
 
 
 def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
@@ -180,9 +224,9 @@ def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
     H, W = decoded.full_shape
     r0, c0, r1, c1 = (where[0], where[1], where[0] + 1, where[1] + 1) if len(where) == 2 else where
     if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
-        raise ApiError(422, "invalid_parameter", f"neutral {list(where)} is outside the {H}x{W} image: a point "
-                       f"needs 0 <= row < {H} and 0 <= col < {W}; a rectangle 0 <= r0 < r1 <= {H} and "
-                       f"0 <= c0 < c1 <= {W}")
+        raise ServiceError(422, "invalid_parameter", f"neutral {list(where)} is outside the {H}x{W} image: "
+                           f"a point needs 0 <= row < {H} and 0 <= col < {W}; a rectangle 0 <= r0 < r1 <= {H} "
+                           f"and 0 <= c0 < c1 <= {W}")
     img = decoded.estimation
     h, w = img.shape[:2]
     a0, b0 = min(int(r0 * h / H), h - 1), min(int(c0 * w / W), w - 1)
@@ -193,8 +237,8 @@ def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
     n_ok = int(ok.sum())
     if n_ok == 0:
         why = "clipped (saturated)" if sat.all() else "clipped or black"
-        raise ApiError(422, "unusable_neutral", f"every pixel of neutral {list(where)} is {why}: choose a "
-                       "white or grey surface that is not blown out")
+        raise ServiceError(422, "unusable_neutral", f"every pixel of neutral {list(where)} is {why}: choose "
+                           "a white or grey surface that is not blown out")
     rgb = cells[ok].mean(axis=0)
     info = {"where": list(where), "cells_used": n_ok, "cells_clipped_or_black": int(ok.size - n_ok),
             "camera_rgb": (rgb / np.linalg.norm(rgb)).tolist(), "level": float(rgb.max())}
@@ -290,215 +334,45 @@ def rendering_choice(run: EstimateRun, decoded=None) -> dict:
     return {"rendering": "spectral", "color_source": run.camera.source, "profile": None}
 
 
-def _target_xy(target: str, est: IlluminantEstimate, white_xy, wavelengths) -> tuple[float, float]:
-    """Chromaticity the rendered white takes: D65 for ``D65``, the light's
-    own (no adaptation) for ``estimate``, else the named light's."""
-    from recovery.dng_color import D65_XY
-
-    if target == "D65":
-        return D65_XY
-    if target in ("estimate", "as-seen"):
-        return tuple(white_xy)
-    from models import observer
-
-    try:
-        spd = get_illuminant(target, wavelengths)
-    except KeyError as e:
-        raise ApiError(422, "invalid_parameter", f"target: {e.args[0]}") from None
-    xyz = observer("CIE 1931 2 Degree Standard Observer", wavelengths).T @ np.asarray(spd, float)
-    return tuple(xyz[:2] / xyz.sum())
-
-
 def correction_matrix(run: EstimateRun, target: str, output: str, surface_model: str | None = None,
                       *, decoded=None, tone: str = "shoulder", exposure: float | None = None
                       ) -> tuple[np.ndarray, dict]:
-    """Camera RGB (1.0 = saturation) -> linear display values.
-
-    Spectral rendering (measured, uploaded or generic sensitivities):
-    ``M = Gamma^{-1} Lambda'_{E'} Lambda_E^{-1}`` (eq. 23 and 36 with a
-    surface model of as many terms as sensors), scaled so that the
-    brightest neutral the sensor records unclipped (the light's own camera
-    RGB with its largest channel at saturation) renders with luminance 1:
-    before the exposure (below). The surface model has C terms of
-    ``surface_model`` (default PCA of the shipped reflectances).
-
-    DNG-matrix rendering (``decoded`` given, a camera known only by its
-    colour matrix, :func:`rendering_choice`): the DNG specification's
-    camera -> XYZ D50 for the estimated camera neutral
-    (:func:`recovery.dng_color.camera_to_xyz_d50`), Bradford to the target
-    white, ``Gamma^{-1}``; the same neutral at saturation renders with
-    luminance 1 before the exposure.
-
-    Exposure (both renderings, :func:`exposure_gain`): ``exposure=None``
-    (the default, "auto") is LibRaw's auto-brightness rule, the same for
-    every file: the gain that sends the 99th percentile of the brightest
-    display channel to display white (dcraw/LibRaw ``auto_bright_thr`` =
-    0.01), at least 1 and at most 256; a number is the user's exposure in
-    EV on the same base (0: the brightest neutral the sensor records is
-    display white). The DNG BaselineExposure is reported, not applied
-    (linear, it made the Blackmagic file 2 stops brighter than LibRaw's
-    rendering). When the gain lifts the sensor's range above display white,
-    ``tone="shoulder"`` (the default) asks :func:`apply_matrix_inplace` to
-    roll the highlights off above a knee
-    (:func:`recovery.highlights.highlight_shoulder`) rather than clip them;
-    ``tone="linear"`` clips. Display-encoded outputs (sRGB, Display P3)
-    then take LibRaw's tone curve (``info["curve"] = "libraw"``,
-    :func:`display_curve`) unless ``tone="linear"``, so the picture is as
-    bright as LibRaw's default rendering at every level, not only at white.
-
-    ``info`` has ``rendering``, ``neutral`` (the light's camera RGB, largest
-    channel 1, for :func:`apply_matrix_inplace`'s highlight handling),
-    ``encoding`` and the rendering's figures.
-    """
+    """Camera RGB (1.0 = saturation) -> linear display values for ``run``'s
+    light, by :func:`recovery.synthesis.correction_matrix`: the spectral
+    rendering, or the DNG-matrix rendering for a camera known only by its
+    colour matrix (:func:`rendering_choice`, when ``decoded`` is given); its
+    exposure rule (``exposure`` in EV, ``None`` for LibRaw's auto-brightness
+    measured on ``decoded``'s estimation image, :func:`exposure_gain`), the
+    highlight shoulder (``tone``) and LibRaw's tone curve for display
+    encodings. The surface model has C terms of ``surface_model`` (default
+    PCA of the shipped reflectances). ``info`` adds ``color_source``."""
     cam, est = run.camera, run.estimate
     try:
         space = output_space(output, cam.wavelengths)
     except (ValueError, KeyError) as e:
-        raise ApiError(422, "invalid_parameter", f"output: {e}") from None
-    neutral = np.asarray(est.rgb, float) / np.max(est.rgb)
+        raise ServiceError(422, "invalid_parameter", f"output: {e}") from None
     choice = rendering_choice(run, decoded)
-    if choice["rendering"] == "dng-matrix" and np.all(neutral > 0) and space.Gamma is not None:
-        from recovery.dng_color import bradford, camera_to_xyz_d50, D50_XY
-
-        prof = choice["profile"]
-        M50, dinfo = camera_to_xyz_d50(prof, neutral)
-        wxy = _target_xy(target, est, dinfo["white_xy"], cam.wavelengths)
-        M = np.linalg.solve(space.Gamma, bradford(D50_XY, wxy) @ M50)
-        info = {"rendering": "dng-matrix", "color_source": choice["color_source"], "encoding": space.encoding,
-                "neutral": neutral.tolist(), "white_xy": dinfo["white_xy"],
-                "temperature": dinfo["temperature"], "tint": dinfo["tint"],
-                "calibration_weight": dinfo["calibration_weight"], "forward_matrix": dinfo["forward_matrix"],
-                "baseline_exposure": float(prof.baseline_exposure), "target_white_xy": [float(v) for v in wxy]}
-        if prof.notes:
-            info["notes"] = list(prof.notes)
-        return _with_exposure(M, info, decoded, exposure, tone, space.Gamma)
-    try:
-        tgt = est.spectrum if target in ("estimate", "as-seen") else get_illuminant(target, cam.wavelengths)
-    except KeyError as e:
-        raise ApiError(422, "invalid_parameter", f"target: {e.args[0]}") from None
     S = resolve_model(surface_model, "surface", cam.channels, cam.wavelengths).basis
-    M, cond = synthesis_matrix(cam.sensitivities, cam.wavelengths, est.spectrum, tgt, S, space)
-    white = est.rgb / np.max(est.rgb)
-    y = (M @ white)
-    lum = float(y[1]) if space.Gamma is None else float((space.Gamma @ y)[1])
-    if not (np.isfinite(lum) and lum > 0):
-        raise ApiError(422, "unrenderable", "the estimated light renders white with no luminance")
-    info = {"lighting_condition": cond, "encoding": space.encoding, "rendering": "spectral",
-            "color_source": cam.source}
-    if np.all(neutral > 0):
-        info["neutral"] = neutral.tolist()
-    return _with_exposure(M / lum, info, decoded, exposure, tone, space.Gamma)
+    M, info = _recovery_correction_matrix(cam, est.rgb, est.spectrum, target, space, S,
+                                          profile=choice["profile"], tone=tone, exposure=exposure,
+                                          image=_estimation_image(decoded))
+    info["color_source"] = choice["color_source"] if info["rendering"] == "dng-matrix" else cam.source
+    return M, info
 
 
-#: LibRaw's ``auto_bright_thr``: the fraction of pixels auto-brightness lets reach display white.
-AUTO_BRIGHT_THR = 0.01
-#: LibRaw's bounds on the auto-brightness gain (its histogram search stops at 32 of 8192 bins:
-#: at most 256; it never darkens: at least 1).
-AUTO_BRIGHT_GAIN = (1.0, 256.0)
-#: Pixels of the estimation image the auto rule looks at (a regular subsample).
-AUTO_BRIGHT_PIXELS = 250_000
-#: The EV range a user's exposure may take.
-EXPOSURE_RANGE = (-10.0, 16.0)
-
-
-EXPOSURE_HELP = ("exposure in EV, or auto (default): auto is LibRaw's auto-brightness (the 99th "
-                 "percentile of the brightest display channel is display white); a number overrides it, "
-                 "0 rendering the brightest neutral the sensor records as display white, each +1 doubling")
-
-
-def parse_exposure(value) -> float | None:
-    """``None``/``""``/``"auto"`` -> ``None`` (the auto rule); a number of EV
-    in :data:`EXPOSURE_RANGE` -> float; anything else a 422."""
-    if value is None or (isinstance(value, str) and value.strip().lower() in ("", "auto")):
-        return None
-    try:
-        ev = float(value)
-    except (TypeError, ValueError):
-        ev = float("nan")
-    lo, hi = EXPOSURE_RANGE
-    if not (np.isfinite(ev) and lo <= ev <= hi):
-        raise ApiError(422, "invalid_parameter", f"exposure must be auto or a number of EV in {lo:g}..{hi:g}, "
-                       f"not {value!r}")
-    return ev
-
-
-def _highlight_white(A64: np.ndarray):
-    """The white-balanced colour a matrix sends to display white (1, 1, 1),
-    or ``None`` when it is not a positive colour."""
-    try:
-        wb_white = np.linalg.solve(A64, np.ones(3))
-    except np.linalg.LinAlgError:
-        return None
-    return wb_white if np.all(wb_white > 0) else None
-
-
-def display_linear(cam_rgb: np.ndarray, M: np.ndarray, neutral=None) -> np.ndarray:
-    """Linear display values of camera RGB ``(N, 3)`` (1.0 = saturation), as
-    :func:`apply_matrix_inplace` computes them before exposure, shoulder,
-    clipping and encoding (clipped highlights made neutral when ``neutral``
-    is given)."""
-    c = np.asarray(cam_rgb, np.float32).reshape(-1, 3)
-    if neutral is None:
-        return c @ np.asarray(M, np.float32).T
-    from recovery.highlights import balance_highlights
-
-    n = np.asarray(neutral, float)
-    n = n / n.max()
-    A64 = np.asarray(M, float) @ np.diag(n)
-    wb = balance_highlights(c, n, white=_highlight_white(A64))
-    return wb @ A64.astype(np.float32).T
+def _estimation_image(decoded):
+    """The image the auto exposure measures: the estimation image (block-
+    averaged, the same for the full image and the preview, so the rendering
+    does not depend on the output size), or ``None``."""
+    return getattr(decoded, "estimation", None)
 
 
 def exposure_gain(decoded, M: np.ndarray, neutral=None, exposure: float | None = None) -> tuple[float, dict]:
-    """The exposure gain on the linear display values, and how it was chosen.
-
-    ``exposure`` in EV (a user's choice): ``2 ** exposure``. ``None``:
-    LibRaw's auto-brightness (dcraw ``write_ppm_tiff``): per display channel
-    the level that :data:`AUTO_BRIGHT_THR` of the pixels exceed (values
-    clipped at white first, as LibRaw clips before its histogram), the
-    largest over the channels is sent to white; the gain is kept in
-    :data:`AUTO_BRIGHT_GAIN`. Measured on the estimation image (block-
-    averaged, the same for the full image and the preview), so the
-    rendering does not depend on the output size. Without an image the
-    gain is 1 (the brightest recordable neutral at display white)."""
-    if exposure is not None:
-        ev = float(exposure)
-        lo, hi = EXPOSURE_RANGE
-        if not (np.isfinite(ev) and lo <= ev <= hi):
-            raise ApiError(422, "invalid_parameter", f"exposure must be a number of EV in {lo:g}..{hi:g}, "
-                           f"or auto; got {exposure!r}")
-        return 2.0 ** ev, {"rule": "user", "ev": ev}
-    img = getattr(decoded, "estimation", None)
-    if not isinstance(img, np.ndarray) or img.ndim != 3 or img.shape[-1] != 3 or img.size == 0:
-        return 1.0, {"rule": "none", "ev": 0.0, "note": "no image to measure: the brightest recordable "
-                     "neutral renders as display white"}
-    flat = img.reshape(-1, 3)
-    step = max(1, flat.shape[0] // AUTO_BRIGHT_PIXELS)
-    sample = np.nan_to_num(np.clip(flat[::step], 0.0, 1.0))
-    lin = np.clip(display_linear(sample, M, neutral), 0.0, 1.0)
-    level = float(np.max(np.percentile(lin, 100.0 * (1.0 - AUTO_BRIGHT_THR), axis=0)))
-    lo, hi = AUTO_BRIGHT_GAIN
-    gain = float(np.clip(1.0 / level, lo, hi)) if level > 0 else hi
-    return gain, {"rule": "auto", "ev": float(np.log2(gain)),
-                  "description": f"LibRaw's auto-brightness: the {100 * (1 - AUTO_BRIGHT_THR):g}th percentile "
-                                 f"of the brightest display channel is display white (gain {lo:g}..{hi:g})",
-                  "percentile_level": level}
-
-
-def _with_exposure(M, info, decoded, exposure, tone, Gamma):
-    """``M`` times the exposure gain (:func:`exposure_gain`), with the
-    highlight shoulder when the gain lifts the sensor's range above white."""
-    gain, einfo = exposure_gain(decoded, M, info.get("neutral"), exposure)
-    info["exposure"] = einfo
-    if gain > 1.0 and tone == "shoulder":
-        from recovery.highlights import SHOULDER_KNEE
-
-        lum = Gamma[1] if Gamma is not None else np.array([0.2126, 0.7152, 0.0722])
-        info["shoulder"] = {"luminance": [float(v) for v in lum], "knee": SHOULDER_KNEE, "peak": gain}
-    info["tone"] = "shoulder" if "shoulder" in info else "linear"
-    if tone != "linear" and info.get("encoding") is not None:
-        info["curve"] = "libraw"        # display-encoded outputs take LibRaw's tone; linear ones stay linear
-    return M * gain, info
+    """The exposure gain on the linear display values of ``M`` for an upload
+    (:func:`recovery.synthesis.exposure_gain` on its estimation image):
+    ``2 ** exposure`` for a user's EV, else LibRaw's auto-brightness; 1
+    without an image."""
+    return _recovery_exposure_gain(_estimation_image(decoded), M, neutral, exposure)
 
 
 def rendering_json(info: dict) -> dict:
@@ -524,11 +398,11 @@ def default_crop(decoded, img: np.ndarray) -> np.ndarray:
     sh, sw = (W, H) if flip & 4 else (H, W)          # the sensor's (unoriented) shape
     if top < 0 or left < 0 or top + h > sh or left + w > sw or (h, w) == (sh, sw):
         return img
-    from .rawio import _FLIP_OPS
+    from .rawio import FLIP_OPS
 
     rows = np.broadcast_to(np.arange(sh)[:, None], (sh, sw))
     cols = np.broadcast_to(np.arange(sw)[None, :], (sh, sw))
-    op = _FLIP_OPS.get(flip, _FLIP_OPS[0])
+    op = FLIP_OPS.get(flip, FLIP_OPS[0])
     r, c = op(rows), op(cols)                       # views: no memory
     keep_r = (r[:, 0] >= top) & (r[:, 0] < top + h) if np.ptp(r[:, 0]) else (c[:, 0] >= left) & (c[:, 0] < left + w)
     keep_c = (c[0] >= left) & (c[0] < left + w) if np.ptp(c[0]) else (r[0] >= top) & (r[0] < top + h)
@@ -555,16 +429,51 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
     return out, M, info
 
 
-def display_curve(x: np.ndarray) -> np.ndarray:
-    """LibRaw's tone: its default output curve (``gamma=(2.222, 4.5)``, the
-    ITU-R BT.709 transfer function) read by a display as sRGB, as a curve on
-    linear values: ``sRGB_decode(BT709_encode(x))``. It maps 0 -> 0 and
-    1 -> 1, darkens the mid-tones (0.18 -> 0.14) and deepens the shadows, so
-    with LibRaw's auto-brightness gain the encoded image is as bright as
-    LibRaw's at every level."""
-    x = np.clip(np.asarray(x, float), 0.0, 1.0)
-    v = np.where(x < 0.018, 4.5 * x, 1.099 * x ** 0.45 - 0.099)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+def estimate_summary(run: EstimateRun, info: dict | None = None, **extra) -> dict:
+    """The estimate in short (the ``X-Illuminant`` of an XMP download, the
+    JSON an output file carries, the XMP sidecar's): method, camera RGB,
+    multipliers, CCT/Duv, camera name, and the rendering when ``info``."""
+    est = run.estimate
+    cct, duv = est.cct_duv()
+    out = {"method": est.method, "camera_rgb": est.rgb.tolist(), "wb_multipliers": est.wb_multipliers.tolist(),
+           "cct": cct, "duv": duv, "camera": run.camera.name}
+    if info:
+        out["rendering"] = info.get("rendering")
+    out.update(extra)
+    return out
+
+
+def render_corrected(decoded, run: EstimateRun, *, target: str, output: str, fmt: Format,
+                     surface_basis=None, threads: int | None = None, white: str = "estimate",
+                     exposure: float | None = None) -> tuple[np.ndarray, np.ndarray, dict, dict]:
+    """Correction matrix -> apply: the corrected full-resolution image in
+    ``fmt``'s bits (:data:`service.options.FORMATS`) at ``exposure`` (EV;
+    ``None``: the auto rule, :func:`correction_matrix`) and what its file
+    carries (ICC profile, the source's EXIF, the estimate: :func:`output_meta`).
+    Returns ``(image, M, info, meta)``; timings go to ``run.timings_ms``."""
+    out, M, info = render_full(decoded, run, target, output, fmt.bits, surface_basis, threads=threads,
+                               timings=run.timings_ms, exposure=exposure)
+    summary = estimate_summary(run, info, white=white, target=target, output=output)
+    return out, M, info, output_meta(decoded, output, summary)
+
+
+def write_corrected(decoded, run: EstimateRun, path: str, **kw) -> tuple[np.ndarray, dict]:
+    """:func:`render_corrected`, encoded to ``path``: ``(M, info)``."""
+    out, M, info, meta = render_corrected(decoded, run, **kw)
+    t0 = time.perf_counter()
+    encode_image(out, kw["fmt"].encoder, path, meta=meta)
+    run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
+    return M, info
+
+
+def xmp_sidecar(decoded, run: EstimateRun) -> tuple[str, dict, dict]:
+    """The Camera Raw XMP sidecar of ``run``'s light (Temperature/Tint by
+    :func:`temperature_tint`): ``(text, temperature_tint, summary)``."""
+    from .outputs import xmp_sidecar as _xmp
+
+    tt = temperature_tint(decoded, run)
+    summary = estimate_summary(run, temperature=tt["temperature"], tint=tt["tint"], basis=tt["basis"])
+    return _xmp(tt["temperature"], tt["tint"], summary), tt, summary
 
 
 def _encoding_lut(encoding: str | None, bits: int, curve: str | None = None) -> np.ndarray:
@@ -624,7 +533,7 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
         inv = np.float32(1.0 / 65535.0)
         # the white-balanced colour the matrix sends to display white (1, 1, 1)
         # for the DNG rendering; near it for the spectral one)
-        wb_white = _highlight_white(A64)
+        wb_white = highlight_white(A64)
 
     def work(r):
         chunk = rgb16[r:r + rows_per_chunk]
@@ -648,9 +557,6 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     with ThreadPoolExecutor(n_threads) as pool:
         list(pool.map(work, range(0, rgb16.shape[0], rows_per_chunk)))
     return out
-
-
-FORMATS = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg"}
 
 
 def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None) -> bytes | None:
@@ -688,7 +594,7 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
     ok, enc = cv2.imencode(".png" if fmt == "png" else ".jpg", bgr,
                            [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
-        raise ApiError(422, "encode_failed", f"could not encode {fmt}")
+        raise ServiceError(422, "encode_failed", f"could not encode {fmt}")
     data = enc.tobytes()
     if icc or facts or meta.get("text"):
         data = outputs.embed(data, fmt, icc, outputs.exif_block(facts) if facts else None, meta.get("text"))
@@ -727,7 +633,7 @@ def temperature_tint(decoded, run: EstimateRun) -> dict:
         return {"temperature": t, "tint": tint, "xy": [float(xy[0]), float(xy[1])], "basis": prof.source}
     cct, duv = run.estimate.cct_duv()
     if cct is None:
-        raise ApiError(422, "no_temperature", "the estimated light is too far from the Planckian locus for a "
+        raise ServiceError(422, "no_temperature", "the estimated light is too far from the Planckian locus for a "
                        "temperature/tint white balance")
     return {"temperature": cct, "tint": 3000.0 * duv, "basis": "spectrum CCT/Duv (approximate)"}
 
@@ -765,7 +671,7 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
 
     def to_est(r, c):
         if not (0 <= r < H and 0 <= c < W):
-            raise ApiError(422, "invalid_parameter", f"point ({r}, {c}) outside the {H}x{W} image")
+            raise ServiceError(422, "invalid_parameter", f"point ({r}, {c}) outside the {H}x{W} image")
         return min(int(r * sy), h - 1), min(int(c * sx), w - 1)
 
     kinds, wheres, rows, cols = [], [], [], []
@@ -774,7 +680,7 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
         kinds.append("point"), wheres.append([r, c]), rows.append((a, a + 1)), cols.append((b, b + 1))
     for r0, c0, r1, c1 in rects:
         if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
-            raise ApiError(422, "invalid_parameter", f"rectangle {[r0, c0, r1, c1]} must satisfy "
+            raise ServiceError(422, "invalid_parameter", f"rectangle {[r0, c0, r1, c1]} must satisfy "
                            f"0 <= r0 < r1 <= {H} and 0 <= c0 < c1 <= {W}")
         a0, b0 = to_est(r0, c0)
         a1, b1 = to_est(r1 - 1, c1 - 1)
@@ -798,7 +704,7 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
         bad = _box(_box_sums(~finite), r0, c0, r1, c1) > 0
         if bad.any():
             k = int(np.argmax(bad))
-            raise ApiError(422, "invalid_parameter", f"{kinds[k]} {wheres[k]} covers non-finite pixel values: "
+            raise ServiceError(422, "invalid_parameter", f"{kinds[k]} {wheres[k]} covers non-finite pixel values: "
                            "no reflectance there")
         sat = _box(_box_sums(np.asarray(decoded.saturated, bool)), r0, c0, r1, c1) > 0
         # the light at each entry's centre (one light: the same everywhere)

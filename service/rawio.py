@@ -1,21 +1,14 @@
-"""Uploaded images to linear camera RGB, and the camera model to analyse them.
+"""Uploaded images to linear camera RGB (decoding only; which camera took the
+image is :mod:`recovery.cameras`).
 
-Two jobs, both at the service's edge (parse and validate; the numbers come
-from :mod:`recovery` and :mod:`models`):
-
-1. :func:`decode_upload` turns the bytes of an upload into a
-   :class:`DecodedImage`: a half-size, black-subtracted, saturation-scaled
-   *estimation image* made by binning each 2x2 Bayer cell (no demosaic), a
-   mask of saturated cells, the metadata that says which camera took it
-   (Make/Model, colour matrix, as-shot neutral, black and white levels), and
-   a method that demosaics the full-resolution image on the same scale when
-   (and only when) it is needed.
-2. :func:`resolve_camera` chooses the sensor functions :math:`R_k(\\lambda)`
-   of Wandell (1985), eq. 12, for that image: an uploaded CSV, a named
-   measured camera, the measured camera matching Make/Model, sensitivities
-   derived from the file's XYZ -> camera matrix (:func:`camera_from_matrix`),
-   or a generic camera (:func:`generic_camera`), in that order, saying which
-   and how approximate.
+:func:`decode_upload` turns the bytes of an upload into a
+:class:`DecodedImage`: a half-size, black-subtracted, saturation-scaled
+*estimation image* made by binning each 2x2 Bayer cell (no demosaic), a
+mask of saturated cells, the metadata that says which camera took it
+(Make/Model, colour matrix, as-shot neutral, black and white levels), and
+a method that demosaics the full-resolution image on the same scale when
+(and only when) it is needed. Every refusal is a
+:class:`~service.errors.ServiceError` (413, 415 or 422).
 
 Scale of the estimation image. For a CFA site of colour ``c`` with digital
 number :math:`d`, black level :math:`b_c` and white level :math:`w`,
@@ -34,7 +27,7 @@ the one above).
 
 What LibRaw 0.22 (``rawpy`` 0.28) does with our files is measured in
 ``tests/test_dngwriter.py`` and ``tests/test_rawio.py`` (see also
-:mod:`service.dngwriter`): ``raw.sizes`` is read without unpacking the pixels
+:mod:`testing.dngwriter`): ``raw.sizes`` is read without unpacking the pixels
 (so the pixel-count limit is enforced before any pixel buffer exists), a
 truncated file fails only when the pixels are unpacked, and a file one byte
 short decodes silently from memory, which is why the strip/tile extents of a
@@ -42,7 +35,7 @@ TIFF-structured file are checked against its length here.
 
 References
 ----------
-Wandell (1985), ``shared/seeds/002``, eq. 12 and Fig. 6.
+Wandell (1985) [docs/references.md#seed-002], eq. 12 and Fig. 6.
 Adobe, *Digital Negative (DNG) Specification* 1.4.0.0, chapter 6 (ColorMatrix
 maps XYZ to the camera's reference space).
 """
@@ -58,15 +51,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import ServiceError
+
 __all__ = [
-    "UploadError",
     "DecodedImage",
     "decode_upload",
-    "camera_from_matrix",
-    "camera_from_csv",
-    "resolve_camera",
-    "generic_camera",
     "SATURATION_FRACTION",
+    "FLIP_OPS",
 ]
 
 #: A CFA sample at or above this fraction of ``white - black`` (above its
@@ -84,7 +75,7 @@ RAW_EXTENSIONS = frozenset({
 #: Orientation LibRaw applies for each ``sizes.flip`` code (EXIF Orientation
 #: 1..8 -> flip 0, 1, 3, 2, 4, 6, 7, 5), as numpy operations on (H, W, ...)
 #: arrays; measured against LibRaw's own output in ``tests/test_rawio.py``.
-_FLIP_OPS = {
+FLIP_OPS = {
     0: lambda a: a,
     1: lambda a: a[:, ::-1],
     2: lambda a: a[::-1],
@@ -95,39 +86,9 @@ _FLIP_OPS = {
     7: lambda a: np.swapaxes(a[::-1, ::-1], 0, 1),
 }
 
-_MAX_CSV_ROWS = 100_000
-
-
 # ---------------------------------------------------------------------------
-# Errors and the decoded image
+# The decoded image
 # ---------------------------------------------------------------------------
-
-class UploadError(Exception):
-    """An upload the service cannot use, with the HTTP status to answer.
-
-    Parameters
-    ----------
-    status : int
-        413 (too large), 415 (a format the service does not read) or 422
-        (readable format, unusable content).
-    code : str
-        Machine-readable error code (``empty_file``, ``unsupported_format``,
-        ``not_linear``, ``corrupt_file``, ``too_many_pixels``, ``non_finite``,
-        ``bad_csv``, ``unknown_camera``, ``no_color_matrix``,
-        ``bad_color_matrix``).
-    detail : str
-        What was wrong, in words a user can act on.
-    """
-
-    def __init__(self, status: int, code: str, detail: str):
-        super().__init__(detail)
-        self.status = int(status)
-        self.code = str(code)
-        self.detail = str(detail)
-
-    def __repr__(self) -> str:
-        return f"UploadError({self.status}, {self.code!r}, {self.detail!r})"
-
 
 @dataclass
 class DecodedImage:
@@ -212,7 +173,7 @@ class DecodedImage:
 
         Raises
         ------
-        UploadError
+        ServiceError
             422 ``corrupt_file`` if LibRaw fails on the pixels.
         """
         if out not in ("uint16", "float32"):
@@ -339,7 +300,7 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
 
     Raises
     ------
-    UploadError
+    ServiceError
         422 ``empty_file``; 415 ``unsupported_format`` (JPEG, GIF, ...,
         anything LibRaw cannot read, grey or non-RGB images, unsupported
         sample types); 415 ``not_linear`` (8-bit TIFF/PNG, which are gamma
@@ -349,7 +310,7 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
         ``corrupt_file``.
     """
     if data is None or len(data) == 0:
-        raise UploadError(422, "empty_file", "the uploaded file is empty")
+        raise ServiceError(422, "empty_file", "the uploaded file is empty")
     if not isinstance(data, bytes):
         data = bytes(data)
     max_pixels = int(max_pixels)
@@ -359,17 +320,17 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
         if fmt == "PNG":
             return _decode_png(data, max_pixels)
         if fmt in _NOT_RAW:
-            raise UploadError(415, "unsupported_format",
+            raise ServiceError(415, "unsupported_format",
                               f"{label} is a {fmt} file; send a camera RAW (DNG, NEF, CR2, ARW, ...) or a "
                               "linear 16-bit/float TIFF or 16-bit PNG")
         return _decode_raw_or_tiff(data, fmt, filename, max_pixels, estimation_pixels)
-    except UploadError:
+    except ServiceError:
         raise
     except MemoryError:
-        raise UploadError(413, "too_many_pixels",
+        raise ServiceError(413, "too_many_pixels",
                           f"not enough memory to decode {label}; send a smaller image") from None
     except Exception as exc:  # malformed data must never escape as a 500
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"{label} ({fmt}) could not be decoded: {type(exc).__name__}: {exc}") from None
 
 
@@ -385,22 +346,22 @@ def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels:
             return _decode_tiff(data, filename, max_pixels)
         if data[:2] in (b"II", b"MM") or _extension(filename) in RAW_EXTENSIONS:
             what = "a TIFF-like header" if data[:2] in (b"II", b"MM") else f"a {_extension(filename)} name"
-            raise UploadError(422, "corrupt_file",
+            raise ServiceError(422, "corrupt_file",
                               f"{label} has {what} but neither LibRaw nor tifffile can read it "
                               "(damaged or truncated header?)") from None
-        raise UploadError(415, "unsupported_format",
+        raise ServiceError(415, "unsupported_format",
                           f"{label} is not a format the service reads (detected: {fmt}, first bytes "
                           f"{data[:8].hex()}); send a camera RAW LibRaw reads, or a linear 16-bit/float "
                           "TIFF or 16-bit PNG") from None
     except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError) as exc:
-        raise UploadError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None
+        raise ServiceError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None
     except rawpy.LibRawError as exc:
         if fmt == "unknown" and data[:2] not in (b"II", b"MM") and _extension(filename) not in RAW_EXTENSIONS:
-            raise UploadError(415, "unsupported_format",
+            raise ServiceError(415, "unsupported_format",
                               f"{label} is not a format the service reads (detected: {fmt}, first bytes "
                               f"{data[:8].hex()}); send a camera RAW LibRaw reads, or a linear 16-bit/float "
                               "TIFF or 16-bit PNG") from None
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"{label} could not be read as a RAW file ({type(exc).__name__}: "
                           f"{_librawmsg(exc)}); it is truncated or damaged") from None
     try:
@@ -419,9 +380,9 @@ def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels:
                 return _decode_tiff(data, filename, max_pixels)
         return _decode_raw(raw, data, fmt, filename, max_pixels, info, info_error, estimation_pixels)
     except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError) as exc:
-        raise UploadError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None
+        raise ServiceError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None
     except rawpy.LibRawError as exc:
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"{label}: LibRaw failed on the pixel data ({type(exc).__name__}: "
                           f"{_librawmsg(exc)}); the file is truncated or damaged") from None
     finally:
@@ -819,7 +780,7 @@ def _check_tiff_structure(data: bytes) -> None:
 
     Raises
     ------
-    UploadError
+    ServiceError
         422 ``corrupt_file`` naming the first thing that is missing, outside
         the file or inconsistent: LibRaw would decode such a file partly
         from memory that the previous decode left behind.
@@ -848,11 +809,11 @@ def _check_tiff_structure(data: bytes) -> None:
         for tags, where in images:
             _check_image_ifd(data, tags, where, is_dng, structure)
     except _Unverifiable as exc:
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"the file's TIFF structure cannot be verified: {exc}; it is truncated or damaged "
                           "(refused rather than decoded partly from memory)") from None
     except (struct.error, OverflowError, MemoryError, ValueError) as exc:
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"the file's TIFF structure cannot be verified ({type(exc).__name__}: {exc}); it is "
                           "truncated or damaged") from None
 
@@ -967,19 +928,19 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
     s = raw.sizes                         # header only: no pixel buffer yet
     declared = max(int(s.raw_height) * int(s.raw_width), int(s.height) * int(s.width))
     if declared > max_pixels:
-        raise UploadError(413, "too_many_pixels",
+        raise ServiceError(413, "too_many_pixels",
                           f"{label} declares {s.width}x{s.height} pixels ({declared:,} with margins); "
                           f"the limit is {max_pixels:,}")
     if s.height < 2 or s.width < 2:
-        raise UploadError(422, "corrupt_file", f"{label} declares an image of {s.width}x{s.height} pixels")
+        raise ServiceError(422, "corrupt_file", f"{label} declares an image of {s.width}x{s.height} pixels")
     aspect = float(s.pixel_aspect)
     if not (math.isfinite(aspect) and aspect > 0):
-        raise UploadError(422, "corrupt_file", f"{label} declares a pixel aspect ratio of {aspect}")
+        raise ServiceError(422, "corrupt_file", f"{label} declares a pixel aspect ratio of {aspect}")
     # LibRaw stretches non-square pixels (DNG DefaultScale) to square ones when
     # demosaicking: the image it makes, not the declared one, must fit the limit
     out_h, out_w = _oriented_shape(int(s.height), int(s.width), 0, aspect)
     if out_h * out_w > max_pixels:
-        raise UploadError(413, "too_many_pixels",
+        raise ServiceError(413, "too_many_pixels",
                           f"{label} declares {s.width}x{s.height} pixels with a pixel aspect ratio of {aspect:.4g} "
                           f"(DNG DefaultScale): {out_w}x{out_h} = {out_h * out_w:,} pixels once stretched to "
                           f"square pixels; the limit is {max_pixels:,}")
@@ -990,7 +951,7 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
             warnings.append(f"TIFF tags unreadable ({type(info_error).__name__}); camera make/model unknown")
         else:
             if info.problem:
-                raise UploadError(422, "corrupt_file", f"{label}: {info.problem}")
+                raise ServiceError(422, "corrupt_file", f"{label}: {info.problem}")
             make, model, color_matrix = info.make, info.model, info.color_matrix
             if info.grey_guess:
                 warnings.append("a single-channel TIFF without camera tags, read by LibRaw as an RGGB Bayer mosaic "
@@ -1002,20 +963,20 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
     # -- pixels (unpacks; LibRawIOError etc. on truncated data)
     num_colors = int(raw.num_colors)
     if num_colors < 3:
-        raise UploadError(415, "unsupported_format",
+        raise ServiceError(415, "unsupported_format",
                           f"{label} is a monochrome RAW ({num_colors} colour); colour analysis needs R, G, B")
     blacks = [float(b) for b in raw.black_level_per_channel]
     white = float(raw.white_level)
     if raw.raw_type != rawpy.RawType.Flat and white <= 255 and raw.raw_pattern is None:
         # e.g. a Nikon Coolscan NEF: 8-bit RGB per pixel, no sensor mosaic, no colour matrix
         who = " ".join(x for x in (make, model) if x)
-        raise UploadError(415, "not_camera_raw",
+        raise ServiceError(415, "not_camera_raw",
                           f"{label} is not a camera RAW: a scanned 8-bit RGB image"
                           + (f" ({who})" if who else "") + "; it carries no linear sensor data to analyse")
     if not white > max(blacks):
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"{label}: white level {white:g} is not above the black levels {blacks}")
-    flip = int(s.flip) if int(s.flip) in _FLIP_OPS else 0
+    flip = int(s.flip) if int(s.flip) in FLIP_OPS else 0
     bmin = min(blacks)
     user_wb = [(white - bmin) / (white - b) for b in blacks]
     post = dict(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=False, use_auto_wb=False,
@@ -1040,12 +1001,12 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
         if s.height % 2 or s.width % 2:
             warnings.append("odd image size: the last row/column is not in the half-size estimation image")
         if flip:
-            est = np.ascontiguousarray(_FLIP_OPS[flip](est))
-            sat = np.ascontiguousarray(_FLIP_OPS[flip](sat))
+            est = np.ascontiguousarray(FLIP_OPS[flip](est))
+            sat = np.ascontiguousarray(FLIP_OPS[flip](sat))
     else:
         desc = raw.color_desc.decode("latin-1")[:num_colors]
         if sorted(desc[:3]) != ["B", "G", "R"]:
-            raise UploadError(415, "unsupported_format",
+            raise ServiceError(415, "unsupported_format",
                               f"{label}: a sensor with colours {desc!r} is not supported (needs R, G, B)")
         # X-Trans, linear (demosaiced) DNG, Foveon...: LibRaw's half-size output
         rgb = raw.postprocess(half_size=True, **post)
@@ -1105,7 +1066,7 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
             sites = _bayer_channels(raw, s)
             if sites is None or raw.raw_type != rawpy.RawType.Flat or abs(float(s.pixel_aspect) - 1) > 1e-6:
                 return None
-            flip = int(s.flip) if int(s.flip) in _FLIP_OPS else 0
+            flip = int(s.flip) if int(s.flip) in FLIP_OPS else 0
             blacks = [float(b) for b in raw.black_level_per_channel]
             white = float(raw.white_level)
             cfa = raw.raw_image_visible
@@ -1126,7 +1087,7 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
                     dst[r:r + rows] = a + np.float32(0.5)
             del cfa
     except rawpy.LibRawError as exc:
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"LibRaw failed to read the pixels ({type(exc).__name__}: {_librawmsg(exc)})") from None
     code = _OPENCV_BAYER.get("".join(letters))
     if code is None:
@@ -1134,7 +1095,7 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
     rgb = cv2.cvtColor(mos, getattr(cv2, code))
     del mos
     if flip:
-        rgb = np.ascontiguousarray(_FLIP_OPS[flip](rgb))
+        rgb = np.ascontiguousarray(FLIP_OPS[flip](rgb))
     return rgb
 
 
@@ -1159,9 +1120,9 @@ def _raw_full_linear(img: DecodedImage, demosaic: str | None) -> np.ndarray:
         with rawpy.imread(io.BytesIO(img._source)) as raw:
             rgb = raw.postprocess(**params)
     except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError, MemoryError) as exc:
-        raise UploadError(413, "too_many_pixels", f"not enough memory to demosaic the image ({exc})") from None
+        raise ServiceError(413, "too_many_pixels", f"not enough memory to demosaic the image ({exc})") from None
     except rawpy.LibRawError as exc:
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"LibRaw failed to demosaic the file ({type(exc).__name__}: {_librawmsg(exc)})") from None
     if rgb.shape[2] != 3:
         rgb = np.ascontiguousarray(rgb[..., :3])
@@ -1189,12 +1150,12 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedI
     try:
         tf = tifffile.TiffFile(io.BytesIO(data))
     except Exception as exc:
-        raise UploadError(422, "corrupt_file",
+        raise ServiceError(422, "corrupt_file",
                           f"{label} has a TIFF header but its structure cannot be read "
                           f"({type(exc).__name__}: {exc})") from None
     with tf:
         if not tf.pages:
-            raise UploadError(422, "corrupt_file", f"{label} is a TIFF without images")
+            raise ServiceError(422, "corrupt_file", f"{label} is a TIFF without images")
         page = tf.pages[0]
         photometric = int(getattr(page, "photometric", 0) or 0)
         if _tag(page, 50706) is not None or photometric in (32803, 34892):
@@ -1202,42 +1163,42 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedI
             sane = len(shape) == 2 and all(isinstance(v, (int, np.integer)) and v > 0 for v in shape)
             if sane and int(shape[0]) * int(shape[1]) > max_pixels:
                 # LibRaw refuses such headers outright; say why in the limit's terms
-                raise UploadError(413, "too_many_pixels",
+                raise ServiceError(413, "too_many_pixels",
                                   f"{label} declares {shape[1]}x{shape[0]} = {int(shape[0]) * int(shape[1]):,} "
                                   f"pixels; the limit is {max_pixels:,}")
             if sane and min(shape) < 22:
-                raise UploadError(415, "unsupported_format",
+                raise ServiceError(415, "unsupported_format",
                                   f"{label} is a DNG/CFA image of {shape[1]}x{shape[0]} pixels; LibRaw "
                                   "refuses images under 22 pixels on a side")
-            raise UploadError(422, "corrupt_file",
+            raise ServiceError(422, "corrupt_file",
                               f"{label} is a DNG (or CFA TIFF) that LibRaw cannot decode: damaged, or a "
                               "variant LibRaw does not support")
         axes = page.axes
         shape = page.shape
         dtype = np.dtype(page.dtype) if page.dtype is not None else None
         if "Y" not in axes or "X" not in axes or not all(int(v) > 0 for v in shape):
-            raise UploadError(422, "corrupt_file", f"{label}: TIFF without a readable image (shape {shape}, "
+            raise ServiceError(422, "corrupt_file", f"{label}: TIFF without a readable image (shape {shape}, "
                               f"axes {axes!r})")
         h, w = shape[axes.index("Y")], shape[axes.index("X")]
         channels = shape[axes.index("S")] if "S" in axes else 1
         if dtype is None:
-            raise UploadError(415, "unsupported_format", f"{label}: TIFF sample format not supported")
+            raise ServiceError(415, "unsupported_format", f"{label}: TIFF sample format not supported")
         if dtype == np.uint8 or (dtype.kind == "u" and int(getattr(page, "bitspersample", 16)) <= 8):
-            raise UploadError(415, "not_linear", f"{label} is an 8-bit TIFF: {_NOT_LINEAR}")
+            raise ServiceError(415, "not_linear", f"{label} is an 8-bit TIFF: {_NOT_LINEAR}")
         if not (dtype == np.uint16 or dtype.kind == "f"):
-            raise UploadError(415, "unsupported_format",
+            raise ServiceError(415, "unsupported_format",
                               f"{label}: TIFF samples are {dtype}; need 16-bit unsigned integers or float32")
         if channels not in (3, 4) or axes.replace("S", "") != "YX":
-            raise UploadError(415, "unsupported_format",
+            raise ServiceError(415, "unsupported_format",
                               f"{label}: TIFF with {channels} channel(s) (axes {axes!r}); need an H x W x 3 "
                               "linear RGB image")
         if h * w > max_pixels:
-            raise UploadError(413, "too_many_pixels",
+            raise ServiceError(413, "too_many_pixels",
                               f"{label} declares {w}x{h} = {h * w:,} pixels; the limit is {max_pixels:,}")
         size = len(data)
         for off, cnt in zip(page.dataoffsets or (), page.databytecounts or ()):
             if off + cnt > size:
-                raise UploadError(422, "corrupt_file",
+                raise ServiceError(422, "corrupt_file",
                                   f"{label}: image data at bytes {off}..{off + cnt} lies beyond the end of the "
                                   f"{size}-byte file (truncated?)")
         make, model = _ascii_tag(page, 271), _ascii_tag(page, 272)
@@ -1245,7 +1206,7 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedI
             arr = page.asarray()
         except ValueError as exc:
             if "imagecodecs" in str(exc):
-                raise UploadError(415, "unsupported_format",
+                raise ServiceError(415, "unsupported_format",
                                   f"{label}: TIFF compression {page.compression!r} is not supported; send it "
                                   "uncompressed, or deflate/LZW compressed") from None
             raise
@@ -1260,43 +1221,43 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedI
 
 def _png_chunks(data: bytes):
     """``(type, offset of data, length)`` of every chunk, checking lengths
-    and CRCs; raises ``UploadError(422)`` on damage."""
+    and CRCs; raises ``ServiceError(422)`` on damage."""
     pos, n = 8, len(data)
     seen_end = False
     while pos < n:
         if pos + 12 > n:
-            raise UploadError(422, "corrupt_file", "PNG truncated inside a chunk header")
+            raise ServiceError(422, "corrupt_file", "PNG truncated inside a chunk header")
         length, ctype = struct.unpack(">I4s", data[pos:pos + 8])
         end = pos + 12 + length
         if end > n:
-            raise UploadError(422, "corrupt_file",
+            raise ServiceError(422, "corrupt_file",
                               f"PNG truncated: chunk {ctype!r} needs {length} bytes, the file ends first")
         crc = struct.unpack(">I", data[end - 4:end])[0]
         if zlib.crc32(data[pos + 4:end - 4]) & 0xFFFFFFFF != crc:
-            raise UploadError(422, "corrupt_file", f"PNG chunk {ctype!r} at byte {pos} fails its CRC (damaged)")
+            raise ServiceError(422, "corrupt_file", f"PNG chunk {ctype!r} at byte {pos} fails its CRC (damaged)")
         yield ctype, pos + 8, length
         pos = end
         if ctype == b"IEND":
             seen_end = True
             break
     if not seen_end:
-        raise UploadError(422, "corrupt_file", "PNG truncated: no IEND chunk")
+        raise ServiceError(422, "corrupt_file", "PNG truncated: no IEND chunk")
 
 
 def _decode_png(data: bytes, max_pixels: int) -> DecodedImage:
     import cv2
 
     if len(data) < 33 or data[12:16] != b"IHDR":
-        raise UploadError(422, "corrupt_file", "PNG without a valid IHDR header")
+        raise ServiceError(422, "corrupt_file", "PNG without a valid IHDR header")
     width, height, depth, ctype = struct.unpack(">IIBB", data[16:26])
     kinds = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
     if ctype == 3 or depth <= 8:
-        raise UploadError(415, "not_linear", f"the PNG is {depth}-bit {kinds.get(ctype, '?')}: {_NOT_LINEAR}")
+        raise ServiceError(415, "not_linear", f"the PNG is {depth}-bit {kinds.get(ctype, '?')}: {_NOT_LINEAR}")
     if ctype not in (2, 6):
-        raise UploadError(415, "unsupported_format",
+        raise ServiceError(415, "unsupported_format",
                           f"the PNG is {kinds.get(ctype, f'colour type {ctype}')}; need 16-bit RGB")
     if width * height > max_pixels:
-        raise UploadError(413, "too_many_pixels",
+        raise ServiceError(413, "too_many_pixels",
                           f"the PNG declares {width}x{height} = {width * height:,} pixels; the limit is "
                           f"{max_pixels:,}")
     warnings = [_LINEAR_NOTE]
@@ -1311,9 +1272,9 @@ def _decode_png(data: bytes, max_pixels: int) -> DecodedImage:
                                 "as linear camera RGB")
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
-        raise UploadError(422, "corrupt_file", "OpenCV could not decode the PNG (damaged data)")
+        raise ServiceError(422, "corrupt_file", "OpenCV could not decode the PNG (damaged data)")
     if arr.dtype != np.uint16 or arr.ndim != 3 or arr.shape[2] not in (3, 4):
-        raise UploadError(415, "unsupported_format",
+        raise ServiceError(415, "unsupported_format",
                           f"the PNG decoded to {arr.dtype} {arr.shape}; need 16-bit RGB")
     if arr.shape[2] == 4:
         warnings.append("fourth (alpha) channel ignored")
@@ -1337,7 +1298,7 @@ def _linear_image(kind: str, arr: np.ndarray, warnings: list, make, model) -> De
             est[r:r + 256] = arr[r:r + 256]
         if not np.all(np.isfinite(est)):
             bad = int((~np.isfinite(est)).any(axis=-1).sum())
-            raise UploadError(422, "non_finite", f"the float image has {bad} pixel(s) with NaN or Inf")
+            raise ServiceError(422, "non_finite", f"the float image has {bad} pixel(s) with NaN or Inf")
         np.greater_equal(est, 1.0).any(axis=-1, out=sat)
     frac = float(sat.mean()) if sat.size else 0.0
     if frac > 0.01:
@@ -1345,356 +1306,3 @@ def _linear_image(kind: str, arr: np.ndarray, warnings: list, make, model) -> De
     return DecodedImage(kind=kind, estimation=est, saturated=sat, full_shape=(int(h), int(w)), make=make,
                         model=model, color_matrix=None, as_shot_neutral=None, black_level=0.0,
                         white_level=white, warnings=warnings)
-
-
-# ---------------------------------------------------------------------------
-# Cameras
-# ---------------------------------------------------------------------------
-
-def _grid(wavelengths) -> np.ndarray:
-    from models import DEFAULT_WAVELENGTHS
-
-    return DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, dtype=np.float64)
-
-
-def camera_from_matrix(color_matrix: np.ndarray, wavelengths=None, name: str = "matrix-derived"):
-    """Sensitivities implied by an XYZ -> camera matrix.
-
-    If the camera were colorimetric, :math:`c = M\\,XYZ` for every colour
-    signal, i.e. :math:`R_k(\\lambda) = \\sum_j M_{kj}\\,\\bar{x}_j(\\lambda)`
-    with the CIE 1931 2° colour matching functions; as arrays
-    ``R = cmfs @ M.T`` (``(N, 3)``). No real camera is colorimetric, so this
-    is an approximation (Wandell 1985, Fig. 6: analysis needs the camera's
-    own sensors): negative lobes, which no sensor has, are clipped to 0 and
-    the amount removed is reported in ``Camera.notes``. The channel balance
-    of the matrix is kept; the whole is scaled so the largest value is 1.
-
-    Parameters
-    ----------
-    color_matrix : (3, 3) array_like
-        XYZ -> camera (rows camera R, G, B), e.g. DNG ColorMatrix1.
-    wavelengths : array_like, optional
-        Grid in nm; default 400-700 nm at 10 nm.
-    name : str
-
-    Returns
-    -------
-    recovery.Camera
-        ``source="matrix-derived"``.
-
-    Raises
-    ------
-    UploadError
-        422 ``bad_color_matrix`` for a matrix that is not 3x3, finite and
-        invertible, or that leaves a channel with no positive sensitivity.
-
-    Examples
-    --------
-    >>> cam = camera_from_matrix(np.eye(3))
-    >>> cam.source, cam.sensitivities.shape
-    ('matrix-derived', (31, 3))
-    """
-    from models import observer
-    from recovery import Camera
-
-    m = np.asarray(color_matrix, dtype=np.float64)
-    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
-        raise UploadError(422, "bad_color_matrix", f"colour matrix must be a finite 3x3 array, got {m.shape}")
-    if abs(np.linalg.det(m)) < 1e-12 * max(1.0, float(np.abs(m).max()) ** 3):
-        raise UploadError(422, "bad_color_matrix", "colour matrix is singular")
-    wl = _grid(wavelengths)
-    cmfs = observer("CIE 1931 2 Degree Standard Observer", wl)
-    r = cmfs @ m.T
-    pos = np.clip(r, 0.0, None)
-    if np.any(pos.max(axis=0) <= 0):
-        raise UploadError(422, "bad_color_matrix",
-                          "colour matrix gives a channel with no positive sensitivity anywhere")
-    removed = np.abs(r - pos).sum(axis=0) / np.maximum(np.abs(r).sum(axis=0), 1e-300)
-    pos = pos / pos.max()
-    notes = (
-        "sensitivities derived from an XYZ->camera colour matrix and the CIE 1931 2 degree CMFs "
-        "(R = cmfs @ M.T); approximate: real cameras are not colorimetric",
-        "negative lobes clipped to 0 (fraction of each channel's absolute area removed: "
-        + ", ".join(f"{c} {100 * f:.1f} %" for c, f in zip("RGB", removed)) + ")",
-    )
-    return Camera(wl, pos, name, "matrix-derived", notes, m)
-
-
-def generic_camera(wavelengths=None):
-    """A generic RGB camera: the mean of the three measured cameras.
-
-    :math:`R_k = \\frac{1}{3}\\sum_{cam} R_k^{cam}` with each measured
-    camera's channels as :func:`models.camera_sensitivities` gives them
-    (peak 1 per channel on the default grid): Nikon 5100 (NPL), Sigma
-    SDMerill (NPL), Canon EOS 5D Mark II. Used when nothing says what camera
-    took the image; estimates with it are approximate.
-
-    Parameters
-    ----------
-    wavelengths : array_like, optional
-        Grid in nm; default 400-700 nm at 10 nm.
-
-    Returns
-    -------
-    recovery.Camera
-        ``name="generic"``, ``source="generic"``.
-
-    Examples
-    --------
-    >>> generic_camera().sensitivities.shape
-    (31, 3)
-    """
-    from models import camera_names, camera_sensitivities
-    from recovery import Camera
-
-    wl = _grid(wavelengths)
-    names = camera_names()
-    r = np.mean([camera_sensitivities(n, wl) for n in names], axis=0)
-    return Camera(wl, r, "generic", "generic",
-                  (f"generic camera: channel-wise mean of the measured sensitivities of {', '.join(names)} "
-                   "(each channel peak-normalised); approximate for any real camera",))
-
-
-def _parse_csv_text(data) -> str:
-    if isinstance(data, str):
-        return data
-    if not data:
-        raise UploadError(422, "bad_csv", "the sensitivities CSV is empty")
-    try:
-        return bytes(data).decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise UploadError(422, "bad_csv",
-                          f"the sensitivities CSV is not UTF-8 text (byte {exc.start}); send a plain CSV") from None
-
-
-def _split(line: str) -> list[str]:
-    """Fields of a CSV line: ``;`` or tab separated (then ``,`` is a decimal
-    comma), else ``,``, else whitespace."""
-    for delim in (";", "\t"):
-        if delim in line:
-            return [f.strip().replace(",", ".") for f in line.split(delim)]
-    if "," in line:
-        return [f.strip() for f in line.split(",")]
-    return line.split()
-
-
-def camera_from_csv(data: bytes, wavelengths=None, name: str = "uploaded"):
-    """A camera from an uploaded CSV of spectral sensitivities.
-
-    Format: one row per wavelength, first column the wavelength in nm
-    (strictly increasing, covering the analysis grid, default 400-700 nm),
-    then one column per channel (at least 3); an optional header row of
-    names; separators ``,``, ``;`` (decimal commas allowed then), tab or
-    spaces; blank lines and lines starting with ``#`` are skipped. The
-    columns are resampled to the grid (``models.resample``), negative values
-    (noise) clipped to 0, and the whole scaled so the largest value is 1
-    (the channel balance is kept).
-
-    Parameters
-    ----------
-    data : bytes or str
-    wavelengths : array_like, optional
-        Grid in nm; default 400-700 nm at 10 nm.
-    name : str
-
-    Returns
-    -------
-    recovery.Camera
-        ``source="uploaded"``.
-
-    Raises
-    ------
-    UploadError
-        422 ``bad_csv`` naming the line and column at fault: not text,
-        non-numeric values, fewer than 3 channels, ragged rows, NaN/Inf,
-        wavelengths not strictly increasing or not covering the grid, a
-        channel zero everywhere on the grid.
-
-    Examples
-    --------
-    >>> rows = ["nm,r,g,b"] + [f"{w},{max(0, 1 - abs(w - 600) / 100)},{max(0, 1 - abs(w - 530) / 100)},"
-    ...                        f"{max(0, 1 - abs(w - 450) / 100)}" for w in range(380, 790, 10)]
-    >>> camera_from_csv("\\n".join(rows).encode()).channels
-    3
-    """
-    from models import resample
-    from recovery import Camera
-
-    text = _parse_csv_text(data)
-    wl_grid = _grid(wavelengths)
-    header = None
-    rows: list[list[float]] = []
-    ncols = None
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        fields = _split(s)
-        values = []
-        bad = None
-        for col, f in enumerate(fields, start=1):
-            try:
-                values.append(float(f))
-            except ValueError:
-                bad = (col, f)
-                break
-        if bad is not None:
-            if header is None and not rows:
-                header = fields
-                ncols = len(fields)
-                continue
-            raise UploadError(422, "bad_csv", f"line {lineno}, column {bad[0]}: {bad[1]!r} is not a number")
-        if ncols is None:
-            ncols = len(values)
-        if len(values) != ncols:
-            raise UploadError(422, "bad_csv",
-                              f"line {lineno} has {len(values)} columns, expected {ncols} "
-                              f"({'as the header' if header else 'as the first row'})")
-        if not all(math.isfinite(v) for v in values):
-            col = next(i for i, v in enumerate(values, 1) if not math.isfinite(v))
-            raise UploadError(422, "bad_csv", f"line {lineno}, column {col}: {fields[col - 1]!r} is NaN or Inf")
-        rows.append(values)
-        if len(rows) > _MAX_CSV_ROWS:
-            raise UploadError(422, "bad_csv", f"more than {_MAX_CSV_ROWS} rows")
-    if not rows:
-        raise UploadError(422, "bad_csv", "the sensitivities CSV has no numeric rows")
-    arr = np.asarray(rows, dtype=np.float64)
-    if arr.shape[1] < 4:
-        raise UploadError(422, "bad_csv",
-                          f"need a wavelength column and at least 3 channel columns; found {arr.shape[1] - 1} "
-                          "channel column(s)")
-    if arr.shape[0] < 2:
-        raise UploadError(422, "bad_csv", "need at least two wavelengths")
-    wl = arr[:, 0]
-    d = np.diff(wl)
-    if np.any(d <= 0):
-        i = int(np.argmax(d <= 0))
-        raise UploadError(422, "bad_csv",
-                          f"wavelengths must be strictly increasing: {wl[i + 1]:g} nm follows {wl[i]:g} nm "
-                          f"(data row {i + 2})")
-    lo, hi = float(wl_grid[0]), float(wl_grid[-1])
-    if wl[0] > lo + 1e-9 or wl[-1] < hi - 1e-9:
-        hint = " (micrometres? give nanometres)" if wl[-1] < 10 else ""
-        raise UploadError(422, "bad_csv",
-                          f"wavelengths span {wl[0]:g}-{wl[-1]:g} nm{hint}; they must cover {lo:g}-{hi:g} nm")
-    sens = arr[:, 1:]
-    labels = (header[1:] if header and len(header) == arr.shape[1]
-              else [f"channel {k + 1}" for k in range(sens.shape[1])])
-    notes = []
-    if np.any(sens < 0):
-        notes.append(f"{int((sens < 0).sum())} negative value(s) clipped to 0")
-    clipped = np.clip(sens, 0.0, None)
-    if arr.shape[0] >= 6:      # colour-science's Sprague/spline interpolation needs 6 points
-        on_grid = resample(wl, clipped, wl_grid)
-    else:
-        on_grid = np.stack([np.interp(wl_grid, wl, clipped[:, k]) for k in range(clipped.shape[1])], 1)
-    on_grid = np.clip(on_grid, 0.0, None)
-    zero = [labels[k] for k in range(sens.shape[1]) if not np.any(on_grid[:, k] > 0)]
-    if zero:
-        raise UploadError(422, "bad_csv",
-                          f"channel(s) {', '.join(map(str, zero))} are zero at every wavelength in {lo:g}-{hi:g} nm")
-    on_grid = on_grid / on_grid.max()
-    notes.insert(0, f"uploaded sensitivities: {sens.shape[1]} channels ({', '.join(map(str, labels))}), "
-                    f"{wl[0]:g}-{wl[-1]:g} nm, {arr.shape[0]} rows, resampled to {wl_grid.size} wavelengths")
-    return Camera(wl_grid, on_grid, name, "uploaded", tuple(notes))
-
-
-def resolve_camera(decoded: DecodedImage | None, camera: str | None = None,
-                   sensitivities_csv: bytes | None = None, wavelengths=None):
-    """Choose the camera model for an image, and say how approximate it is.
-
-    Priority:
-
-    1. ``sensitivities_csv`` (:func:`camera_from_csv`), ``source="uploaded"``;
-    2. ``camera``: a measured camera name (``models.camera_names()`` or an
-       alias), ``"generic"`` or ``"matrix"`` (needs a colour matrix in the
-       file); ``"auto"``, ``""`` or ``None`` mean choose automatically;
-    3. the measured camera matching the file's Make + Model
-       (``models.canonical_camera_name``);
-    4. sensitivities derived from the file's colour matrix
-       (:func:`camera_from_matrix`), with the warning
-       ``"approximate: derived from colour matrix"``;
-    5. :func:`generic_camera`, with a warning.
-
-    Parameters
-    ----------
-    decoded : DecodedImage or None
-    camera : str, optional
-    sensitivities_csv : bytes, optional
-    wavelengths : array_like, optional
-        Grid in nm; default 400-700 nm at 10 nm.
-
-    Returns
-    -------
-    (recovery.Camera, list of str)
-        The camera and the warnings to show the user.
-
-    Raises
-    ------
-    UploadError
-        422 ``unknown_camera`` (the detail lists the accepted names),
-        ``no_color_matrix`` (``camera="matrix"`` for a file without one),
-        ``bad_csv``, ``bad_color_matrix``.
-    """
-    from models import camera_names, canonical_camera_name
-    from recovery import Camera
-
-    wl = _grid(wavelengths)
-    warnings: list[str] = []
-    make = getattr(decoded, "make", None)
-    model = getattr(decoded, "model", None)
-    ident = " ".join(x for x in (make, model) if x) or None
-    file_canon = None
-    if ident:
-        file_canon = canonical_camera_name(ident) or (canonical_camera_name(model) if model else None)
-    cm = getattr(decoded, "color_matrix", None)
-    choice = (camera or "").strip()
-
-    if sensitivities_csv is not None and len(sensitivities_csv) > 0:
-        cam = camera_from_csv(sensitivities_csv, wl)
-        if choice and choice.lower() != "auto":
-            warnings.append(f"camera {choice!r} ignored: the uploaded sensitivities take precedence")
-        return cam, warnings
-
-    if choice and choice.lower() != "auto":
-        low = choice.lower()
-        if low == "generic":
-            warnings.append("approximate: generic camera (mean of the measured cameras' sensitivities)")
-            return generic_camera(wl), warnings
-        if low == "matrix":
-            if cm is None:
-                raise UploadError(422, "no_color_matrix",
-                                  "camera='matrix' needs an XYZ->camera colour matrix, and this image has none "
-                                  "(DNG ColorMatrix, or a camera model LibRaw knows)")
-            cam = camera_from_matrix(cm, wl, _matrix_name(ident))
-            warnings.append("approximate: derived from colour matrix")
-            return cam, warnings
-        canon = canonical_camera_name(choice)
-        if canon is None:
-            accepted = camera_names() + ["generic", "matrix", "auto"]
-            raise UploadError(422, "unknown_camera",
-                              f"unknown camera {choice!r}; accepted: {', '.join(accepted)} (or upload a "
-                              "sensitivities CSV)")
-        if ident and file_canon != canon:
-            warnings.append(f"camera {canon!r} was requested but the file says {ident!r}")
-            return Camera.named(canon, wl), warnings
-        return Camera.named(canon, wl).with_color_matrix(cm), warnings
-
-    if file_canon is not None:
-        return Camera.named(file_canon, wl).with_color_matrix(cm), warnings
-    if cm is not None:
-        try:
-            cam = camera_from_matrix(cm, wl, _matrix_name(ident))
-        except UploadError as exc:
-            warnings.append(f"the file's colour matrix is unusable ({exc.detail})")
-        else:
-            warnings.append("approximate: derived from colour matrix")
-            return cam, warnings
-    who = repr(ident) if ident else "this image (no make/model)"
-    warnings.append(f"approximate: no measured sensitivities or colour matrix for {who}; using a generic camera "
-                    "(mean of the measured cameras' sensitivities); give camera=... or upload sensitivities")
-    return generic_camera(wl), warnings
-
-
-def _matrix_name(ident: str | None) -> str:
-    return f"{ident} (matrix-derived)" if ident else "matrix-derived"

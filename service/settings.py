@@ -1,24 +1,36 @@
 """Service settings with embedded defaults (no file or server needed).
 
-Every value can be overridden by an environment variable ``WANDELL_<NAME>``.
+Every value can be overridden by an environment variable ``WANDELL_<NAME>``
+(pydantic-settings: values are parsed and validated; a malformed one stops
+the service with a message naming it). Routers receive the settings with
+``Depends(get_settings)``; the ASGI middlewares, the work limiter and the
+CLI, which have no request dependencies, call :func:`get_settings`.
+
+Analysis resolution is one setting, ``estimation_pixels``
+(``WANDELL_ESTIMATION_PIXELS``): a RAW is binned to at most that many pixels,
+the full resolution of the analysis (``quality=accurate``); the ``quality``
+presets and the default estimate block-average that image further
+(:func:`recovery.analysis_pixels`, :mod:`service.pipeline`).
 """
 
 from __future__ import annotations
 
-import os
-from dataclasses import dataclass
 from functools import lru_cache
 
+from pydantic_settings import BaseSettings, SettingsConfigDict
 
-@dataclass(frozen=True)
-class Settings:
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="WANDELL_", frozen=True, extra="ignore")
+
     host: str = "127.0.0.1"
     port: int = 8000
     max_upload_bytes: int = 200 * 1024 * 1024
     max_pixels: int = 120_000_000
     #: decode/estimate/encode jobs running at once (0 = one per CPU); the rest queue (service.workers)
     max_concurrent_work: int = 0
-    #: RAW files are binned to at most this many pixels for estimation
+    #: the analysis resolution: RAW files are binned (2x2 CFA cells, then area-averaged) to at most
+    #: this many pixels for estimation; quality=accurate analyses all of them
     estimation_pixels: int = 1_000_000
     #: batch jobs (service.jobs): SQLite store, inputs and outputs live
     #: here; empty = the user cache dir ($XDG_CACHE_HOME or ~/.cache)/wandell
@@ -49,26 +61,6 @@ class Settings:
 
 @lru_cache
 def get_settings() -> Settings:
-    """Settings from the environment, else the embedded defaults."""
-    env = os.environ
-    return Settings(
-        host=env.get("WANDELL_HOST", Settings.host),
-        port=int(env.get("WANDELL_PORT", Settings.port)),
-        max_upload_bytes=int(env.get("WANDELL_MAX_UPLOAD_BYTES", Settings.max_upload_bytes)),
-        max_pixels=int(env.get("WANDELL_MAX_PIXELS", Settings.max_pixels)),
-        max_concurrent_work=int(env.get("WANDELL_MAX_CONCURRENT_WORK", Settings.max_concurrent_work)),
-        estimation_pixels=int(env.get("WANDELL_ESTIMATION_PIXELS", Settings.estimation_pixels)),
-        data_dir=env.get("WANDELL_DATA_DIR", Settings.data_dir),
-        batch_root=env.get("WANDELL_BATCH_ROOT", Settings.batch_root),
-        batch_workers=int(env.get("WANDELL_BATCH_WORKERS", Settings.batch_workers)),
-        max_batch_items=int(env.get("WANDELL_MAX_BATCH_ITEMS", Settings.max_batch_items)),
-        max_concurrent_batches=int(env.get("WANDELL_MAX_CONCURRENT_BATCHES", Settings.max_concurrent_batches)),
-        dask_scheduler=env.get("WANDELL_DASK_SCHEDULER", Settings.dask_scheduler),
-        max_render_values=int(env.get("WANDELL_MAX_RENDER_VALUES", Settings.max_render_values)),
-        max_surface_regions=int(env.get("WANDELL_MAX_SURFACE_REGIONS", Settings.max_surface_regions)),
-        allowed_hosts=env.get("WANDELL_ALLOWED_HOSTS", Settings.allowed_hosts),
-        allowed_origins=env.get("WANDELL_ALLOWED_ORIGINS", Settings.allowed_origins),
-        keep_alive_timeout=float(env.get("WANDELL_KEEP_ALIVE_TIMEOUT", Settings.keep_alive_timeout)),
-        body_timeout=float(env.get("WANDELL_BODY_TIMEOUT", Settings.body_timeout)),
-        batch_input_retention=float(env.get("WANDELL_BATCH_INPUT_RETENTION", Settings.batch_input_retention)),
-    )
+    """Settings from the environment (``WANDELL_*``), else the embedded
+    defaults; read once per process (``get_settings.cache_clear()`` re-reads)."""
+    return Settings()

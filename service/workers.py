@@ -35,7 +35,7 @@ import weakref
 import anyio
 import anyio.to_thread
 
-from .errors import ApiError
+from .errors import ServiceError
 from .settings import get_settings
 
 __all__ = ["run_heavy", "default_concurrency", "trim_memory"]
@@ -127,7 +127,7 @@ async def run_heavy(func, *args, request=None, **kwargs):
         if gone:
             log.warning("dropped queued work for %s %s: the client disconnected", request.method,
                         request.url.path)
-            raise ApiError(499, "client_closed_request", "the client closed the connection before the work started")
+            raise ServiceError(499, "client_closed_request", "the client closed the connection before the work started")
         # the slot is held by this task; the thread comes from anyio's default pool
         return await anyio.to_thread.run_sync(_then_trim, call)
     finally:

@@ -398,7 +398,7 @@ def write_dng(
         rowsperstrip=arr.shape[0],
         compression=None,
         metadata=None,
-        software="wandell-recovery service.dngwriter",
+        software="wandell-recovery testing.dngwriter",
         extratags=tags,
     )
 

@@ -12,6 +12,7 @@ import sys
 import pytest
 
 from service import cli, jobs
+from service.errors import ServiceError
 from testing.dngwriter import scene_dng
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -41,7 +42,7 @@ def test_format_from_the_extension(out, given, want):
     ("x.png", "tiff", "format_mismatch"), ("x.jpg", "png", "format_mismatch"), ("x.tif", "jpeg", "format_mismatch"),
     ("x.bmp", None, "invalid_parameter"), ("noext", None, "invalid_parameter")])
 def test_format_disagreement_is_an_error(out, given, code):
-    with pytest.raises(jobs.JobError) as e:
+    with pytest.raises(ServiceError) as e:
         cli.format_for(out, given)
     assert e.value.code == code
 

@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 
 from benchmarks import fuzz
-from service.rawio import UploadError, decode_upload
+from service.errors import ServiceError
+from service.rawio import decode_upload
 
 from .conftest import shared_file
 
@@ -53,7 +54,7 @@ def _leave_in_memory(victim: bytes) -> None:
 def _outcome(data: bytes):
     try:
         d = decode_upload(data, "real.dng", max_pixels=BIG)
-    except UploadError as e:
+    except ServiceError as e:
         return (e.status, e.code)
     return d.estimation
 
@@ -104,7 +105,7 @@ def test_files_short_of_their_last_tile_are_corrupt(blackmagic, short):
     bo, _, ent = fuzz.ifd_entries(blackmagic)
     offs, cnts = fuzz._longs(blackmagic, bo, ent[324]), fuzz._longs(blackmagic, bo, ent[325])
     end = max(o + c for o, c in zip(offs, cnts))
-    with pytest.raises(UploadError) as info:
+    with pytest.raises(ServiceError) as info:
         decode_upload(blackmagic[:end - short], "real.dng", max_pixels=BIG)
     assert (info.value.status, info.value.code) == (422, "corrupt_file")
     assert "beyond the end" in info.value.detail

@@ -117,10 +117,10 @@ def _decode(path):
 @pytest.fixture(scope="module")
 def blackmagic():
     p = real_file("Blackmagic.dng")
-    from service import rawio
+    from recovery.cameras import resolve_camera
 
     d = _decode(p)
-    cam, warns = rawio.resolve_camera(d)
+    cam, warns = resolve_camera(d)
     return p, d, cam, warns
 
 

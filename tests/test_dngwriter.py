@@ -14,6 +14,7 @@ import pytest
 import rawpy
 
 import models
+from recovery import angular_error
 from testing.dngwriter import (CAMERA_MAKE_MODEL, cfa_colour_indices, color_matrix_for_camera,
                                mosaic, scene_dng, spectral_scene, write_dng)
 from testing.dngwriter import d50_xyz as _d50_xyz
@@ -27,12 +28,6 @@ def _srgb_to_xyz() -> np.ndarray:
     import colour
 
     return np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ, float)
-
-
-def _angle_deg(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def _site_colours(pattern, shape) -> np.ndarray:
@@ -150,7 +145,7 @@ def test_camera_whitebalance_is_inverse_as_shot_neutral(tmp_path, camera, illumi
 
 def test_wrong_and_missing_as_shot_neutral(tmp_path):
     wrong = scene_dng(tmp_path / "w.dng", "Nikon 5100 (NPL)", "D65", H, W, as_shot_neutral="A")
-    assert _angle_deg(wrong.as_shot_neutral, wrong.light_rgb) > 5.0
+    assert float(angular_error(wrong.as_shot_neutral, wrong.light_rgb)) > 5.0
     with rawpy.imread(str(tmp_path / "w.dng")) as raw:
         np.testing.assert_allclose(raw.camera_whitebalance[:3], 1.0 / wrong.as_shot_neutral, rtol=1e-6)
     given = scene_dng(tmp_path / "g.dng", "Nikon 5100 (NPL)", "D65", H, W, as_shot_neutral=[0.5, 1.0, 0.8])
@@ -284,12 +279,12 @@ def test_light_from_gray_patch_matches_truth(tmp_path, camera, illuminant):
     with rawpy.imread(str(tmp_path / "g.dng")) as raw:
         means, counts = _patch_channel_means(raw.raw_image, truth)
     est = means[g]
-    theta0 = _angle_deg(truth.patch_rgb[g], truth.light_rgb)
+    theta0 = float(angular_error(truth.patch_rgb[g], truth.light_rgb))
     bound = np.degrees(np.linalg.norm(_mean_tolerance(truth, counts)[g] / truth.patch_rgb[g]))
     assert theta0 < 1.5                                   # a gray patch really is near-neutral
-    assert _angle_deg(est, truth.light_rgb) <= theta0 + bound
+    assert float(angular_error(est, truth.light_rgb)) <= theta0 + bound
     # and the light is known to far better than the spread of illuminants
-    assert _angle_deg(est, truth.light_rgb) < 2.0
+    assert float(angular_error(est, truth.light_rgb)) < 2.0
 
 
 def test_postprocess_with_camera_whitebalance_renders_gray_as_gray(tmp_path):

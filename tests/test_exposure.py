@@ -9,8 +9,8 @@ import types
 import numpy as np
 import pytest
 
-from service import pipeline
-from service.errors import ApiError
+from service import options, pipeline
+from service.errors import ServiceError
 
 
 def _decoded(img):
@@ -54,13 +54,13 @@ def test_auto_gain_never_darkens_and_is_bounded(rng):
 @pytest.mark.parametrize("value,expected", [(None, None), ("", None), ("auto", None), ("AUTO", None),
                                             ("1.5", 1.5), (-2, -2.0), ("0", 0.0)])
 def test_parse_exposure_accepts(value, expected):
-    assert pipeline.parse_exposure(value) == expected
+    assert options.parse_exposure(value) == expected
 
 
 @pytest.mark.parametrize("value", ["bright", "nan", "inf", "100", "-11", "1,5"])
 def test_parse_exposure_refuses(value):
-    with pytest.raises(ApiError) as e:
-        pipeline.parse_exposure(value)
+    with pytest.raises(ServiceError) as e:
+        options.parse_exposure(value)
     assert e.value.status == 422 and "exposure" in e.value.detail
 
 

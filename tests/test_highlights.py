@@ -69,7 +69,7 @@ def test_clipped_patches_render_neutral_through_the_service(rendering, monkeypat
     from models import camera_names
     from recovery import Camera
     from service import metadata, pipeline
-    from service.rawio import camera_from_matrix
+    from recovery.cameras import camera_from_matrix
 
     cm = np.array([[0.6880, -0.2475, -0.0487], [-0.3926, 1.2011, 0.1579], [-0.0892, 0.2006, 0.5815]])
     if rendering == "dng-matrix":

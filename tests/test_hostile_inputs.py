@@ -12,7 +12,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from testing.dngwriter import mosaic, write_dng
-from service.rawio import UploadError, decode_upload
+from service.errors import ServiceError
+from service.rawio import decode_upload
 
 WL31 = ",".join(str(400 + 10 * i) for i in range(31))
 
@@ -115,13 +116,13 @@ def test_default_scale_counts_against_the_pixel_limit():
     the stretched 30,720 pixels the file is a 413 before decoding; with the
     limit above, it decodes to the stretched full-resolution shape."""
     data = _scaled_dng(48, 64, (10, 1, 1, 1))
-    with pytest.raises(UploadError) as info:
+    with pytest.raises(ServiceError) as info:
         decode_upload(data, "a.dng", max_pixels=20_000)
     assert (info.value.status, info.value.code) == (413, "too_many_pixels"), info.value
     assert "640x48" in info.value.detail and "DefaultScale" in info.value.detail
     d = decode_upload(data, "a.dng", max_pixels=30_720)
     assert d.full_shape == (48, 640)
     # vertical stretch (1:10) counts the same way
-    with pytest.raises(UploadError) as info:
+    with pytest.raises(ServiceError) as info:
         decode_upload(_scaled_dng(48, 64, (1, 1, 10, 1)), "a.dng", max_pixels=20_000)
     assert info.value.status == 413 and "64x480" in info.value.detail

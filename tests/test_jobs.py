@@ -14,6 +14,7 @@ import pytest
 import models
 from recovery import angular_error
 from service import jobs
+from service.errors import ServiceError
 from testing.dngwriter import scene_dng
 
 WL5 = models.wavelength_grid(400, 700, 5)
@@ -48,7 +49,7 @@ def test_batch_options_refuse_unknown_values_by_name():
     for kw, word in (({"format": "bmp"}, "format"), ({"lighting": "global"}, "lighting"),
                      ({"output": "XYZ"}, "output"), ({"method": "magic"}, "method"),
                      ({"target": "NOPE"}, "target"), ({"camera": "Leica M0"}, "camera")):
-        with pytest.raises(jobs.JobError) as e:
+        with pytest.raises(ServiceError) as e:
             jobs.batch_options(**kw)
         assert word in e.value.detail and e.value.status == 422
     assert jobs.batch_options(format="jpeg").extension == "jpg"
@@ -161,13 +162,13 @@ def test_folder_sources_refuse_paths_outside_the_root(tmp_path, dngs):
     got = jobs.folder_sources(str(root), "shoot")
     assert [n for n, _ in got] == ["im0.dng", "im1.dng"]
     for bad in ("../", "shoot/../..", "/etc", str(d), "out-link"):
-        with pytest.raises(jobs.JobError) as e:
+        with pytest.raises(ServiceError) as e:
             jobs.folder_sources(str(root), bad)
         assert e.value.code == "path_outside_root" and e.value.status == 403
-    with pytest.raises(jobs.JobError) as e:
+    with pytest.raises(ServiceError) as e:
         jobs.folder_sources("", "shoot")
     assert e.value.code == "folder_mode_disabled" and "WANDELL_BATCH_ROOT" in e.value.detail
-    with pytest.raises(jobs.JobError) as e:
+    with pytest.raises(ServiceError) as e:
         jobs.folder_sources(str(root), "missing")
     assert e.value.status == 404
 

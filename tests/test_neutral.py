@@ -130,7 +130,7 @@ def test_a_clipped_neutral_is_refused_and_clipped_cells_are_left_out():
     import types
 
     from service import pipeline
-    from service.errors import ApiError
+    from service.errors import ServiceError
 
     est = np.full((10, 20, 3), 0.2, np.float32)
     est[:, :10] = [0.3, 0.6, 0.4]                      # the light's colour, left half
@@ -138,7 +138,7 @@ def test_a_clipped_neutral_is_refused_and_clipped_cells_are_left_out():
     sat[:, 10:] = True                                  # right half clipped
     est[:, 10:] = 1.0
     d = types.SimpleNamespace(full_shape=(40, 80), estimation=est, saturated=sat)
-    with pytest.raises(ApiError) as e:
+    with pytest.raises(ServiceError) as e:
         pipeline.neutral_white(d, [0, 40, 40, 80])      # all clipped
     assert e.value.status == 422 and e.value.code == "unusable_neutral"
     rgb, info = pipeline.neutral_white(d, [0, 20, 40, 60])   # half clipped: only the unclipped half counts

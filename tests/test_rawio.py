@@ -1,4 +1,4 @@
-"""Upload decoding and camera resolution (service/rawio.py).
+"""Upload decoding (service/rawio.py) and camera resolution (recovery/cameras.py).
 
 Real DNG files are written with ``testing.dngwriter`` (scenes whose every
 number is known) and decoded through LibRaw; PNG/TIFF/JPEG inputs are made
@@ -18,8 +18,10 @@ import tifffile
 
 import models
 from testing.dngwriter import (CAMERA_MAKE_MODEL, mosaic, scene_dng, spectral_scene, write_dng)
-from service.rawio import (SATURATION_FRACTION, DecodedImage, UploadError, camera_from_csv,
-                           camera_from_matrix, decode_upload, generic_camera, resolve_camera)
+from recovery.cameras import camera_from_csv, camera_from_matrix, generic_camera, resolve_camera
+from recovery.errors import InputError
+from service.errors import ServiceError, service_error
+from service.rawio import SATURATION_FRACTION, DecodedImage, decode_upload
 
 H, W = 96, 128
 BLACK, WHITE = 512, 16383
@@ -52,8 +54,8 @@ def _decode(data, filename="scene.dng", max_pixels=BIG) -> DecodedImage:
     return decode_upload(data, filename, max_pixels=max_pixels)
 
 
-def _error(data, filename=None, max_pixels=BIG) -> UploadError:
-    with pytest.raises(UploadError) as info:
+def _error(data, filename=None, max_pixels=BIG) -> ServiceError:
+    with pytest.raises(ServiceError) as info:
         decode_upload(data, filename, max_pixels=max_pixels)
     return info.value
 
@@ -414,11 +416,11 @@ def test_bit_flipped_headers(nikon):
     # a width beyond the data: never a 500
     e = _error(flipped(width + 1, 6))
     assert e.status in (413, 415, 422)
-    # every header byte damaged in turn: a decoded image or an UploadError, nothing else
+    # every header byte damaged in turn: a decoded image or an ServiceError, nothing else
     for pos in range(0, 600):
         try:
             d = _decode(flipped(pos), None)
-        except UploadError as err:
+        except ServiceError as err:
             assert err.status in (413, 415, 422)
         else:
             assert d.estimation.dtype == np.float32 and d.estimation.ndim == 3
@@ -509,14 +511,14 @@ def test_resolve_camera_explicit_names(nikon):
     assert cam.source == "generic" and warns
     cam, warns = resolve_camera(d, "auto")
     assert cam.source == "measured"
-    with pytest.raises(UploadError) as info:
+    with pytest.raises(InputError) as info:
         resolve_camera(d, "Leica M9")
-    assert (info.value.status, info.value.code) == (422, "unknown_camera")
+    assert (service_error(info.value).status, info.value.code) == (422, "unknown_camera")
     for name in CAMERAS + ["generic", "matrix"]:
         assert name in info.value.detail
-    with pytest.raises(UploadError) as info:
+    with pytest.raises(InputError) as info:
         resolve_camera(_decode(_png16(_rgb16())), "matrix")
-    assert (info.value.status, info.value.code) == (422, "no_color_matrix")
+    assert (service_error(info.value).status, info.value.code) == (422, "no_color_matrix")
 
 
 def _csv(wl, sens, header="nm,r,g,b", delim=",") -> bytes:
@@ -560,14 +562,14 @@ def test_camera_from_csv_good():
     ("400,1,1,1\n", "at least two wavelengths"),
 ])
 def test_camera_from_csv_bad(text, phrase):
-    with pytest.raises(UploadError) as info:
+    with pytest.raises(InputError) as info:
         camera_from_csv(text.encode())
-    assert (info.value.status, info.value.code) == (422, "bad_csv")
+    assert (service_error(info.value).status, info.value.code) == (422, "bad_csv")
     assert phrase in info.value.detail, info.value.detail
 
 
 def test_camera_from_csv_not_text():
-    with pytest.raises(UploadError) as info:
+    with pytest.raises(InputError) as info:
         camera_from_csv(b"\xff\xfe\x00\x01garbage")
     assert "UTF-8" in info.value.detail
 
@@ -588,6 +590,6 @@ def test_camera_from_matrix():
     cam = camera_from_matrix([[0.8198, -0.2239, -0.0724], [-0.4871, 1.2389, 0.2798], [-0.1043, 0.205, 0.7181]])
     assert cam.sensitivities.min() == 0.0 and any("negative lobes clipped" in n for n in cam.notes)
     for bad in (np.zeros((3, 3)), np.ones((2, 3)), [[np.nan] * 3] * 3, -np.eye(3)):
-        with pytest.raises(UploadError) as info:
+        with pytest.raises(InputError) as info:
             camera_from_matrix(bad)
-        assert (info.value.status, info.value.code) == (422, "bad_color_matrix")
+        assert (service_error(info.value).status, info.value.code) == (422, "bad_color_matrix")

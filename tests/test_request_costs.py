@@ -23,7 +23,7 @@ from fastapi.testclient import TestClient
 from recovery.api import surfaces_from_estimate
 from service import pipeline
 from service.app import app
-from service.deps import estimate_options
+from service.options import estimate_options
 from testing.dngwriter import scene_dng
 from service.limits import FRAMING
 from service.routers import analysis
@@ -49,7 +49,7 @@ def test_rectangle_means_from_the_summed_area_table_equal_the_pixel_mean():
     pixels' reflectances computed one by one (the old way, unsampled), to
     float64 round-off of the cumulative sums (1e-9 relative)."""
     opts = estimate_options("gray-world", None, None, None, False)
-    decoded, run = analysis._analyze_sync(_dng(), "a.dng", None, None, "gray-world", opts, get_settings())
+    decoded, run = analysis.analyze_upload(_dng(), "a.dng", None, None, "gray-world", opts, get_settings())
     H, W = decoded.full_shape
     h, w = decoded.estimation.shape[:2]
     rects = [[0, 0, H, W], [10, 20, 11, 21], [H // 3, W // 4, H // 2, W - 1], [H - 2, W - 2, H, W]]
@@ -123,7 +123,7 @@ def test_render_waits_for_a_heavy_work_slot(env_settings, monkeypatch):
     env_settings(max_concurrent_work=1)
     gate = threading.Event()
     probe = _Probe(gate=gate)
-    monkeypatch.setattr(analysis, "_analyze_sync", probe)
+    monkeypatch.setattr(analysis, "analyze_upload", probe)
 
     async def scenario():
         transport = httpx.ASGITransport(app=app)
@@ -186,7 +186,7 @@ def test_queued_work_of_a_disconnected_client_is_not_started(env_settings, monke
     env_settings(max_concurrent_work=1)
     gate = threading.Event()
     probe = _Probe(gate=gate)
-    monkeypatch.setattr(analysis, "_analyze_sync", probe)
+    monkeypatch.setattr(analysis, "analyze_upload", probe)
     body = httpx.Request("POST", "http://t/v1/analyze", files={"file": ("a.dng", b"II*\0" + bytes(64))})
     payload, ctype = body.read(), body.headers["content-type"]
 

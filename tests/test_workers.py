@@ -11,6 +11,7 @@ import httpx
 import pytest
 
 from service import workers
+from service.errors import ServiceError
 from service.app import app
 from service.routers import analysis
 from service.settings import get_settings
@@ -35,7 +36,7 @@ class _Probe:
             time.sleep(self.hold)
         with self.lock:
             self.now -= 1
-        raise analysis.ApiError(422, "probe", "stopped by the test")
+        raise ServiceError(422, "probe", "stopped by the test")
 
 
 async def _fire(n: int, path="/v1/analyze"):
@@ -53,7 +54,7 @@ def test_at_most_the_configured_number_run_at_once(env_settings, monkeypatch, li
     request still gets its answer."""
     env_settings(max_concurrent_work=limit)
     probe = _Probe()
-    monkeypatch.setattr(analysis, "_analyze_sync", probe)
+    monkeypatch.setattr(analysis, "analyze_upload", probe)
     rs = asyncio.run(_fire(8))
     assert [r.status_code for r in rs] == [422] * 8 and probe.calls == 8
     assert probe.peak == limit
@@ -71,7 +72,7 @@ def test_health_answers_while_heavy_work_fills_every_slot(env_settings, monkeypa
     env_settings(max_concurrent_work=1)
     gate = threading.Event()
     probe = _Probe(gate=gate)
-    monkeypatch.setattr(analysis, "_analyze_sync", probe)
+    monkeypatch.setattr(analysis, "analyze_upload", probe)
 
     async def scenario():
         transport = httpx.ASGITransport(app=app)

@@ -14,9 +14,11 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from starlette.background import BackgroundTask
 
 from .. import pipeline
-from ..deps import estimate_options, parse_grid, parse_json_list, read_upload
-from ..errors import ApiError
+from ..deps import read_upload
+from ..errors import ServiceError
 from ..jsonsafe import clean
+from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, check_output, choose_format, estimate_options,
+                       parse_exposure, parse_grid, parse_json_list, parse_neutral)
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -26,32 +28,17 @@ _FILE = File(..., description="RAW file (DNG, CR2, NEF, ARW, ... anything LibRaw
 _SENS = File(None, description="optional camera sensitivities CSV: wavelength, one column per channel")
 
 
-def _decode(data: bytes, filename: str | None, sens: bytes | None, camera: str | None, settings: Settings):
-    from .. import rawio
-
-    t0 = time.perf_counter()
-    try:
-        decoded = rawio.decode_upload(data, filename, max_pixels=settings.max_pixels,
-                                      estimation_pixels=settings.estimation_pixels)
-        cam, cam_warn = rawio.resolve_camera(decoded, camera, sens)
-    except rawio.UploadError as e:
-        raise ApiError(e.status, e.code, e.detail) from None
-    return decoded, cam, cam_warn, (time.perf_counter() - t0) * 1e3
-
-
 async def _inputs(file, sensitivities, settings):
     data = await read_upload(file, settings)
     sens = await read_upload(sensitivities, settings, "sensitivities") if sensitivities is not None else None
     return data, sens
 
 
-def _analyze_sync(data, filename, sens, camera, method, opts, settings, neutral=None):
-    decoded, cam, cam_warn, t_dec = _decode(data, filename, sens, camera, settings)
-    run = pipeline.run_estimate(decoded, cam, cam_warn, method=method, options=opts)
-    run.timings_ms["decode"] = t_dec
-    if neutral is not None:
-        run = pipeline.with_neutral(decoded, run, neutral)
-    return decoded, run
+def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral=None):
+    """Decode, choose the camera, estimate, or take the user's neutral
+    surface as the light (:func:`service.pipeline.analyze`)."""
+    return pipeline.analyze(data, filename, settings, camera=camera, sensitivities=sens, method=method,
+                            options=opts, neutral=neutral)
 
 
 @router.post("/analyze")
@@ -64,7 +51,7 @@ async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: Upl
                   spatial: str | None = Form(None, description="auto (decide from the image), true (light map) or false (one light)"),
                   surface_model: str | None = Form(None, description="pca or fourier"),
                   light_model: str | None = Form(None, description="daylight, illuminant-pca or fourier"),
-                  neutral: str | None = Form(None, description=pipeline.NEUTRAL_HELP,
+                  neutral: str | None = Form(None, description=NEUTRAL_HELP,
                                              examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
                   settings: Settings = Depends(get_settings)):
     """Estimate the scene light: camera RGB, white-balance multipliers,
@@ -75,9 +62,9 @@ async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: Upl
     t0 = time.perf_counter()
     opts = estimate_options(method, surface_dim, light_dim, region_size, spatial, surface_model, light_model,
                             quality)
-    where = pipeline.parse_neutral(neutral)
+    where = parse_neutral(neutral)
     data, sens = await _inputs(file, sensitivities, settings)
-    decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts, settings,
+    decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
                                    where, request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
@@ -91,39 +78,24 @@ def _with_white(decoded, run, white: str):
     if white == "estimate":
         return run
     if decoded.as_shot_neutral is None:
-        raise ApiError(422, "no_as_shot_white", "white=as-shot: the file records no as-shot white balance")
+        raise ServiceError(422, "no_as_shot_white", "white=as-shot: the file records no as-shot white balance")
     return pipeline.run_with_white(run, decoded.as_shot_neutral, "as-shot")
 
 
-def _estimate_summary(body: dict, info: dict | None = None) -> dict:
-    ill = body["illuminant"]
-    out = {"method": body["method"], "camera_rgb": ill["camera_rgb"], "wb_multipliers": ill["wb_multipliers"],
-           "cct": ill["cct"], "duv": ill["duv"], "camera": body["camera"]["name"]}
-    if info:
-        out["rendering"] = info.get("rendering")
-    return out
-
-
-def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, bits, settings,
+def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,
                         white="estimate", exposure=None, neutral=None):
-    decoded, run = _analyze_sync(data, filename, sens, camera, method, opts, settings, neutral)
+    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral)
     del data
     run = _with_white(decoded, run, white)
-    out, M, info = pipeline.render_full(decoded, run, target, output, bits, opts.get("surface_basis"),
-                                        timings=run.timings_ms, exposure=exposure)
-    t2 = time.perf_counter()
-    fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt)
+    fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt.encoder)
     os.close(fd)
     try:
-        summary = _estimate_summary(pipeline.analysis_json(run, decoded), info)
-        summary.update(white=white, target=target, output=output)
-        pipeline.encode_image(out, fmt, path, meta=pipeline.output_meta(decoded, output, summary))
+        M, info = pipeline.write_corrected(decoded, run, path, target=target, output=output, fmt=fmt,
+                                           surface_basis=opts.get("surface_basis"), white=white,
+                                           exposure=exposure)
     except BaseException:
         os.unlink(path)
         raise
-    t3 = time.perf_counter()
-    del out
-    run.timings_ms.update(encode=(t3 - t2) * 1e3)
     return decoded, run, M, path, info
 
 
@@ -142,51 +114,41 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                         surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"), light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"),
                         region_size: int | None = Form(None), surface_model: str | None = Form(None),
                         light_model: str | None = Form(None),
-                        exposure: str = Form("auto", description=pipeline.EXPOSURE_HELP, examples=["auto", "1.5"]),
-                        neutral: str | None = Form(None, description=pipeline.NEUTRAL_HELP,
+                        exposure: str = Form("auto", description=EXPOSURE_HELP, examples=["auto", "1.5"]),
+                        neutral: str | None = Form(None, description=NEUTRAL_HELP,
                                                    examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
                         settings: Settings = Depends(get_settings)):
     """The corrected image at full resolution (one 3x3 matrix per pixel
     from camera RGB to the display), with the estimate in the
     ``X-Illuminant`` header (JSON)."""
     t0 = time.perf_counter()
-    fmts = {"tiff": ("tiff", 16), "png": ("png", 8), "png16": ("png", 16), "jpeg": ("jpeg", 8), "jpg": ("jpeg", 8),
-            "xmp": ("xmp", 0)}
     if white not in ("estimate", "as-shot"):
-        raise ApiError(422, "invalid_parameter", f"white must be estimate or as-shot, not {white!r}")
-    if format not in fmts:
-        raise ApiError(422, "invalid_parameter", f"format {format!r} unknown; accepted: {sorted(fmts)}")
+        raise ServiceError(422, "invalid_parameter", f"white must be estimate or as-shot, not {white!r}")
+    fmt = choose_format(format)
     if response not in ("image", "json"):
-        raise ApiError(422, "invalid_parameter", "response must be image or json")
-    if output not in ("sRGB", "linear-sRGB", "Display P3", "Typical CRT Brainard 1997", "Apple Studio Display"):
-        raise ApiError(422, "invalid_parameter", "output must be one of sRGB, linear-sRGB, Display P3, "
-                       "Typical CRT Brainard 1997, Apple Studio Display")
+        raise ServiceError(422, "invalid_parameter", "response must be image or json")
+    check_output(output)
     opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model,
                             quality)
-    ev = pipeline.parse_exposure(exposure)
-    where = pipeline.parse_neutral(neutral)
+    ev = parse_exposure(exposure)
+    where = parse_neutral(neutral)
     if where is not None and white != "estimate":
-        raise ApiError(422, "invalid_parameter", "neutral fixes the white from a surface; it cannot be combined "
-                       f"with white={white!r}")
+        raise ServiceError(422, "invalid_parameter", "neutral fixes the white from a surface; it cannot be "
+                           f"combined with white={white!r}")
     data, sens = await _inputs(file, sensitivities, settings)
     await file.close()
-    fmt, bits = fmts[format]
-    if fmt == "xmp":
-        decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts, settings,
+    if fmt.encoder == "xmp":
+        decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
                                        where, request=request)
         run = _with_white(decoded, run, white)
-        tt = pipeline.temperature_tint(decoded, run)
-        from ..outputs import xmp_sidecar
-
-        summary = _estimate_summary(pipeline.analysis_json(run, decoded))
-        summary.update(temperature=tt["temperature"], tint=tt["tint"], basis=tt["basis"])
+        text, _, summary = pipeline.xmp_sidecar(decoded, run)
         stem = os.path.splitext(os.path.basename(file.filename or "image"))[0] or "image"
-        return Response(xmp_sidecar(tt["temperature"], tt["tint"], summary), media_type="application/rdf+xml",
+        return Response(text, media_type=MEDIA_TYPES["xmp"],
                         headers={"Content-Disposition": f'attachment; filename="{stem}.xmp"',
                                  "X-Illuminant": json.dumps(clean(summary), separators=(",", ":"))})
     if response == "json":
-        decoded, run = await run_heavy(_analyze_sync, data, file.filename, sens, camera, method, opts,
-                                       settings, where, request=request)
+        decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
+                                       where, request=request)
         run = _with_white(decoded, run, white)
         M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded,
                                              exposure=ev)
@@ -195,7 +157,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
         body["rendering"] = pipeline.rendering_json(info)
         return JSONResponse(clean(body))
     decoded, run, M, path, info = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
-                                                  method, opts, target, output, fmt, bits, settings, white, ev,
+                                                  method, opts, target, output, fmt, settings, white, ev,
                                                   where, request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
@@ -208,10 +170,10 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
         header["neutral"] = body["neutral"]
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
                "Content-Disposition": f'inline; filename="{"as-shot" if white == "as-shot" else "corrected"}.'
-                                      f'{"tif" if fmt == "tiff" else "jpg" if fmt == "jpeg" else fmt}"'}
+                                      f'{fmt.extension}"'}
     # streamed from a temporary file (deleted after sending): the encoded
     # image never sits in memory next to the decoded one
-    return FileResponse(path, media_type=pipeline.FORMATS[fmt], headers=headers,
+    return FileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers,
                         background=BackgroundTask(os.unlink, path))
 
 
@@ -232,18 +194,18 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     rcs = parse_json_list(rects, "rects", 4)
     grd = parse_grid(grid)
     if not (pts or rcs or grd):
-        raise ApiError(422, "invalid_parameter", "give at least one of points, rects or grid")
+        raise ServiceError(422, "invalid_parameter", "give at least one of points, rects or grid")
     n_regions = len(pts) + len(rcs) + (grd[0] * grd[1] if grd else 0)
     if n_regions > settings.max_surface_regions:
-        raise ApiError(413, "too_many_regions", f"{n_regions} points, rectangles and grid cells; at most "
+        raise ServiceError(413, "too_many_regions", f"{n_regions} points, rectangles and grid cells; at most "
                        f"{settings.max_surface_regions} per request (WANDELL_MAX_SURFACE_REGIONS)")
     if format not in ("json", "csv"):
-        raise ApiError(422, "invalid_parameter", "format must be json or csv")
+        raise ServiceError(422, "invalid_parameter", "format must be json or csv")
     opts = estimate_options(method, None, None, None, False, surface_model)
     data, sens = await _inputs(file, sensitivities, settings)
 
     def work():
-        decoded, run = _analyze_sync(data, file.filename, sens, camera, method, opts, settings)
+        decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings)
         res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts)
         res["illuminant"] = pipeline.illuminant_json(run.estimate)
         res["method"] = run.estimate.method

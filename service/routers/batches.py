@@ -21,9 +21,10 @@ from fastapi import APIRouter, Depends, File, Form, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
-from .. import jobs, pipeline
-from ..errors import ApiError
+from .. import jobs
+from ..errors import ServiceError
 from ..jsonsafe import clean
+from ..options import EXPOSURE_HELP
 from ..settings import Settings, get_settings
 
 router = APIRouter(prefix="/v1", tags=["batches"])
@@ -47,7 +48,7 @@ def get_runner(settings: Settings | None = None) -> jobs.BatchRunner:
                 runner = jobs.BatchRunner(cfg)
                 runner.start()
             except (OSError, sqlite3.Error) as e:  # e.g. an unwritable data directory
-                raise ApiError(503, "job_store_unavailable", f"the batch job store under {cfg.data_dir!r} cannot "
+                raise ServiceError(503, "job_store_unavailable", f"the batch job store under {cfg.data_dir!r} cannot "
                                f"be opened ({type(e).__name__}: {e}); single-file endpoints still work") from None
             _runner = runner
         return _runner
@@ -80,16 +81,12 @@ async def lifespan(app):
     service: the batch endpoints answer 503 until it can be."""
     try:
         await run_in_threadpool(get_runner)
-    except ApiError as e:
+    except ServiceError as e:
         log.error("batch runner not started: %s", e.detail)
     try:
         yield
     finally:
         await run_in_threadpool(stop_runner)
-
-
-def _job_error(e: jobs.JobError) -> ApiError:
-    return ApiError(e.status, e.code, e.detail)
 
 
 async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) -> list[tuple[str, str]]:
@@ -104,12 +101,12 @@ async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) 
             while chunk := await f.read(1 << 20):
                 size += len(chunk)
                 if size > settings.max_upload_bytes:
-                    raise ApiError(413, "file_too_large", f"{name!r} exceeds the upload limit of "
+                    raise ServiceError(413, "file_too_large", f"{name!r} exceeds the upload limit of "
                                    f"{settings.max_upload_bytes} bytes")
                 fh.write(chunk)
         await f.close()
         if size == 0:
-            raise ApiError(422, "empty_file", f"{name!r} is empty")
+            raise ServiceError(422, "empty_file", f"{name!r} is empty")
         out.append((name, path))
     return out
 
@@ -127,34 +124,31 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
                        surface_dim: str | None = Form(None), light_dim: str | None = Form(None),
                        region_size: int | None = Form(None), surface_model: str | None = Form(None),
                        light_model: str | None = Form(None),
-                       exposure: str = Form("auto", description=pipeline.EXPOSURE_HELP, examples=["auto", "1.5"]),
+                       exposure: str = Form("auto", description=EXPOSURE_HELP, examples=["auto", "1.5"]),
                        settings: Settings = Depends(get_settings)):
     """Start a batch: several ``files`` fields, or a ``folder`` under the
     server's batch root, with the white-balance options. Answers ``{"id"}``
     at once (202); follow it with ``GET /v1/batches/{id}``."""
     files = [f for f in (files or []) if f is not None and (f.filename or f.size)]
     if bool(files) == bool(folder):
-        raise ApiError(422, "invalid_parameter", "give either files (one or more 'files' fields) or folder")
-    try:
-        opts = jobs.batch_options(camera=camera, method=method, quality=quality, target=target, output=output,
-                                  format=format, lighting=lighting, surface_model=surface_model,
-                                  light_model=light_model, surface_dim=surface_dim, light_dim=light_dim,
-                                  region_size=region_size, exposure=exposure)
-        sources = jobs.folder_sources(settings.batch_root, folder) if folder else None
-    except jobs.JobError as e:
-        raise _job_error(e) from None
+        raise ServiceError(422, "invalid_parameter", "give either files (one or more 'files' fields) or folder")
+    opts = jobs.batch_options(camera=camera, method=method, quality=quality, target=target, output=output,
+                              format=format, lighting=lighting, surface_model=surface_model,
+                              light_model=light_model, surface_dim=surface_dim, light_dim=light_dim,
+                              region_size=region_size, exposure=exposure)
+    sources = jobs.folder_sources(settings.batch_root, folder) if folder else None
     n = len(sources) if sources is not None else len(files)
     if n > settings.max_batch_items:
-        raise ApiError(413, "too_many_items", f"{n} items exceed the batch limit of {settings.max_batch_items}")
+        raise ServiceError(413, "too_many_items", f"{n} items exceed the batch limit of {settings.max_batch_items}")
     for f in files:
         base = os.path.basename((f.filename or "").replace("\\", "/"))
         if len(base.encode("utf-8", "surrogatepass")) > jobs.MAX_NAME_BYTES:
-            raise ApiError(422, "name_too_long", f"file name {base[:60]!r}... is {len(base.encode('utf-8', 'surrogatepass'))} "
+            raise ServiceError(422, "name_too_long", f"file name {base[:60]!r}... is {len(base.encode('utf-8', 'surrogatepass'))} "
                            f"bytes; at most {jobs.MAX_NAME_BYTES} (UTF-8)")
     if sources is not None:  # folder mode: the same per-file limit as an upload
         big = [name for name, path in sources if os.path.getsize(path) > settings.max_upload_bytes]
         if big:
-            raise ApiError(413, "file_too_large", f"{len(big)} file(s) in the folder exceed the upload limit of "
+            raise ServiceError(413, "file_too_large", f"{len(big)} file(s) in the folder exceed the upload limit of "
                            f"{settings.max_upload_bytes} bytes: {', '.join(map(repr, big[:5]))}")
     runner = get_runner(settings)
     store = runner.store
@@ -169,7 +163,7 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
             shutil.rmtree(store.batch_dir(bid), ignore_errors=True)
         if _disk_full(e):
             log.error("batch not created, the data directory is full: %s", e)
-            raise ApiError(507, "insufficient_storage", f"the service's data directory is full ({e}); nothing "
+            raise ServiceError(507, "insufficient_storage", f"the service's data directory is full ({e}); nothing "
                            "was kept of this batch, try again when space is freed") from None
         raise
     runner.wake()
@@ -189,7 +183,7 @@ def _progress(bid: str) -> dict:
     runner = get_runner()
     doc = runner.store.progress(bid)
     if doc is None:
-        raise ApiError(404, "not_found", f"no batch {bid!r}")
+        raise ServiceError(404, "not_found", f"no batch {bid!r}")
     if runner.executor_error and doc["status"] in ("queued", "running"):
         doc["runner_error"] = runner.executor_error
     for it in doc["items"]:
@@ -210,12 +204,12 @@ def batch_item(batch_id: str, item: str):
     """Download one result, by item name or index."""
     store = get_runner().store
     if store.batch(batch_id) is None:
-        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     row = store.item(batch_id, item)
     if row is None:
-        raise ApiError(404, "not_found", f"batch {batch_id!r} has no item {item!r} (a name or an index)")
+        raise ServiceError(404, "not_found", f"batch {batch_id!r} has no item {item!r} (a name or an index)")
     if row["status"] != "done" or not os.path.exists(row["out"]):
-        raise ApiError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
+        raise ServiceError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
                        + (f": {row['error']}" if row["error"] else ""))
     fmt = jobs.BatchOptions.from_json(store.batch(batch_id)["options"]).format
     media = {"tiff": "image/tiff", "png": "image/png", "png16": "image/png"}.get(fmt, "image/jpeg")
@@ -259,11 +253,11 @@ def batch_zip(batch_id: str):
     """Every finished result in one zip, streamed (not built in memory)."""
     store = get_runner().store
     if store.batch(batch_id) is None:
-        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     entries = [(os.path.basename(r["out"]), r["out"]) for r in store.items(batch_id)
                if r["status"] == "done" and os.path.exists(r["out"])]
     if not entries:
-        raise ApiError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
+        raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
     return StreamingResponse(_zip_stream(entries), media_type="application/zip",
                              headers={"Content-Disposition": f'attachment; filename="batch-{batch_id}.zip"'})
 
@@ -273,6 +267,6 @@ def cancel_batch(batch_id: str):
     """Cancel: pending items are dropped, running ones finish and are kept."""
     runner = get_runner()
     if runner.store.batch(batch_id) is None:
-        raise ApiError(404, "not_found", f"no batch {batch_id!r}")
+        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     runner.cancel(batch_id)
     return JSONResponse(clean(_progress(batch_id)))

@@ -17,16 +17,15 @@ from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 
 from ..deps import read_upload
-from ..errors import ApiError
+from ..errors import ServiceError
 from ..jsonsafe import clean
+from ..options import MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, check_output, choose_format
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
 router = APIRouter(prefix="/v1")
 
 MAX_N = 64
-FORMATS = {"tiff": ("tiff", 16), "png": ("png", 8), "png16": ("png", 16)}
-OUTPUTS = ("sRGB", "linear-sRGB")
 #: Fewest wavelengths a spectrum (or light) may have: colour-science
 #: resamples uniform data with Sprague (1880) interpolation, a 6-point rule.
 MIN_WAVELENGTHS = 6
@@ -42,9 +41,9 @@ def parse_wavelengths(text: str | None, field: str = "wavelengths") -> np.ndarra
     try:
         wl = np.array([float(t) for t in text.replace(";", ",").split(",") if t.strip()])
     except ValueError:
-        raise ApiError(422, "invalid_parameter", f"{field} must be comma-separated numbers in nm") from None
+        raise ServiceError(422, "invalid_parameter", f"{field} must be comma-separated numbers in nm") from None
     if wl.size < 2 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
-        raise ApiError(422, "invalid_parameter", f"{field} must be at least two finite, strictly increasing "
+        raise ServiceError(422, "invalid_parameter", f"{field} must be at least two finite, strictly increasing "
                        "values in nm")
     return wl
 
@@ -56,9 +55,9 @@ def parse_degrees(text: str | None):
     try:
         deg = tuple(int(t) for t in text.split(","))
     except ValueError:
-        raise ApiError(422, "invalid_parameter", f"degrees must look like 2,2,2, got {text!r}") from None
+        raise ServiceError(422, "invalid_parameter", f"degrees must look like 2,2,2, got {text!r}") from None
     if len(deg) != 3 or not all(0 <= d <= 12 for d in deg):
-        raise ApiError(422, "invalid_parameter", "degrees must be three integers in 0..12 (x, y, z)")
+        raise ServiceError(422, "invalid_parameter", "degrees must be three integers in 0..12 (x, y, z)")
     return deg
 
 
@@ -68,14 +67,14 @@ def rule_options(strategy: str, n: int | None, channel: str | None, degrees: str
 
     names = render_strategies()
     if strategy not in names + ["auto", "full"]:
-        raise ApiError(422, "unknown_strategy", f"strategy {strategy!r} unknown; accepted: auto, full, "
+        raise ServiceError(422, "unknown_strategy", f"strategy {strategy!r} unknown; accepted: auto, full, "
                        f"{', '.join(names)}")
     if n is not None and not 1 <= n <= MAX_N:
-        raise ApiError(422, "n_out_of_range", f"n must be in 1..{MAX_N}, got {n}")
+        raise ServiceError(422, "n_out_of_range", f"n must be in 1..{MAX_N}, got {n}")
     opts: dict = {}
     if channel is not None and channel != "":
         if channel not in ("A", "C1", "C2", "XYZ"):
-            raise ApiError(422, "invalid_parameter", f"channel must be A, C1, C2 or XYZ, got {channel!r}")
+            raise ServiceError(422, "invalid_parameter", f"channel must be A, C1, C2 or XYZ, got {channel!r}")
         opts["channel"] = channel
     deg = parse_degrees(degrees)
     if deg is not None:
@@ -94,62 +93,43 @@ def load_npy(data: bytes, settings: Settings) -> np.ndarray:
         reader = fmt.read_array_header_1_0 if major == 1 else fmt.read_array_header_2_0
         shape, fortran, dtype = reader(buf)
     except Exception as e:  # noqa: BLE001 - any header failure is a bad upload
-        raise ApiError(422, "bad_npy", f"file is not a readable .npy array: {e}") from None
+        raise ServiceError(422, "bad_npy", f"file is not a readable .npy array: {e}") from None
     if dtype.hasobject or dtype.kind not in "fiu":
-        raise ApiError(422, "bad_npy", f"the array's dtype {dtype} is not numeric (object arrays and pickles "
+        raise ServiceError(422, "bad_npy", f"the array's dtype {dtype} is not numeric (object arrays and pickles "
                        "are refused)")
     if len(shape) not in (2, 3):
-        raise ApiError(422, "bad_shape", f"the array must be a cube H x W x N (or M x N spectra); got shape "
+        raise ServiceError(422, "bad_shape", f"the array must be a cube H x W x N (or M x N spectra); got shape "
                        f"{tuple(shape)}")
     if any(int(s) < 0 for s in shape):
-        raise ApiError(422, "bad_shape", f"the array's shape {tuple(shape)} has a negative dimension")
+        raise ServiceError(422, "bad_shape", f"the array's shape {tuple(shape)} has a negative dimension")
     count = math.prod(int(s) for s in shape)   # exact: numpy's product wraps round in int64
     if count > settings.max_render_values:
-        raise ApiError(413, "cube_too_large", f"the array has {count} values, over the limit of "
+        raise ServiceError(413, "cube_too_large", f"the array has {count} values, over the limit of "
                        f"{settings.max_render_values} (WANDELL_MAX_RENDER_VALUES)")
     offset = buf.tell()
     if len(data) - offset < count * dtype.itemsize:
-        raise ApiError(422, "bad_npy", f"the .npy file is truncated: {len(data) - offset} bytes of data for "
+        raise ServiceError(422, "bad_npy", f"the .npy file is truncated: {len(data) - offset} bytes of data for "
                        f"shape {tuple(shape)} {dtype}")
     arr = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
     return arr.reshape(shape, order="F" if fortran else "C")
 
 
 def load_csv(data: bytes, what: str = "file") -> tuple[np.ndarray, np.ndarray, list]:
-    """CSV with one row per wavelength: the first column is the wavelength in
-    nm, each further column one spectrum; an optional first row of names
-    (any non-numeric first row is taken as a header). Returns wavelengths
-    ``(N,)``, spectra ``(M, N)`` and the names."""
-    import csv
+    """CSV with one row per wavelength (:func:`recovery.tables.read_csv_table`):
+    the first column is the wavelength in nm, each further column one
+    spectrum; an optional first row of names. Returns wavelengths ``(N,)``,
+    spectra ``(M, N)`` and the names."""
+    from recovery.tables import read_csv_table
 
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise ApiError(422, "bad_csv", f"{what} is neither a .npy array nor UTF-8 CSV text") from None
-    try:
-        rows = [r for r in csv.reader(io.StringIO(text, newline="")) if any(c.strip() for c in r)]
-    except csv.Error as e:  # e.g. a bare carriage return inside a field
-        raise ApiError(422, "bad_csv", f"{what} is not readable CSV: {e}") from None
-    if not rows:
-        raise ApiError(422, "bad_csv", f"{what} is empty")
-    names: list = []
-    try:
-        [float(c) for c in rows[0] if c.strip()]
-    except ValueError:
-        names = [c.strip() for c in rows[0][1:]]
-        rows = rows[1:]
-    try:
-        table = np.array([[float(c) for c in r] for r in rows], dtype=float)
-    except ValueError as e:
-        raise ApiError(422, "bad_csv", f"{what}: every value after the header must be a number ({e})") from None
-    if table.ndim != 2 or table.shape[1] < 2 or table.shape[0] < 2:
-        raise ApiError(422, "bad_csv", f"{what}: need a wavelength column and at least one spectrum column, "
-                       "at least two rows, every row the same length")
-    wl = table[:, 0]
+    table = read_csv_table(data, what, finite=False)   # InputError "bad_csv" -> 422
+    if table.values.shape[1] < 1 or table.wavelengths.size < 2:
+        raise ServiceError(422, "bad_csv", f"{what}: need a wavelength column and at least one spectrum column, "
+                           "at least two rows, every row the same length")
+    wl = table.wavelengths
     if not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
-        raise ApiError(422, "bad_wavelengths", f"{what}: the first column (wavelength, nm) must be finite and "
-                       "strictly increasing")
-    return wl, table[:, 1:].T.copy(), names or [f"spectrum {i + 1}" for i in range(table.shape[1] - 1)]
+        raise ServiceError(422, "bad_wavelengths", f"{what}: the first column (wavelength, nm) must be finite and "
+                           "strictly increasing")
+    return wl, table.values.T.copy(), table.names("spectrum")
 
 
 def check_values(arr: np.ndarray, what: str = "spectra") -> None:
@@ -159,9 +139,9 @@ def check_values(arr: np.ndarray, what: str = "spectra") -> None:
     for s in range(0, flat.size, step):
         chunk = flat[s:s + step]
         if chunk.dtype.kind == "f" and not np.all(np.isfinite(chunk)):
-            raise ApiError(422, "non_finite_values", f"the {what} contain NaN or Inf")
+            raise ServiceError(422, "non_finite_values", f"the {what} contain NaN or Inf")
         if chunk.size and chunk.min() < 0:
-            raise ApiError(422, "negative_values", f"the {what} contain negative values (minimum "
+            raise ServiceError(422, "negative_values", f"the {what} contain negative values (minimum "
                            f"{float(chunk.min()):.4g}); reflectances are >= 0")
 
 
@@ -199,20 +179,18 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
     against the full calculation.
     """
     t0 = time.perf_counter()
-    if format not in FORMATS:
-        raise ApiError(422, "invalid_parameter", f"format {format!r} unknown; accepted: {sorted(FORMATS)}")
+    fmt = choose_format(format, RENDER_FORMATS)
     if response not in ("image", "json"):
-        raise ApiError(422, "invalid_parameter", "response must be image or json")
-    if output not in OUTPUTS:
-        raise ApiError(422, "invalid_parameter", f"output must be one of {', '.join(OUTPUTS)}")
+        raise ServiceError(422, "invalid_parameter", "response must be image or json")
+    check_output(output, RENDER_OUTPUTS)
     if not (np.isfinite(max_error) and 0 < max_error <= 100):
-        raise ApiError(422, "invalid_parameter", "max_error must be in (0, 100]")
+        raise ServiceError(422, "invalid_parameter", "max_error must be in (0, 100]")
     opts = rule_options(strategy, n, channel, degrees)
     wl_form = parse_wavelengths(wavelengths)
     data = await read_upload(file, settings)
     light_data = await read_upload(light_file, settings, "light_file") if light_file is not None else None
     if light_data is not None and illuminant:
-        raise ApiError(422, "invalid_parameter", "give either illuminant or light_file, not both")
+        raise ServiceError(422, "invalid_parameter", "give either illuminant or light_file, not both")
 
     def work():
         from recovery.errors import InputError
@@ -222,32 +200,32 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
         if _is_npy(data, file.filename):
             arr = load_npy(data, settings)
             if wl_form is None:
-                raise ApiError(422, "missing_wavelengths", "wavelengths (comma-separated nm) are required "
+                raise ServiceError(422, "missing_wavelengths", "wavelengths (comma-separated nm) are required "
                                "with a .npy cube")
             wl = wl_form
         else:
             wl, arr, names = load_csv(data)
             if arr.size > settings.max_render_values:
-                raise ApiError(413, "cube_too_large", f"{arr.size} values, over the limit of "
+                raise ServiceError(413, "cube_too_large", f"{arr.size} values, over the limit of "
                                f"{settings.max_render_values}")
             if wl_form is not None and (wl_form.size != wl.size or not np.allclose(wl_form, wl)):
-                raise ApiError(422, "wavelength_mismatch", "wavelengths disagree with the CSV's first column")
+                raise ServiceError(422, "wavelength_mismatch", "wavelengths disagree with the CSV's first column")
         if arr.shape[-1] != wl.size:
-            raise ApiError(422, "wavelength_mismatch", f"the array has {arr.shape[-1]} bands (last axis) for "
+            raise ServiceError(422, "wavelength_mismatch", f"the array has {arr.shape[-1]} bands (last axis) for "
                            f"{wl.size} wavelengths")
         if wl.size < MIN_WAVELENGTHS:
-            raise ApiError(422, "too_few_wavelengths", f"the spectra have {wl.size} wavelength(s); at least "
+            raise ServiceError(422, "too_few_wavelengths", f"the spectra have {wl.size} wavelength(s); at least "
                            f"{MIN_WAVELENGTHS} are needed (they are interpolated with Sprague's 6-point rule)")
         if arr.size == 0:
-            raise ApiError(422, "empty_input", "the spectra are empty")
+            raise ServiceError(422, "empty_input", "the spectra are empty")
         check_values(arr)
         light, light_wl = illuminant or "D65", None
         if light_data is not None:
             light_wl, lv, _ = load_csv(light_data, "light_file")
             if lv.shape[0] != 1:
-                raise ApiError(422, "bad_csv", "light_file must have exactly one spectrum column")
+                raise ServiceError(422, "bad_csv", "light_file must have exactly one spectrum column")
             if light_wl.size < MIN_WAVELENGTHS:
-                raise ApiError(422, "too_few_wavelengths", f"light_file has {light_wl.size} wavelength(s); at "
+                raise ServiceError(422, "too_few_wavelengths", f"light_file has {light_wl.size} wavelength(s); at "
                                f"least {MIN_WAVELENGTHS} are needed (Sprague's 6-point interpolation)")
             check_values(lv, "light values")
             light = lv[0]
@@ -257,7 +235,7 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
         except InputError as e:
             msg = str(e)
             code = "unknown_illuminant" if "illuminant" in msg else "invalid_input"
-            raise ApiError(422, code, msg) from None
+            raise ServiceError(422, code, msg) from None
         return _response(result, names)
 
     def _response(result, names):
@@ -270,9 +248,9 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
             if names is not None:
                 body["spectra"] = [{"name": nm, output: v} for nm, v in zip(names, image.tolist())]
             return JSONResponse(clean(body))
-        from ..pipeline import FORMATS as MEDIA, encode_image
+        from ..pipeline import encode_image
 
-        fmt, bits = FORMATS[format]
+        bits = fmt.bits
         img = image if image.ndim == 3 else image[None]
         scale = 65535 if bits == 16 else 255
         q = np.empty(img.shape, np.uint16 if bits == 16 else np.uint8)
@@ -280,13 +258,13 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
         np.rint(img, out=img)
         q[...] = img
         t1 = time.perf_counter()
-        payload = encode_image(q, fmt)
+        payload = encode_image(q, fmt.encoder)
         report["timings_ms"]["file_encode"] = (time.perf_counter() - t1) * 1e3
         header = {k: v for k, v in report.items() if k != "tried"}
         header["tried"] = len(report.get("tried", []))
         headers = {"X-Render-Report": json.dumps(clean(header), separators=(",", ":")),
-                   "Content-Disposition": f'inline; filename="render.{"tif" if fmt == "tiff" else "png"}"'}
-        return Response(payload, media_type=MEDIA[fmt], headers=headers)
+                   "Content-Disposition": f'inline; filename="render.{fmt.extension}"'}
+        return Response(payload, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
 
     # under the same bound as every other heavy request (service.workers)
     return await run_heavy(work, request=request)
@@ -309,10 +287,10 @@ def sampling(strategy: str = Query(..., description="a sampling strategy name"),
     ``weights_kind`` says which. ``integration_weights_xyz`` are always the
     latter (``T ~= coefficients @ W`` for an equal-energy light)."""
     import models
-    from recovery.spectral import LIGHT_AWARE, cached_rule as _rule
+    from recovery.spectral import LIGHT_AWARE, cached_rule
 
     if strategy in ("auto", "full"):
-        raise ApiError(422, "unknown_strategy", f"{strategy!r} is a render mode, not a sampling rule")
+        raise ServiceError(422, "unknown_strategy", f"{strategy!r} is a render mode, not a sampling rule")
     opts = rule_options(strategy, n, channel, degrees)
     grid = models.DEFAULT_WAVELENGTHS
     cmfs = models.observer("XYZ", grid)
@@ -321,14 +299,14 @@ def sampling(strategy: str = Query(..., description="a sampling strategy name"),
         try:
             light = models.illuminant(illuminant or "D65", grid)
         except KeyError:
-            raise ApiError(422, "unknown_illuminant", f"illuminant {illuminant!r} unknown; accepted: "
+            raise ServiceError(422, "unknown_illuminant", f"illuminant {illuminant!r} unknown; accepted: "
                            f"{models.illuminant_names()} or D<cct>, BB<cct>") from None
     try:
-        rule = _rule(strategy, n, grid, opts, light, cmfs)
+        rule = cached_rule(strategy, n, grid, opts, light, cmfs)
     except (ValueError, TypeError, KeyError) as e:
-        raise ApiError(422, "invalid_parameter", f"{strategy} with n={n} {opts}: {e}") from None
+        raise ServiceError(422, "invalid_parameter", f"{strategy} with n={n} {opts}: {e}") from None
     except (AttributeError, ImportError, NotImplementedError) as e:
-        raise ApiError(422, "strategy_unavailable", f"strategy {strategy!r} is not available in this "
+        raise ServiceError(422, "strategy_unavailable", f"strategy {strategy!r} is not available in this "
                        f"build: {e}") from None
     integ = rule.integration_weights(cmfs) if rule.defined else None
     if rule.weights is not None:

@@ -20,12 +20,13 @@ from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 from fastapi.responses import HTMLResponse, Response
 
 from .. import pipeline
-from ..deps import estimate_options, read_upload
-from ..errors import ApiError
+from ..deps import read_upload
+from ..errors import ServiceError
 from ..jsonsafe import clean
+from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, PREVIEW_FORMATS, check_output, choose_format,
+                       estimate_options, parse_exposure, parse_neutral)
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
-from .analysis import _analyze_sync
 
 router = APIRouter()
 
@@ -36,10 +37,6 @@ STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "style.css": "text/c
 #: Longest side of a preview, default and accepted range (pixels).
 PREVIEW_MAX_SIDE = 1024
 PREVIEW_SIDE_RANGE = (16, 4096)
-
-#: Output spaces /v1/white-balance accepts (the preview accepts the same).
-OUTPUTS = ("sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display")
-
 
 #: The page's Content-Security-Policy: its own script and style sheet only (no
 #: inline script or style, nothing from another host), images also from the
@@ -63,7 +60,7 @@ def index() -> HTMLResponse:
 def static(name: str) -> Response:
     """The page's script and style sheet (only the files in :data:`STATIC_FILES`)."""
     if name not in STATIC_FILES:
-        raise ApiError(404, "not_found", f"no static file {name!r}; served: {sorted(STATIC_FILES)}")
+        raise ServiceError(404, "not_found", f"no static file {name!r}; served: {sorted(STATIC_FILES)}")
     return Response(_static_text(name), media_type=STATIC_FILES[name], headers={"Cache-Control": "no-cache"})
 
 
@@ -119,7 +116,7 @@ def camera_wb_preview(decoded, data: bytes, max_side: int) -> tuple[np.ndarray, 
                 mult = [float(x) for x in raw.camera_whitebalance[:3]]
                 rgb = raw.postprocess(use_camera_wb=True, half_size=True, output_bps=8)
         except rawpy.LibRawError as exc:
-            raise ApiError(422, "corrupt_file", f"LibRaw could not render the file with its camera white "
+            raise ServiceError(422, "corrupt_file", f"LibRaw could not render the file with its camera white "
                                                 f"balance ({type(exc).__name__}); it is damaged") from None
         if decoded.as_shot_neutral is None:
             info["warnings"].append("the file records no as-shot white balance; LibRaw used its default "
@@ -173,9 +170,9 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
                   quality: str | None = Form(None, description="corrected only: fast, balanced or accurate"),
                   target: str = Form("D65", description="corrected only: light to render under, or 'estimate'"),
                   output: str = Form("sRGB", description="corrected only: sRGB, linear-sRGB or a display"),
-                  exposure: str = Form("auto", description="corrected only: " + pipeline.EXPOSURE_HELP,
+                  exposure: str = Form("auto", description="corrected only: " + EXPOSURE_HELP,
                                        examples=["auto", "1.5"]),
-                  neutral: str | None = Form(None, description="corrected only: " + pipeline.NEUTRAL_HELP,
+                  neutral: str | None = Form(None, description="corrected only: " + NEUTRAL_HELP,
                                              examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
                   settings: Settings = Depends(get_settings)):
     """A small 8-bit preview for the web page: the original as the camera's
@@ -183,27 +180,25 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
     (``wb=corrected``), longest side at most ``max_side``."""
     t0 = time.perf_counter()
     if wb not in ("camera", "corrected"):
-        raise ApiError(422, "invalid_parameter", f"wb must be camera or corrected, not {wb!r}")
+        raise ServiceError(422, "invalid_parameter", f"wb must be camera or corrected, not {wb!r}")
     lo, hi = PREVIEW_SIDE_RANGE
     if not lo <= max_side <= hi:
-        raise ApiError(422, "invalid_parameter", f"max_side must be in {lo}..{hi} pixels, not {max_side}")
-    fmt = {"jpeg": "jpeg", "jpg": "jpeg", "png": "png"}.get(format)
-    if fmt is None:
-        raise ApiError(422, "invalid_parameter", f"format {format!r} unknown; accepted: jpeg, png")
-    if output not in OUTPUTS:
-        raise ApiError(422, "invalid_parameter", f"output must be one of {', '.join(OUTPUTS)}")
+        raise ServiceError(422, "invalid_parameter", f"max_side must be in {lo}..{hi} pixels, not {max_side}")
+    fmt = choose_format(format, PREVIEW_FORMATS).encoder
+    check_output(output)
     opts = estimate_options(method, None, None, None, False, None, None, quality)
-    ev = pipeline.parse_exposure(exposure)
-    where = pipeline.parse_neutral(neutral)
+    ev = parse_exposure(exposure)
+    where = parse_neutral(neutral)
     data = await read_upload(file, settings)
     name = file.filename
 
     def work():
         if wb == "camera":
-            decoded = _decode_only(data, name, settings)
+            decoded = pipeline.decode(data, name, settings)
             img, info = camera_wb_preview(decoded, data, max_side)
         else:
-            decoded, run = _analyze_sync(data, name, None, camera, method, opts, settings, where)
+            decoded, run = pipeline.analyze(data, name, settings, camera=camera, method=method, options=opts,
+                                            neutral=where)
             img, info = corrected_preview(decoded, run, target, output, opts.get("surface_basis"), max_side, ev)
             info["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
         info.update(width=int(img.shape[1]), height=int(img.shape[0]),
@@ -212,16 +207,7 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
 
     body, info = await run_heavy(work, request=request)
     info["ms"] = (time.perf_counter() - t0) * 1e3
-    return Response(body, media_type=pipeline.FORMATS[fmt],
+    return Response(body, media_type=MEDIA_TYPES[fmt],
                     headers={"X-Preview": json.dumps(clean(info), separators=(",", ":")),
                              "Cache-Control": "no-store"})
 
-
-def _decode_only(data: bytes, filename: str | None, settings: Settings):
-    from .. import rawio
-
-    try:
-        return rawio.decode_upload(data, filename, max_pixels=settings.max_pixels,
-                                   estimation_pixels=settings.estimation_pixels)
-    except rawio.UploadError as e:
-        raise ApiError(e.status, e.code, e.detail) from None

@@ -1,0 +1,220 @@
+"""Option validation and the service's tables of formats and outputs.
+
+Free of the web stack: the REST routers, the batch jobs
+(:mod:`service.jobs`) and the CLI (:mod:`service.cli`) validate with the same
+functions and refuse with the same :class:`~service.errors.ServiceError`
+(422 ``invalid_parameter``, naming what is accepted).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import NamedTuple
+
+from .errors import ServiceError
+
+__all__ = ["Format", "FORMATS", "MEDIA_TYPES", "IMAGE_FORMATS", "RENDER_FORMATS", "PREVIEW_FORMATS",
+           "OUTPUTS", "RENDER_OUTPUTS", "SURFACE_MODELS", "LIGHT_MODELS", "choose_format", "check_output",
+           "check_target", "check_camera_name", "estimate_options", "parse_json_list", "parse_grid",
+           "parse_exposure", "parse_neutral", "EXPOSURE_HELP", "NEUTRAL_HELP"]
+
+
+class Format(NamedTuple):
+    """An output format: the encoder (``tiff``, ``png``, ``jpeg``, ``xmp``),
+    its bits per sample (0: not an image) and the file extension."""
+
+    encoder: str
+    bits: int
+    extension: str
+
+
+#: Every output format a request may name (``format=``), the one table.
+FORMATS = {
+    "tiff": Format("tiff", 16, "tif"),
+    "png": Format("png", 8, "png"),
+    "png16": Format("png", 16, "png"),
+    "jpeg": Format("jpeg", 8, "jpg"),
+    "jpg": Format("jpeg", 8, "jpg"),
+    "xmp": Format("xmp", 0, "xmp"),
+}
+#: Media type of each encoder.
+MEDIA_TYPES = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg", "xmp": "application/rdf+xml"}
+#: The formats of the corrected image (``/v1/white-balance`` adds ``xmp``; batches and the CLI).
+IMAGE_FORMATS = ("tiff", "png", "png16", "jpeg", "jpg")
+#: ``/v1/render`` (spectral data): lossless only.
+RENDER_FORMATS = ("tiff", "png", "png16")
+#: ``/v1/preview``: 8-bit.
+PREVIEW_FORMATS = ("jpeg", "jpg", "png")
+
+#: Output spaces of the corrected image (``/v1/white-balance``, ``/v1/preview``, batches, CLI).
+OUTPUTS = ("sRGB", "linear-sRGB", "Display P3", "Typical CRT Brainard 1997", "Apple Studio Display")
+#: Output spaces of ``/v1/render``.
+RENDER_OUTPUTS = ("sRGB", "linear-sRGB")
+
+SURFACE_MODELS = ("pca", "fourier")
+LIGHT_MODELS = ("daylight", "illuminant-pca", "fourier")
+
+
+def choose_format(name: str, accepted=tuple(FORMATS)) -> Format:
+    """The :class:`Format` named ``name`` among ``accepted`` (422 naming them)."""
+    if name not in accepted:
+        raise ServiceError(422, "invalid_parameter", f"format {name!r} unknown; accepted: {sorted(accepted)}")
+    return FORMATS[name]
+
+
+def check_output(output: str, accepted=OUTPUTS) -> str:
+    """``output`` if it is one of ``accepted`` (422 naming them)."""
+    if output not in accepted:
+        raise ServiceError(422, "invalid_parameter", f"output must be one of {', '.join(accepted)}")
+    return output
+
+
+def check_target(target: str) -> str:
+    """A light to render under: ``estimate``, ``as-seen`` or an illuminant name."""
+    if target not in ("estimate", "as-seen"):
+        from models import illuminant
+
+        try:
+            illuminant(target)
+        except KeyError as e:
+            raise ServiceError(422, "invalid_parameter", f"target: {e.args[0]}") from None
+    return target
+
+
+def check_camera_name(camera: str | None) -> str | None:
+    """A camera option: ``None``, ``auto``, ``matrix``, ``generic`` or a measured camera."""
+    if camera not in (None, "auto", "matrix", "generic"):
+        from models import camera_names, canonical_camera_name
+
+        try:
+            known = canonical_camera_name(camera) is not None
+        except (KeyError, ValueError):
+            known = False
+        if not known:
+            raise ServiceError(422, "invalid_parameter", f"camera {camera!r} unknown; accepted: "
+                               f"{list(camera_names()) + ['matrix', 'generic', 'auto']}")
+    return camera
+
+
+def estimate_options(method: str, surface_dim, light_dim, region_size: int | None,
+                     spatial, surface_model: str | None = None, light_model: str | None = None,
+                     quality: str | None = None) -> dict:
+    """Validated keyword options for :func:`recovery.estimate_illuminant`."""
+    from recovery import METHODS, QUALITY_PRESETS  # here: importing this module stays light (the CLI)
+
+    if method not in METHODS:
+        raise ServiceError(422, "invalid_parameter", f"method {method!r} unknown; accepted: {list(METHODS)}")
+    opts: dict = {"white_level": 1.0}
+    for field, value, accepted, key in (("surface_model", surface_model, SURFACE_MODELS, "surface_basis"),
+                                        ("light_model", light_model, LIGHT_MODELS, "light_basis"),
+                                        ("quality", quality, tuple(QUALITY_PRESETS), "quality")):
+        if value is not None:
+            if value not in accepted:
+                raise ServiceError(422, "invalid_parameter",
+                                   f"{field} {value!r} unknown; accepted: {list(accepted)}")
+            opts[key] = value
+    for name, val in (("surface_dim", surface_dim), ("light_dim", light_dim)):
+        if val is None or val == "":
+            continue
+        if str(val) == "auto":
+            opts[name] = "auto"
+            continue
+        try:
+            iv = int(val)
+        except (TypeError, ValueError):
+            raise ServiceError(422, "invalid_parameter", f"{name} must be an integer in 1..16 or 'auto', "
+                               f"not {val!r}") from None
+        if not 1 <= iv <= 16:
+            raise ServiceError(422, "invalid_parameter", f"{name} must be in 1..16 or 'auto'")
+        opts[name] = iv
+    if region_size is not None:
+        if not 8 <= region_size <= 100000:
+            raise ServiceError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")
+        opts["region_size"] = region_size
+    if spatial is not None and spatial != "":
+        from recovery.spatial import parse_spatial
+
+        try:
+            mode = parse_spatial(spatial)
+        except ValueError:
+            raise ServiceError(422, "invalid_parameter", f"spatial {spatial!r} unknown; accepted: auto, true "
+                               "(a light map), false (one light)") from None
+        opts["spatial"] = {"map": True, "uniform": False, "auto": "auto"}[mode]
+    return opts
+
+
+def parse_json_list(text: str | None, name: str, width: int) -> list:
+    """A JSON list of ``width``-integer lists (points or rectangles)."""
+    if not text:
+        return []
+    try:
+        val = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ServiceError(422, "invalid_parameter", f"{name} is not valid JSON: {e.msg}") from None
+    if not isinstance(val, list) or not all(
+            isinstance(v, list) and len(v) == width and all(isinstance(x, int) and not isinstance(x, bool) for x in v)
+            for v in val):
+        raise ServiceError(422, "invalid_parameter", f"{name} must be a JSON list of [{width} integers] lists")
+    if len(val) > 10000:
+        raise ServiceError(422, "invalid_parameter", f"{name}: at most 10000 entries")
+    return val
+
+
+def parse_grid(text: str | None) -> tuple[int, int] | None:
+    """``"8x6"`` -> (8, 6) rows x columns."""
+    if not text:
+        return None
+    try:
+        a, b = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise ServiceError(422, "invalid_parameter", f"grid must look like 8x6 (rows x columns), got {text!r}") from None
+    if not (1 <= a <= 100 and 1 <= b <= 100):
+        raise ServiceError(422, "invalid_parameter", "grid dimensions must be in 1..100")
+    return a, b
+
+
+EXPOSURE_HELP = ("exposure in EV, or auto (default): auto is LibRaw's auto-brightness (the 99th "
+                 "percentile of the brightest display channel is display white); a number overrides it, "
+                 "0 rendering the brightest neutral the sensor records as display white, each +1 doubling")
+
+
+def parse_exposure(value) -> float | None:
+    """``None``/``""``/``"auto"`` -> ``None`` (the auto rule,
+    :func:`recovery.synthesis.exposure_gain`); a number of EV in
+    :data:`recovery.synthesis.EXPOSURE_RANGE` -> float; anything else a 422."""
+    if value is None or (isinstance(value, str) and value.strip().lower() in ("", "auto")):
+        return None
+    from recovery.synthesis import EXPOSURE_RANGE
+
+    try:
+        ev = float(value)
+    except (TypeError, ValueError):
+        ev = math.nan
+    lo, hi = EXPOSURE_RANGE
+    if not (math.isfinite(ev) and lo <= ev <= hi):
+        raise ServiceError(422, "invalid_parameter", f"exposure must be auto or a number of EV in {lo:g}..{hi:g}, "
+                           f"not {value!r}")
+    return ev
+
+
+NEUTRAL_HELP = ("'use this as white': JSON [row, col] (a point) or [r0, c0, r1, c1] (a rectangle, end "
+                "exclusive) in full-resolution pixels of the image as decoded (before DefaultCrop); the light "
+                "is the mean camera RGB of the unclipped pixels there, rendered like an estimate")
+
+
+def parse_neutral(text) -> list[int] | None:
+    """``neutral``: JSON ``[row, col]`` or ``[r0, c0, r1, c1]`` (integers);
+    ``None`` when absent; otherwise a 422 saying what is accepted."""
+    if text is None or (isinstance(text, str) and not text.strip()):
+        return None
+    try:
+        val = json.loads(text) if isinstance(text, str) else text
+    except json.JSONDecodeError as e:
+        raise ServiceError(422, "invalid_parameter", f"neutral is not valid JSON: {e.msg}; give [row, col] or "
+                           "[r0, c0, r1, c1]") from None
+    if (not isinstance(val, list) or len(val) not in (2, 4)
+            or not all(isinstance(x, int) and not isinstance(x, bool) for x in val)):
+        raise ServiceError(422, "invalid_parameter", f"neutral must be [row, col] or [r0, c0, r1, c1] "
+                           f"(integers), got {text!r}")
+    return val
