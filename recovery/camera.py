@@ -102,7 +102,10 @@ class Camera:
         """The same camera, with the file's XYZ -> camera matrix attached."""
         if color_matrix is None:
             return self
-        return Camera(self.wavelengths, self.sensitivities, self.name, self.source, self.notes, color_matrix)
+        try:
+            return Camera(self.wavelengths, self.sensitivities, self.name, self.source, self.notes, color_matrix)
+        except InputError:
+            return self        # a malformed matrix in a file does not make its camera unusable
 
     @property
     def channels(self) -> int:

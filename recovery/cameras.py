@@ -93,7 +93,7 @@ def camera_from_matrix(color_matrix: np.ndarray, wavelengths=None, name: str = "
         "negative lobes clipped to 0 (fraction of each channel's absolute area removed: "
         + ", ".join(f"{c} {100 * f:.1f} %" for c, f in zip("RGB", removed)) + ")",
     )
-    return Camera(wl, pos, name, "matrix-derived", notes)
+    return Camera(wl, pos, name, "matrix-derived", notes, m)
 
 
 def generic_camera(wavelengths=None):
@@ -291,10 +291,12 @@ def resolve_camera(image=None, camera: str | None = None,
                              "sensitivities CSV)", code="unknown_camera")
         if ident and file_canon != canon:
             warnings.append(f"camera {canon!r} was requested but the file says {ident!r}")
-        return Camera.named(canon, wl), warnings
+            return Camera.named(canon, wl), warnings
+        # the file's own matrix goes with its measured camera (the learnt estimator's canonical space)
+        return Camera.named(canon, wl).with_color_matrix(cm), warnings
 
     if file_canon is not None:
-        return Camera.named(file_canon, wl), warnings
+        return Camera.named(file_canon, wl).with_color_matrix(cm), warnings
     if cm is not None:
         try:
             cam = camera_from_matrix(cm, wl, _matrix_name(ident))

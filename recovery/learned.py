@@ -100,17 +100,22 @@ def camera_color_matrix(camera: Camera) -> np.ndarray:
     """The camera's XYZ -> camera 3 x 3 matrix, scaled like a DNG
     ColorMatrix (D65 white maps to a largest channel of 1).
 
-    The RAW's or LibRaw's (``camera.color_matrix``) when there is one;
-    otherwise the least-squares fit ``R ~ cmfs @ M.T`` of the spectral
+    The RAW's or LibRaw's (``camera.color_matrix``) when there is a usable
+    one (finite, invertible, D65 giving a positive response); otherwise the least-squares fit ``R ~ cmfs @ M.T`` of the spectral
     sensitivities to the CIE 1931 colour-matching functions, weighted by
     D65 (the Luther approximation of a measured or uploaded camera).
     """
+    if camera.channels != 3:
+        raise InputError(f"the learnt estimator needs a 3-channel camera, got {camera.channels}")
     m = getattr(camera, "color_matrix", None)
-    if m is None:
-        if camera.channels != 3:
-            raise InputError(f"the learnt estimator needs a 3-channel camera, got {camera.channels}")
-        m = _fitted_matrix(camera.wavelengths.tobytes(), camera.sensitivities.tobytes())
-    return normalised_matrix(m)
+    if m is not None:
+        try:
+            m = normalised_matrix(m)
+            if abs(np.linalg.det(m)) > 1e-9:
+                return m
+        except InputError:
+            pass          # an unusable matrix in the file: the sensitivities still describe the camera
+    return normalised_matrix(_fitted_matrix(camera.wavelengths.tobytes(), camera.sensitivities.tobytes()))
 
 
 def normalised_matrix(m) -> np.ndarray:
