@@ -67,12 +67,12 @@ __all__ = ["METHODS_BENCHED", "true_xyz_d65", "summarise_angles", "delta_e00_sce
            "run_benchmark", "format_tables", "main"]
 
 #: Estimators run on every scene, in table order (``true-light`` is added).
-METHODS_BENCHED = ("maloney-wandell", "auto", "gray-world", "white-patch", "shades-of-gray", "gray-edge")
+METHODS_BENCHED = ("maloney-wandell", "auto", "bayes", "gray-world", "white-patch", "shades-of-gray", "gray-edge")
 TRUE_LIGHT = "true-light"
 #: The usual RAW pipeline with the true light: diagonal white balance, then
 #: a fixed camera-to-XYZ matrix fitted under D65.
 TRUE_LIGHT_DIAGONAL = "true-light diag+matrix"
-SUBSPACE_METHODS = ("maloney-wandell", "auto")
+SUBSPACE_METHODS = ("maloney-wandell", "auto", "bayes")
 
 
 @lru_cache(maxsize=None)
@@ -222,7 +222,7 @@ def evaluate_scene(scene: MondrianScene, methods=METHODS_BENCHED, with_true_ligh
                 fr = est.diagnostics.get("subspace_fit_ratio")
                 rec["subspace_fit_ratio"] = None if fr is None else float(fr)
                 rec["decision"] = est.diagnostics.get("decision")
-            if m in SUBSPACE_METHODS and est.method not in ("maloney-wandell", "bayes"):
+            if m in SUBSPACE_METHODS and est.method not in ("maloney-wandell", "bayes", "learned"):
                 rec["fallback"] = True
                 rec["fallback_reason"] = _fallback_reason(str(est.diagnostics.get("decision", "")))
             de, scale = delta_e00_scene(scene, cam, est)
