@@ -444,6 +444,7 @@ def _estimate_learned(run: _Run) -> IlluminantEstimate:
                           "in the canonical space of the camera's colour matrix",
               "confidence": res.confidence,
               "confidence_rule": "P(error < 3 deg) under the reported 90 % region (calibrated on held-out cameras)",
+              "low_confidence": bool(res.confidence < LOW_CONFIDENCE),
               "region90_deg": res.radius90_deg, "best_candidate": best, "analysis_cells": res.n_cells,
               "evidence_spread": res.diagnostics["evidence_spread"],
               "color_matrix_source": ("file / LibRaw" if getattr(camera, "color_matrix", None) is not None

@@ -190,7 +190,12 @@ class ItemTask:
 def _estimate_json(est, camera_name: str) -> dict:
     from .pipeline import illuminant_json
 
-    return dict(illuminant_json(est), method=est.method, camera=camera_name)
+    from recovery.api import LOW_CONFIDENCE
+
+    conf = est.diagnostics.get("confidence")
+    conf = float(conf) if isinstance(conf, (int, float)) else None
+    return dict(illuminant_json(est), method=est.method, camera=camera_name, confidence=conf,
+                low_confidence=conf is not None and conf < LOW_CONFIDENCE)
 
 
 def _estimate_from_json(light: dict, camera):
@@ -822,7 +827,8 @@ class JobStore:
             if r["illuminant"]:
                 ill = json.loads(r["illuminant"])
                 it["illuminant"] = {k: ill.get(k) for k in ("camera_rgb", "wb_multipliers", "cct", "duv",
-                                                            "method", "camera", "warnings")}
+                                                            "method", "camera", "warnings", "confidence",
+                                                            "low_confidence")}
             items.append(it)
         opts = json.loads(b["options"])
         doc = {"id": batch_id, "status": b["status"], "lighting": opts.get("lighting"), "options": opts,

@@ -9,6 +9,8 @@ const $ = (id) => document.getElementById(id);
 const SVG = "http://www.w3.org/2000/svg";  // the SVG namespace name, not a fetched URL
 
 const METHOD_WORDS = {
+  "learned": "the learnt estimator (classical estimates combined by a network trained on real photographs " +
+    "of 10 cameras, through this camera's colour matrix)",
   "bayes": "the light posterior (the scene's surface colours weighed against a set of candidate lights)",
   "maloney-wandell": "the Maloney–Wandell subspace method (under one light the surfaces' camera responses lie in a " +
     "plane whose normal fixes the light; Wandell 1985, eq. 30–35)",
@@ -155,7 +157,8 @@ function diagnosticsInWords(j) {
   const why = d.decided_by || (typeof d.decision === "string" ? d.decision.replace(/^[\w-]+: /, "") : "");
   if (why) summary += ` It was decided by ${why}.`;
   if (typeof d.confidence === "number") {
-    const level = d.confidence >= 0.75 ? "high" : d.confidence >= 0.4 ? "moderate" : "low";
+    const low = d.low_confidence === undefined ? d.confidence < 0.4 : d.low_confidence;
+    const level = low ? "low" : d.confidence >= 0.75 ? "high" : "moderate";
     summary += ` Confidence is ${level} (${fmt(100 * d.confidence, 0)} %).`;
   }
 
@@ -454,7 +457,15 @@ function renderBatch(j) {
     tr.insertCell().textContent = item.name;
     tr.insertCell().textContent = item.status;
     const il = item.illuminant || {};
-    tr.insertCell().textContent = (typeof il.cct === "number") ? `${Math.round(il.cct)} K` : "";
+    const cctCell = tr.insertCell();
+    cctCell.textContent = (typeof il.cct === "number") ? `${Math.round(il.cct)} K` : "";
+    if (il.low_confidence) {
+      const flag = document.createElement("span");
+      flag.className = "low-confidence";
+      flag.textContent = " low confidence";
+      flag.title = `confidence ${fmt(100 * il.confidence, 0)} %: check this image's white balance`;
+      cctCell.appendChild(flag);
+    }
     const res = tr.insertCell();
     if (item.error) {
       const e = item.error;
