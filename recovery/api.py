@@ -373,14 +373,18 @@ def _estimate_peer(run: _Run) -> IlluminantEstimate:
     return run.run_peer(run.method)
 
 
+def _check_pinned_models(run: _Run) -> None:
+    """A pinned linear model must obey the paper's rules whichever estimator decides."""
+    if any(v is not None for v in (run.surface_dim, run.light_dim, run.surface_basis, run.light_basis)):
+        S_ = resolve_model(run.surface_basis, "surface", run.d_s, run.camera.wavelengths)
+        E_ = resolve_model(run.light_basis, "light", run.d_e, run.camera.wavelengths)
+        check_dimensions(run.camera.channels, S_.dimension, E_.dimension)
+
+
 def _estimate_posterior(run: _Run) -> IlluminantEstimate:
     """``auto`` and ``bayes``: the light posterior, then one light or a map."""
     camera, img, m, spatial_mode = run.camera, run.img, run.m, run.spatial_mode
-    if any(v is not None for v in (run.surface_dim, run.light_dim, run.surface_basis, run.light_basis)):
-        # a pinned linear model must obey the paper's rules whichever estimator decides
-        S_ = resolve_model(run.surface_basis, "surface", run.d_s, camera.wavelengths)
-        E_ = resolve_model(run.light_basis, "light", run.d_e, camera.wavelengths)
-        check_dimensions(camera.channels, S_.dimension, E_.dimension)
+    _check_pinned_models(run)
     est = _run_bayes(img, m, camera, run.diag, run.warns, run.run_peer)
     if spatial_mode != "uniform" and est.method == "bayes":
         est = _maybe_light_map(img, m, camera, est, spatial_mode, run.region_size)
@@ -407,7 +411,9 @@ def _learned_spectrum(camera: Camera, rgb: np.ndarray, uv: np.ndarray, cov: np.n
 
     cands = default_candidates(camera.wavelengths)
     resp = camera.response(cands.spectra)
-    d = rgb_to_uv(np.clip(resp @ K.T, 1e-9, None)) - uv
+    can = resp @ K.T
+    can = can / np.abs(can).sum(axis=1, keepdims=True)          # chromaticity only: scale-free
+    d = rgb_to_uv(np.clip(can, 1e-9, None)) - uv
     logw = np.log(np.maximum(cands.prior, 1e-300)) - 0.5 * np.einsum("mi,ij,mj->m", d, np.linalg.inv(cov), d)
     w = np.exp(logw - logw.max())
     w /= w.sum()
@@ -426,19 +432,22 @@ def _estimate_learned(run: _Run) -> IlluminantEstimate:
     from .learned import camera_color_matrix, canonical_transform, estimate_learned, load_model
 
     camera, img, m = run.camera, run.img, run.m
-    if camera.channels != 3:
-        est = _estimate_posterior(run)
-        est.diagnostics["decision"] = (f"the learnt estimator needs 3 channels (this camera has "
-                                       f"{camera.channels}); {est.diagnostics.get('decision', est.method)}")
-        return est
+    _check_pinned_models(run)
     model = load_model()
-    cm = camera_color_matrix(camera)
+    try:
+        cm = camera_color_matrix(camera)
+        K = canonical_transform(cm, model.canonical)
+    except InputError as e:      # not 3 channels, or channels so alike that no colour matrix describes them
+        est = _estimate_posterior(run)
+        est.diagnostics["decision"] = (f"the learnt estimator cannot describe this camera ({e}); "
+                                       f"{est.diagnostics.get('decision', est.method)}")
+        return est
     try:
         res = estimate_learned(img, m, cm, model)
     except InsufficientSurfaceVariation as e:
         run.warns.append(f"learned estimator could not run: {e}")
         return run.run_peer(run.fallback, str(e))
-    spd, best = _learned_spectrum(camera, res.rgb, res.uv, res.cov, canonical_transform(cm, model.canonical))
+    spd, best = _learned_spectrum(camera, res.rgb, res.uv, res.cov, K)
     d = dict(run.diag)
     d.update({"decision": "learned: classical estimates combined by a network learnt on real photographs, "
                           "in the canonical space of the camera's colour matrix",

@@ -1,4 +1,5 @@
-"""One light or a light map (:mod:`recovery.spatial`, ``spatial="auto"``).
+"""One light or a light map (:mod:`recovery.spatial`, ``spatial="auto"``, decided for the light
+posterior, ``method="bayes"``; the learnt default gives one light unless a map is asked).
 
 The checks follow from the two pieces of evidence:
 
@@ -108,7 +109,7 @@ def test_bayes_factor_jensen_and_disagreement():
 
 
 def test_uniform_scene_gets_one_light_and_the_evidence(nikon, uniform_scene):
-    est = estimate_illuminant(uniform_scene.image, nikon, "auto", white_level=1.0, spatial="auto")
+    est = estimate_illuminant(uniform_scene.image, nikon, "bayes", white_level=1.0, spatial="auto")
     d = est.diagnostics
     assert est.light_map is None and d["spatial_decision"] == "one light"
     t = d["spatial_test"]
@@ -121,15 +122,15 @@ def test_uniform_scene_gets_one_light_and_the_evidence(nikon, uniform_scene):
 
 
 def test_pinning(nikon, uniform_scene, gradient_scene):
-    one = estimate_illuminant(gradient_scene[0], nikon, "auto", spatial=False)
+    one = estimate_illuminant(gradient_scene[0], nikon, "bayes", spatial=False)
     assert one.light_map is None and one.diagnostics["spatial_reason"].startswith("requested")
-    assert estimate_illuminant(gradient_scene[0], nikon, "auto", spatial="uniform").light_map is None
+    assert estimate_illuminant(gradient_scene[0], nikon, "bayes", spatial="uniform").light_map is None
     for pin in (True, "map"):
-        est = estimate_illuminant(uniform_scene.image, nikon, "auto", spatial=pin)
+        est = estimate_illuminant(uniform_scene.image, nikon, "bayes", spatial=pin)
         assert est.light_map is not None and est.diagnostics["spatial_decision"] == "light map"
         assert "requested" in est.diagnostics["spatial_reason"]
     # the default is one light (the automatic choice is measured, not yet the default)
-    assert estimate_illuminant(uniform_scene.image, nikon, "auto").light_map is None
+    assert estimate_illuminant(uniform_scene.image, nikon, "bayes").light_map is None
 
 
 def test_two_light_gradient_gets_a_map_that_follows_the_light(nikon, gradient_scene):
@@ -140,7 +141,7 @@ def test_two_light_gradient_gets_a_map_that_follows_the_light(nikon, gradient_sc
     model's error over the change."""
     img, truth, sep = gradient_scene
     assert sep > 15
-    est = estimate_illuminant(img, nikon, "auto", white_level=1.0, spatial="auto")
+    est = estimate_illuminant(img, nikon, "bayes", white_level=1.0, spatial="auto")
     assert est.diagnostics["spatial_decision"] == "light map"
     assert est.diagnostics["spatial_test"]["trend_says_map"]
     lm = est.light_map
@@ -164,7 +165,7 @@ def test_rest_spatial_field(tmp_path):
     data = (tmp_path / "g.dng").read_bytes()
     with TestClient(app) as client:
         def post(**fields):
-            return client.post("/v1/analyze", files={"file": ("g.dng", data)}, data=fields)
+            return client.post("/v1/analyze", files={"file": ("g.dng", data)}, data={"method": "bayes", **fields})
 
         r = post(spatial="sometimes")
         assert r.status_code == 422 and "spatial" in r.json()["detail"] and set(r.json()) == {"error", "detail"}
@@ -190,7 +191,7 @@ def test_large_image_map_is_in_the_callers_pixels(nikon):
     from recovery.spatial import choose_light_model
 
     img, truth, _ = _gradient(576)
-    est = estimate_illuminant(img, nikon, "auto", white_level=1.0, spatial="auto")
+    est = estimate_illuminant(img, nikon, "bayes", white_level=1.0, spatial="auto")
     lm = est.light_map
     assert lm is not None and est.diagnostics["spatial_test"]["test_block_factor"] > 1
     assert est.diagnostics["spatial_test"]["trend_says_map"]

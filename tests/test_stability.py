@@ -42,7 +42,7 @@ STATISTIC_PEERS = ("gray-world", "white-patch", "shades-of-gray")
 #: Methods whose exact behaviour at the extremes is pinned below; methods
 #: added to METHODS later get the generic contract (finite or explicit).
 KNOWN_METHODS = SUBSPACE_METHODS + STATISTIC_PEERS + ("gray-edge",)
-PEER_METHODS = tuple(m for m in METHODS if m not in SUBSPACE_METHODS + ("bayes",))
+PEER_METHODS = tuple(m for m in METHODS if m not in SUBSPACE_METHODS + ("bayes", "learned"))
 #: Scale-free methods: they divide the image by its maximum first and use
 #: relative thresholds only.
 SCALE_FREE_METHODS = tuple(m for m in METHODS if m in KNOWN_METHODS)

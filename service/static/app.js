@@ -457,15 +457,7 @@ function renderBatch(j) {
     tr.insertCell().textContent = item.name;
     tr.insertCell().textContent = item.status;
     const il = item.illuminant || {};
-    const cctCell = tr.insertCell();
-    cctCell.textContent = (typeof il.cct === "number") ? `${Math.round(il.cct)} K` : "";
-    if (il.low_confidence) {
-      const flag = document.createElement("span");
-      flag.className = "low-confidence";
-      flag.textContent = " low confidence";
-      flag.title = `confidence ${fmt(100 * il.confidence, 0)} %: check this image's white balance`;
-      cctCell.appendChild(flag);
-    }
+    tr.insertCell().textContent = (typeof il.cct === "number") ? `${Math.round(il.cct)} K` : "";
     const res = tr.insertCell();
     if (item.error) {
       const e = item.error;
@@ -473,6 +465,13 @@ function renderBatch(j) {
       res.className = "error-text";
     } else if (item.status === "done") {
       res.appendChild(itemLink(j.id, item, i));
+      if (il.low_confidence) {
+        const flag = document.createElement("span");
+        flag.className = "low-confidence";
+        flag.textContent = " low confidence: check this white balance";
+        flag.title = `confidence ${fmt(100 * il.confidence, 0)} % (probability of an error under 3 degrees)`;
+        res.appendChild(flag);
+      }
     }
   });
   const finished = ["done", "cancelled", "failed"].includes(j.status);
