@@ -36,7 +36,7 @@ from recovery import learned as L
 from recovery.estimators import gray_edge, gray_world, shades_of_gray, white_patch
 
 from .realdata import REAL_DIR, angular_error, error_stats, load_real, usable_mask
-from .train_illuminant import coverage_by_camera, dataset_features, leave_one_camera_out
+from .train_illuminant import coverage_by_camera, dataset_features, leave_one_camera_out, single_threaded
 
 PEERS = {
     "gray-world": lambda im, m: gray_world(im, m),
@@ -131,7 +131,8 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     feats, tuv, Ks = dataset_features(rs)
-    uv, spread, err = leave_one_camera_out(rs, feats, tuv, Ks, log=lambda s: None)
+    with single_threaded():
+        uv, spread, err = leave_one_camera_out(rs, feats, tuv, Ks, log=lambda s: None)
     errs["learned (LOCO)"] = err
     times["learned (LOCO)"] = (time.perf_counter() - t0) / n   # features + 10 fits, per image
     # the shipped model's cost per estimate on a thumbnail (features + network), as the product runs it
