@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["balance_highlights", "highlight_shoulder", "HIGHLIGHT_START", "HIGHLIGHT_FULL", "SHOULDER_KNEE"]
+__all__ = ["balance_highlights", "highlight_shoulder", "blend_to_neutral", "shoulder_at", "shoulder_ratio", "HIGHLIGHT_START", "HIGHLIGHT_FULL", "SHOULDER_KNEE"]
 
 #: Fraction of saturation where the blend to neutral starts, and where it is complete
 #: (the same 0.98 that flags saturated cells in :mod:`service.rawio`).
@@ -77,17 +77,41 @@ def balance_highlights(camera_rgb: np.ndarray, neutral, start: float = HIGHLIGHT
     c = np.asarray(camera_rgb, np.float32)
     w = np.multiply(c, (1.0 / n).astype(np.float32), out=out)
     np.minimum(w, np.float32(1.0), out=w)
-    peak = c.max(axis=-1)
-    t = (peak - np.float32(start)) * np.float32(1.0 / (full - start))
-    np.clip(t, 0.0, 1.0, out=t)
-    hit = t > 0
-    if np.any(hit):
-        wh = w[hit]
-        L = wh.max(axis=-1, keepdims=True)
-        th = t[hit][:, None]
-        goal = L if white is None else L * (np.asarray(white, np.float32) / np.float32(np.max(white)))
-        w[hit] = wh + th * (goal - wh)
+    c2 = c.reshape(-1, 3)
+    w2 = w.reshape(-1, 3) if w.flags.c_contiguous else np.ascontiguousarray(w).reshape(-1, 3)
+    # the largest channel per pixel from the three channel planes (a reduction
+    # over a length-3 axis is several times slower), then only the pixels the
+    # blend touches (usually few) are gathered
+    peak = np.maximum(np.maximum(c2[:, 0], c2[:, 1]), c2[:, 2])
+    idx = np.flatnonzero(peak > np.float32(start))
+    blend_to_neutral(w2, idx, peak[idx], start, full, white)
+    if not np.shares_memory(w2, w):
+        w[...] = w2.reshape(w.shape)
     return w
+
+
+def blend_to_neutral(w2: np.ndarray, idx: np.ndarray, peak: np.ndarray, start: float = HIGHLIGHT_START,
+                     full: float = HIGHLIGHT_FULL, white=None) -> None:
+    """Step 3 of :func:`balance_highlights`, in place on the pixels ``idx``
+    of the white-balanced, clipped ``w2`` (N, 3) float32, whose largest
+    camera channel is ``peak`` (float32, one per index; pixels with
+    ``peak <= start`` are left as they are). The fused renderer
+    (:func:`service.pipeline.apply_matrix_inplace`) finds ``idx`` its own
+    way and calls this on them only."""
+    if idx.size == 0:
+        return
+    t = (np.asarray(peak, np.float32) - np.float32(start)) * np.float32(1.0 / (full - start))
+    np.clip(t, 0.0, 1.0, out=t)
+    keep = t > 0
+    if not keep.all():
+        idx, t = idx[keep], t[keep]
+        if idx.size == 0:
+            return
+    wh = w2[idx]
+    L = np.maximum(np.maximum(wh[:, 0], wh[:, 1]), wh[:, 2])[:, None]
+    th = t[:, None]
+    goal = L if white is None else L * (np.asarray(white, np.float32) / np.float32(np.max(white)))
+    w2[idx] = wh + th * (goal - wh)
 
 
 #: Display-linear luminance above which :func:`highlight_shoulder` compresses.
@@ -122,10 +146,38 @@ def highlight_shoulder(rgb: np.ndarray, luminance_weights, knee: float = SHOULDE
     if pk <= 1.0 + 1e-6 or k >= 1.0:
         return rgb
     Y = rgb @ w
-    over = Y > k * white
-    if np.any(over):
-        a = (pk - k) / (1.0 - k) - 1.0
-        x = (Y[over] / white - k) / (pk - k)
-        Yn = (k + (1.0 - k) * (1.0 + a) * x / (1.0 + a * x)) * white
-        rgb[over] *= (Yn / Y[over])[:, None]
+    flat = rgb.reshape(-1, 3) if rgb.flags.c_contiguous else np.ascontiguousarray(rgb).reshape(-1, 3)
+    shoulder_at(flat, Y.reshape(-1), knee, peak, white)
+    if not np.shares_memory(flat, rgb):
+        rgb[...] = flat.reshape(rgb.shape)
     return rgb
+
+
+def shoulder_at(rgb2: np.ndarray, Y: np.ndarray, knee: float = SHOULDER_KNEE, peak: float = 4.0,
+                white: float = 1.0, idx: np.ndarray | None = None) -> None:
+    """:func:`highlight_shoulder` on ``rgb2`` (N, 3) float32 in place, given
+    its luminance ``Y`` (N,) (``idx``: the pixels with ``Y > knee * white``
+    when the caller has them already; otherwise found here)."""
+    k = float(knee)
+    pk = max(float(peak), 1.0 + 1e-6)
+    if pk <= 1.0 + 1e-6 or k >= 1.0:
+        return
+    if idx is None:
+        idx = np.flatnonzero(Y > k * white)
+    if idx.size == 0:
+        return
+    rgb2[idx] *= shoulder_ratio(Y[idx], k, pk, white)[:, None]
+
+
+def shoulder_ratio(Y: np.ndarray, knee: float, peak: float, white: float = 1.0) -> np.ndarray:
+    """The factor :func:`highlight_shoulder` scales a pixel of luminance
+    ``Y > knee * white`` by (``Y' / Y``), for ``peak > 1``, ``knee < 1``.
+    The fused renderer (:func:`service.pipeline.apply_matrix_inplace`)
+    gathers the luminance of the pixels above the knee (one
+    ``cv2.transform``) and multiplies by these factors as it rounds to
+    integers."""
+    k, pk = float(knee), float(peak)
+    a = (pk - k) / (1.0 - k) - 1.0
+    x = (Y / white - k) / (pk - k)
+    Yn = (k + (1.0 - k) * (1.0 + a) * x / (1.0 + a * x)) * white
+    return Yn / Y
