@@ -281,3 +281,22 @@ def test_kill_9_mid_batch_then_restart_completes_every_item_once(env, tmp_path):
                 except ProcessLookupError:
                     pass
                 p.wait()
+
+
+def test_batch_items_carry_the_learnt_estimates_confidence_and_flag(client, env):
+    """Issue 12: batches flag low-confidence images. With the default
+    estimator every item reports its confidence (a probability) and
+    ``low_confidence`` exactly when it is under the documented threshold,
+    with the estimate's warning saying so."""
+    from recovery.api import LOW_CONFIDENCE
+
+    root = env["root"]
+    r = client.post("/v1/batches", files=_files(root, ["im0.dng", "im1.dng"]), data={"format": "png"})
+    assert r.status_code == 202, r.text
+    doc = _wait(client, r.json()["id"])
+    assert doc["counts"]["done"] == 2
+    for it in doc["items"]:
+        ill = it["illuminant"]
+        assert ill["method"] == "learned" and 0.0 <= ill["confidence"] <= 1.0
+        assert ill["low_confidence"] == (ill["confidence"] < LOW_CONFIDENCE)
+        assert any(w.startswith("low confidence") for w in ill["warnings"]) == ill["low_confidence"]
