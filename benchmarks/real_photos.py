@@ -36,7 +36,8 @@ from recovery import learned as L
 from recovery.estimators import gray_edge, gray_world, shades_of_gray, white_patch
 
 from .realdata import REAL_DIR, angular_error, error_stats, load_real, usable_mask
-from .train_illuminant import coverage_by_camera, dataset_features, leave_one_camera_out, single_threaded
+from .train_illuminant import (coverage_by_camera, dataset_features, held_out_confidence, leave_one_camera_out,
+                               reliability, single_threaded)
 
 PEERS = {
     "gray-world": lambda im, m: gray_world(im, m),
@@ -184,6 +185,11 @@ def main(argv=None) -> int:
     print(f"\n90 % region coverage, each camera calibrated on the others: pooled {pooled_cover:.1%} "
           f"(in-sample calibration {inside:.1%})")
     report["coverage90_pooled"] = pooled_cover
+    rel = reliability(held_out_confidence(rs, uv, tuv, spread, err, Ks), err)
+    report["confidence_reliability"] = rel
+    print("confidence on held-out cameras, predicted / observed P(error < 3 deg) by bin: "
+          + ", ".join(f"{b['bin'][0]:.1f}-{b['bin'][1]:.1f} {b['predicted']:.2f}/{b['observed']:.2f} (n {b['n']})"
+                      for b in rel))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "real_photos.json").write_text(json.dumps(report, indent=1))

@@ -98,6 +98,39 @@ def coverage_by_camera(rs, uv, tuv, spread):
     return out
 
 
+def radii(rs, uv, spread, Ks, sigma) -> np.ndarray:
+    """The 90 % radius (degrees, camera RGB) each image would be reported with under ``sigma``."""
+    return np.array([L.radius90(uv[i], float(L.variance_from_spread(spread[i], sigma)), Ks[rs.camera[i]])
+                     for i in range(len(uv))])
+
+
+def held_out_confidence(rs, uv, tuv, spread, err, Ks) -> np.ndarray:
+    """Second-level leave-one-camera-out for the confidence: for each camera
+    the uncertainty law and the logistic confidence law are fitted on the
+    other cameras' held-out results, then applied to this camera's images.
+    Returns each image's held-out P(error < 3 deg)."""
+    d2 = ((uv - tuv) ** 2).sum(axis=1)
+    conf = np.zeros(len(uv))
+    for cam in rs.cameras:
+        te = rs.camera == cam
+        sig = L.fit_uncertainty(spread[~te], d2[~te])
+        rad = radii(rs, uv, spread, Ks, sig)
+        coef = L.fit_confidence(rad[~te], err[~te] < 3.0)
+        conf[te] = [L.confidence(r, coef) for r in rad[te]]
+    return conf
+
+
+def reliability(conf, err, edges=(0.0, 0.5, 0.7, 0.8, 0.9, 1.01)) -> list[dict]:
+    """Predicted against observed P(error < 3 deg) in bins of predicted confidence."""
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        b = (conf >= lo) & (conf < hi)
+        if b.any():
+            out.append({"bin": [lo, min(hi, 1.0)], "n": int(b.sum()), "predicted": float(conf[b].mean()),
+                        "observed": float(np.mean(err[b] < 3.0)), "mean_error": float(err[b].mean())})
+    return out
+
+
 def _digest(directory: Path) -> dict:
     return {f: hashlib.sha256((directory / f).read_bytes()).hexdigest()[:16]
             for f in ("nus8.npz", "cubeplus.npz", "cameras.json")}
@@ -128,9 +161,15 @@ def _main(argv=None) -> int:
     d2 = ((uv - tuv) ** 2).sum(axis=1)
     sigma = L.fit_uncertainty(spread, d2)
     cov = coverage_by_camera(rs, uv, tuv, spread)
+    conf_coef = L.fit_confidence(radii(rs, uv, spread, Ks, sigma), err < 3.0)
+    held = held_out_confidence(rs, uv, tuv, spread, err, Ks)
+    rel = reliability(held, err)
     loco = error_stats(err)
     print("leave-one-camera-out: " + ", ".join(f"{k} {v:.2f}" for k, v in loco.items() if k != "n"))
     print("90 % region coverage by held-out camera: " + ", ".join(f"{k} {v:.0%}" for k, v in cov.items()))
+    print("confidence (held-out cameras) predicted / observed P(error < 3 deg): "
+          + ", ".join(f"{b['bin'][0]:.1f}-{b['bin'][1]:.1f}: {b['predicted']:.2f}/{b['observed']:.2f} (n {b['n']})"
+                      for b in rel))
     x = L.network_inputs(feats)
     mean, scale, layers = L.fit_network(x, tuv - feats[:, L.REFERENCE], camera_weights(rs.camera), **{
         k: SETTINGS[k] for k in ("hidden", "ridge", "members", "maxiter", "seed")})
@@ -141,8 +180,10 @@ def _main(argv=None) -> int:
             "canonical": "Bradford cone space (XYZ -> LMS)",
             "leave_one_camera_out": {k: round(v, 4) for k, v in loco.items()},
             "coverage90_by_camera": {k: round(v, 4) for k, v in cov.items()},
+            "confidence_reliability_held_out": [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in b.items()}
+                                                for b in rel],
             "command": "python -m benchmarks.train_illuminant"}
-    model = L.LearnedModel(L.BRADFORD, mean, scale, layers, sigma, info)
+    model = L.LearnedModel(L.BRADFORD, mean, scale, layers, sigma, conf_coef, info)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     model.save(a.out)
     print(f"wrote {a.out} ({Path(a.out).stat().st_size} bytes) in {time.perf_counter() - t0:.1f} s")

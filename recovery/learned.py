@@ -257,6 +257,10 @@ class LearnedModel:
     sigma : (3,) uncertainty law: ``s^2 = exp(sigma[0]) * (spread^2 + exp(sigma[1])) ** sigma[2]``
         the isotropic variance (log-chroma^2) of the light for an input
         spread (see :func:`_spread`); calibrated on held-out cameras
+    confidence_coef : (2,) ``P(error < 3 deg) = 1 / (1 + exp(-(c0 + c1 log radius90_deg)))``,
+        fitted by logistic regression on held-out cameras (errors are
+        heavier-tailed than a Gaussian, so the Gaussian's own probability
+        would understate it)
     info : dict, what it was trained on and how
     """
 
@@ -265,11 +269,12 @@ class LearnedModel:
     scale: np.ndarray
     layers: tuple
     sigma: np.ndarray
+    confidence_coef: np.ndarray = field(default_factory=lambda: np.array([np.nan, np.nan]))
     info: dict = field(default_factory=dict, compare=False)
 
     def save(self, path) -> None:
         arrays = {"canonical": self.canonical, "mean": self.mean, "scale": self.scale, "sigma": self.sigma,
-                  "members": np.array(len(self.layers))}
+                  "confidence_coef": self.confidence_coef, "members": np.array(len(self.layers))}
         for i, (w1, b1, w2, b2) in enumerate(self.layers):
             arrays.update({f"w1_{i}": w1, f"b1_{i}": b1, f"w2_{i}": w2, f"b2_{i}": b2})
         np.savez_compressed(path, info=json.dumps(self.info, sort_keys=True), **arrays)
@@ -288,7 +293,8 @@ def load_model(path: str | None = None) -> LearnedModel:
         raise InputError(f"no learnt illuminant model at {p} (rebuild it: python -m benchmarks.train_illuminant)")
     with np.load(p, allow_pickle=False) as z:
         layers = tuple((z[f"w1_{i}"], z[f"b1_{i}"], z[f"w2_{i}"], z[f"b2_{i}"]) for i in range(int(z["members"])))
-        return LearnedModel(z["canonical"], z["mean"], z["scale"], layers, z["sigma"], json.loads(str(z["info"])))
+        return LearnedModel(z["canonical"], z["mean"], z["scale"], layers, z["sigma"], z["confidence_coef"],
+                            json.loads(str(z["info"])))
 
 
 def network_inputs(feats: np.ndarray) -> np.ndarray:
@@ -362,14 +368,49 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     if not np.all(cam > 0):
         cam = np.clip(cam, 1e-6, None)
     cam = cam / cam.sum()
-    # angular radius of the 90 % region, measured along both log-chroma axes in camera RGB
-    r = np.sqrt(var * CHI2_90)
-    radius = max(_angle(cam, np.linalg.solve(K, uv_to_rgb(uv + d))) for d in ([r, 0], [0, r], [-r, 0], [0, -r]))
-    sigma_deg = radius / np.sqrt(CHI2_90)
-    conf = float(1.0 - np.exp(-9.0 / (2.0 * sigma_deg ** 2))) if sigma_deg > 0 else 1.0
+    radius = radius90(uv, var, K)
+    conf = confidence(radius, model.confidence_coef)
     return LearnedResult(cam, uv, cov, float(radius), conf, int(ok.sum()),
                          {"evidence_spread": spread,
                           "estimates": {n: [float(a), float(b)] for n, (a, b) in zip(FEATURE_NAMES, f)}})
+
+
+def radius90(uv, var: float, K: np.ndarray) -> float:
+    """Angular radius (degrees, camera RGB) of the 90 % region of an
+    isotropic log-chroma Gaussian of variance ``var`` about ``uv``: the
+    largest angle to its edge along the two log-chroma axes, through the
+    canonical transform ``K``."""
+    cam = np.linalg.solve(K, uv_to_rgb(uv))
+    r = np.sqrt(var * CHI2_90)
+    return max(_angle(cam, np.linalg.solve(K, uv_to_rgb(np.asarray(uv) + d)))
+               for d in ([r, 0], [0, r], [-r, 0], [0, -r]))
+
+
+def confidence(radius: float, coef) -> float:
+    """P(error < 3 degrees) for a 90 % radius: the calibrated logistic law
+    of the model, or (a model without one) the Gaussian's own probability."""
+    coef = np.asarray(coef, float)
+    if np.all(np.isfinite(coef)):
+        return float(1.0 / (1.0 + np.exp(-(coef[0] + coef[1] * np.log(max(radius, 1e-6))))))
+    sigma_deg = radius / np.sqrt(CHI2_90)
+    return float(1.0 - np.exp(-9.0 / (2.0 * sigma_deg ** 2))) if sigma_deg > 0 else 1.0
+
+
+def fit_confidence(radius: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Logistic regression of ``ok`` (error under 3 degrees) on ``log
+    radius`` (maximum likelihood, Newton's method from zero: deterministic)."""
+    x = np.c_[np.ones(len(radius)), np.log(np.maximum(np.asarray(radius, float), 1e-6))]
+    y = np.asarray(ok, float)
+    c = np.zeros(2)
+    for _ in range(50):
+        p = 1.0 / (1.0 + np.exp(-(x @ c)))
+        g = x.T @ (y - p)
+        h = (x * (p * (1 - p))[:, None]).T @ x + 1e-9 * np.eye(2)
+        step = np.linalg.solve(h, g)
+        c = c + step
+        if np.abs(step).max() < 1e-10:
+            break
+    return c
 
 
 def _angle(a, b) -> float:

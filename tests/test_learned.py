@@ -173,6 +173,24 @@ def test_reported_90_percent_region_holds_the_light_85_to_95_percent(real, loco)
     assert 0.85 <= pooled <= 0.95, cov
 
 
+def test_confidence_is_calibrated_on_held_out_cameras(real, loco):
+    """``confidence`` is P(error < 3 deg): on images of cameras neither the
+    network nor the confidence law saw, the predicted and observed
+    fractions agree overall within 0.05 (binomial spread on 3,560 images is
+    0.008; the rest is camera-to-camera shift), and the images flagged low
+    confidence are more often wrong than the others."""
+    from benchmarks.train_illuminant import held_out_confidence
+    from recovery.api import LOW_CONFIDENCE
+
+    rs, feats, tuv, Ks = real
+    uv, spread, err = loco
+    conf = held_out_confidence(rs, uv, tuv, spread, err, Ks)
+    ok = err < 3.0
+    assert abs(conf.mean() - ok.mean()) < 0.05, (conf.mean(), ok.mean())
+    low = conf < LOW_CONFIDENCE
+    assert 0 < low.sum() < 0.25 * len(conf) and ok[low].mean() < ok[~low].mean() - 0.1
+
+
 def test_rebuilding_the_model_gives_the_shipped_one(real, tmp_path):
     """The command is deterministic: the same data give the shipped
     parameters and the same estimates. Exactness is to rounding with BLAS on
