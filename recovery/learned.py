@@ -197,6 +197,10 @@ def _gray_pixels(img: np.ndarray, m: np.ndarray, q: float) -> np.ndarray:
     return img[mm][np.argpartition(gi, k - 1)[:k]].mean(axis=0)
 
 
+#: Below this RMS spread of the cells' log-chroma (about half a degree) the
+#: scene is one surface colour, and no estimate can tell light from surface.
+MIN_CHROMA_SPREAD = 0.01
+
 #: The classical estimates the network combines, in order.
 FEATURE_NAMES = ("gray-world", "sog-2", "sog-4", "sog-8", "sog-16", "max-rgb", "p99", "p95",
                  "gray-edge-1-p1", "gray-edge-1-p6", "gray-edge-1-p6-s2", "gray-edge-2-p6",
@@ -220,6 +224,12 @@ def features(cells: np.ndarray, ok: np.ndarray) -> np.ndarray:
     if px.shape[0] < 16:
         raise InsufficientSurfaceVariation(f"only {px.shape[0]} usable cells (of {ok.size}) after leaving out "
                                            "saturated, dark and out-of-gamut pixels")
+    uv = rgb_to_uv(px)
+    rms = float(np.sqrt(np.mean(np.sum((uv - uv.mean(axis=0)) ** 2, axis=1))))
+    if rms < MIN_CHROMA_SPREAD:
+        raise InsufficientSurfaceVariation(
+            f"one colour: the usable cells' chromaticities spread by {rms:.2g} in log-chroma (under "
+            f"{MIN_CHROMA_SPREAD}), so the light cannot be told from the surface")
     est = [gray_world(px), *(shades_of_gray(px, None, p) for p in (2, 4, 8, 16)), white_patch(px),
            np.percentile(px, 99, axis=0), np.percentile(px, 95, axis=0),
            _edge(img, ok, 1, 1, 1), _edge(img, ok, 6, 1, 1), _edge(img, ok, 6, 2, 1), _edge(img, ok, 6, 1, 2),
