@@ -130,3 +130,37 @@ def running_server(env: dict | None = None, timeout: float = 60.0):
             proc.wait()
         log.close()
         os.unlink(log.name)
+
+
+def asgi_post_stream(path: str, chunks: list, headers: list):
+    """POST ``chunks`` (consumed from the list as the app reads them) to the
+    real app straight through ASGI, as a client streaming a body would:
+    returns the response-start messages, the JSON body and the bytes the
+    app read."""
+    import asyncio
+    import json
+
+    from service.app import app
+
+    consumed = 0
+    sent = []
+
+    async def receive():
+        nonlocal consumed
+        if not chunks:
+            return {"type": "http.disconnect"}
+        body = chunks.pop(0)
+        consumed += len(body)
+        return {"type": "http.request", "body": body, "more_body": bool(chunks)}
+
+    async def send(message):
+        sent.append(message)
+
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
+             "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"", "root_path": "",
+             "headers": [(b"host", b"127.0.0.1:8000")] + headers,
+             "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 8000)}
+    asyncio.run(app(scope, receive, send))
+    start = [m for m in sent if m["type"] == "http.response.start"]
+    body = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
+    return start, json.loads(body), consumed

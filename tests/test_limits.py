@@ -4,8 +4,6 @@ and for streamed request bodies (:mod:`service.limits`)."""
 
 from __future__ import annotations
 
-import asyncio
-import json
 
 import httpx
 import pytest
@@ -14,6 +12,8 @@ from fastapi.testclient import TestClient
 from benchmarks import fuzz
 from service.app import app
 from service.limits import FRAMING
+
+from .conftest import asgi_post_stream
 
 
 @pytest.fixture(scope="module")
@@ -69,31 +69,10 @@ def test_streamed_body_over_the_limit_is_cut_off_while_reading(env_settings):
     head = (b'--zz\r\nContent-Disposition: form-data; name="file"; filename="a.dng"\r\n'
             b"Content-Type: application/octet-stream\r\n\r\n")
     chunks = [head] + [b"\0" * chunk] * 64 + [b"\r\n--zz--\r\n"]
-    consumed = 0
-    sent = []
-
-    async def receive():
-        nonlocal consumed
-        if not chunks:
-            return {"type": "http.disconnect"}
-        body = chunks.pop(0)
-        consumed += len(body)
-        return {"type": "http.request", "body": body, "more_body": bool(chunks)}
-
-    async def send(message):
-        sent.append(message)
-
-    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
-             "scheme": "http", "path": "/v1/analyze", "raw_path": b"/v1/analyze", "query_string": b"",
-             "root_path": "", "headers": [(b"host", b"test"),
-                                          (b"content-type", b"multipart/form-data; boundary=zz"),
-                                          (b"transfer-encoding", b"chunked")],
-             "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 80)}
-    asyncio.run(app(scope, receive, send))
-    start = [m for m in sent if m["type"] == "http.response.start"]
-    body = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
+    start, body, consumed = asgi_post_stream("/v1/analyze", chunks, [
+        (b"content-type", b"multipart/form-data; boundary=zz"), (b"transfer-encoding", b"chunked")])
     assert len(start) == 1 and start[0]["status"] == 413
-    assert json.loads(body)["error"] == "file_too_large"
+    assert body["error"] == "file_too_large"
     assert consumed <= 1000 + FRAMING + chunk
     assert chunks, "the whole body was read"
 

@@ -29,7 +29,7 @@ from service.limits import FRAMING
 from service.routers import analysis
 from service.settings import get_settings
 
-from .conftest import running_server
+from .conftest import asgi_post_stream, running_server
 from .test_workers import _Probe
 
 
@@ -273,29 +273,6 @@ def test_dropped_requests_do_not_delay_the_next_one(blackmagic_dng):
 # Batch uploads: refused as they arrive
 # ---------------------------------------------------------------------------
 
-def _stream(path: str, chunks: list, headers: list):
-    consumed = 0
-    sent = []
-
-    async def receive():
-        nonlocal consumed
-        if not chunks:
-            return {"type": "http.disconnect"}
-        body = chunks.pop(0)
-        consumed += len(body)
-        return {"type": "http.request", "body": body, "more_body": bool(chunks)}
-
-    async def send(message):
-        sent.append(message)
-
-    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
-             "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"", "root_path": "",
-             "headers": [(b"host", b"127.0.0.1:8000")] + headers,
-             "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 8000)}
-    asyncio.run(app(scope, receive, send))
-    start = [m for m in sent if m["type"] == "http.response.start"]
-    body = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
-    return start, json.loads(body), consumed
 
 
 def test_an_oversize_batch_file_is_refused_as_it_arrives(env_settings, tmp_path):
@@ -307,7 +284,7 @@ def test_an_oversize_batch_file_is_refused_as_it_arrives(env_settings, tmp_path)
     chunk = 64 * 1024
     head = b'--zz\r\nContent-Disposition: form-data; name="files"; filename="big.dng"\r\n\r\n'
     chunks = [head] + [b"\1" * chunk] * 64 + [b"\r\n--zz--\r\n"]
-    start, body, consumed = _stream("/v1/batches", chunks, [
+    start, body, consumed = asgi_post_stream("/v1/batches", chunks, [
         (b"content-type", b"multipart/form-data; boundary=zz"), (b"transfer-encoding", b"chunked")])
     assert len(start) == 1 and start[0]["status"] == 413, (start, body)
     assert body["error"] == "file_too_large" and "big.dng" in body["detail"]
