@@ -192,11 +192,17 @@ def test_confidence_is_calibrated_on_held_out_cameras(real, loco):
 
 
 def test_rebuilding_the_model_gives_the_shipped_one(real, tmp_path):
-    """The command is deterministic: the same data give the shipped
-    parameters and the same estimates. Exactness is to rounding with BLAS on
-    one thread (the command holds it there); the bound 0.01 degrees is
-    below the 0.02 degrees measured when two BLAS threads reorder the sums,
-    so a command that stopped holding BLAS to one thread would fail here."""
+    """The command is deterministic up to the BLAS kernel: the same data
+    give the shipped model's estimates. The training holds BLAS to one thread,
+    but which kernel OpenBLAS picks (``OPENBLAS_CORETYPE``, set on some
+    machines of this kind) still orders sums differently, and L-BFGS on the
+    non-convex network carries that into the parameters. Measured with
+    ``python -m benchmarks.rebuild_spread`` (rebuilds under Haswell, SkylakeX
+    and Prescott kernels, each in its own process, 10 sampled images):
+    largest angle between any two rebuilds' estimates 0.096 degrees
+    (Haswell vs Prescott; SkylakeX, this machine's own kernel, reproduced the
+    shipped model exactly), largest change of a recorded leave-one-camera-out
+    figure 0.032 degrees. The bounds are twice those: 0.2 and 0.065 degrees."""
     from benchmarks import train_illuminant
 
     out = tmp_path / "m.npz"
@@ -209,9 +215,9 @@ def test_rebuilding_the_model_gives_the_shipped_one(real, tmp_path):
 
         a = L.estimate_learned(rs.images[i], usable_mask(rs.images[i]), m, new).rgb
         b = L.estimate_learned(rs.images[i], usable_mask(rs.images[i]), m, old).rgb
-        assert angular_error(a, b) < 0.01
+        assert angular_error(a, b) < 0.2
     for k, v in old.info["leave_one_camera_out"].items():
-        assert abs(new.info["leave_one_camera_out"][k] - v) < 0.01, k
+        assert abs(new.info["leave_one_camera_out"][k] - v) < 0.065, k
 
 
 def test_analyze_on_a_dng_of_a_real_thumbnail_gives_the_python_estimate(real, tmp_path):
