@@ -303,3 +303,45 @@ def test_phone_width_has_no_horizontal_scroll_and_a_click_sets_the_white(browser
     assert pg.locator("#neutral-clear").is_visible()
     assert pg.evaluate("document.documentElement.scrollWidth") <= 375
     ctx.close()
+
+
+# ---------------------------------------------------------------------------
+# Issue 19: /docs "Try it out", the batch's cancel, keyboard, layout
+# ---------------------------------------------------------------------------
+
+def _try_it_out(pg, operation_id: str, upload: Path):
+    """Open an operation on /docs, "Try it out", choose ``upload`` for its
+    file field, "Execute": the response, and the curl command Swagger shows."""
+    op = pg.locator(f"#operations-default-{operation_id}")
+    op.locator(".opblock-summary").click()
+    op.locator(".try-out__btn").click()
+    op.locator("input[type=file]").first.set_input_files(str(upload))
+    with pg.expect_response(lambda r: r.request.method == "POST", timeout=120_000) as resp:
+        op.locator(".execute").click()
+    op.locator(".live-responses-table .response-col_status").first.wait_for(timeout=60_000)
+    return resp.value, op.locator(".curl-command").inner_text()
+
+
+def test_docs_try_it_out_runs_each_operation_with_its_defaults(browser, server, tmp_path):
+    """Issue 19, item 3: Swagger UI filled the optional fields with their
+    examples (neutral=1200,2040, surface_dim=2, ...) and every try was a
+    422. Now "Try it out" + "Execute" with only a file runs as documented:
+    the same answer as the API without options."""
+    import httpx
+
+    dng = _dng(tmp_path / "scene.dng")
+    ctx = browser.new_context(viewport={"width": 1280, "height": 1000})
+    pg = ctx.new_page()
+    pg.goto(server + "/docs")
+    pg.wait_for_selector(".opblock", timeout=30_000)
+    resp, curl = _try_it_out(pg, "analyze_v1_analyze_post", dng)
+    assert resp.status == 200, (resp.status, resp.text(), curl)
+    for example in ("1200", "2040", "=matrix", "=balanced", "=pca", "=daylight", "=string", "=null"):
+        assert example not in curl, (example, curl)
+    got = resp.json()
+    plain = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())}, timeout=60).json()
+    assert got["method"] == plain["method"] and got["illuminant"]["cct"] == pytest.approx(plain["illuminant"]["cct"])
+    _screenshot(pg, tmp_path, "wandell-docs-try-it-out.png")
+    resp, curl = _try_it_out(pg, "preview_v1_preview_post", dng)
+    assert resp.status == 200 and resp.headers["content-type"] == "image/jpeg", (resp.status, curl)
+    ctx.close()
