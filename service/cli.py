@@ -21,7 +21,8 @@ progress bar or table; failures and warnings still on stderr) and
 rerun whose options differ from those stored beside a finished output (its
 ``.wandell/NAME.json`` sidecar) says so in the summary. Exit status: 0 when
 every item succeeded or was already done, 1 when something failed, 2 for a
-usage error.
+usage error, 130 when interrupted (Ctrl-C: the pool stops at once, finished
+outputs are kept, the summary so far is printed; the same command resumes).
 
 Start-up stays light (``wandell --help`` imports no numerical library): the
 heavy modules are imported by the command that needs them.
@@ -30,11 +31,14 @@ heavy modules are imported by the command that needs them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import glob
 import json
 import os
+import shlex
 import sys
+import threading
 import time
 
 from . import jobs
@@ -177,13 +181,73 @@ def _inputs(in_dir: str) -> list[str]:
                   and not os.path.basename(p).startswith("."))
 
 
+class BatchInterrupted(Exception):
+    """Ctrl-C stopped :func:`run_batch`; ``rows`` as it returns them, items
+    not finished marked ``stopped``."""
+
+    def __init__(self, rows: list[dict]):
+        super().__init__("interrupted")
+        self.rows = rows
+
+
+class _CtrlC:
+    """SIGINT during a batch (main thread only): the first raises
+    KeyboardInterrupt as usual; a second (pressed again while the pool is
+    being stopped) kills the workers outright instead of interrupting the
+    clean-up; a third leaves at once. So two Ctrl-C never end in a
+    traceback or a half-stopped pool."""
+
+    def __init__(self):
+        self.hits, self.executor, self._old = 0, None, None
+
+    def __enter__(self):
+        import signal
+
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def _handler(self, signum, frame):
+        self.hits += 1
+        if self.hits == 1:
+            raise KeyboardInterrupt
+        if self.hits >= 3:
+            os._exit(130)
+        if hasattr(self.executor, "terminate"):
+            with contextlib.suppress(Exception):
+                self.executor.terminate(kill=True, grace_s=0.5)
+
+    def __exit__(self, *exc):
+        import signal
+
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+def _stop_now(executor) -> None:
+    """After a Ctrl-C: end the pool now (queued items dropped, running ones
+    terminated; nothing partial keeps a final name)."""
+    if executor is None:
+        return
+    if hasattr(executor, "terminate"):
+        executor.terminate()
+    else:  # a Dask cluster: its tasks are the cluster's; stop waiting for them
+        executor.shutdown(wait=False)
+
+
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
               dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
               quiet: bool = False) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
     ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
-    ``note`` when they were made with other options) unless ``force``."""
+    ``note`` when they were made with other options) unless ``force``.
+
+    Ctrl-C (KeyboardInterrupt) stops the run promptly: the pool is ended
+    (:meth:`service.jobs.LocalExecutor.terminate`), what finished is kept,
+    and :class:`BatchInterrupted` carries the rows (unfinished ones
+    ``stopped``); the same command run again resumes."""
     import io
 
     stream = io.StringIO() if quiet else (stream or sys.stderr)
@@ -215,9 +279,11 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     count = {"done": 0, "failed": 0, "skipped": len(tasks) - len(todo)}
     bar.update(**count)
     own = executor is None and bool(todo)
-    if own:
-        executor = jobs.make_executor(workers or None, dask_scheduler or None)
+    interrupted = False
+    ctrl_c = _CtrlC().__enter__()
     try:
+        if own:
+            executor = ctrl_c.executor = jobs.make_executor(workers or None, dask_scheduler or None)
         if todo and options.lighting == "shared":
             light = _shared_light(tasks, options, out_dir, executor, rows, count, force)
             todo = [t for t in todo if rows[t.name]["status"] == "pending"]
@@ -239,10 +305,28 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
             rows[t.name].pop("adopted", None)
             count["done" if res["status"] == "done" else "failed"] += 1
             bar.update(**count)
+    except KeyboardInterrupt:
+        interrupted = True
     finally:
-        bar.close()
-        if own:
-            executor.shutdown()
+        try:
+            bar.close()
+            if interrupted and own:
+                _stop_now(executor)
+            elif own and executor is not None:
+                executor.shutdown()
+        finally:
+            ctrl_c.__exit__(None, None, None)
+    if interrupted:
+        for t in tasks:
+            r = rows[t.name]
+            if r["status"] != "pending":
+                continue
+            r["status"] = "stopped"
+            if jobs.is_finished(t.out):  # written just before the stop, its answer not yet read
+                with contextlib.suppress(OSError, ValueError):
+                    with open(jobs.meta_path(t.out, ".json")) as f:
+                        r.update(status="done", illuminant=json.load(f).get("illuminant"))
+        raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
 
 
@@ -287,8 +371,22 @@ def _cmd_batch(args) -> int:
         raise ServiceError(422, "folder_not_found", f"input folder {args.in_dir!r} does not exist")
     if not _inputs(args.in_dir):
         raise ServiceError(422, "empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
-    rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
-                     quiet=args.quiet)
+    try:
+        rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
+                         quiet=args.quiet)
+    except BatchInterrupted as e:
+        if threading.current_thread() is threading.main_thread():
+            import signal
+
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # stopped already: more Ctrl-C change nothing
+        _summary(e.rows, sys.stdout, args.quiet)
+        stopped = sum(r["status"] == "stopped" for r in e.rows)
+        finished = sum(r["status"] in ("done", "skipped") for r in e.rows)
+        cmd = " ".join(shlex.quote(a) for a in ["wandell"] + list(args.argv))
+        sys.stderr.write(f"\ninterrupted: {finished} of {len(e.rows)} finished and kept, {stopped} stopped before "
+                         f"they were written (nothing partial is kept).\nTo resume, run the same command again "
+                         f"(finished outputs are skipped):\n  {cmd}\n")
+        return 130
     _summary(rows, sys.stdout, args.quiet)
     return 1 if any(r["status"] == "failed" for r in rows) else 0
 
@@ -404,12 +502,16 @@ def main(argv=None) -> int:
                    help="also write a Camera Raw XMP sidecar with the estimate as Temperature/Tint (default path: "
                         "beside OUT, named after the RAW, so editors apply it to the RAW of that name)")
     args = ap.parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)
     try:
         if args.command == "batch":
             return _cmd_batch(args)
         if args.command == "analyze":
             return _cmd_analyze(args)
         return _cmd_white_balance(args)
+    except KeyboardInterrupt:  # Ctrl-C outside a batch's items (or while printing): no traceback
+        sys.stderr.write("\ninterrupted\n")
+        return 130
     except ServiceError as e:
         print(f"error: {e.code}: {e.detail}", file=sys.stderr)
         return 2

@@ -156,7 +156,17 @@ def _pool_worker_init() -> None:
     """Pool worker start-up: one numerical thread, and exit when the parent
     (the server or the CLI) is gone, so a killed server leaves no orphans
     (an item cut short this way is simply run again after the restart; its
-    output never got its final name)."""
+    output never got its final name).
+
+    Ctrl-C is the parent's to handle: a terminal sends SIGINT to the whole
+    process group, and a worker dying of KeyboardInterrupt mid-item (or
+    while idle) breaks the pool and prints tracebacks. The parent stops the
+    workers with SIGTERM (:meth:`LocalExecutor.terminate`): the worker
+    removes the temporary file it was writing and exits at once."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit_on_term)
     limit_threads()
     parent = os.getppid()
 
@@ -166,6 +176,18 @@ def _pool_worker_init() -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+#: Temporary files this process is writing (:func:`atomic_write`), removed
+#: when a pool worker is terminated.
+_PARTS: set = set()
+
+
+def _exit_on_term(signum, frame) -> None:  # pragma: no cover - runs in a pool worker
+    for p in list(_PARTS):
+        with contextlib.suppress(OSError):
+            os.unlink(p)
+    os._exit(128 + signum)
 
 
 @dataclass(frozen=True)
@@ -185,6 +207,18 @@ class ItemTask:
     exactly_once: bool = True
     #: True (CLI --force): a finished output is computed again and replaced
     force: bool = False
+    #: a file whose existence means "the batch was cancelled": the item
+    #: stops at its next step without writing (:meth:`BatchRunner.cancel`)
+    cancel_file: str | None = None
+
+
+class ItemCancelled(Exception):
+    """The item's batch was cancelled while it ran (see ``ItemTask.cancel_file``)."""
+
+
+def _check_cancel(task: ItemTask) -> None:
+    if task.cancel_file and os.path.exists(task.cancel_file):
+        raise ItemCancelled(task.name)
 
 
 def _estimate_json(est, camera_name: str) -> dict:
@@ -261,6 +295,7 @@ def atomic_write(path: str, write) -> None:
     d, base = os.path.split(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=".part", dir=d or ".")
     os.close(fd)
+    _PARTS.add(tmp)
     os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are ordinary files
     try:
         write(tmp)
@@ -271,6 +306,8 @@ def atomic_write(path: str, write) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+    finally:
+        _PARTS.discard(tmp)
 
 
 def is_finished(out: str) -> bool:
@@ -285,13 +322,16 @@ def process_item(task: ItemTask) -> dict:
     :mod:`service.pipeline`: eq. 36 and 23, Wandell 1985, one 3x3 matrix).
 
     Returns ``{"status": "done", "illuminant": ..., "adopted": bool,
-    "seconds": ...}`` or ``{"status": "failed", "error": text}``; never
-    raises for a bad file (a corrupt file fails its item only).
+    "seconds": ...}`` or ``{"status": "failed", "error": text}``, or
+    ``{"status": "cancelled"}`` when the batch was cancelled before the item
+    wrote anything (checked between the steps); never raises for a bad file
+    (a corrupt file fails its item only).
     """
     from . import pipeline
 
     t0, c0 = time.perf_counter(), time.process_time()
     try:
+        _check_cancel(task)
         with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
             if task.exactly_once and not task.force and is_finished(task.out):  # written by an earlier run: adopt, never write twice
                 with open(meta_path(task.out, ".json")) as f:
@@ -299,16 +339,19 @@ def process_item(task: ItemTask) -> dict:
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
                         "seconds": time.perf_counter() - t0}
             decoded, cam, warns = _open(task)
+            _check_cancel(task)
             opts = task.options.estimate_kwargs()
             if task.light is None:
                 run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
             else:
                 run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
+            _check_cancel(task)
             fmt = FORMATS[task.options.format]
             out, M, info, meta = pipeline.render_corrected(decoded, run, target=task.options.target,
                                                            output=task.options.output, fmt=fmt,
                                                            surface_basis=opts.get("surface_basis"),
                                                            threads=task.threads, exposure=task.options.exposure)
+            _check_cancel(task)  # the last point before anything is written
             file_warnings = list(decoded.warnings)
             del decoded
             illum = _estimate_json(run.estimate, cam.name)
@@ -325,6 +368,8 @@ def process_item(task: ItemTask) -> dict:
                                         "pid": os.getpid(), "time": time.time()}) + "\n")
             return {"status": "done", "illuminant": _clean(illum), "adopted": False,
                     "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
+    except ItemCancelled:
+        return {"status": "cancelled", "seconds": time.perf_counter() - t0}
     except MemoryError:
         return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
     except Exception as exc:
@@ -424,12 +469,57 @@ class LocalExecutor:
         self.workers = max(1, int(workers))
         self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_pool_worker_init)
+        # start every worker now, with SIGINT ignored from their first
+        # instruction on (an ignored signal stays ignored across exec, and
+        # Python then installs no KeyboardInterrupt handler): a Ctrl-C while
+        # a worker is still importing must not kill it with a traceback
+        with _sigint_ignored():
+            for _ in range(self.workers):
+                self._pool.submit(int)
 
     def submit(self, fn, *args) -> Future:
         return self._pool.submit(fn, *args)
 
     def shutdown(self, wait: bool = True) -> None:
         self._pool.shutdown(wait=wait, cancel_futures=True)
+
+    def terminate(self, kill: bool = False, grace_s: float = 3.0) -> None:
+        """Stop now: queued items are dropped, running ones are ended
+        (SIGTERM: the worker removes its temporary file and exits; ``kill``
+        or still alive after ``grace_s``: SIGKILL). Their outputs never got
+        their final names, so nothing partial remains. Afterwards the pool's
+        manager thread ends by itself (it sees its workers gone), so neither
+        this call nor the interpreter's exit waits for running work."""
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            with contextlib.suppress(Exception):
+                p.kill() if kill else p.terminate()
+        t_end = time.monotonic() + grace_s
+        for p in procs:
+            with contextlib.suppress(Exception):
+                p.join(max(0.0, t_end - time.monotonic()))
+                if p.is_alive():
+                    p.kill()
+                    p.join(1.0)
+        manager = getattr(self._pool, "_executor_manager_thread", None)
+        if manager is not None:
+            manager.join(max(1.0, t_end - time.monotonic()))
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored in this block (main thread only; elsewhere a no-op)."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def _dask_call(fn, *args):
@@ -720,6 +810,9 @@ class JobStore:
         with self._tx() as db:
             n = db.execute("UPDATE items SET status = 'pending' WHERE status = 'running' AND batch_id IN "
                            "(SELECT id FROM batches WHERE status IN ('queued', 'running'))").rowcount
+            # a batch cancelled while items ran: their workers died with the server
+            db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE status = 'running' AND "
+                       "batch_id IN (SELECT id FROM batches WHERE status = 'cancelled')", (time.time(),))
         return n
 
     def start_batch(self, batch_id: str) -> bool:
@@ -794,9 +887,11 @@ class JobStore:
                               "'running'", (time.time(), batch_id)).rowcount == 1
 
     def cancel(self, batch_id: str) -> bool:
-        """Cancel: pending items are cancelled, running ones finish (their
-        results are kept); the batch is ``cancelled``. False if it had
-        already finished."""
+        """Cancel: pending items are cancelled at once; running ones stay
+        ``running`` until their worker answers (``cancelled`` when it
+        stopped, ``done`` and kept when it had finished: see
+        :meth:`BatchRunner.cancel`); the batch is ``cancelled``. False if it
+        had already finished."""
         with self._tx() as db:
             n = db.execute("UPDATE batches SET status = 'cancelled', finished = ? WHERE id = ? AND status IN "
                            "('queued', 'running')", (time.time(), batch_id)).rowcount
@@ -831,7 +926,11 @@ class JobStore:
                                                             "low_confidence")}
             items.append(it)
         opts = json.loads(b["options"])
-        doc = {"id": batch_id, "status": b["status"], "lighting": opts.get("lighting"), "options": opts,
+        # settled: the batch is over and every count final (a cancelled
+        # batch's running items are still stopping until this is true)
+        settled = b["status"] in ("done", "cancelled") and left == 0
+        doc = {"id": batch_id, "status": b["status"], "settled": settled,
+               "lighting": opts.get("lighting"), "options": opts,
                "counts": {"done": c["done"], "failed": c["failed"], "pending": left, "running": c["running"],
                           "cancelled": c["cancelled"], "total": len(rows)},
                "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
@@ -918,26 +1017,45 @@ class BatchRunner:
         if self._thread is not None:
             self._thread.join(timeout=30)
         if self._executor is not None:
-            self._executor.shutdown(wait=wait)
+            if not wait and hasattr(self._executor, "terminate"):
+                # the server is going away: items in flight are run again after
+                # the restart (resume); never wait for them
+                self._executor.terminate()
+            else:
+                self._executor.shutdown(wait=wait)
 
     def wake(self) -> None:
         self._wake.set()
 
+    def cancel_file(self, batch_id: str) -> str:
+        """The marker that tells the batch's running items to stop."""
+        return os.path.join(self.store.batch_dir(batch_id), "cancelled")
+
     def cancel(self, batch_id: str) -> bool:
+        """Cancel a batch: pending items are dropped, items handed to the
+        executor but not started are dropped (cancelled future) or stop at
+        their first step, running ones stop at their next step without
+        writing (the marker file :meth:`cancel_file`, which workers on any
+        executor see) and become ``cancelled``; results finished before are
+        kept. The progress document says ``settled`` once all have answered."""
         ok = self.store.cancel(batch_id)
+        if ok:
+            with contextlib.suppress(OSError):
+                with open(self.cancel_file(batch_id), "w") as f:
+                    f.write(f"{time.time()}\n")
         with self._lock:
             futs = [fut for (b, _), fut in self._inflight.items() if b == batch_id]
         for fut in futs:  # outside the lock: cancel() runs the done callback at once
-            fut.cancel()  # not yet started: dropped; started: finishes, result kept
+            fut.cancel()  # not yet started: dropped; started: stops at its next step
         self._wake.set()
         return ok
 
     def wait(self, batch_id: str, timeout: float = 120.0) -> dict:
-        """Block until the batch is no longer queued/running (tests, CLI)."""
+        """Block until the batch is over and settled (tests, CLI)."""
         t_end = time.monotonic() + timeout
         while time.monotonic() < t_end:
             doc = self.store.progress(batch_id)
-            if doc and doc["status"] not in ("queued", "running"):
+            if doc and doc["status"] not in ("queued", "running") and doc.get("settled", True):
                 return doc
             time.sleep(0.1)
         raise TimeoutError(f"batch {batch_id} still running after {timeout} s")
@@ -946,7 +1064,8 @@ class BatchRunner:
     def _task(self, row, options: BatchOptions, light: dict | None) -> ItemTask:
         return ItemTask(src=row["src"], out=row["out"], name=row["name"], options=options,
                         max_pixels=self.config.max_pixels, estimation_pixels=self.config.estimation_pixels,
-                        light=light, write_log=os.path.join(self.store.batch_dir(row["batch_id"]), "writes.log"))
+                        light=light, write_log=os.path.join(self.store.batch_dir(row["batch_id"]), "writes.log"),
+                        cancel_file=self.cancel_file(row["batch_id"]))
 
     def _loop(self) -> None:
         while not self._stop.is_set():
@@ -1024,7 +1143,10 @@ class BatchRunner:
             result = fut.result()
         except BaseException as e:  # the worker died (e.g. killed by the OOM killer)
             result = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
-        self.store.finish_item(bid, idx, result)
+        if result.get("status") == "cancelled":  # stopped by the batch's cancel, nothing written
+            self.store.cancel_item(bid, idx)
+        else:
+            self.store.finish_item(bid, idx, result)
         self.store.maybe_finish(bid)
         self._wake.set()
 

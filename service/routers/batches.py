@@ -195,7 +195,8 @@ def _progress(bid: str) -> dict:
 @router.get("/batches/{batch_id}")
 def batch_status(batch_id: str):
     """Progress (done, failed, pending, rate per minute, time left) and
-    each item's status with its estimate or error."""
+    each item's status with its estimate or error; ``settled`` is true once
+    the batch is over and every count final (poll until then)."""
     return JSONResponse(clean(_progress(batch_id)))
 
 
@@ -264,7 +265,10 @@ def batch_zip(batch_id: str):
 
 @router.delete("/batches/{batch_id}")
 def cancel_batch(batch_id: str):
-    """Cancel: pending items are dropped, running ones finish and are kept."""
+    """Cancel: pending items are dropped, running ones stop at their next
+    step without writing (``cancelled``); results finished before are kept.
+    The answer is the progress document: ``settled`` turns true once every
+    running item has answered and the counts are final."""
     runner = get_runner()
     if runner.store.batch(batch_id) is None:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
