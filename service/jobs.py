@@ -542,6 +542,11 @@ def safe_name(name: str) -> str:
     return clip_name(base, MAX_NAME_BYTES)
 
 
+#: An item index in a URL: ASCII digits only (``str.isdigit`` also accepts
+#: ``²`` and other digits ``int`` refuses), at most 18 of them (64-bit).
+_INDEX_TEXT = re.compile(r"[0-9]{1,18}")
+
+
 class JobStore:
     """Batches and items in SQLite (WAL), every state change one atomic
     ``UPDATE ... WHERE status = <expected>`` inside a transaction."""
@@ -692,13 +697,37 @@ class JobStore:
     def items(self, batch_id: str) -> list:
         return self._db().execute("SELECT * FROM items WHERE batch_id = ? ORDER BY idx", (batch_id,)).fetchall()
 
+    def item_by_index(self, batch_id: str, index):
+        """The item at ``index`` (an int, or its ASCII decimal digits); None
+        for anything else: other Unicode digits (``²``), signs, spaces, or
+        more digits than any index can have (never an error)."""
+        if not isinstance(index, int):
+            if not isinstance(index, str) or not _INDEX_TEXT.fullmatch(index):
+                return None
+            index = int(index)
+        if not 0 <= index < 2 ** 63:
+            return None
+        return self._db().execute("SELECT * FROM items WHERE batch_id = ? AND idx = ?", (batch_id, index)).fetchone()
+
+    def item_by_name(self, batch_id: str, name: str):
+        """The item of this (stored, made-unique) name, or None."""
+        return self._db().execute("SELECT * FROM items WHERE batch_id = ? AND name = ?",
+                                  (batch_id, str(name))).fetchone()
+
     def item(self, batch_id: str, key: str):
-        """An item by index (digits) or by name."""
-        db = self._db()
-        row = db.execute("SELECT * FROM items WHERE batch_id = ? AND name = ?", (batch_id, key)).fetchone()
-        if row is None and str(key).isdigit():
-            row = db.execute("SELECT * FROM items WHERE batch_id = ? AND idx = ?", (batch_id, int(key))).fetchone()
-        return row
+        """An item by name or by index (the ``items/{key}`` URL, which takes
+        both). A key that names one item and is the index of another is
+        ambiguous: :class:`~service.errors.ServiceError` 409
+        ``ambiguous_item``, never the wrong file (``by-index`` / ``by-name``
+        say which is meant)."""
+        by_name = self.item_by_name(batch_id, key)
+        by_index = self.item_by_index(batch_id, key)
+        if by_name is not None and by_index is not None and by_name["idx"] != by_index["idx"]:
+            raise ServiceError(409, "ambiguous_item",
+                               f"{key!r} is the name of item {by_name['idx']} and the index of item "
+                               f"{by_index['idx']} ({by_index['name']!r}): ask for items/by-index/{key} (item "
+                               f"{by_index['idx']}) or items/by-name/{key} (item {by_name['idx']})")
+        return by_name if by_name is not None else by_index
 
     def counts(self, batch_id: str) -> dict:
         c = {s: 0 for s in ("pending", "running", "done", "failed", "cancelled")}
