@@ -185,6 +185,8 @@ class ItemTask:
     exactly_once: bool = True
     #: True (CLI --force): a finished output is computed again and replaced
     force: bool = False
+    #: the item's index in its batch (recorded in the sidecar; None: the CLI)
+    index: int | None = None
 
 
 def _estimate_json(est, camera_name: str) -> dict:
@@ -273,6 +275,16 @@ def atomic_write(path: str, write) -> None:
         raise
 
 
+#: The temporaries :func:`atomic_write` makes: ``.NAME.XXXXXXXX.part``
+#: (``tempfile.mkstemp``: 8 characters of ``a-z0-9_``); nothing else is one.
+_TEMPORARY = re.compile(r"\.(.+)\.[a-z0-9_]{8}\.part", re.S)
+
+
+def is_temporary(entry: str) -> bool:
+    """Whether a file name is one of :func:`atomic_write`'s temporaries."""
+    return _TEMPORARY.fullmatch(entry) is not None
+
+
 def is_finished(out: str) -> bool:
     """An output counts as finished only when both the image and its sidecar
     (renamed into place before the image) exist under their final names."""
@@ -313,7 +325,7 @@ def process_item(task: ItemTask) -> dict:
             del decoded
             illum = _estimate_json(run.estimate, cam.name)
             illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
-            side = {"name": task.name, "illuminant": illum, "correction_matrix": M.tolist(),
+            side = {"name": task.name, "index": task.index, "illuminant": illum, "correction_matrix": M.tolist(),
                     "rendering": pipeline.rendering_json(info),
                     "options": asdict(task.options)}
             if task.exactly_once:
@@ -542,6 +554,25 @@ def safe_name(name: str) -> str:
     return clip_name(base, MAX_NAME_BYTES)
 
 
+#: Beside each batch's ``in/`` and ``out/``: the manifest of its items
+#: (written once, with the batch) and the journal of their state changes,
+#: from which a damaged job store is rebuilt.
+MANIFEST = "batch.json"
+JOURNAL = "states.jsonl"
+
+
+def _read_sidecar(out: str) -> dict | None:
+    """The ``.json`` sidecar of a finished output, or None (not finished, unreadable)."""
+    if not is_finished(out):
+        return None
+    try:
+        with open(meta_path(out, ".json")) as f:
+            side = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return side if isinstance(side, dict) else None
+
+
 #: An item index in a URL: ASCII digits only (``str.isdigit`` also accepts
 #: ``²`` and other digits ``int`` refuses), at most 18 of them (64-bit).
 _INDEX_TEXT = re.compile(r"[0-9]{1,18}")
@@ -596,50 +627,141 @@ class JobStore:
 
     def adopt_from_disk(self) -> int:
         """Register every batch directory the store does not know, from what
-        is on disk: each finished output (its ``.json`` sidecar names the
-        item and holds the estimate and options) as a ``done`` item, each
-        input without an output as ``failed``. Returns how many batches."""
+        is on disk. A batch's manifest (``batch.json``, written with the
+        batch: each item's index, name, input and output) and its state
+        journal (``states.jsonl``: every item's end, the batch's end, the
+        shared light) give back the same items at the same indices in the
+        same states: done where the output and its sidecar are finished on
+        disk, failed or cancelled as journalled, and items that had not
+        finished pending again (their batch re-queued) while their input is
+        still there. Batches from before the manifest are rebuilt from their
+        inputs' names (:meth:`_legacy_rows`). Returns how many batches."""
         root = os.path.join(self.data_dir, "batches")
         n = 0
         for bid in sorted(os.listdir(root)):
             bdir = os.path.join(root, bid)
             if not os.path.isdir(bdir) or self.batch(bid) is not None:
                 continue
-            out_dir, in_dir = os.path.join(bdir, "out"), os.path.join(bdir, "in")
-            rows, options, done_names = [], None, set()
-            if os.path.isdir(out_dir):
-                for entry in sorted(os.listdir(out_dir)):
-                    out = os.path.join(out_dir, entry)
-                    if entry.startswith(".") or not is_finished(out):
-                        continue
-                    try:
-                        with open(meta_path(out, ".json")) as f:
-                            side = json.load(f)
-                        options = options or BatchOptions(**side.get("options", {}))
-                    except (OSError, ValueError, TypeError):
-                        continue
-                    name = str(side.get("name") or entry)
-                    done_names.add(name)
-                    rows.append((name, "", out, "done", None, json.dumps(side.get("illuminant"))))
-            if os.path.isdir(in_dir):
-                for entry in sorted(os.listdir(in_dir)):
-                    name = entry.split("-", 1)[1] if re.match(r"\d{5}-", entry) else entry
-                    if name not in done_names:
-                        rows.append((name, os.path.join(in_dir, entry), os.path.join(out_dir, name), "failed",
-                                     "store_recovered: the job store was damaged before this item finished; "
-                                     "submit it again", None))
+            try:
+                with open(os.path.join(bdir, MANIFEST)) as f:
+                    manifest = json.load(f)
+                options = BatchOptions(**manifest["options"])
+                items = [(int(it["index"]), str(it["name"]), str(it["src"]), str(it["out"]))
+                         for it in manifest["items"]]
+            except (OSError, ValueError, TypeError, KeyError):
+                manifest = None
+            if manifest is None:
+                rows, options = self._legacy_rows(bdir)
+                status, created, light = "done", os.path.getmtime(bdir), (None, None)
+            else:
+                rows, status, light = self._manifest_rows(bdir, items)
+                created = float(manifest.get("created") or os.path.getmtime(bdir))
             if not rows:
                 continue
             now = time.time()
             with self._tx() as db:
-                db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir) "
-                           "VALUES (?, ?, ?, ?, 'done', ?, ?)",
-                           (bid, os.path.getmtime(bdir), now, now, (options or BatchOptions()).to_json(), bdir))
+                db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir, light, "
+                           "light_error) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                           (bid, created, None if status == "queued" else now,
+                            None if status == "queued" else now, status, (options or BatchOptions()).to_json(),
+                            bdir, *light))
                 db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, illuminant, "
-                               "finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                               [(bid, i, *r, now) for i, r in enumerate(rows)])
+                               "completions, finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                               [(bid, *r, int(r[4] == "done"), None if r[4] == "pending" else now)
+                                for r in rows])
             n += 1
         return n
+
+    def _manifest_rows(self, bdir: str, items: list) -> tuple[list, str, tuple]:
+        """Rows ``(idx, name, src, out, status, error, illuminant)`` of a
+        batch with a manifest, its status and its (light, light_error)."""
+        states, batch_state, light = {}, None, (None, None)
+        with contextlib.suppress(OSError):
+            with open(os.path.join(bdir, JOURNAL)) as f:
+                for line in f:
+                    try:
+                        rec = json.loads(line)
+                    except ValueError:  # a line torn by a crash
+                        continue
+                    if "idx" in rec:
+                        states[rec["idx"]] = rec
+                    elif "batch" in rec:
+                        batch_state = rec["batch"]
+                    elif "light" in rec:
+                        light = (None if rec["light"] is None else json.dumps(rec["light"]), rec.get("light_error"))
+        rows, waiting = [], False
+        for idx, name, src, out in items:
+            src = src if os.path.isabs(src) else os.path.join(bdir, src)
+            out = os.path.join(bdir, "out", out)
+            rec = states.get(idx) or {}
+            side = _read_sidecar(out)
+            if side is not None:
+                rows.append((idx, name, src, out, "done", None, json.dumps(side.get("illuminant"))))
+            elif rec.get("status") in ("failed", "cancelled"):
+                rows.append((idx, name, src, out, rec["status"], rec.get("error"), None))
+            elif batch_state == "cancelled":
+                rows.append((idx, name, src, out, "cancelled", None, None))
+            elif os.path.isfile(src) and batch_state != "done":
+                rows.append((idx, name, src, out, "pending", None, None))
+                waiting = True
+            else:
+                rows.append((idx, name, src, out, "failed", "store_recovered: the job store was damaged before "
+                             "this item finished and its input is gone; submit it again", None))
+        status = "cancelled" if batch_state == "cancelled" else ("queued" if waiting else "done")
+        return rows, status, light
+
+    def _legacy_rows(self, bdir: str) -> tuple[list, "BatchOptions | None"]:
+        """Rows of a batch written before manifests: the uploaded inputs
+        (``NNNNN-name``: index and name) named again as
+        :meth:`create_batch` named them, so uniquified names (``A (2).dng``)
+        and their outputs match; finished outputs (``.``-names included)
+        done, the other inputs failed; outputs with no input (folder mode,
+        inputs removed) after them."""
+        out_dir, in_dir = os.path.join(bdir, "out"), os.path.join(bdir, "in")
+        done, options = {}, None
+        if os.path.isdir(out_dir):
+            for entry in sorted(os.listdir(out_dir)):
+                out = os.path.join(out_dir, entry)
+                side = None if is_temporary(entry) or not os.path.isfile(out) else _read_sidecar(out)
+                if side is None:
+                    continue
+                with contextlib.suppress(TypeError):
+                    options = options or BatchOptions(**side.get("options", {}))
+                done[entry] = side
+        inputs = []
+        if os.path.isdir(in_dir):
+            for entry in os.listdir(in_dir):
+                m = re.fullmatch(r"([0-9]{5})-(.*)", entry, re.S)
+                if m:
+                    inputs.append((int(m[1]), m[2], os.path.join(in_dir, entry)))
+        ext = (options or BatchOptions()).extension
+        rows, seen, outs = [], set(), set()
+        for idx, orig, src in sorted(inputs):
+            name = unique(safe_name(orig), seen)
+            out = unique(clip_name(f"{os.path.splitext(name)[0]}.{ext}", DISK_NAME_BYTES - 12), outs)
+            side = done.pop(out, None)
+            if side is not None:
+                rows.append((idx, name, src, os.path.join(out_dir, out), "done", None,
+                             json.dumps(side.get("illuminant"))))
+            else:
+                rows.append((idx, name, src, os.path.join(out_dir, out), "failed", "store_recovered: the job "
+                             "store was damaged before this item finished; submit it again", None))
+        nxt = max([r[0] for r in rows], default=-1) + 1
+        for entry, side in done.items():
+            rows.append((nxt, str(side.get("name") or entry), "", os.path.join(out_dir, entry), "done", None,
+                         json.dumps(side.get("illuminant"))))
+            nxt += 1
+        return rows, options
+
+    def _journal(self, batch_id: str, **record) -> None:
+        """Append one state change to the batch's ``states.jsonl`` (what
+        :meth:`adopt_from_disk` rebuilds a damaged store from). Best effort:
+        a full disk loses a line, never the transition."""
+        record["t"] = time.time()
+        with contextlib.suppress(OSError, TypeError, ValueError):
+            line = json.dumps(_clean(record)) + "\n"
+            with open(os.path.join(self.batch_dir(batch_id), JOURNAL), "a") as f:
+                f.write(line)
 
     def _db(self) -> sqlite3.Connection:
         db = getattr(self._local, "db", None)
@@ -684,9 +806,15 @@ class JobStore:
             # the output's name on disk stays short enough for its temporaries and sidecars
             out = unique(clip_name(f"{stem}.{options.extension}", DISK_NAME_BYTES - 12), outs)
             rows.append((batch_id, i, nm, os.path.abspath(src), os.path.join(out_dir, out)))
+        bdir, created = self.batch_dir(batch_id), time.time()
+        manifest = {"id": batch_id, "created": created, "options": asdict(options),
+                    "items": [{"index": r[1], "name": r[2], "out": os.path.basename(r[4]),
+                               "src": os.path.relpath(r[3], bdir) if r[3].startswith(bdir + os.sep) else r[3]}
+                              for r in rows]}
+        atomic_write(os.path.join(bdir, MANIFEST), lambda p: write_text(p, json.dumps(manifest)))
         with self._tx() as db:
             db.execute("INSERT INTO batches (id, created, status, options, dir) VALUES (?, ?, 'queued', ?, ?)",
-                       (batch_id, time.time(), options.to_json(), self.batch_dir(batch_id)))
+                       (batch_id, created, options.to_json(), bdir))
             db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status) "
                            "VALUES (?, ?, ?, ?, ?, 'pending')", rows)
 
@@ -777,19 +905,26 @@ class JobStore:
                 "completions = completions + 1 WHERE batch_id = ? AND idx = ? AND status = 'running'",
                 ("done" if ok else "failed", None if ok else str(result.get("error")),
                  json.dumps(result.get("illuminant")) if ok else None, time.time(), batch_id, idx)).rowcount
+        if n == 1:
+            self._journal(batch_id, idx=idx, status="done" if ok else "failed",
+                          error=None if ok else str(result.get("error")))
         return n == 1
 
     def fail_item(self, batch_id: str, idx: int, error: str) -> None:
         with self._tx() as db:
-            db.execute("UPDATE items SET status = 'failed', error = ?, finished = ? "
-                       "WHERE batch_id = ? AND idx = ? AND status IN ('pending', 'running')",
-                       (error, time.time(), batch_id, idx))
+            n = db.execute("UPDATE items SET status = 'failed', error = ?, finished = ? "
+                           "WHERE batch_id = ? AND idx = ? AND status IN ('pending', 'running')",
+                           (error, time.time(), batch_id, idx)).rowcount
+        if n:
+            self._journal(batch_id, idx=idx, status="failed", error=error)
 
     def cancel_item(self, batch_id: str, idx: int) -> None:
         """``running`` -> ``cancelled`` for an item dropped before it started."""
         with self._tx() as db:
-            db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
-                       "AND status = 'running'", (time.time(), batch_id, idx))
+            n = db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
+                           "AND status = 'running'", (time.time(), batch_id, idx)).rowcount
+        if n:
+            self._journal(batch_id, idx=idx, status="cancelled")
 
     def expired_inputs(self, retention_s: float) -> list[str]:
         """The upload folders (``<batch>/in``) of batches finished or cancelled
@@ -811,6 +946,7 @@ class JobStore:
         with self._tx() as db:
             db.execute("UPDATE batches SET light = ?, light_error = ? WHERE id = ?",
                        (None if light is None else json.dumps(light), error, batch_id))
+        self._journal(batch_id, light=light, light_error=error)
 
     def maybe_finish(self, batch_id: str) -> bool:
         """``running`` -> ``done`` once no item is pending or running."""
@@ -819,8 +955,11 @@ class JobStore:
                               (batch_id,)).fetchone()[0]
             if left:
                 return False
-            return db.execute("UPDATE batches SET status = 'done', finished = ? WHERE id = ? AND status = "
+            done = db.execute("UPDATE batches SET status = 'done', finished = ? WHERE id = ? AND status = "
                               "'running'", (time.time(), batch_id)).rowcount == 1
+        if done:
+            self._journal(batch_id, batch="done")
+        return done
 
     def cancel(self, batch_id: str) -> bool:
         """Cancel: pending items are cancelled, running ones finish (their
@@ -832,6 +971,8 @@ class JobStore:
             if n:
                 db.execute("UPDATE items SET status = 'cancelled' WHERE batch_id = ? AND status = 'pending'",
                            (batch_id,))
+        if n:
+            self._journal(batch_id, batch="cancelled")
         return n == 1
 
     def progress(self, batch_id: str) -> dict | None:
@@ -973,7 +1114,7 @@ class BatchRunner:
 
     # -- internals -----------------------------------------------------------
     def _task(self, row, options: BatchOptions, light: dict | None) -> ItemTask:
-        return ItemTask(src=row["src"], out=row["out"], name=row["name"], options=options,
+        return ItemTask(src=row["src"], out=row["out"], name=row["name"], options=options, index=row["idx"],
                         max_pixels=self.config.max_pixels, estimation_pixels=self.config.estimation_pixels,
                         light=light, write_log=os.path.join(self.store.batch_dir(row["batch_id"]), "writes.log"))
 
