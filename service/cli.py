@@ -189,8 +189,6 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     stream = io.StringIO() if quiet else (stream or sys.stderr)
     files = _inputs(in_dir)
     os.makedirs(out_dir, exist_ok=True)
-    for stale in glob.glob(os.path.join(out_dir, ".*.part")):  # left by a killed run: never a result
-        os.unlink(stale)
     max_pixels, est_pixels = _limits()
     seen: set = set()
     tasks = []
@@ -199,6 +197,8 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
         out = os.path.join(out_dir, jobs.unique(f"{os.path.splitext(name)[0]}.{options.extension}", seen))
         tasks.append(jobs.ItemTask(src=p, out=out, name=name, options=options, max_pixels=max_pixels,
                                    estimation_pixels=est_pixels, force=force))
+    # the temporaries a killed run left for this batch's outputs (never another file of OUT_DIR)
+    jobs.remove_stale_temporaries(out_dir, {os.path.basename(t.out) for t in tasks} | {"shared-light"})
     rows = {t.name: {"name": t.name, "status": "pending"} for t in tasks}
     todo = []
     for t in tasks:

@@ -285,6 +285,56 @@ def is_temporary(entry: str) -> bool:
     return _TEMPORARY.fullmatch(entry) is not None
 
 
+def remove_stale_temporaries(out_dir: str, outputs=None, locked: str | None = None) -> list[str]:
+    """Remove the temporaries (``.NAME.XXXXXXXX.part``) that a writer killed
+    mid-write left in ``out_dir`` and its ``.wandell`` folder; returns them.
+
+    Only :func:`atomic_write`'s own pattern is touched, only for outputs
+    named in ``outputs`` (None: any), and each only while holding the item
+    lock of its output (a writer still at work holds it, so its temporary is
+    left alone); ``locked``: the output whose lock the caller holds."""
+    import fcntl
+
+    removed = []
+    for d in (out_dir, os.path.dirname(meta_path(os.path.join(out_dir, "x"), ""))):
+        try:
+            entries = sorted(os.listdir(d))
+        except OSError:
+            continue
+        for entry in entries:
+            m = _TEMPORARY.fullmatch(entry)
+            if m is None:
+                continue
+            final = m[1]
+            if d != out_dir:  # a sidecar's: .<output>.json.XXXXXXXX.part
+                if not final.endswith(".json"):
+                    continue
+                final = final[:-5]
+            if outputs is not None and final not in outputs:
+                continue
+            path, out = os.path.join(d, entry), os.path.join(out_dir, final)
+            if os.path.islink(path) or not os.path.isfile(path):
+                continue
+            fd = None
+            if out != locked:
+                try:
+                    fd = os.open(meta_path(out, ".lock"), os.O_CREAT | os.O_RDWR, 0o644)
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:  # being written now (or no lock possible): not stale
+                    if fd is not None:
+                        os.close(fd)
+                    continue
+            try:
+                os.unlink(path)
+                removed.append(path)
+            except OSError:
+                pass
+            finally:
+                if fd is not None:
+                    os.close(fd)
+    return removed
+
+
 def is_finished(out: str) -> bool:
     """An output counts as finished only when both the image and its sidecar
     (renamed into place before the image) exist under their final names."""
@@ -305,6 +355,8 @@ def process_item(task: ItemTask) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
+            if task.exactly_once:  # under the lock: a temporary of this output is an earlier run's, killed
+                remove_stale_temporaries(os.path.dirname(task.out), {os.path.basename(task.out)}, task.out)
             if task.exactly_once and not task.force and is_finished(task.out):  # written by an earlier run: adopt, never write twice
                 with open(meta_path(task.out, ".json")) as f:
                     side = json.load(f)
@@ -1118,7 +1170,35 @@ class BatchRunner:
                         max_pixels=self.config.max_pixels, estimation_pixels=self.config.estimation_pixels,
                         light=light, write_log=os.path.join(self.store.batch_dir(row["batch_id"]), "writes.log"))
 
+    def remove_stale_temporaries(self, batch_id: str | None = None) -> list[str]:
+        """The temporaries a killed writer left in one batch's ``out/``, or
+        in every batch's (at start-up); see :func:`remove_stale_temporaries`."""
+        root = os.path.join(self.store.data_dir, "batches")
+        try:
+            ids = [batch_id] if batch_id else sorted(os.listdir(root))
+        except OSError:
+            return []
+        gone = []
+        for bid in ids:
+            gone += remove_stale_temporaries(os.path.join(root, bid, "out"))
+        if gone:
+            import logging
+
+            logging.getLogger("service.jobs").info("removed %d stale temporary file(s): %s", len(gone), gone[:5])
+        return gone
+
+    def _finish(self, batch_id: str) -> None:
+        """Mark the batch done if nothing is left; then clear its temporaries."""
+        if self.store.maybe_finish(batch_id):
+            self.remove_stale_temporaries(batch_id)
+
     def _loop(self) -> None:
+        try:  # what a killed server left being written (its writers hold their locks if still alive)
+            self.remove_stale_temporaries()
+        except Exception:
+            import logging
+
+            logging.getLogger("service.jobs").exception("removing stale temporaries failed")
         while not self._stop.is_set():
             try:
                 self._tick()
@@ -1180,7 +1260,7 @@ class BatchRunner:
                     with self._lock:
                         self._inflight[(bid, row["idx"])] = fut
                     fut.add_done_callback(lambda f, k=(bid, row["idx"]): self._done(k, f))
-            self.store.maybe_finish(bid)
+            self._finish(bid)
 
     def _done(self, key, fut) -> None:
         bid, idx = key
@@ -1188,14 +1268,14 @@ class BatchRunner:
             self._inflight.pop(key, None)
         if fut.cancelled():  # dropped before it started
             self.store.cancel_item(bid, idx)
-            self.store.maybe_finish(bid)
+            self._finish(bid)
             return
         try:
             result = fut.result()
         except BaseException as e:  # the worker died (e.g. killed by the OOM killer)
             result = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
         self.store.finish_item(bid, idx, result)
-        self.store.maybe_finish(bid)
+        self._finish(bid)
         self._wake.set()
 
     def _shared_light_step(self, bid: str, options: BatchOptions) -> None:
@@ -1226,7 +1306,7 @@ class BatchRunner:
             if not cams:
                 self.store.set_light(bid, None, "no image of the batch could be read")
                 self._light_jobs.pop(bid, None)
-                self.store.maybe_finish(bid)
+                self._finish(bid)
                 return
             main = max(cams, key=lambda k: len(cams[k]))
             for name, lst in cams.items():
@@ -1249,7 +1329,7 @@ class BatchRunner:
             for r in self.store.items(bid):
                 if r["status"] in ("pending", "running"):
                     self.store.fail_item(bid, r["idx"], f"shared light could not be estimated: {err}")
-            self.store.maybe_finish(bid)
+            self._finish(bid)
         self._wake.set()
 
 

@@ -7,6 +7,8 @@ plus the job store and the temporary clean-up on their own."""
 from __future__ import annotations
 
 import io
+import os
+import time
 
 import cv2
 import numpy as np
@@ -136,3 +138,80 @@ def test_store_recovery_gives_back_the_same_items_indices_and_states(batch_env):
         doc = _wait(c, waiting)
         assert [(it["name"], it["status"], it.get("error")) for it in doc["items"]] == \
             [("w.dng", "done", None), ("x.dng", "failed", "some_error: given up")]
+
+
+def _plant(out_dir, name: str) -> list:
+    """Stale temporaries of output ``name`` as atomic_write names them (the
+    image's beside it, the sidecar's in .wandell), as a kill -9 leaves them."""
+    (out_dir / ".wandell").mkdir(parents=True, exist_ok=True)
+    paths = [out_dir / f".{name}.k9abc_12.part", out_dir / ".wandell" / f".{name}.json.zz9x0q1w.part"]
+    for p in paths:
+        p.write_bytes(b"half written")
+    return paths
+
+
+def test_stale_temporaries_go_only_when_nobody_writes_them(tmp_path):
+    """kill9_part_file.py, the rule: only atomic_write's own pattern
+    (.NAME.XXXXXXXX.part), only while the output's item lock is free (a
+    writer at work holds it), never another file."""
+    import fcntl
+
+    out = tmp_path / "out"
+    stale = _plant(out, "a.png")
+    busy = _plant(out, "b.png")
+    keep = [out / n for n in (".mine.part", "notes.part", ".a.png.ABCDEFGH.part", ".a.png.abc.part", "a.png",
+                              ".a.png.abcd1234.part.txt")] + [out / ".wandell" / ".notes.txt.abcd1234.part"]
+    for p in keep:
+        p.write_bytes(b"user")
+    fd = os.open(jobs.meta_path(str(out / "b.png"), ".lock"), os.O_CREAT | os.O_RDWR)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # b.png is being written
+    try:
+        assert sorted(jobs.remove_stale_temporaries(str(out), {"c.png"})) == []
+        assert sorted(jobs.remove_stale_temporaries(str(out))) == sorted(map(str, stale))
+        assert all(p.exists() for p in busy + keep)
+    finally:
+        os.close(fd)
+    assert sorted(jobs.remove_stale_temporaries(str(out))) == sorted(map(str, busy))
+    assert all(p.exists() for p in keep)
+
+
+def test_a_killed_writers_temporaries_are_removed_on_restart_and_rerun(batch_env, tmp_path):
+    """kill9_part_file.py: kill -9 mid-write left .NAME.XXXXXXXX.part in the
+    batch's out/ for ever. The runner now removes stale temporaries of every
+    batch at start-up and of a batch when it finishes, and an item being
+    (re)run removes its own output's under its lock; the CLI removes those
+    of its batch's outputs and (unlike before) no other file of OUT_DIR."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service import cli
+
+    base = batch_env()
+    with TestClient(app) as c:
+        bid = c.post("/v1/batches", files=[("files", ("a.dng", _dng()))], data=OPTS).json()["id"]
+        assert _wait(c, bid)["counts"]["done"] == 1
+    batches.stop_runner()
+    out = base / "data" / "batches" / bid / "out"
+    stale = _plant(out, "a.png") + _plant(out, "gone.png")
+    with TestClient(app) as c:
+        t_end = time.monotonic() + 20
+        while any(p.exists() for p in stale) and time.monotonic() < t_end:
+            time.sleep(0.1)
+        assert not [p for p in stale if p.exists()]
+        assert c.get(f"/v1/batches/{bid}/items/by-index/0").status_code == 200
+    src = tmp_path / "in" / "x.dng"
+    src.parent.mkdir()
+    src.write_bytes(_dng())
+    item_out = tmp_path / "item" / "x.png"
+    stale = _plant(item_out.parent, "x.png")
+    t = jobs.ItemTask(src=str(src), out=str(item_out), name="x.dng", options=jobs.batch_options(**OPTS),
+                      max_pixels=10 ** 8, estimation_pixels=10 ** 6)
+    assert jobs.process_item(t)["status"] == "done" and not [p for p in stale if p.exists()]
+    cli_out = tmp_path / "cli"
+    stale = _plant(cli_out, "x.png")
+    mine = [cli_out / ".holiday.part", cli_out / ".other.png.abcd1234.part"]
+    for p in mine:
+        p.write_bytes(b"the user's")
+    with ThreadPoolExecutor(1) as ex:
+        rows = cli.run_batch(str(src.parent), str(cli_out), jobs.batch_options(**OPTS), executor=ex, quiet=True)
+    assert [r["status"] for r in rows] == ["done"]
+    assert not [p for p in stale if p.exists()] and all(p.read_bytes() == b"the user's" for p in mine)
