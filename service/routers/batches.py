@@ -17,7 +17,7 @@ import sqlite3
 import threading
 import zipfile
 
-from fastapi import APIRouter, Depends, File, Form, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Path, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
@@ -200,7 +200,9 @@ def batch_status(batch_id: str):
 
 
 @router.get("/batches/{batch_id}/items/by-index/{index}")
-def batch_item_by_index(batch_id: str, index: str):
+def batch_item_by_index(batch_id: str, index: str = Path(description="the item's index in the batch (0-based), "
+                                                                       "as its url in the progress document",
+                                                           examples=["0"])):
     """Download one result by its index (the ``url`` of each item in the
     progress document): only ever that item, whatever the files are named."""
     store = _store_of(batch_id)
@@ -208,7 +210,9 @@ def batch_item_by_index(batch_id: str, index: str):
 
 
 @router.get("/batches/{batch_id}/items/by-name/{name}")
-def batch_item_by_name(batch_id: str, name: str):
+def batch_item_by_name(batch_id: str, name: str = Path(description="the item's name as the progress document "
+                                                                    "lists it (URL-encoded)",
+                                                        examples=["a.dng"])):
     """Download one result by its item name (as listed, made unique:
     ``a (2).dng``)."""
     store = _store_of(batch_id)
