@@ -215,3 +215,37 @@ def test_a_killed_writers_temporaries_are_removed_on_restart_and_rerun(batch_env
         rows = cli.run_batch(str(src.parent), str(cli_out), jobs.batch_options(**OPTS), executor=ex, quiet=True)
     assert [r["status"] for r in rows] == ["done"]
     assert not [p for p in stale if p.exists()] and all(p.read_bytes() == b"the user's" for p in mine)
+
+
+def test_a_batch_from_before_manifests_is_rebuilt_from_its_input_names(tmp_path):
+    """Batches written before the manifest (no batch.json / states.jsonl):
+    the inputs' stored names (NNNNN-name) are named again as create_batch
+    named them, so "A (2).dng" matches its output and ".hidden.dng" its
+    .hidden.png (skipped before): same indices, done where finished, the
+    others failed."""
+    data = tmp_path / "data"
+    store = jobs.JobStore(str(data))
+    bid = store.new_batch_id()
+    bdir = data / "batches" / bid
+    names = ["a.dng", "A.dng", ".hidden.dng", "lost.dng"]
+    srcs = []
+    for i, n in enumerate(names):
+        srcs.append(bdir / "in" / f"{i:05d}-{n}")
+        srcs[-1].write_bytes(b"raw")
+    opts = jobs.batch_options(**OPTS)
+    store.create_batch(bid, opts, [(n, str(p)) for n, p in zip(names, srcs)])
+    rows = store.items(bid)
+    assert [r["name"] for r in rows] == ["a.dng", "A (2).dng", ".hidden.dng", "lost.dng"]
+    for r in rows[:3]:  # finished as process_item leaves them (before the sidecar had an index)
+        (bdir / "out" / os.path.basename(r["out"])).write_bytes(b"png")
+        os.makedirs(bdir / "out" / ".wandell", exist_ok=True)
+        (bdir / "out" / ".wandell" / (os.path.basename(r["out"]) + ".json")).write_text(
+            '{"name": "%s", "illuminant": {"cct": 5000}, "options": %s}' % (r["name"], opts.to_json()))
+    (bdir / jobs.MANIFEST).unlink()
+    del store
+    _damage(data)
+    store = jobs.JobStore(str(data))
+    assert store.recovered["batches_recovered"] == 1
+    got = [(r["idx"], r["name"], r["status"], os.path.basename(r["out"])) for r in store.items(bid)]
+    assert got == [(0, "a.dng", "done", "a.png"), (1, "A (2).dng", "done", "A (2).png"),
+                   (2, ".hidden.dng", "done", ".hidden.png"), (3, "lost.dng", "failed", "lost.png")]
