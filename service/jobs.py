@@ -863,6 +863,7 @@ class JobStore:
                     "items": [{"index": r[1], "name": r[2], "out": os.path.basename(r[4]),
                                "src": os.path.relpath(r[3], bdir) if r[3].startswith(bdir + os.sep) else r[3]}
                               for r in rows]}
+        os.makedirs(bdir, exist_ok=True)
         atomic_write(os.path.join(bdir, MANIFEST), lambda p: write_text(p, json.dumps(manifest)))
         with self._tx() as db:
             db.execute("INSERT INTO batches (id, created, status, options, dir) VALUES (?, ?, 'queued', ?, ?)",
