@@ -56,7 +56,8 @@ PARAMS = {
     "rects": ("JSON [[r0, c0, r1, c1], ...] (end exclusive)", None, ["[[0, 0, 50, 80]]"]),
     "grid": ("a coarse grid, rows x columns", None, ["8x6"]),
     "batch_id": ("the batch id answered by POST /v1/batches", None, ["3f9c1d2e"]),
-    "item": ("an item's index in the batch (0-based)", None, [0]),
+    "item": ("an item's name, or its index in the batch (0-based); 409 when it is one item's name and "
+             "another's index", None, [0]),
     "strategy": ("a sampling rule (GET /v1/sampling lists them), auto or full", None, ["auto", "full"]),
     "n": ("number of samples, 1..64", None, [8]),
     "wavelengths": ("the cube's wavelengths in nm, comma-separated, strictly increasing", None,

@@ -17,7 +17,7 @@ import sqlite3
 import threading
 import zipfile
 
-from fastapi import APIRouter, Depends, File, Form, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Path, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
@@ -188,7 +188,7 @@ def _progress(bid: str) -> dict:
         doc["runner_error"] = runner.executor_error
     for it in doc["items"]:
         if it["status"] == "done":
-            it["url"] = f"/v1/batches/{bid}/items/{it['index']}"
+            it["url"] = f"/v1/batches/{bid}/items/by-index/{it['index']}"  # never taken for a name
     return doc
 
 
@@ -200,15 +200,45 @@ def batch_status(batch_id: str):
     return JSONResponse(clean(_progress(batch_id)))
 
 
+@router.get("/batches/{batch_id}/items/by-index/{index}")
+def batch_item_by_index(batch_id: str, index: str = Path(description="the item's index in the batch (0-based), "
+                                                                       "as its url in the progress document",
+                                                           examples=["0"])):
+    """Download one result by its index (the ``url`` of each item in the
+    progress document): only ever that item, whatever the files are named."""
+    store = _store_of(batch_id)
+    return _item_file(store, batch_id, store.item_by_index(batch_id, index), index, "index")
+
+
+@router.get("/batches/{batch_id}/items/by-name/{name}")
+def batch_item_by_name(batch_id: str, name: str = Path(description="the item's name as the progress document "
+                                                                    "lists it (URL-encoded)",
+                                                        examples=["a.dng"])):
+    """Download one result by its item name (as listed, made unique:
+    ``a (2).dng``)."""
+    store = _store_of(batch_id)
+    return _item_file(store, batch_id, store.item_by_name(batch_id, name), name, "name")
+
+
 @router.get("/batches/{batch_id}/items/{item}")
 def batch_item(batch_id: str, item: str):
-    """Download one result, by item name or index."""
+    """Download one result, by item name or index; a key that is the name of
+    one item and the index of another is refused (409 ``ambiguous_item``):
+    ``items/by-index/{index}`` and ``items/by-name/{name}`` never are."""
+    store = _store_of(batch_id)
+    return _item_file(store, batch_id, store.item(batch_id, item), item, "name or index")
+
+
+def _store_of(batch_id: str) -> jobs.JobStore:
     store = get_runner().store
     if store.batch(batch_id) is None:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
-    row = store.item(batch_id, item)
+    return store
+
+
+def _item_file(store: jobs.JobStore, batch_id: str, row, key: str, kind: str):
     if row is None:
-        raise ServiceError(404, "not_found", f"batch {batch_id!r} has no item {item!r} (a name or an index)")
+        raise ServiceError(404, "not_found", f"batch {batch_id!r} has no item {key!r} (by {kind})")
     if row["status"] != "done" or not os.path.exists(row["out"]):
         raise ServiceError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
                        + (f": {row['error']}" if row["error"] else ""))

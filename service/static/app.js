@@ -433,8 +433,9 @@ function chooseBatch(files) {
 }
 
 function itemLink(id, item, index) {
-  const href = item.url || item.download ||
-    `/v1/batches/${encodeURIComponent(id)}/items/${encodeURIComponent(item.id ?? index)}`;
+  // by index, never by name: a file named "0" must not take item 0's link
+  const href = item.url ||
+    `/v1/batches/${encodeURIComponent(id)}/items/by-index/${encodeURIComponent(item.index ?? index)}`;
   const a = document.createElement("a");
   a.href = href;
   a.textContent = "download";
