@@ -423,7 +423,7 @@ def file_string(value, limit: int = MAX_FILE_STRING) -> str | None:
     """A string read from an uploaded file, safe to echo in a header, JSON or
     the page.
 
-    Decoded as Latin-1 if bytes; every run of characters that are not
+    Decoded as UTF-8 (else Latin-1) if bytes; every run of characters that are not
     printable (NUL, CR/LF and other control characters, including C1) or
     whitespace becomes one space; trimmed; cut to ``limit`` characters (the
     last three ``...`` when cut).
@@ -448,7 +448,10 @@ def file_string(value, limit: int = MAX_FILE_STRING) -> str | None:
     if value is None:
         return None
     if isinstance(value, (bytes, bytearray)):
-        value = bytes(value).decode("latin-1")
+        try:
+            value = bytes(value).decode("utf-8")
+        except UnicodeDecodeError:
+            value = bytes(value).decode("latin-1")
     text = " ".join("".join(c if c.isprintable() and not c.isspace() else " " for c in str(value)).split())
     if len(text) > limit:
         text = text[:limit - 3].rstrip() + "..."

@@ -16,9 +16,10 @@ from starlette.background import BackgroundTask
 from .. import pipeline
 from ..deps import read_upload
 from ..errors import ServiceError
+from ..headers import content_disposition, download_name
 from ..jsonsafe import clean
 from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, check_output, choose_format, estimate_options,
-                       parse_exposure, parse_grid, parse_json_list, parse_neutral)
+                       check_target, parse_exposure, parse_grid, parse_json_list, parse_neutral)
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -128,6 +129,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     if response not in ("image", "json"):
         raise ServiceError(422, "invalid_parameter", "response must be image or json")
     check_output(output)
+    check_target(target)
     opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model,
                             quality)
     ev = parse_exposure(exposure)
@@ -142,9 +144,9 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                                        where, request=request)
         run = _with_white(decoded, run, white)
         text, _, summary = pipeline.xmp_sidecar(decoded, run)
-        stem = os.path.splitext(os.path.basename(file.filename or "image"))[0] or "image"
+        stem = os.path.splitext(download_name(file.filename, "image"))[0] or "image"
         return Response(text, media_type=MEDIA_TYPES["xmp"],
-                        headers={"Content-Disposition": f'attachment; filename="{stem}.xmp"',
+                        headers={"Content-Disposition": content_disposition(f"{stem}.xmp", default="image"),
                                  "X-Illuminant": json.dumps(clean(summary), separators=(",", ":"))})
     if response == "json":
         decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
@@ -169,8 +171,8 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     if "neutral" in body:
         header["neutral"] = body["neutral"]
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
-               "Content-Disposition": f'inline; filename="{"as-shot" if white == "as-shot" else "corrected"}.'
-                                      f'{fmt.extension}"'}
+               "Content-Disposition": content_disposition(
+                   f'{"as-shot" if white == "as-shot" else "corrected"}.{fmt.extension}', "inline")}
     # streamed from a temporary file (deleted after sending): the encoded
     # image never sits in memory next to the decoded one
     return FileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers,

@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse, Response
 
 from ..deps import read_upload
 from ..errors import ServiceError
+from ..headers import content_disposition
 from ..jsonsafe import clean
 from ..options import MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, check_output, choose_format
 from ..settings import Settings, get_settings
@@ -263,7 +264,7 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
         header = {k: v for k, v in report.items() if k != "tried"}
         header["tried"] = len(report.get("tried", []))
         headers = {"X-Render-Report": json.dumps(clean(header), separators=(",", ":")),
-                   "Content-Disposition": f'inline; filename="render.{fmt.extension}"'}
+                   "Content-Disposition": content_disposition(f"render.{fmt.extension}", "inline")}
         return Response(payload, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
 
     # under the same bound as every other heavy request (service.workers)
