@@ -216,3 +216,60 @@ def test_host_header_is_parsed_strictly(env_settings, host):
         assert r.status_code == 400 and r.json()["error"] == "host_not_allowed", (host, r.text)
         for ok in ("127.0.0.1:8000", "[::1]:8000", "localhost", "LOCALHOST:8000"):
             assert c.get("/health", headers={"host": ok}).status_code == 200, ok
+
+
+# --- item 9: CSV parsing memory --------------------------------------------------------------------
+
+_CSV_MEM = r"""
+import resource, sys
+row = "400," + ",".join(["0"] * 5_000_000)
+csv = (row + "\n" + row.replace("400,", "410,", 1) + "\n").encode()
+del row
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+from service.errors import ServiceError
+from service.routers.render import load_csv
+try:
+    load_csv(csv)
+except ServiceError as e:
+    print(e.code, (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) // 1024)
+"""
+
+
+def test_a_wide_csv_is_refused_from_its_counts_at_a_small_multiple_of_its_size():
+    """20 MB CSV of two 5-million-value spectra: the rows were Python lists
+    of str and float (about 30 bytes per input byte, 600 MB) before the
+    6-wavelength rule; now the counts are checked from a scan (peak RSS
+    growth measured in a fresh interpreter, the text itself included)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    r = subprocess.run([sys.executable, "-c", _CSV_MEM], capture_output=True, text=True, timeout=120,
+                       cwd=Path(__file__).resolve().parents[1])
+    code, mib = r.stdout.split()
+    assert code == "too_few_wavelengths", r.stdout + r.stderr
+    assert int(mib) < 100, f"peak RSS +{mib} MiB for a 20 MB CSV"
+
+
+def test_csv_counts_are_checked_before_any_value_is_parsed(monkeypatch):
+    from recovery import tables
+    from recovery.errors import InputError
+
+    real = tables.np.loadtxt
+
+    def no_parse(lines, *a, **kw):      # the header test reads the first line only when it is short
+        if len(lines) > 1 or len(lines[0]) >= 10_000:
+            raise AssertionError("values parsed before the counts were checked")
+        return real(lines, *a, **kw)
+
+    monkeypatch.setattr(tables.np, "loadtxt", no_parse)
+    wide = ("400," + ",".join(["1"] * 1000) + "\n") * 3
+    for kw, code in (({"max_values": 2000}, "too_many_values"), ({"min_rows": 6}, "too_few_rows"),
+                     ({"max_rows": 2}, "bad_csv")):
+        with pytest.raises(InputError) as e:
+            tables.read_csv_table(wide.encode(), **kw)
+        assert e.value.code == code, e.value
+    monkeypatch.undo()
+    t = tables.read_csv_table(b"nm;a;b\n400;0,5;1\n410;0,25;2\n")     # decimal commas, header
+    assert t.header == ["nm", "a", "b"] and t.values.tolist() == [[0.5, 1.0], [0.25, 2.0]]
+    assert t.values.T.flags.c_contiguous                                  # spectra contiguous: no copy
