@@ -273,3 +273,75 @@ def test_csv_counts_are_checked_before_any_value_is_parsed(monkeypatch):
     t = tables.read_csv_table(b"nm;a;b\n400;0,5;1\n410;0,25;2\n")     # decimal commas, header
     assert t.header == ["nm", "a", "b"] and t.values.tolist() == [[0.5, 1.0], [0.25, 2.0]]
     assert t.values.T.flags.c_contiguous                                  # spectra contiguous: no copy
+
+
+# --- item 10: compressed linear TIFFs --------------------------------------------------------------
+
+def _linear_tiff(h, w, comp, strip, rps) -> bytes:
+    """Little-endian 16-bit RGB TIFF; every strip of ``rps`` rows the same
+    ``strip`` bytes (as ``mem_packbits_tiff.py`` writes them)."""
+    import struct
+
+    n = -(-h // rps)
+    bps = 8 + 2 + 10 * 12 + 4
+    offs = bps + 8
+    data = offs + (8 * n if n > 1 else 0)
+    tags = [(256, 4, 1, w), (257, 4, 1, h), (258, 3, 3, bps), (259, 3, 1, comp), (262, 3, 1, 2),
+            (273, 4, n, offs if n > 1 else data), (277, 3, 1, 3), (278, 4, 1, rps),
+            (279, 4, n, offs + 4 * n if n > 1 else len(strip)), (284, 3, 1, 1)]
+    ifd = struct.pack("<H", len(tags)) + b"".join(
+        struct.pack("<HHII", t, ty, k, v) if ty == 4 or k > 1 else struct.pack("<HHIHH", t, ty, k, v, 0)
+        for t, ty, k, v in tags) + b"\0\0\0\0"
+    arrays = struct.pack(f"<{2 * n}I", *[data] * n, *[len(strip)] * n) if n > 1 else b""
+    return b"II*\0" + struct.pack("<I", 8) + ifd + struct.pack("<HHH", 16, 16, 16) + b"\0\0" + arrays + strip
+
+
+def _packbits_tiff(h, w) -> bytes:
+    n = h * w * 6
+    return _linear_tiff(h, w, 32773, b"\x81\x00" * (n // 128) + (bytes([257 - n % 128, 0]) if n % 128 else b""), h)
+
+
+_TIFF_MEM = r"""
+import resource, sys, zlib
+sys.path.insert(0, ".")
+from tests.test_reliability_round2 import _linear_tiff, _packbits_tiff
+h, w = 1500, 2000
+data = _packbits_tiff(h, w) if sys.argv[1] == "packbits" else _linear_tiff(h, w, 8, zlib.compress(bytes(100 * w * 6)), 100)
+from service.rawio import decode_upload
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+decode_upload(data, "x.tif", max_pixels=10**8)
+print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) // 1024)
+"""
+
+
+def test_packbits_tiff_costs_what_deflate_costs():
+    """3 MP PackBits 16-bit RGB TIFF of one strip: tifffile's pure-Python
+    decoder (no imagecodecs) built a list of ints per strip, about 9 bytes
+    per decoded byte (~160 MB here, 3.1 GB at 60 MP); with C decoders the
+    peak is the deflate file's (the image buffers), within 40 MiB."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    mib = {k: int(subprocess.run([sys.executable, "-c", _TIFF_MEM, k], capture_output=True, text=True, timeout=120,
+                                 cwd=root, check=True).stdout) for k in ("packbits", "deflate")}
+    assert mib["packbits"] <= mib["deflate"] + 40, mib
+
+
+def test_linear_tiff_compressions_outside_the_list_are_415(monkeypatch):
+    import sys
+
+    from service.rawio import decode_upload
+
+    raw = bytes(64 * 96 * 6)
+    for comp in (34925, 50000, 7, 99):            # LZMA, ZSTD, JPEG, unknown
+        with pytest.raises(ServiceError) as e:
+            decode_upload(_linear_tiff(64, 96, comp, raw, 64), "x.tif", max_pixels=10**8)
+        assert e.value.status == 415 and "PackBits" in e.value.detail, e.value
+    img = decode_upload(_packbits_tiff(64, 96), "x.tif", max_pixels=10**8)
+    assert img.full_shape == (64, 96)
+    monkeypatch.setitem(sys.modules, "imagecodecs", None)       # without C decoders: refused, not slow
+    with pytest.raises(ServiceError) as e:
+        decode_upload(_packbits_tiff(64, 96), "x.tif", max_pixels=10**8)
+    assert e.value.status == 415
