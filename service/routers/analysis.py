@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -15,7 +16,7 @@ from starlette.background import BackgroundTask
 
 from .. import pipeline
 from ..deps import read_upload
-from ..errors import ServiceError
+from ..errors import INSUFFICIENT_STORAGE, ServiceError, disk_full
 from ..headers import content_disposition, download_name
 from ..jsonsafe import clean
 from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, check_output, choose_format, estimate_options,
@@ -88,16 +89,33 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
     decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral)
     del data
     run = _with_white(decoded, run, white)
-    fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt.encoder)
-    os.close(fd)
-    try:
+    with temp_output(prefix="wb-", suffix="." + fmt.encoder) as path:
         M, info = pipeline.write_corrected(decoded, run, path, target=target, output=output, fmt=fmt,
                                            surface_basis=opts.get("surface_basis"), white=white,
                                            exposure=exposure)
-    except BaseException:
-        os.unlink(path)
-        raise
     return decoded, run, M, path, info
+
+
+@contextlib.contextmanager
+def temp_output(**kw):
+    """A temporary file in TMPDIR for an output to be streamed: removed if
+    anything fails while it is written, and a full file system (ENOSPC,
+    EDQUOT) is a 507 ``insufficient_storage``, not a 500."""
+    try:
+        fd, path = tempfile.mkstemp(**kw)
+    except OSError as e:
+        if disk_full(e):
+            raise ServiceError(507, "insufficient_storage", INSUFFICIENT_STORAGE) from None
+        raise
+    os.close(fd)
+    try:
+        yield path
+    except BaseException as e:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        if disk_full(e):
+            raise ServiceError(507, "insufficient_storage", INSUFFICIENT_STORAGE) from None
+        raise
 
 
 @router.post("/white-balance")
