@@ -345,3 +345,16 @@ def test_linear_tiff_compressions_outside_the_list_are_415(monkeypatch):
     with pytest.raises(ServiceError) as e:
         decode_upload(_packbits_tiff(64, 96), "x.tif", max_pixels=10**8)
     assert e.value.status == 415
+
+
+def test_real_dng_with_a_non_ascii_unique_camera_model(client):
+    """The issue's case: the real Blackmagic.dng with one character of
+    UniqueCameraModel changed to a Latin-1 'é' (was a 500 for the default TIFF)."""
+    from .conftest import shared_file
+
+    data = bytearray(shared_file("data/raw/Blackmagic.dng").read_bytes())
+    i = data.find(b"Blackmagic Pocket Cinema Camera 4K\0")
+    assert i > 0
+    data[i + 1] = 0xE9                                     # "Béackmagic ..." (one byte: Latin-1)
+    r = client.post("/v1/white-balance", files={"file": ("bm.dng", bytes(data))})
+    assert r.status_code == 200 and r.content[:4] == b"II*\0", r.text[:300]
