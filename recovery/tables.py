@@ -72,8 +72,8 @@ def _unquote(field: str) -> str:
 MAX_CSV_VALUES = 64_000_000
 #: Longest header row split into names (longer: default names).
 _MAX_HEADER_FIELDS = 100_000
-#: Values parsed per np.loadtxt call (32 MB of float64).
-_CHUNK_VALUES = 4_000_000
+#: Values parsed per np.loadtxt call (2 MB of float64, ~50 ms).
+_CHUNK_VALUES = 250_000
 _NUMERIC_CHARS = re.compile(r'[^0-9eE+\-.,;\t "]')
 
 
@@ -133,9 +133,12 @@ def read_csv_table(data, what: str = "the CSV", *, finite: bool = True, max_rows
     header = None
     first = rows[0]
     delim = _delimiter(first)
-    if len(first) < 10_000 or _NUMERIC_CHARS.search(first) is not None:   # short, or letters (names, nan/inf)
+    # a header is a first row with a field that is not a number: a long row is
+    # judged by its first 10,000 characters (its counts are not checked yet)
+    probe = first if len(first) < 10_000 else first[:10_000].rsplit(delim, 1)[0]
+    if len(first) < 10_000 or _NUMERIC_CHARS.search(probe) is not None:   # short, or letters (names, nan/inf)
         try:
-            _loadtxt([first], delim)
+            _loadtxt([probe], delim)
         except ValueError:
             n = _count_fields(first, delim)
             header = [_unquote(f) for f in first.split(delim)] if n <= _MAX_HEADER_FIELDS else []
@@ -159,31 +162,67 @@ def read_csv_table(data, what: str = "the CSV", *, finite: bool = True, max_rows
     if header is not None and header and len(header) != ncols:
         raise InputError(f"line {linenos[0]} has {ncols} columns, expected {len(header)} (as the header)",
                          code="bad_csv")
-    # parsed in chunks of about 4 million values into one column-major array
-    # (spectra are its columns: ``values.T`` is contiguous); each chunk's
-    # lines are dropped once read, so the peak is the array, the lines and a chunk
+    # parsed in chunks of about 250,000 values (numpy's reader holds the GIL:
+    # ~50 ms each, so the event loop's thread keeps answering) into one
+    # column-major array (spectra are its columns: ``values.T`` is
+    # contiguous); a row wider than a chunk is read in pieces cut at its
+    # separators; each chunk's lines are dropped once read, so the peak is
+    # the array, the lines and a chunk
+    arr = np.empty((len(rows), ncols), np.float64, order="F")
+    where = "as the header" if header is not None else "as the first row"
     step = max(1, _CHUNK_VALUES // max(ncols, 1))
-    arr = None
     for r0 in range(0, len(rows), step):
         chunk = rows[r0:r0 + step]
         try:
-            part = _loadtxt(chunk, delim)
+            if ncols <= _CHUNK_VALUES:
+                part = _loadtxt(chunk, delim)
+                if part.shape[1] != ncols:
+                    raise InputError(f"line {linenos[r0]} has {part.shape[1]} columns, expected {ncols} ({where})",
+                                     code="bad_csv")
+                arr[r0:r0 + len(chunk)] = part
+            else:
+                _wide_row(chunk[0], delim, arr[r0], linenos[r0], where)
+        except InputError:
+            raise
         except ValueError as e:
             raise _located(str(e), chunk, linenos[r0:], delim, ncols, header is not None, what) from None
-        if arr is None:
-            ncols = part.shape[1]        # white space or quoting the scan counted otherwise
-            arr = np.empty((len(rows), ncols), np.float64, order="F")
-        elif part.shape[1] != ncols:
-            raise InputError(f"line {linenos[r0]} has {part.shape[1]} columns, expected {ncols} "
-                             f"({'as the header' if header is not None else 'as the first row'})", code="bad_csv")
-        arr[r0:r0 + step] = part
-        if finite and not np.all(np.isfinite(part)):
-            r, c = (int(v[0]) for v in np.nonzero(~np.isfinite(part)))
-            field = _field(chunk[r], delim, c)
-            raise InputError(f"line {linenos[r0 + r]}, column {c + 1}: {field!r} is NaN or Inf", code="bad_csv")
-        del part, chunk
-        rows[r0:r0 + step] = [None] * min(step, len(rows) - r0)
+        if finite:
+            block = arr[r0:r0 + len(chunk)]
+            if not np.all(np.isfinite(block)):
+                r, c = (int(v[0]) for v in np.nonzero(~np.isfinite(block)))
+                field = _field(chunk[r], delim, c)
+                raise InputError(f"line {linenos[r0 + r]}, column {c + 1}: {field!r} is NaN or Inf", code="bad_csv")
+        rows[r0:r0 + step] = [None] * len(chunk)
+        del chunk
     return CsvTable(arr[:, 0].copy(), arr[:, 1:], header if header else None)
+
+
+def _wide_row(row: str, delim: str | None, out: np.ndarray, lineno: int, where: str) -> None:
+    """One row of more than a chunk of values, into ``out``, in pieces of
+    about 8 characters per chunk value cut at separators."""
+    size, pos, col, n = _CHUNK_VALUES * 8, 0, 0, len(row)
+    space = re.compile(r"\s")
+    while pos < n:
+        end = pos + size
+        if end >= n:
+            end = n
+        else:
+            m = row.find(delim, end) if delim is not None else (space.search(row, end) or None)
+            end = n if m is None or m == -1 else (m if delim is not None else m.start())
+        try:
+            vals = _loadtxt([row[pos:end]], delim)[0]
+        except ValueError as e:
+            m = re.search(r"could not convert string '(.*)' to", str(e))
+            raise InputError(f"line {lineno}: {m.group(1) if m else row[pos:pos + 20]!r} is not a number",
+                             code="bad_csv") from None
+        if col + vals.size > out.size:
+            raise InputError(f"line {lineno} has more than {out.size} columns, expected {out.size} ({where})",
+                             code="bad_csv")
+        out[col:col + vals.size] = vals
+        col += vals.size
+        pos = end + 1
+    if col != out.size:
+        raise InputError(f"line {lineno} has {col} columns, expected {out.size} ({where})", code="bad_csv")
 
 
 def _field(row: str, delim: str | None, col: int) -> str:
