@@ -114,7 +114,9 @@ def _illuminant(name: str, wavelengths=None, normalise: bool = True) -> np.ndarr
         kind, t = kind_t
         spd = blackbody(t, wavelengths) if kind == "BB" else daylight(t * 1.4388 / 1.4380, wavelengths)
     else:
-        raise KeyError(f"unknown illuminant {name!r}; accepted: {illuminant_names()} or D<cct>, BB<cct>")
+        raise KeyError(f"unknown illuminant {name!r}; accepted: {illuminant_names()} or D<cct> "
+                       f"({DAYLIGHT_CCT_RANGE[0]:.0f}..{DAYLIGHT_CCT_RANGE[1]:.0f} K), BB<K> "
+                       f"({BLACKBODY_RANGE[0]:.0f}..{BLACKBODY_RANGE[1]:.0f} K)")
     if normalise:
         m = spd.mean()
         spd = spd / m if m > 0 else spd
@@ -136,7 +138,7 @@ def _ascii_number(text: str, decimals: bool) -> float | None:
 def temperature_of(name: str) -> tuple[str, float] | None:
     """``("D", cct)`` for ``D<cct>`` (a 2-3 digit value is hundreds of
     kelvin: ``D93`` is 9300 K), ``("BB", kelvin)`` for ``BB<K>``; ``None`` when
-    the name names no temperature. A temperature outside
+    the name names no temperature (the rest is not all digits: ``D65x``). A temperature outside
     :data:`DAYLIGHT_CCT_RANGE` / :data:`BLACKBODY_RANGE`, or written with
     anything but ASCII digits, is a ``KeyError`` naming the range.
 
@@ -145,14 +147,14 @@ def temperature_of(name: str) -> tuple[str, float] | None:
     """
     if not isinstance(name, str):
         return None
-    if name.startswith("BB") and len(name) > 2:
+    if name.startswith("BB") and name[2:].replace(".", "", 1).isdigit():    # digits, Unicode ones too ("²")
         lo, hi = BLACKBODY_RANGE
         t = _ascii_number(name[2:], decimals=True)
         if t is None or not lo <= t <= hi:
             raise KeyError(f"illuminant {name[:40]!r}: BB<K> takes a blackbody temperature of {lo:.0f}..{hi:.0f} K "
                            "in ASCII digits (e.g. BB3200)")
         return "BB", t
-    if name.startswith("D") and len(name) > 1 and (name[1:2].isdigit() or name[1:2] == "."):
+    if name.startswith("D") and name[1:].isdigit():
         lo, hi = DAYLIGHT_CCT_RANGE
         t = _ascii_number(name[1:], decimals=False)
         if t is not None and t < 1000:
