@@ -23,6 +23,7 @@ from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
 from .. import jobs
 from ..errors import ServiceError
+from ..headers import content_disposition
 from ..jsonsafe import clean
 from ..options import EXPOSURE_HELP
 from ..settings import Settings, get_settings
@@ -244,7 +245,8 @@ def _item_file(store: jobs.JobStore, batch_id: str, row, key: str, kind: str):
                        + (f": {row['error']}" if row["error"] else ""))
     fmt = jobs.BatchOptions.from_json(store.batch(batch_id)["options"]).format
     media = {"tiff": "image/tiff", "png": "image/png", "png16": "image/png"}.get(fmt, "image/jpeg")
-    return FileResponse(row["out"], media_type=media, filename=os.path.basename(row["out"]))
+    return FileResponse(row["out"], media_type=media,
+                        headers={"Content-Disposition": content_disposition(os.path.basename(row["out"]))})
 
 
 class _Sink:
@@ -290,7 +292,7 @@ def batch_zip(batch_id: str):
     if not entries:
         raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
     return StreamingResponse(_zip_stream(entries), media_type="application/zip",
-                             headers={"Content-Disposition": f'attachment; filename="batch-{batch_id}.zip"'})
+                             headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
 
 
 @router.delete("/batches/{batch_id}")

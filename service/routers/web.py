@@ -24,7 +24,7 @@ from ..deps import read_upload
 from ..errors import ServiceError
 from ..jsonsafe import clean
 from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, PREVIEW_FORMATS, check_output, choose_format,
-                       estimate_options, parse_exposure, parse_neutral)
+                       check_target, estimate_options, parse_exposure, parse_neutral)
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -214,6 +214,8 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
         raise ServiceError(422, "invalid_parameter", f"max_side must be in {lo}..{hi} pixels, not {max_side}")
     fmt = choose_format(format, PREVIEW_FORMATS).encoder
     check_output(output)
+    if wb == "corrected":
+        check_target(target)
     opts = estimate_options(method, None, None, None, False, None, None, quality)
     ev = parse_exposure(exposure)
     where = parse_neutral(neutral)
