@@ -256,8 +256,7 @@ def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = 
             saved = json.load(f)
         if saved.get("key") == key:
             return saved["light"]
-    pixels = max(4096, jobs.shared_pool_pixels() // max(1, len(tasks)))
-    futs = [(t, executor.submit(jobs.estimation_sample, t, pixels)) for t in tasks]
+    futs = [(t, executor.submit(jobs.estimation_sample, t)) for t in tasks]
     samples = []
     for t, f in futs:
         s = f.result()
@@ -349,8 +348,7 @@ def _write_xmp(src: str, illuminant: dict, opts, path: str) -> dict:
 
     with open(src, "rb") as f:
         decoded, cam, warns, _ = pipeline.open_image(f.read(), os.path.basename(src), _settings(), opts.camera)
-    run = pipeline.run_with_white(pipeline.EstimateRun(None, cam, warns), illuminant["camera_rgb"],
-                                  illuminant.get("method", "estimate"))
+    run = pipeline.EstimateRun(jobs._estimate_from_json(illuminant, cam), cam, warns)  # the item's own light
     text, tt, _ = pipeline.xmp_sidecar(decoded, run)
     with open(path, "w", encoding="utf-8") as f:
         f.write(text)

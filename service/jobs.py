@@ -57,16 +57,6 @@ RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", 
                 ".tif", ".tiff", ".png")
 
 
-def shared_pool_pixels() -> int:
-    """Pixels of pooled estimation data in ``shared`` mode (split between the
-    images): the same budget as one image's estimation without a quality
-    preset (:data:`recovery.DEFAULT_ANALYSIS_PIXELS`; imported here, not at
-    the top, so that the CLI's start-up imports no numerical library)."""
-    from recovery import DEFAULT_ANALYSIS_PIXELS
-
-    return DEFAULT_ANALYSIS_PIXELS
-
-
 # ---------------------------------------------------------------------------
 # Options
 # ---------------------------------------------------------------------------
@@ -187,20 +177,22 @@ class ItemTask:
     force: bool = False
 
 
-def _estimate_json(est, camera_name: str) -> dict:
+def _estimate_json(est, camera, profile=None) -> dict:
     from .pipeline import illuminant_json
 
     from recovery.api import LOW_CONFIDENCE
 
     conf = est.diagnostics.get("confidence")
     conf = float(conf) if isinstance(conf, (int, float)) else None
-    return dict(illuminant_json(est), method=est.method, camera=camera_name, confidence=conf,
+    return dict(illuminant_json(est, profile, camera), method=est.method, camera=camera.name, confidence=conf,
                 low_confidence=conf is not None and conf < LOW_CONFIDENCE)
 
 
 def _estimate_from_json(light: dict, camera):
-    """The shared light as an estimate for ``camera``: its camera RGB is the
-    camera's response to the light's spectrum (eq. 1: rho_k = sum_n E R_k)."""
+    """The shared light as an estimate for ``camera``: the light's own camera
+    RGB when it was estimated for this camera (shared lighting pools one
+    camera), else the camera's response to the light's spectrum (eq. 1:
+    rho_k = sum_n E R_k); its confidence is the shared estimate's."""
     import numpy as np
 
     from recovery import IlluminantEstimate
@@ -209,10 +201,14 @@ def _estimate_from_json(light: dict, camera):
     wl = np.asarray(light["wavelengths"], float)
     if wl.shape != camera.wavelengths.shape or not np.allclose(wl, camera.wavelengths):
         spd = np.interp(camera.wavelengths, wl, spd)
-    rgb = spd @ camera.sensitivities
-    rgb = rgb / np.linalg.norm(rgb)
-    return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"),
-                              {"lighting": "shared"}, [])
+    rgb = np.asarray(light.get("camera_rgb") or [], float)
+    if light.get("camera") != camera.name or rgb.shape != (camera.channels,):
+        rgb = spd @ camera.sensitivities
+        rgb = rgb / np.linalg.norm(rgb)
+    diag = {"lighting": "shared"}
+    if isinstance(light.get("confidence"), (int, float)):
+        diag["confidence"] = float(light["confidence"])
+    return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"), diag, [])
 
 
 def _open(task: "ItemTask") -> tuple:
@@ -310,8 +306,9 @@ def process_item(task: ItemTask) -> dict:
                                                            surface_basis=opts.get("surface_basis"),
                                                            threads=task.threads, exposure=task.options.exposure)
             file_warnings = list(decoded.warnings)
+            profile = pipeline.profile_of(decoded)
             del decoded
-            illum = _estimate_json(run.estimate, cam.name)
+            illum = _estimate_json(run.estimate, cam, profile)
             illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
             side = {"name": task.name, "illuminant": illum, "correction_matrix": M.tolist(),
                     "rendering": pipeline.rendering_json(info),
@@ -343,17 +340,21 @@ def _clean(obj):
     return clean(obj)
 
 
-def estimation_sample(task: ItemTask, pixels: int) -> dict:
-    """Shared mode, step 1: an image's estimation data (RAW: binned CFA
-    cells, no demosaic) block-averaged to at most ``pixels`` pixels, with its
-    usable-pixel mask and camera. Block means of surfaces under one light
-    stay in that light's subspace (eq. 29), so averaging loses no validity."""
-    from recovery.resolution import block_average
+def estimation_sample(task: ItemTask, pixels: int | None = None) -> dict:
+    """Shared mode, step 1: an image's own estimate, made exactly as in
+    per-image mode (:func:`service.pipeline.run_estimate` with the batch's
+    method and options, on the analysis image of its ``quality``), with its
+    camera and colour profile. ``pixels`` is not used (it was the share of a
+    pooled image, which made the light depend on the number of images)."""
+    from . import pipeline
 
     try:
-        decoded, cam, _ = _open(task)
-        img, mask, _ = block_average(decoded.estimation, ~decoded.saturated, pixels)
-        return {"status": "ok", "image": img, "mask": mask, "camera": cam}
+        decoded, cam, warns = _open(task)
+        run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method,
+                                    options=task.options.estimate_kwargs())
+        profile = pipeline.profile_of(decoded)
+        return {"status": "ok", "estimate": _clean(_estimate_json(run.estimate, cam, profile)),
+                "warnings": list(run.estimate.warnings), "camera": cam, "profile": profile}
     except MemoryError:
         return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
     except Exception as exc:
@@ -375,21 +376,63 @@ def pool_images(images: list, masks: list):
     return np.concatenate(rows, 0), np.concatenate(mrows, 0)
 
 
+#: Above this angle (degrees) between an image's own light and the shared
+#: one, the shared light warns that the images may not share one light.
+SHARED_SPREAD_WARN_DEG = 3.0
+
+
 def shared_light(samples: list, options: BatchOptions) -> dict:
-    """Shared mode, step 2: one light from all images pooled (Maloney &
-    Wandell: one light, one subspace normal for every image, eq. 30-35).
+    """Shared mode, step 2: one light for all the images, from their own
+    estimates (:func:`estimation_sample`, one camera): the mean of their
+    lights (camera RGB and spectrum, each scaled to a unit camera response,
+    then back to the mean scale), weighted by their confidence when every
+    one has one, else equally. N identical images therefore give that
+    image's own estimate whatever N (pooling their pixels into one image
+    did not: the light moved with the number and layout of the images).
 
-    ``samples`` are :func:`estimation_sample` results of one camera.
-    Returns the light as JSON (``camera_rgb``, ``spectrum``, ``cct``...,
-    ``images``: how many were pooled)."""
+    Its ``confidence`` is the weighted mean of theirs times
+    ``1 / (1 + (rms / 3 deg)^2)``, ``rms`` the weighted RMS angle of the
+    images' lights to the shared one (the just-visible error of
+    :data:`service.pipeline.VISIBLE_WB_ERROR_DEG`): images that agree keep
+    their confidence, images that disagree lower it, and above 3 degrees a
+    warning says so. Returns the light as JSON (``camera_rgb``,
+    ``spectrum``, ``cct``..., ``confidence``, ``images``: how many were
+    combined, ``image_angles_deg``: each image's light to the shared one)."""
+    import numpy as np
+
+    from recovery import IlluminantEstimate, angular_error
+
+    from .pipeline import VISIBLE_WB_ERROR_DEG
+
     cam = samples[0]["camera"]
-    img, mask = pool_images([s["image"] for s in samples], [s["mask"] for s in samples])
-    from recovery import estimate_illuminant
-
-    est = estimate_illuminant(img, cam, options.method, mask=mask, **options.estimate_kwargs())
-    light = _estimate_json(est, cam.name)
+    ests = [s["estimate"] for s in samples]
+    rgbs = np.array([e["camera_rgb"] for e in ests], float)
+    spds = np.array([e["spectrum"] for e in ests], float)
+    wl = np.asarray(ests[0]["wavelengths"], float)
+    norms = np.linalg.norm(rgbs, axis=1)
+    confs = [e.get("confidence") for e in ests]
+    have_conf = all(isinstance(c, (int, float)) and c > 0 for c in confs)
+    w = np.array(confs, float) if have_conf else np.ones(len(ests))
+    w = w / w.sum()
+    scale = float(w @ norms)
+    rgb = (w @ (rgbs / norms[:, None])) * scale
+    spd = (w @ (spds / norms[:, None])) * scale
+    angles = np.array([float(angular_error(r, rgb)) for r in rgbs])
+    rms = float(np.sqrt(w @ angles ** 2))
+    warnings = [x for x in dict.fromkeys(x for s in samples for x in s.get("warnings", []))
+                if all(x in s.get("warnings", []) for s in samples)]
+    if angles.max() > SHARED_SPREAD_WARN_DEG:
+        warnings.append(f"the images' own lights are up to {angles.max():.1f} degrees from the shared light "
+                        f"(RMS {rms:.1f}): they may not all be under one light")
+    diag = {"lighting": "shared"}
+    if have_conf:
+        diag["confidence"] = float(w @ np.array(confs, float)) / (1.0 + (rms / VISIBLE_WB_ERROR_DEG) ** 2)
+    methods = {e.get("method") for e in ests}
+    est = IlluminantEstimate(rgb, spd, wl, methods.pop() if len(methods) == 1 else "shared", diag, warnings)
+    light = _estimate_json(est, cam, samples[0].get("profile"))
     light["images"] = len(samples)
-    light["warnings"] = list(est.warnings)
+    light["image_angles_deg"] = angles.tolist()
+    light["warnings"] = warnings
     return _clean(light)
 
 
@@ -1035,8 +1078,7 @@ class BatchRunner:
         fut = self._light_jobs.get(bid)
         if fut is None:
             rows = [r for r in self.store.items(bid) if r["status"] in ("pending", "running", "done")]
-            pixels = max(4096, shared_pool_pixels() // max(1, len(rows)))
-            futs = [(r, self.executor.submit(estimation_sample, self._task(r, options, None), pixels)) for r in rows]
+            futs = [(r, self.executor.submit(estimation_sample, self._task(r, options, None))) for r in rows]
             self._light_jobs[bid] = (futs, None)
             return
         futs, light_fut = fut

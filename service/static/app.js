@@ -217,6 +217,9 @@ function lightFacts(il) {
     $("cct").textContent = "undefined (the light is too far from the Planckian locus)";
   }
   $("duv").textContent = (typeof il.duv === "number") ? (il.duv >= 0 ? "+" : "") + il.duv.toFixed(4) : "–";
+  // the same chromaticity on Adobe's scale: Temperature within a few kelvin of the CCT, Tint about 3000 x Duv
+  $("temp-tint").textContent = (typeof il.temperature === "number" && typeof il.tint === "number")
+    ? `${Math.round(il.temperature)} K / ${il.tint >= 0 ? "+" : ""}${Math.round(il.tint)}` : "–";
   const rgb = il.camera_rgb || [];
   const g = rgb[1] || 1;
   $("camera-rgb").textContent = rgb.map((v) => fmt(v / g, 3)).join(" : ");

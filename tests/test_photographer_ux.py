@@ -1,0 +1,152 @@
+"""Issue 19, usability items for a photographer: one light described one
+way (item 4), shared lighting over copies (6), error messages (9),
+batch hygiene (11), the README's figures (13)."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import app
+
+from .conftest import shared_file
+
+
+@pytest.fixture(scope="module")
+def client():
+    with TestClient(app) as c:
+        yield c
+
+
+def _cli(*args, **kw):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+                          timeout=300, **kw)
+
+
+def _embedded_cct_duv(data: bytes) -> set:
+    """Every ``"cct":..,"duv":..`` pair of the JSON estimates a file carries."""
+    pairs = re.findall(rb'"cct":\s*([-0-9.eE+]+),\s*"duv":\s*([-0-9.eE+]+)', data)
+    return {(float(c), float(d)) for c, d in pairs}
+
+
+# ---------------------------------------------------------------- item 4
+
+def test_one_light_has_one_cct_duv_everywhere(client, blackmagic_dng, tmp_path):
+    """The same DNG through /v1/analyze, the XMP download, the white-balance
+    header and file, the CLI's analyze, and the CLI's output file and XMP
+    sidecar: one CCT/Duv (the page showed 5056 K, the CLI's sidecar 5136 K).
+    Temperature/Tint (Adobe's scale) describe the same chromaticity: within
+    a few kelvin of the CCT, Tint about 3000 x Duv."""
+    files = {"file": ("Blackmagic.dng", blackmagic_dng)}
+    il = client.post("/v1/analyze", files=files).json()["illuminant"]
+    cct, duv = il["cct"], il["duv"]
+    assert cct is not None and duv is not None
+    seen = {"analyze": (cct, duv)}
+
+    x = client.post("/v1/white-balance", files=files, data={"format": "xmp"})
+    assert x.status_code == 200, x.text
+    t = float(re.search(r'crs:Temperature="([^"]+)"', x.text).group(1))
+    tint = float(re.search(r'crs:Tint="([^"]+)"', x.text).group(1))
+    (seen["xmp"],) = _embedded_cct_duv(x.content)
+    hdr = json.loads(x.headers["X-Illuminant"])
+    seen["xmp header"] = (hdr["cct"], hdr["duv"])
+    assert t == round(il["temperature"]) and tint == round(il["tint"])
+
+    w = client.post("/v1/white-balance", files=files, data={"format": "png"})
+    assert w.status_code == 200
+    h = json.loads(w.headers["X-Illuminant"])["illuminant"]
+    seen["white-balance header"] = (h["cct"], h["duv"])
+    (seen["white-balance file"],) = _embedded_cct_duv(w.content)
+
+    src = tmp_path / "Blackmagic.dng"
+    src.write_bytes(blackmagic_dng)
+    r = _cli("analyze", str(src))
+    assert r.returncode == 0, r.stderr
+    ci = json.loads(r.stdout)["illuminant"]
+    seen["cli analyze"] = (ci["cct"], ci["duv"])
+    r = _cli("white-balance", str(src), str(tmp_path / "out.png"), "--xmp")
+    assert r.returncode == 0, r.stderr
+    (seen["cli file"],) = _embedded_cct_duv((tmp_path / "out.png").read_bytes())
+    (seen["cli xmp"],) = _embedded_cct_duv((tmp_path / "Blackmagic.xmp").read_bytes())
+    for where, (c, d) in seen.items():
+        assert c == pytest.approx(cct, rel=1e-9) and d == pytest.approx(duv, abs=1e-12), where
+    # Adobe's Temperature/Tint: the same xy, another method and scale
+    assert abs(il["temperature"] - cct) < 0.005 * cct
+    assert abs(il["tint"] - 3000 * duv) < 3
+    # the page says which is which
+    page = client.get("/").text
+    assert "Correlated colour temperature (CCT" in page and "Duv" in page
+    assert "Camera Raw Temperature / Tint (Adobe's scale" in page and 'id="temp-tint"' in page
+
+
+# ---------------------------------------------------------------- item 6
+
+def test_shared_light_of_identical_copies_is_the_image_own_estimate(tmp_path):
+    """``lighting=shared`` over N identical copies of one image: the shared
+    light is that image's own (per-image) estimate to rounding, whatever N
+    (pooling pixels into one image moved it 0.8 degrees, and with N), and
+    the items carry the shared estimate's confidence."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from recovery import angular_error
+    from service import cli, jobs
+    from testing.dngwriter import scene_dng
+
+    src = tmp_path / "src.dng"
+    scene_dng(src, "Nikon 5100 (NPL)", "A", 160, 240, seed=3, grid=(4, 6))
+    own_opts = jobs.batch_options(format="png")
+    (tmp_path / "one").mkdir()
+    shutil.copy(src, tmp_path / "one" / "a.dng")
+    with ThreadPoolExecutor(2) as ex:
+        (own,) = cli.run_batch(str(tmp_path / "one"), str(tmp_path / "own"), own_opts, executor=ex, quiet=True)
+        assert own["status"] == "done"
+        own_ill = own["illuminant"]
+        assert isinstance(own_ill["confidence"], float)
+        shared = jobs.batch_options(format="png", lighting="shared")
+        for n in (1, 2, 5):
+            d = tmp_path / f"copies{n}"
+            d.mkdir()
+            for i in range(n):
+                shutil.copy(src, d / f"c{i}.dng")
+            rows = cli.run_batch(str(d), str(tmp_path / f"out{n}"), shared, executor=ex, quiet=True)
+            assert [r["status"] for r in rows] == ["done"] * n
+            light = json.loads((tmp_path / f"out{n}" / ".wandell" / "shared-light.json").read_text())["light"]
+            assert light["images"] == n
+            for r in rows:
+                ill = r["illuminant"]
+                assert angular_error(ill["camera_rgb"], own_ill["camera_rgb"]) < 1e-6, n
+                assert ill["cct"] == pytest.approx(own_ill["cct"], rel=1e-9)
+                assert ill["confidence"] == pytest.approx(own_ill["confidence"], rel=1e-9), n
+                assert ill["low_confidence"] == own_ill["low_confidence"]
+            assert light["confidence"] == pytest.approx(own_ill["confidence"], rel=1e-9)
+            assert max(light["image_angles_deg"]) < 1e-6
+
+
+def test_shared_light_lowers_confidence_and_warns_when_images_disagree():
+    """Two images whose own lights are 10 degrees apart: the shared light lies
+    between them, its confidence is below theirs and a warning says so."""
+    from recovery import angular_error
+    from service import jobs
+
+    class Cam:
+        name, source = "cam", "measured"
+
+    def sample(rgb, conf):
+        rgb = np.asarray(rgb, float)
+        return {"status": "ok", "camera": Cam, "profile": None, "warnings": [],
+                "estimate": {"camera_rgb": rgb.tolist(), "spectrum": [1.0, 1.0, 1.0], "wavelengths": [400, 550, 700],
+                             "confidence": conf, "method": "learned"}}
+
+    a, b = np.array([0.5, 1.0, 0.6]), np.array([0.7, 1.0, 0.45])
+    gap = angular_error(a, b)
+    light = jobs.shared_light([sample(a, 0.8), sample(b, 0.8)], jobs.batch_options(lighting="shared"))
+    assert angular_error(light["camera_rgb"], a) < gap and angular_error(light["camera_rgb"], b) < gap
+    assert light["confidence"] < 0.8 * 0.5
+    assert any("not all be under one light" in w for w in light["warnings"])
