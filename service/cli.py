@@ -21,7 +21,8 @@ progress bar or table; failures and warnings still on stderr) and
 rerun whose options differ from those stored beside a finished output (its
 ``.wandell/NAME.json`` sidecar) says so in the summary. Exit status: 0 when
 every item succeeded or was already done, 1 when something failed, 2 for a
-usage error.
+usage error (bad options, a FILE or IN_DIR that does not exist or is not
+a file/folder).
 
 Start-up stays light (``wandell --help`` imports no numerical library): the
 heavy modules are imported by the command that needs them.
@@ -317,7 +318,22 @@ def format_for(out: str, given: str | None) -> str:
     return given or allowed[0]
 
 
+def _input_file(path: str) -> str:
+    """The FILE argument, checked before any work: a missing file or a
+    folder is a usage error (exit 2) in words, not a Python traceback or
+    an errno."""
+    if os.path.isdir(path):
+        raise ServiceError(422, "not_a_file", f"{path!r} is a folder; give one file, or use 'wandell batch "
+                           f"{path} OUT_DIR' for every RAW in it")
+    if not os.path.exists(path):
+        raise ServiceError(422, "file_not_found", f"{path!r} does not exist (current folder {os.getcwd()!r})")
+    if not os.access(path, os.R_OK):
+        raise ServiceError(422, "file_not_readable", f"{path!r} cannot be read (permission denied)")
+    return path
+
+
 def _cmd_white_balance(args) -> int:
+    _input_file(args.file)
     args.format = format_for(args.out, args.format)
     opts = _options(args)
     max_pixels, est_pixels = _limits()
@@ -359,6 +375,7 @@ def _cmd_analyze(args) -> int:
     from . import pipeline
     from .jsonsafe import clean
 
+    _input_file(args.file)
     opts = _options(args)
     try:
         decoded, run = pipeline.analyze_file(args.file, _settings(), camera=opts.camera, method=opts.method,

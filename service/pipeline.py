@@ -215,6 +215,13 @@ def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
 AS_SHOT_WARN_DEG = 5.0
 
 
+#: A surface chosen as white whose brightest channel averages less than
+#: this fraction of the white level gets a low-signal warning (a 14-bit
+#: sensor keeps about 800 levels there, and a 0.1 % black-level error is
+#: already a 2 % colour error).
+NEUTRAL_LOW_SIGNAL = 0.05
+
+
 def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
     """The light's camera RGB from a surface the user says is white or grey:
     the mean camera RGB of the unclipped cells of the estimation image under
@@ -223,6 +230,12 @@ def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
     there is clipped or black."""
     H, W = decoded.full_shape
     r0, c0, r1, c1 = (where[0], where[1], where[0] + 1, where[1] + 1) if len(where) == 2 else where
+    if len(where) == 4 and (r0 >= r1 or c0 >= c1):
+        bad = " and ".join(x for x, b in ((f"r0 >= r1 ({r0} >= {r1})", r0 >= r1),
+                                          (f"c0 >= c1 ({c0} >= {c1})", c0 >= c1)) if b)
+        raise ServiceError(422, "invalid_parameter", f"neutral {list(where)} is an inverted or empty rectangle: "
+                           f"{bad}; give [r0, c0, r1, c1] with r0 < r1 and c0 < c1 (top-left, then bottom-right, "
+                           "exclusive)")
     if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
         raise ServiceError(422, "invalid_parameter", f"neutral {list(where)} is outside the {H}x{W} image: "
                            f"a point needs 0 <= row < {H} and 0 <= col < {W}; a rectangle 0 <= r0 < r1 <= {H} "
@@ -242,9 +255,11 @@ def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
     rgb = cells[ok].mean(axis=0)
     info = {"where": list(where), "cells_used": n_ok, "cells_clipped_or_black": int(ok.size - n_ok),
             "camera_rgb": (rgb / np.linalg.norm(rgb)).tolist(), "level": float(rgb.max())}
-    if rgb.max() < 0.01:
-        info["warning"] = (f"the neutral surface is very dark ({100 * rgb.max():.2f} % of saturation): its colour "
-                           "is noisy")
+    if rgb.max() < NEUTRAL_LOW_SIGNAL:
+        info["warning"] = (f"the surface chosen as white is dark: its brightest channel averages "
+                           f"{100 * rgb.max():.1f} % of the white level (below {100 * NEUTRAL_LOW_SIGNAL:g} %), "
+                           "so its colour is dominated by noise and black-level error; a brighter white or grey "
+                           "surface gives a more reliable white")
     return rgb, info
 
 

@@ -150,3 +150,101 @@ def test_shared_light_lowers_confidence_and_warns_when_images_disagree():
     assert angular_error(light["camera_rgb"], a) < gap and angular_error(light["camera_rgb"], b) < gap
     assert light["confidence"] < 0.8 * 0.5
     assert any("not all be under one light" in w for w in light["warnings"])
+
+
+# ---------------------------------------------------------------- item 9
+
+def test_a_text_file_named_dng_is_415_not_a_raw(client):
+    """Detected by content: text has no TIFF/RAW signature, whatever its name
+    (it was a 422 corrupt_file "LibRawIOError: Input/output error")."""
+    for name in ("notes.dng", "IMG_1.NEF", None):
+        r = client.post("/v1/analyze", files={"file": (name or "upload", b"hello, this is text\nnot a photo\n")})
+        body = r.json()
+        assert r.status_code == 415 and body["error"] == "unsupported_format", body
+        assert "text file" in body["detail"] and "LibRaw" not in body["detail"].split("signature")[0]
+        if name and name.endswith(("dng", "NEF")):
+            assert "no TIFF or RAW signature" in body["detail"]
+    # binary garbage with a RAW name is still a damaged RAW (test_rawio), a UTF-8 BOM'd CSV is text
+    r = client.post("/v1/analyze", files={"file": ("a.dng", np.random.default_rng(1).bytes(5000))})
+    assert r.status_code == 422 and r.json()["error"] == "corrupt_file"
+    r = client.post("/v1/analyze", files={"file": ("a.dng", "\ufeffwavelength,r,g,b\n400,0.1,0.2,0.3\n".encode())})
+    assert r.status_code == 415
+
+
+def test_scanner_nef_names_its_make_once(client):
+    data = shared_file("data/raw/Nikon_uncompressed.nef").read_bytes()
+    r = client.post("/v1/analyze", files={"file": ("Nikon_uncompressed.nef", data)})
+    body = r.json()
+    assert r.status_code == 415 and body["error"] == "not_camera_raw"
+    assert "(Nikon COOLSCAN" in body["detail"] and "Nikon Nikon" not in body["detail"], body["detail"]
+    from service.rawio import camera_label
+
+    assert camera_label("Nikon", "Nikon COOLSCAN IV ED") == "Nikon COOLSCAN IV ED"
+    assert camera_label("Canon", "EOS 5D") == "Canon EOS 5D" and camera_label(None, "X") == "X"
+
+
+def _node(script: str) -> dict:
+    """Run the page's script in node (no DOM: only its pure functions are
+    called) followed by ``script``, which prints JSON."""
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    from pathlib import Path
+
+    src = (Path(__file__).resolve().parents[1] / "service" / "static" / "app.js").read_text()
+    prog = ("globalThis.document = {addEventListener() {}, getElementById() { return null; }};\n"
+            "require('vm').runInThisContext(" + json.dumps(src + "\n" + script) + ");")
+    r = subprocess.run([node, "-e", prog], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def test_page_shows_the_server_detail_and_page_words():
+    out = _node("""
+      const a = new ApiError(415, "not_camera_raw", "'x.nef' is not a camera RAW: a scanned 8-bit RGB image");
+      const b = new ApiError(422, "some_new_code", "what went wrong");
+      const w = diagnosticsInWords({method: "neutral-surface", diagnostics: {}, warnings: [
+        "the white you chose is 7.0 degrees from the camera's own as-shot white (more than 5): check the " +
+        "picture, or use a white surface ('neutral') or white=as-shot"]});
+      console.log(JSON.stringify({a: a.message, b: b.message, summary: w.summary, warnings: w.warnings}));
+    """)
+    assert out["a"].startswith("This is not a camera RAW: 'x.nef' is not a camera RAW") and "415" in out["a"]
+    assert out["b"].startswith("what went wrong") and "The request failed" not in out["b"]
+    assert "surface you clicked" in out["summary"] and "neutral-surface" not in out["summary"]
+    (w,) = out["warnings"]
+    assert "click a white or grey surface" in w and "'neutral'" not in w and "white=as-shot" not in w
+
+
+def test_inverted_neutral_rectangle_is_called_inverted_and_a_dark_patch_warns():
+    from types import SimpleNamespace
+
+    from service import pipeline
+    from service.errors import ServiceError
+
+    est = np.full((50, 60, 3), 0.5, np.float32)
+    est[:10, :10] = 0.012                       # a dark tree: 1.2 % of the white level
+    d = SimpleNamespace(full_shape=(100, 120), estimation=est, saturated=np.zeros((50, 60), bool))
+    for where, words in (([40, 10, 20, 30], "r0 >= r1 (40 >= 20)"), ([10, 30, 20, 10], "c0 >= c1 (30 >= 10)"),
+                         ([5, 5, 5, 9], "r0 >= r1 (5 >= 5)")):
+        with pytest.raises(ServiceError) as e:
+            pipeline.neutral_white(d, where)
+        assert e.value.status == 422 and "inverted" in e.value.detail and words in e.value.detail
+        assert "outside" not in e.value.detail
+    with pytest.raises(ServiceError) as e:
+        pipeline.neutral_white(d, [0, 0, 101, 10])
+    assert "outside" in e.value.detail
+    _, info = pipeline.neutral_white(d, [0, 0, 20, 20])
+    assert "dark" in info["warning"] and "1.2 % of the white level" in info["warning"]
+    _, info = pipeline.neutral_white(d, [40, 40, 60, 60])
+    assert "warning" not in info
+
+
+def test_cli_missing_file_is_a_clear_usage_error(tmp_path):
+    for args in (("analyze", str(tmp_path / "nope.dng")),
+                 ("white-balance", str(tmp_path / "nope.dng"), str(tmp_path / "o.tif"))):
+        r = _cli(*args)
+        assert r.returncode == 2, r
+        assert "file_not_found" in r.stderr and "nope.dng" in r.stderr and "does not exist" in r.stderr
+        assert "Traceback" not in r.stderr and "Errno" not in r.stderr + r.stdout
+    r = _cli("analyze", str(tmp_path))
+    assert r.returncode == 2 and "is a folder" in r.stderr and "wandell batch" in r.stderr
