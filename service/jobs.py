@@ -240,14 +240,33 @@ def meta_path(out: str, suffix: str) -> str:
 
 @contextlib.contextmanager
 def _item_lock(out: str):
+    """One writer per output at a time (``flock`` on ``.wandell/NAME.lock``),
+    the lock file removed when the item is done, so a batch leaves none.
+    Removing a locked file is safe with the usual check: a process that
+    got the lock on a file since unlinked (or replaced) opens it again."""
     import fcntl
 
-    os.makedirs(os.path.dirname(meta_path(out, ".lock")), exist_ok=True)
-    fd = os.open(meta_path(out, ".lock"), os.O_CREAT | os.O_RDWR, 0o644)
+    path = meta_path(out, ".lock")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    while True:
+        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:
+            break
+        os.close(fd)  # the holder before us removed it: lock the current one
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # still holding the lock: nobody else owns this name now
         os.close(fd)  # closing releases the lock
 
 

@@ -248,3 +248,75 @@ def test_cli_missing_file_is_a_clear_usage_error(tmp_path):
         assert "Traceback" not in r.stderr and "Errno" not in r.stderr + r.stdout
     r = _cli("analyze", str(tmp_path))
     assert r.returncode == 2 and "is a folder" in r.stderr and "wandell batch" in r.stderr
+
+
+# ---------------------------------------------------------------- item 11
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    """A shoot with a subfolder, a nested one, a JPEG, notes and a hidden file."""
+    from testing.dngwriter import scene_dng
+
+    d = tmp_path_factory.mktemp("tree")
+    scene_dng(d / "a.dng", "Nikon 5100 (NPL)", "D4000", 64, 96, seed=1, grid=(4, 6))
+    (d / "day2" / "deep").mkdir(parents=True)
+    for p in (d / "day2" / "b.dng", d / "day2" / "deep" / "a.dng"):
+        p.write_bytes((d / "a.dng").read_bytes())
+    (d / "notes.txt").write_text("shoot notes")
+    (d / "day2" / "preview.jpg").write_bytes(b"\xff\xd8\xff\xe0")
+    (d / ".DS_Store").write_bytes(b"\0")
+    return d
+
+
+def test_batch_leaves_no_lock_files_and_locks_still_exclude(tree, tmp_path):
+    import os
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service import cli, jobs
+
+    out = tmp_path / "out"
+    with ThreadPoolExecutor(2) as ex:
+        rows = cli.run_batch(str(tree), str(out), jobs.batch_options(format="png"), executor=ex, quiet=True,
+                             recursive=True)
+    assert [r["status"] for r in rows] == ["done"] * 3
+    left = [p for p in out.rglob("*") if p.suffix == ".lock"]
+    assert left == [], left
+    assert sorted(p.name for p in (out / ".wandell").iterdir()) == ["a.png.json"]
+    # the lock is still exclusive while held, and removed after
+    target = str(tmp_path / "x.png")
+    inside, order = threading.Event(), []
+
+    def second():
+        with jobs._item_lock(target):
+            order.append("second")
+
+    with jobs._item_lock(target):
+        assert os.path.exists(jobs.meta_path(target, ".lock"))
+        t = threading.Thread(target=second)
+        t.start()
+        t.join(0.3)
+        order.append("first")
+        inside.set()
+    t.join(10)
+    assert order == ["first", "second"] and not os.path.exists(jobs.meta_path(target, ".lock"))
+
+
+def test_batch_summary_names_what_it_skipped_and_recursive_mirrors_the_tree(tree, tmp_path):
+    out = tmp_path / "flat"
+    r = _cli("batch", str(tree), str(out), "--workers", "1", "--format", "png")
+    assert r.returncode == 0, r.stderr
+    assert "1 done" in r.stdout
+    assert "not processed: 1 subfolder (--recursive processes them, mirroring the tree): day2/" in r.stdout
+    assert "not processed: 1 file that are not RAW/TIFF/PNG (by name): notes.txt" in r.stdout
+    assert ".DS_Store" not in r.stdout
+    out = tmp_path / "tree"
+    r = _cli("batch", str(tree), str(out), "--workers", "1", "--format", "png", "--recursive")
+    assert r.returncode == 0, r.stderr
+    assert "3 done" in r.stdout and "day2/deep/a.dng" in r.stdout
+    for p in ("a.png", "day2/b.png", "day2/deep/a.png"):
+        assert (out / p).is_file(), p
+    assert "day2/preview.jpg" in r.stdout and "notes.txt" in r.stdout and "subfolder" not in r.stdout
+    # the rerun skips all three (resumable in subfolders too)
+    r = _cli("batch", str(tree), str(out), "--workers", "1", "--format", "png", "--recursive")
+    assert r.returncode == 0 and "0 done, 3 skipped" in r.stdout
