@@ -216,7 +216,7 @@ def _ignored_text(ignored: list, limit: int = 10) -> str:
     """The summary's lines for what the batch did not process."""
     out = []
     for kind, what, hint in (("folder", "subfolder", " (--recursive processes them, mirroring the tree)"),
-                             ("not RAW", "file", " that are not RAW/TIFF/PNG (by name)")):
+                             ("not RAW", "file", " not RAW/TIFF/PNG (by name)")):
         names = [n for n, k in ignored if k == kind]
         if names:
             shown = ", ".join(names[:limit]) + (f", and {len(names) - limit} more" if len(names) > limit else "")

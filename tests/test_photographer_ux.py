@@ -308,7 +308,7 @@ def test_batch_summary_names_what_it_skipped_and_recursive_mirrors_the_tree(tree
     assert r.returncode == 0, r.stderr
     assert "1 done" in r.stdout
     assert "not processed: 1 subfolder (--recursive processes them, mirroring the tree): day2/" in r.stdout
-    assert "not processed: 1 file that are not RAW/TIFF/PNG (by name): notes.txt" in r.stdout
+    assert "not processed: 1 file not RAW/TIFF/PNG (by name): notes.txt" in r.stdout
     assert ".DS_Store" not in r.stdout
     out = tmp_path / "tree"
     r = _cli("batch", str(tree), str(out), "--workers", "1", "--format", "png", "--recursive")
