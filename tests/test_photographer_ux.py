@@ -320,3 +320,61 @@ def test_batch_summary_names_what_it_skipped_and_recursive_mirrors_the_tree(tree
     # the rerun skips all three (resumable in subfolders too)
     r = _cli("batch", str(tree), str(out), "--workers", "1", "--format", "png", "--recursive")
     assert r.returncode == 0 and "0 done, 3 skipped" in r.stdout
+
+
+# ---------------------------------------------------------------- item 13
+
+def _readme() -> str:
+    from pathlib import Path
+
+    return (Path(__file__).resolve().parents[1] / "README.md").read_text()
+
+
+def _table_rows(text: str, header_start: str) -> list[list[str]]:
+    lines = text.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.startswith(header_start))
+    rows = []
+    for ln in lines[i + 2:]:
+        if not ln.startswith("|"):
+            break
+        rows.append([c.strip() for c in ln.strip().strip("|").split("|")])
+    return rows
+
+
+def test_readme_settings_table_lists_every_setting_with_its_default():
+    from service.settings import Settings
+
+    rows = _table_rows(_readme(), "| variable | default | what it does |")
+    got = {r[0].strip("`"): r for r in rows}
+    fields = Settings.model_fields
+    assert set(got) == {f"WANDELL_{k.upper()}" for k in fields}
+    for k, f in fields.items():
+        default = got[f"WANDELL_{k.upper()}"][1]
+        if f.default == "":
+            assert default.startswith("empty"), (k, default)
+        else:
+            first = default.split()[0].strip("`")
+            assert type(f.default)(first) == f.default, (k, default, f.default)
+        assert got[f"WANDELL_{k.upper()}"][2], k  # says what it does
+
+
+def test_readme_analysis_pixels_are_those_of_the_real_file(client, blackmagic_dng):
+    rows = _table_rows(_readme(), "| `quality` | at most | pixels analysed (Blackmagic.dng)")
+    assert len(rows) == 4
+    for quality, _, pixels, factor in rows:
+        q = quality.strip("`")
+        data = {} if q == "none" else {"quality": q}
+        d = client.post("/v1/analyze", files={"file": ("Blackmagic.dng", blackmagic_dng)}, data=data).json()
+        d = d["diagnostics"]
+        assert d["pixels_total"] == int(pixels.split()[0].replace(",", "")), (q, d["pixels_total"])
+        assert d["analysis_block_factor"] == int(factor), q
+
+
+def test_readme_says_how_to_stop_the_server_and_what_wandell_serve_is():
+    text = _readme()
+    assert "Ctrl-C" in text and "`wandell-serve`" in text
+    import tomllib
+    from pathlib import Path
+
+    meta = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    assert meta["project"]["scripts"]["wandell-serve"] == "service.__main__:main"
