@@ -10,10 +10,12 @@ Every item is the white-balance pipeline of ``POST /v1/white-balance``
 (:func:`service.pipeline.analyze` and :func:`service.pipeline.render_corrected`)
 (Wandell 1985, Fig. 6 and eq. 22-25/36: estimate the light, then one 3x3
 matrix per pixel from camera RGB to the display). In ``shared`` lighting
-mode the light is estimated once from all the images of the batch pooled
-together: images taken under one light lie in the same D(S)-dimensional
-subspace of sensor space (eq. 26-29), so pooling only adds evidence for the
-subspace normal (eq. 30), and every image is then corrected with that light.
+mode one light is made for all the images of the batch, and every image is
+corrected with it: each image's own estimate (as per-image mode makes it)
+combined by :func:`shared_light`, their confidence-weighted mean. (Pooling
+the pixels into one stacked image, as before issue 19, made the light
+depend on the number and layout of the images: N copies of one image moved
+it 0.8 degrees.)
 
 Exactly-once outputs
 --------------------
@@ -1091,8 +1093,8 @@ class BatchRunner:
         self._wake.set()
 
     def _shared_light_step(self, bid: str, options: BatchOptions) -> None:
-        """Shared mode: sample every pending/running image (in the pool),
-        pool the samples, estimate one light, store it. Items whose file
+        """Shared mode: estimate every pending/running image's own light (in
+        the pool), combine them into one light (:func:`shared_light`), store it. Items whose file
         cannot be read fail here, with their error."""
         fut = self._light_jobs.get(bid)
         if fut is None:
