@@ -92,7 +92,9 @@ _ERRORS = {
            "file (corrupt_file, no_color_matrix, unusable_neutral, ...)",
 }
 
-X_ILLUMINANT = ("JSON: the estimate (method, camera, illuminant camera_rgb/wb_multipliers/cct/duv), warnings, "
+X_ILLUMINANT = ("JSON: the estimate (method, camera, illuminant camera_rgb/wb_multipliers/cct/duv, and "
+                "xy/temperature/tint/chromaticity_basis: CIE CCT/Duv and Camera Raw's Temperature/Tint of one "
+                "chromaticity), warnings, "
                 "timings_ms, correction_matrix, white (estimate, as-shot or neutral), neutral (where the white "
                 "came from) and rendering: rendering (dng-matrix or spectral), color_source, exposure {rule: "
                 "auto (LibRaw's auto-brightness: the 99th percentile of the brightest display channel is white) "
