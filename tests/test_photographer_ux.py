@@ -208,7 +208,7 @@ def test_page_shows_the_server_detail_and_page_words():
         "picture, or use a white surface ('neutral') or white=as-shot"]});
       console.log(JSON.stringify({a: a.message, b: b.message, summary: w.summary, warnings: w.warnings}));
     """)
-    assert out["a"].startswith("This is not a camera RAW: 'x.nef' is not a camera RAW") and "415" in out["a"]
+    assert out["a"].startswith("No camera sensor data to analyse: 'x.nef' is not a camera RAW") and "415" in out["a"]
     assert out["b"].startswith("what went wrong") and "The request failed" not in out["b"]
     assert "surface you clicked" in out["summary"] and "neutral-surface" not in out["summary"]
     (w,) = out["warnings"]

@@ -42,7 +42,7 @@ const ERROR_WORDS = {
   "no_color_matrix": "The file has no colour matrix",
   "not_found": "Not found",
   "internal_error": "The service failed (please report this)",
-  "not_camera_raw": "This is not a camera RAW",
+  "not_camera_raw": "No camera sensor data to analyse",
   "unusable_neutral": "That spot cannot be used as white",
   "no_temperature": "The light has no colour temperature",
   "no_as_shot_white": "The file has no as-shot white balance",
