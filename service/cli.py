@@ -189,6 +189,7 @@ def scan_inputs(in_dir: str, recursive: bool = False, out_dir: str | None = None
     ``.DS_Store`` are not listed)."""
     files, ignored = [], []
     skip = os.path.realpath(out_dir) if out_dir else None
+    seen = {os.path.realpath(in_dir)}  # a symlink back up the tree is walked once
 
     def walk(rel: str) -> None:
         here = os.path.join(in_dir, rel) if rel else in_dir
@@ -200,7 +201,10 @@ def scan_inputs(in_dir: str, recursive: bool = False, out_dir: str | None = None
                 if skip is not None and os.path.realpath(path) == skip:
                     continue
                 if recursive:
-                    walk(relp)
+                    real = os.path.realpath(path)
+                    if real not in seen:
+                        seen.add(real)
+                        walk(relp)
                 else:
                     ignored.append((relp + os.sep, "folder"))
             elif os.path.isfile(path) and name.lower().endswith(jobs.RAW_SUFFIXES):
