@@ -93,8 +93,7 @@ _ERRORS = {
 }
 
 X_ILLUMINANT = ("JSON: the estimate (method, camera, illuminant camera_rgb/wb_multipliers/cct/duv, and "
-                "xy/temperature/tint/chromaticity_basis: CIE CCT/Duv and Camera Raw's Temperature/Tint of one "
-                "chromaticity), warnings, "
+                "xy/chromaticity_basis of the CCT/Duv and Camera Raw's temperature/tint/temperature_basis), warnings, "
                 "timings_ms, correction_matrix, white (estimate, as-shot or neutral), neutral (where the white "
                 "came from) and rendering: rendering (dng-matrix or spectral), color_source, exposure {rule: "
                 "auto (LibRaw's auto-brightness: the 99th percentile of the brightest display channel is white) "

@@ -341,10 +341,13 @@ def light_cct_duv(est: IlluminantEstimate, profile=None,
 
 def illuminant_json(est: IlluminantEstimate, profile=None, camera: Camera | None = None) -> dict:
     """The light as JSON: camera RGB, multipliers, spectrum, its CCT/Duv
-    (:func:`light_cct_duv`) and its Camera Raw Temperature/Tint with the xy
-    they come from (:func:`temperature_tint`; ``profile``: the file's,
-    :func:`profile_of`; ``camera``: the camera of the estimate)."""
+    (:func:`light_cct_duv`) with the xy and basis they come from
+    (:func:`light_xy`), and its Camera Raw Temperature/Tint with theirs
+    (:func:`temperature_tint`: always through the file's matrices when it
+    has them, the same xy for a matrix-derived camera). ``profile``: the
+    file's (:func:`profile_of`); ``camera``: the camera of the estimate."""
     cct, duv = light_cct_duv(est, profile, camera)
+    xy, basis = light_xy(est, profile, camera)
     tt = _temperature_tint_xy(est, profile)
     return {
         "camera_rgb": est.rgb.tolist(),
@@ -353,10 +356,11 @@ def illuminant_json(est: IlluminantEstimate, profile=None, camera: Camera | None
         "spectrum": est.spectrum.tolist(),
         "cct": cct,
         "duv": duv,
-        "xy": tt.get("xy"),
+        "xy": None if xy is None else [float(xy[0]), float(xy[1])],
+        "chromaticity_basis": basis,
         "temperature": tt.get("temperature"),
         "tint": tt.get("tint"),
-        "chromaticity_basis": tt.get("basis"),
+        "temperature_basis": tt.get("basis"),
     }
 
 

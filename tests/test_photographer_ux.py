@@ -77,7 +77,8 @@ def test_one_light_has_one_cct_duv_everywhere(client, blackmagic_dng, tmp_path):
     (seen["cli xmp"],) = _embedded_cct_duv((tmp_path / "Blackmagic.xmp").read_bytes())
     for where, (c, d) in seen.items():
         assert c == pytest.approx(cct, rel=1e-9) and d == pytest.approx(duv, abs=1e-12), where
-    # Adobe's Temperature/Tint: the same xy, another method and scale
+    # Adobe's Temperature/Tint: the same xy (a matrix-derived camera), another method and scale
+    assert il["chromaticity_basis"] == il["temperature_basis"] == "DNG tags"
     assert abs(il["temperature"] - cct) < 0.005 * cct
     assert abs(il["tint"] - 3000 * duv) < 3
     # the page says which is which
