@@ -318,7 +318,8 @@ def process_item(task: ItemTask) -> dict:
                     "options": asdict(task.options)}
             if task.exactly_once:
                 atomic_write(meta_path(task.out, ".json"), lambda p: write_text(p, json.dumps(_clean(side))))
-            atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta))
+            atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta,
+                                                                           threads=task.threads))
             if task.write_log:
                 with open(task.write_log, "a") as f:
                     f.write(json.dumps({"name": task.name, "out": os.path.basename(task.out),

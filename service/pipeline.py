@@ -461,7 +461,7 @@ def write_corrected(decoded, run: EstimateRun, path: str, **kw) -> tuple[np.ndar
     """:func:`render_corrected`, encoded to ``path``: ``(M, info)``."""
     out, M, info, meta = render_corrected(decoded, run, **kw)
     t0 = time.perf_counter()
-    encode_image(out, kw["fmt"].encoder, path, meta=meta)
+    encode_image(out, kw["fmt"].encoder, path, meta=meta, threads=kw.get("threads"))
     run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
     return M, info
 
@@ -638,9 +638,12 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     return out
 
 
-def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None) -> bytes | None:
+def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None,
+                 threads: int | None = None) -> bytes | None:
     """PNG (8-bit or 16-bit), 16-bit TIFF or 8-bit JPEG of an RGB image, as
     bytes, or written to ``path`` (TIFF straight from the array, no copy).
+    PNG is compressed in strips on ``threads`` threads
+    (:func:`service.encode.png_encode`; default: one per CPU).
 
     ``meta`` (:func:`output_meta`): ``icc`` (profile bytes), ``facts`` (EXIF
     facts, :func:`service.outputs.output_facts`) and ``text`` (PNG text) are
@@ -667,14 +670,19 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
         buf = io.BytesIO()
         tifffile.imwrite(buf, img, photometric="rgb", **kw)
         return buf.getvalue()
-    import cv2
+    if fmt == "png" and img.ndim == 3 and img.shape[2] == 3 and img.size:
+        from .encode import png_encode
 
-    bgr = np.ascontiguousarray(img[..., ::-1])
-    ok, enc = cv2.imencode(".png" if fmt == "png" else ".jpg", bgr,
-                           [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise ServiceError(422, "encode_failed", f"could not encode {fmt}")
-    data = enc.tobytes()
+        data = png_encode(img, threads)
+    else:
+        import cv2
+
+        bgr = np.ascontiguousarray(img[..., ::-1])
+        ok, enc = cv2.imencode(".png" if fmt == "png" else ".jpg", bgr,
+                               [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:
+            raise ServiceError(422, "encode_failed", f"could not encode {fmt}")
+        data = enc.tobytes()
     if icc or facts or meta.get("text"):
         data = outputs.embed(data, fmt, icc, outputs.exif_block(facts) if facts else None, meta.get("text"))
     if path is not None:
