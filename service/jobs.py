@@ -215,14 +215,15 @@ def _estimate_from_json(light: dict, camera):
                               {"lighting": "shared"}, [])
 
 
-def _open(task: "ItemTask") -> tuple:
-    """Decode an item's file and choose its camera (:func:`service.pipeline.open_image`)."""
+def _open(task: "ItemTask", prefetch: bool = False) -> tuple:
+    """Decode an item's file and choose its camera (:func:`service.pipeline.open_image`;
+    ``prefetch``: start the demosaic on a thread for the render that follows)."""
     from . import pipeline
 
     with open(task.src, "rb") as f:
         data = f.read()
     decoded, cam, warns, _ = pipeline.open_image(data, task.name or os.path.basename(task.src), task,
-                                                 task.options.camera)
+                                                 task.options.camera, prefetch=prefetch)
     return decoded, cam, warns
 
 
@@ -298,12 +299,16 @@ def process_item(task: ItemTask) -> dict:
                     side = json.load(f)
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
                         "seconds": time.perf_counter() - t0}
-            decoded, cam, warns = _open(task)
+            decoded, cam, warns = _open(task, prefetch=True)
             opts = task.options.estimate_kwargs()
-            if task.light is None:
-                run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
-            else:
-                run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
+            try:
+                if task.light is None:
+                    run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
+                else:
+                    run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
+            except BaseException:
+                pipeline.drain_prefetch(decoded)
+                raise
             fmt = FORMATS[task.options.format]
             out, M, info, meta = pipeline.render_corrected(decoded, run, target=task.options.target,
                                                            output=task.options.output, fmt=fmt,

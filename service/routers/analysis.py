@@ -43,11 +43,12 @@ async def _inputs(file, sensitivities, settings):
     return data, sens
 
 
-def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral=None):
+def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral=None, prefetch=False):
     """Decode, choose the camera, estimate, or take the user's neutral
-    surface as the light (:func:`service.pipeline.analyze`)."""
+    surface as the light (:func:`service.pipeline.analyze`; ``prefetch``:
+    demosaic meanwhile, for a render that follows)."""
     return pipeline.analyze(data, filename, settings, camera=camera, sensitivities=sens, method=method,
-                            options=opts, neutral=neutral)
+                            options=opts, neutral=neutral, prefetch=prefetch)
 
 
 @router.post("/analyze")
@@ -93,9 +94,13 @@ def _with_white(decoded, run, white: str):
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,
                         white="estimate", exposure=None, neutral=None):
-    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral)
+    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral, prefetch=True)
     del data
-    run = _with_white(decoded, run, white)
+    try:
+        run = _with_white(decoded, run, white)
+    except BaseException:
+        pipeline.drain_prefetch(decoded)
+        raise
     fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt.encoder)
     os.close(fd)
     try:
