@@ -33,6 +33,7 @@ class LargeChunkFileResponse(FileResponse):
 
     chunk_size = 4 * 1024 * 1024
 
+
 _FILE = File(..., description="RAW file (DNG, CR2, NEF, ARW, ... anything LibRaw reads) or linear 16-bit TIFF/PNG")
 _SENS = File(None, description="optional camera sensitivities CSV: wavelength, one column per channel")
 
@@ -43,12 +44,11 @@ async def _inputs(file, sensitivities, settings):
     return data, sens
 
 
-def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral=None, prefetch=False):
+def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral=None):
     """Decode, choose the camera, estimate, or take the user's neutral
-    surface as the light (:func:`service.pipeline.analyze`; ``prefetch``:
-    demosaic meanwhile, for a render that follows)."""
+    surface as the light (:func:`service.pipeline.analyze`)."""
     return pipeline.analyze(data, filename, settings, camera=camera, sensitivities=sens, method=method,
-                            options=opts, neutral=neutral, prefetch=prefetch)
+                            options=opts, neutral=neutral)
 
 
 @router.post("/analyze")
@@ -94,13 +94,9 @@ def _with_white(decoded, run, white: str):
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,
                         white="estimate", exposure=None, neutral=None):
-    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral, prefetch=True)
+    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral)
     del data
-    try:
-        run = _with_white(decoded, run, white)
-    except BaseException:
-        pipeline.drain_prefetch(decoded)
-        raise
+    run = _with_white(decoded, run, white)
     fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt.encoder)
     os.close(fd)
     try:
