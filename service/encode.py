@@ -1,4 +1,5 @@
-"""Image encoders that use every core (issue 19).
+"""Image encoders that use every core (issue 19): :func:`png_encode` and
+:func:`jpeg_encode`.
 
 :func:`png_encode` writes a PNG (8- or 16-bit RGB) whose compressed stream
 is made in horizontal strips on a thread pool, as pigz does for gzip: each
@@ -113,3 +114,108 @@ def png_encode(img: np.ndarray, threads: int | None = None, level: int = PNG_LEV
     ihdr = struct.pack(">IIBBBBB", W, H, bits, 2, 0, 0, 0)
     return b"".join([PNG_SIGNATURE, _chunk(b"IHDR", ihdr)] + [p[0] for p in parts]
                     + [_chunk(b"IDAT", struct.pack(">I", adler)), _chunk(b"IEND", b"")])
+
+
+# ---------------------------------------------------------------------------
+# JPEG
+# ---------------------------------------------------------------------------
+
+#: JPEG quality of the service's outputs
+JPEG_QUALITY = 95
+#: the smallest image worth splitting (pixels)
+MIN_JPEG_SPLIT_PIXELS = 1 << 21
+
+
+def _segments(jpg: bytes):
+    """The marker segments of a baseline JPEG up to and including SOS:
+    ``[(marker, start, end)]`` (``end`` past the segment), then the offset
+    where the entropy-coded data starts."""
+    if jpg[:2] != b"\xff\xd8":
+        raise ValueError("not a JPEG")
+    pos, segs = 2, []
+    while True:
+        if jpg[pos] != 0xFF:
+            raise ValueError("JPEG: marker expected")
+        marker = jpg[pos + 1]
+        n = struct.unpack(">H", jpg[pos + 2:pos + 4])[0]
+        segs.append((marker, pos, pos + 2 + n))
+        pos += 2 + n
+        if marker == 0xDA:
+            return segs, pos
+
+
+def _mcu_rows(jpg: bytes, segs) -> tuple[int, int, int, int]:
+    """``(SOF offset, MCU height, MCU width, components)`` of a baseline JPEG."""
+    for marker, start, _ in segs:
+        if marker == 0xC0:
+            ncomp = jpg[start + 9]
+            hs = [jpg[start + 11 + 3 * i] >> 4 for i in range(ncomp)]
+            vs = [jpg[start + 11 + 3 * i] & 15 for i in range(ncomp)]
+            return start, 8 * max(vs), 8 * max(hs), ncomp
+    raise ValueError("JPEG: not baseline (no SOF0)")
+
+
+def jpeg_encode(img: np.ndarray, quality: int = JPEG_QUALITY, threads: int | None = None) -> bytes:
+    """An 8-bit RGB image as a baseline JPEG (OpenCV/libjpeg, ``quality``),
+    encoded in horizontal strips on a thread pool and joined into one file
+    with restart markers.
+
+    Each strip is a whole number of MCU rows and is encoded by OpenCV with
+    the same settings, so its quantisation and Huffman tables are the
+    whole image's and its blocks the same coefficients (colour conversion,
+    4:2:0 subsampling and the DCT never look across an MCU); a strip's
+    entropy-coded data starts with zero DC predictions and ends byte-
+    aligned, which is what a restart marker means. The joined file is the
+    first strip's headers with the full height, a DRI segment (restart
+    interval: one strip's MCUs), the strips' data separated by RST0..RST7,
+    EOI. Decoders give the pixels of a one-piece encode exactly (a test
+    checks); when the strips' tables differ, or the image is small, it is
+    encoded in one piece."""
+    import cv2
+
+    H, W = img.shape[:2]
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)]
+
+    def one(rows: np.ndarray) -> bytes:
+        ok, enc = cv2.imencode(".jpg", np.ascontiguousarray(rows[..., ::-1]), params)
+        if not ok:
+            raise ValueError("OpenCV could not encode the JPEG")
+        return enc.tobytes()
+
+    n_threads = max(1, threads or os.cpu_count() or 1)
+    if n_threads == 1 or H * W < MIN_JPEG_SPLIT_PIXELS or H < 64:
+        return one(img)
+    head = one(img[:16])
+    segs, _ = _segments(head)
+    _, mcu_h, mcu_w, _ = _mcu_rows(head, segs)
+    mcus_per_row = -(-W // mcu_w)
+    n_strips = n_threads * STRIPS_PER_THREAD
+    mcu_rows = -(-H // mcu_h)
+    strip_mcu_rows = max(1, -(-mcu_rows // n_strips))
+    strip_mcu_rows = min(strip_mcu_rows, 65535 // mcus_per_row)   # the restart interval is 16-bit
+    if strip_mcu_rows < 1:
+        return one(img)
+    step = strip_mcu_rows * mcu_h
+    starts = list(range(0, H, step))
+    if len(starts) < 2:
+        return one(img)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(n_threads, len(starts))) as pool:
+        parts = list(pool.map(lambda r: one(img[r:r + step]), starts))
+    first_segs, first_data = _segments(parts[0])
+    sof, _, _, _ = _mcu_rows(parts[0], first_segs)
+    tables = [parts[0][s:e] for m, s, e in first_segs if m in (0xDB, 0xC4, 0xDA)]
+    data = []
+    for k, p in enumerate(parts):
+        segs, start = _segments(p)
+        if [p[s:e] for m, s, e in segs if m in (0xDB, 0xC4, 0xDA)] != tables or p[-2:] != b"\xff\xd9":
+            return one(img)                                           # not joinable: one piece
+        data.append(p[start:-2])
+        if k < len(parts) - 1:
+            data.append(bytes((0xFF, 0xD0 + k % 8)))
+    header = bytearray(parts[0][:first_segs[-1][1]])                   # SOI .. before SOS
+    struct.pack_into(">H", header, sof + 5, H)                          # SOF0 height: the whole image
+    dri = b"\xff\xdd" + struct.pack(">HH", 4, strip_mcu_rows * mcus_per_row)
+    sos = parts[0][first_segs[-1][1]:first_data]
+    return b"".join([bytes(header), dri, sos] + data + [b"\xff\xd9"])

@@ -696,8 +696,9 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
                  threads: int | None = None) -> bytes | None:
     """PNG (8-bit or 16-bit), 16-bit TIFF or 8-bit JPEG of an RGB image, as
     bytes, or written to ``path`` (TIFF straight from the array, no copy).
-    PNG is compressed in strips on ``threads`` threads
-    (:func:`service.encode.png_encode`; default: one per CPU).
+    PNG and JPEG are encoded in strips on ``threads`` threads
+    (:func:`service.encode.png_encode`, :func:`service.encode.jpeg_encode`;
+    default: one per CPU).
 
     ``meta`` (:func:`output_meta`): ``icc`` (profile bytes), ``facts`` (EXIF
     facts, :func:`service.outputs.output_facts`) and ``text`` (PNG text) are
@@ -728,6 +729,13 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
         from .encode import png_encode
 
         data = png_encode(img, threads)
+    elif fmt == "jpeg" and img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8 and img.size:
+        from .encode import jpeg_encode
+
+        try:
+            data = jpeg_encode(img, 95, threads)
+        except ValueError:
+            raise ServiceError(422, "encode_failed", "could not encode jpeg") from None
     else:
         import cv2
 

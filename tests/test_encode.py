@@ -80,3 +80,28 @@ def test_rejects_what_it_cannot_write():
         encode.png_encode(np.zeros((4, 4), np.uint8))
     with pytest.raises(ValueError):
         encode.png_encode(np.zeros((0, 4, 3), np.uint8))
+
+
+@pytest.mark.parametrize("shape", [(1200, 1801), (1237, 2001), (2050, 1100)])
+def test_jpeg_in_strips_decodes_to_the_one_piece_pixels(shape):
+    """Strips joined with restart markers: libjpeg (OpenCV) and Pillow
+    decode exactly the pixels of OpenCV's one-piece encode."""
+    rng = np.random.default_rng(4)
+    y, x = np.mgrid[:shape[0], :shape[1]]
+    img = np.stack([(x * 255 // shape[1]), (y * 255 // shape[0]), ((x + y) % 256)], -1).astype(np.uint8)
+    img = np.clip(img + rng.normal(0, 8, img.shape), 0, 255).astype(np.uint8)
+    joined = encode.jpeg_encode(img, 95, threads=2)
+    assert b"\xff\xdd" in joined[:2000] and b"\xff\xd0" in joined              # DRI, RST0: it was split
+    ok, one = cv2.imencode(".jpg", np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    for decode in (lambda b: cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)[..., ::-1],
+                   lambda b: np.asarray(Image.open(io.BytesIO(b)).convert("RGB"))):
+        np.testing.assert_array_equal(decode(joined), decode(one.tobytes()))
+    assert Image.open(io.BytesIO(joined)).size == (shape[1], shape[0])
+
+
+def test_small_jpeg_is_one_piece_and_embeds():
+    img = np.full((40, 60, 3), 90, np.uint8)
+    jpg = encode.jpeg_encode(img, 95, threads=4)
+    assert b"\xff\xdd" not in jpg
+    out = outputs.embed(jpg, "jpeg", outputs.shipped_icc("sRGB"), outputs.exif_block({"Make": "X"}))
+    assert Image.open(io.BytesIO(out)).info.get("icc_profile") == outputs.shipped_icc("sRGB")
