@@ -253,6 +253,8 @@ def main(argv=None) -> None:
         real = os.path.abspath(args.real) if args.real and os.path.isfile(args.real) else None
         if real:
             cmds["wandell analyze (real CinemaDNG)"] = cli + ["analyze", real]
+        if args.cli_repeat < 1:
+            cmds = {}
         for argv_ in cmds.values():                    # warm-up: page cache, bytecode
             launcher.run(argv_)
         whole = {k: {"t": [], "m": []} for k in cmds}
@@ -264,15 +266,19 @@ def main(argv=None) -> None:
     launcher.close()
 
     t_raw = _median(res["rawpy"]["t"])
-    print(f"\n{'step (24 MP DNG)':44s} {'median s':>9s} {'x rawpy':>8s} {'peak MB':>8s} {'x image':>8s}")
+    print(f"\n{'step (24 MP DNG)':44s} {'median s':>9s} {'x rawpy':>8s} {'pairs':>6s} {'peak MB':>8s} "
+          f"{'x image':>8s}")
     rows = [("rawpy postprocess() default", "rawpy")]
     names = {"tiff": "16-bit TIFF", "png": "8-bit PNG", "png16": "16-bit PNG", "jpeg": "JPEG"}
     rows += [(f"POST /v1/white-balance ({names.get(f, f)})", f) for f in formats]
     rows += [("POST /v1/analyze over HTTP", "analyze")]
     for name, k in rows:
         t, mem = _median(res[k]["t"]), max(res[k]["m"])
-        print(f"{name:44s} {t:9.2f} {t / t_raw:8.2f} {mem:8.0f} {mem / decoded_mb:8.2f}")
+        pairs = _median([a / b for a, b in zip(res[k]["t"], res["rawpy"]["t"])])
+        print(f"{name:44s} {t:9.2f} {t / t_raw:8.2f} {pairs:6.2f} {mem:8.0f} {mem / decoded_mb:8.2f}")
     print(f"{'estimation in the server (decode+estimate)':44s} {t_est:9.2f} {t_est / t_raw:8.2f}")
+    print("(x rawpy: ratio of the medians; pairs: median of the ratios to the rawpy run just before, "
+          "which holds better when the machine's load drifts)")
     print(f"\ndecoded 16-bit image: {decoded_mb:.0f} MB; targets (issue 19): white-balance TIFF and PNG <= 0.80 x "
           "rawpy, JPEG <= 0.50 x rawpy; peak no higher than before")
     print("\nwhere a white-balance request's time goes (median ms; http = the request's wall time minus the "
@@ -287,7 +293,7 @@ def main(argv=None) -> None:
     for k, v in whole.items():
         print(f"{k:44s} {_median(v['t']):9.2f} {min(v['t']):6.2f} {max(v['t']):6.2f} {max(v['m']):8.0f}")
     print("\nCLI against the rawpy script (median of the pairwise ratios; target <= 1.00):")
-    for fmt in formats:
+    for fmt in formats if whole else ():
         a, b = whole[f"wandell white-balance .{ext[fmt]}"]["t"], whole[f"rawpy script .{ext[fmt]}"]["t"]
         print(f"  .{ext[fmt]:4s} {_median([x / y for x, y in zip(a, b)]):.2f}")
     if real:

@@ -1088,7 +1088,8 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
                 a -= b
                 a *= k
                 np.clip(a, 0, 65535, out=a)
-                dst[r:r + rows] = a + np.float32(0.5)
+                a += np.float32(0.5)
+                dst[r:r + rows] = a
 
             # numpy releases the GIL on these arrays: the row chunks run on every core
             n_threads = min(4, os.cpu_count() or 1)
