@@ -39,6 +39,8 @@ PNG_LEVEL = 1
 PNG_STRATEGY = zlib.Z_RLE
 #: strips per thread (load balance against the window restart per strip)
 STRIPS_PER_THREAD = 4
+#: threads when the caller gives none (a pool of the CPU count, capped)
+MAX_THREADS = 8
 #: the smallest strip worth a task (bytes of filtered rows)
 MIN_STRIP_BYTES = 1 << 20
 
@@ -74,7 +76,8 @@ def png_encode(img: np.ndarray, threads: int | None = None, level: int = PNG_LEV
                strategy: int = PNG_STRATEGY) -> bytes:
     """An RGB image (``(H, W, 3)`` uint8 or uint16) as PNG bytes (IHDR,
     IDAT, IEND; no colour chunks: :func:`service.outputs.embed` adds them).
-    ``threads``: the pool size (default: the CPU count)."""
+    ``threads``: the pool size (default: the CPU count, at most
+    :data:`MAX_THREADS`)."""
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"png_encode: an (H, W, 3) uint8 or uint16 image, not {img.shape} {img.dtype}")
     H, W = img.shape[:2]
@@ -83,7 +86,7 @@ def png_encode(img: np.ndarray, threads: int | None = None, level: int = PNG_LEV
     bits = 8 if img.dtype == np.uint8 else 16
     bpp = 3 * bits // 8
     row_bytes = 1 + W * bpp
-    n_threads = max(1, threads or os.cpu_count() or 1)
+    n_threads = max(1, threads or min(MAX_THREADS, os.cpu_count() or 1))
     n_strips = max(1, min(H, n_threads * STRIPS_PER_THREAD, (H * row_bytes) // MIN_STRIP_BYTES or 1))
     bounds = np.linspace(0, H, n_strips + 1).round().astype(int)
 
@@ -182,7 +185,7 @@ def jpeg_encode(img: np.ndarray, quality: int = JPEG_QUALITY, threads: int | Non
             raise ValueError("OpenCV could not encode the JPEG")
         return enc.tobytes()
 
-    n_threads = max(1, threads or os.cpu_count() or 1)
+    n_threads = max(1, threads or min(MAX_THREADS, os.cpu_count() or 1))
     if n_threads == 1 or H * W < MIN_JPEG_SPLIT_PIXELS or H < 64:
         return one(img)
     head = one(img[:16])

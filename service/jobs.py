@@ -299,7 +299,9 @@ def process_item(task: ItemTask) -> dict:
                     side = json.load(f)
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
                         "seconds": time.perf_counter() - t0}
-            decoded, cam, warns = _open(task, prefetch=True)
+            # the demosaic overlaps the estimate when this item may use several
+            # threads (wandell white-balance); a pool worker (one per core) does not
+            decoded, cam, warns = _open(task, prefetch=task.threads != 1)
             opts = task.options.estimate_kwargs()
             try:
                 if task.light is None:

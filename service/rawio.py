@@ -1092,7 +1092,7 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
                 dst[r:r + rows] = a
 
             # numpy releases the GIL on these arrays: the row chunks run on every core
-            n_threads = min(4, os.cpu_count() or 1)
+            n_threads = min(4, os.cpu_count() or 1, max(1, cv2.getNumThreads()))   # 1 in a pool worker
             if n_threads > 1 and len(tasks) > 1:
                 from concurrent.futures import ThreadPoolExecutor
 
