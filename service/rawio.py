@@ -1073,7 +1073,7 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
             H, W = cfa.shape
             mos = np.empty((H, W), np.uint16)
             letters = [""] * 4
-            rows = max(1, (1 << 20) // max(1, W))
+            rows = max(1, (1 << 18) // max(1, W))       # 1 MB of float32 per chunk and thread
             tasks = []
             for dy, dx, idx, ch in sites:
                 letters[dy * 2 + dx] = "RGB"[ch]
