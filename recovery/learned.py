@@ -58,7 +58,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import ndimage, optimize
+from scipy import ndimage
 
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation
@@ -484,6 +484,8 @@ def fit_network(x: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None,
         rng = np.random.default_rng(seed + k)
         p0 = np.concatenate([rng.normal(0, 1 / np.sqrt(d), d * H), np.zeros(H), rng.normal(0, 1 / np.sqrt(H), H * 2),
                              np.zeros(2)])
+        from scipy import optimize  # training only: not imported by the estimator (start-up, issue 19)
+
         res = optimize.minimize(f, p0, jac=True, method="L-BFGS-B", options={"maxiter": maxiter})
         layers.append(tuple(unpack(res.x)))
     return mean, scale, tuple(layers)
