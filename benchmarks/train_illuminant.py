@@ -4,11 +4,13 @@ photographs (``../shared/data/real``: NUS 8-camera, Cube+ and INTEL-TAU
 field, 12 cameras).
 
 The model: 19 classical estimates in the canonical space (the camera's own
-colour matrix maps it there), taken relative to the bright-pixel estimate,
-plus where that estimate sits among the physical lights (the reference's
-chromaticity and its coordinates along and off the Planckian / daylight
-locus), expanded by fixed random tanh features; a linear map of those to
-the light's log-chroma, fitted by a convex robust ridge regression
+colour matrix maps it there), taken relative to the bright-pixel estimate
+(optionally, ``absolute_inputs``, also where that estimate sits among the
+physical lights: its chromaticity and its coordinates along and off the
+Planckian locus; left out of the shipped model, see
+:func:`recovery.learned.model_inputs`), expanded by fixed random tanh
+features; a linear map of those to the light's log-chroma offset, fitted
+by a convex robust ridge regression
 (:func:`recovery.learned.fit_robust_ridge`).
 
 Training data are augmented (a copy of each image per augmentation):
@@ -61,7 +63,7 @@ from recovery import learned as L
 
 from .realdata import BENCHMARKS, REAL_DIR, angular_error, error_stats, load_real, usable_mask
 
-SETTINGS = {"hidden": 300, "ridge_grid": [0.03, 0.1, 1.0, 10.0], "delta": 0.02, "seed": 0, "tol": 1e-9,
+SETTINGS = {"hidden": 300, "absolute_inputs": False, "ridge_grid": [0.03, 0.1, 1.0, 10.0], "delta": 0.02, "seed": 0, "tol": 1e-9,
             "relight_jitter": 0.02, "matrix_error": 0.03, "augment_seed": 0}
 
 
@@ -165,11 +167,11 @@ def fit_model(feats, tuv, dataset, camera, ridge, loc, settings=SETTINGS, sigma=
     fa, ta = augment(feats, tuv, rng, settings)
     allf, allt = np.concatenate([feats, fa]), np.concatenate([tuv, ta])
     w = np.tile(balance_weights(dataset, camera), 2)
-    x = L.model_inputs(allf, *loc)
+    x = L.model_inputs(allf, *loc, absolute=settings["absolute_inputs"])
     mean, scale, coef, fit_info = L.fit_robust_ridge(
         x, allt - allf[:, L.REFERENCE], w, hidden=settings["hidden"], ridge=ridge, delta=settings["delta"],
         seed=settings["seed"], tol=settings["tol"])
-    return L.LearnedModel(L.BRADFORD, mean, scale, np.array([settings["hidden"], settings["seed"]], float), coef,
+    return L.LearnedModel(L.BRADFORD, mean, scale, np.array([settings["hidden"], settings["seed"], float(settings["absolute_inputs"])], float), coef,
                           loc[0], loc[1],
                           np.zeros(3) if sigma is None else sigma,
                           np.array([np.nan, np.nan]) if conf is None else conf,

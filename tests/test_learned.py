@@ -142,20 +142,39 @@ def test_shipped_model_loads_without_the_development_data_and_says_what_it_learn
     assert L.DEFAULT_MODEL_PATH.stat().st_size < 100_000      # a small data file
 
 
-def test_default_estimate_is_the_learnt_one_with_a_physical_spectrum():
+def test_learnt_estimate_has_a_physical_spectrum():
     from testing.scenes import mondrian_scene  # a synthetic scene: only the plumbing is checked here
 
     cam = Camera.named("Nikon 5100 (NPL)")
     scene = mondrian_scene(np.random.default_rng(3), 16, "Nikon 5100 (NPL)", "D65", size=64, step=10.0)
     img = scene.image
-    est = estimate_illuminant(img, cam)
+    est = estimate_illuminant(img, cam, "learned")
     assert est.method == "learned"
     d = est.diagnostics
-    assert 0.0 <= d["confidence"] <= 1.0 and d["region90_deg"] > 0
+    assert 0.0 <= d["confidence"] <= 1.0 and d["region90_deg"] > 0 and isinstance(d["low_confidence"], bool)
     assert np.all(np.isfinite(est.rgb)) and np.all(est.spectrum >= 0) and np.all(np.isfinite(est.spectrum))
     # the spectrum's camera response is the reported light
     assert angular_error(cam.response(est.spectrum), est.rgb) < 0.5
     assert estimate_illuminant(img, cam, "bayes").method == "bayes"       # the posterior stays by name
+
+
+def test_auto_lets_the_posterior_decide_a_scene_of_uniform_patches_and_says_so():
+    """A Mondrian is flat patches (most cells inside one): ``auto`` hands it
+    to the light posterior, whose linear models hold there, and says what
+    decided; the same image with texture (multiplicative 10 % noise per
+    pixel, as real surfaces have) goes to the learnt estimator."""
+    from testing.scenes import mondrian_scene
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    scene = mondrian_scene(np.random.default_rng(3), 8, "Nikon 5100 (NPL)", "D65", size=64, step=10.0)
+    est = estimate_illuminant(scene.image, cam)
+    d = est.diagnostics
+    assert est.method == "bayes" and d["decision"].startswith("auto:") and "uniform patches" in d["decision"]
+    assert d["uniform_patch_fraction"] >= 0.15 and {"confidence", "low_confidence", "region90_deg"} <= set(d)
+    textured = scene.image * np.random.default_rng(4).uniform(0.8, 1.2, scene.image.shape[:2])[..., None]
+    est2 = estimate_illuminant(np.clip(textured, 0, 1), cam)
+    assert est2.method == "learned" and est2.diagnostics["decision"].startswith("auto:")
+    assert est2.diagnostics["uniform_patch_fraction"] < 0.15
 
 
 def test_no_usable_cells_falls_back_declared():
@@ -283,6 +302,18 @@ def test_same_estimate_whatever_describes_the_camera(real):
     assert np.median(d_pert) < MEDIAN_PERT and np.percentile(d_pert, 90) < P90_PERT, np.percentile(d_pert, [50, 90])
     for k in ("fit", "perturbed"):
         assert abs(np.mean(errs[k]) - np.mean(errs["matrix"])) < 0.1, (k, np.mean(errs[k]), np.mean(errs["matrix"]))
+
+
+def test_auto_gives_almost_every_real_photograph_to_the_learnt_estimator(real):
+    """The scene-level choice of ``auto`` must not take real photographs
+    away from the learnt estimator: of the 7,524 development photographs
+    3 reach the uniform-patch threshold (measured); at most 0.1 % may."""
+    from benchmarks.realdata import usable_mask
+    from recovery.api import UNIFORM_PATCH_SCENE
+
+    rs = real[0]
+    frac = np.array([L.uniform_patch_fraction(*L.estimation_image(im, usable_mask(im))) for im in rs.images])
+    assert np.sum(frac >= UNIFORM_PATCH_SCENE) <= 0.001 * len(frac), np.sort(frac)[-10:]
 
 
 def test_rebuilding_the_model_gives_the_shipped_one(real):
