@@ -27,7 +27,7 @@ from .conftest import SHARED, unavailable
 REAL = SHARED / "data" / "real"
 
 #: camera-description agreement bounds (degrees; see the test)
-MEDIAN_FIT, P90_FIT, MEDIAN_PERT, P90_PERT = 0.12, 0.4, 0.32, 1.0
+MEDIAN_FIT, P90_FIT, MEDIAN_PERT, P90_PERT = 0.16, 0.63, 0.31, 1.16
 
 
 # --------------------------------------------------------------------------- the pieces
@@ -270,9 +270,12 @@ def test_same_estimate_whatever_describes_the_camera(real):
     camera with measured sensitivities is; and the matrix in error by 3 %
     per element (a DNG ColorMatrix against LibRaw's table). On 240 images
     (20 per camera) the estimates agree: median angle between them measured
-    0.06 (Luther fit) and 0.16 degrees (perturbed matrix), 90th percentile
-    0.2 and 0.5; the bounds are twice that. The accuracy moves by under
-    0.1 degrees of mean error."""
+    0.081 (Luther fit) and 0.155 degrees (perturbed matrix), 90th percentile
+    0.31 and 0.58; the bounds are twice that. Mean error measured 2.37
+    (matrix), 2.36 (Luther fit), 2.41 (perturbed): it may move by under 0.1
+    degrees. (With the reference's absolute chromaticity among the inputs,
+    ``absolute_inputs``, the perturbed matrix moved estimates by a median
+    0.8 degrees: why the shipped model leaves it out.)"""
     from benchmarks.realdata import usable_mask
     from recovery.cameras import camera_from_matrix
 
