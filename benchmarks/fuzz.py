@@ -4,6 +4,7 @@ valid; never a 5xx, never a hang; the service still answers afterwards and
 its memory stays bounded.
 
 ``python -m benchmarks.fuzz [--n 2000] [--timeout 20] [--seed 0] [--real-dng PATH]``
+``python -m benchmarks.fuzz --round2 [--scale 1]`` (issue 17's inputs: :func:`run_round2`)
 
 The seeds are small valid DNGs written by :mod:`testing.dngwriter` from
 spectral scenes (different cameras, lights and CFA patterns). Each mutation is
@@ -66,7 +67,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["Mutation", "FuzzReport", "seed_dngs", "ifd_entries", "mutations", "memory_bound_mb", "run", "main",
-           "dng_mutations", "victim_dngs", "run_real_dng"]
+           "dng_mutations", "victim_dngs", "run_real_dng", "ROUND2_KINDS", "round2_cases", "run_round2",
+           "round2_table", "packbits_tiff"]
 
 KINDS = ("truncate", "flip-header", "flip-ifd", "flip-value", "flip-strip", "tag-value", "tag-type",
          "huge-dims", "zero-dims", "bits", "strip-eof", "ifd-offset", "entry-count", "splice", "wrong-name")
@@ -764,6 +766,285 @@ def run(n: int = 2000, *, seed: int = 0, timeout: float = 20.0, sample_every: in
     return report
 
 
+# ---------------------------------------------------------------------------
+# Issue 17: hostile names, metadata, targets, JSON fields, bombs
+# ---------------------------------------------------------------------------
+
+#: Kinds of :func:`round2_cases`, each a class of input that gave a 5xx, a
+#: dropped connection, a black image answered 200 or gigabytes of memory.
+ROUND2_KINDS = ("nonascii-metadata", "hostile-name", "bad-target", "json-bomb", "packbits-bomb", "csv-bomb",
+                "host")
+
+
+@dataclass
+class Case:
+    """One request of :func:`round2_cases`."""
+
+    kind: str
+    what: str
+    method: str
+    path: str
+    files: dict | None = None
+    data: dict | None = None
+    headers: dict | None = None
+
+
+def _utf8_dng(text: str, tag: int = 315, seed: int = 0) -> bytes:
+    """A small valid DNG (testing.dngwriter) whose Software text is
+    rewritten as UTF-8 ``text`` and retagged ``tag`` (Artist 315, Copyright
+    33432 ...), byte for byte, as editors write non-ASCII metadata."""
+    from testing.dngwriter import scene_dng
+
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 48, 64, seed=seed, make="MMMMMMMMMMMM", model="NNNNNNNNNNNN")
+    d = bytearray(buf.getvalue())
+    old = b"wandell-recovery testing.dngwriter"
+    i, j = d.find(old), d.find(b"\x31\x01\x02\x00")
+    enc = text.encode("utf-8")[:len(old) - 1]
+    d[i:i + len(old)] = enc.ljust(len(old), b"\0")
+    if tag != 305:
+        d[j:j + 2] = tag.to_bytes(2, "little")
+    return bytes(d)
+
+
+def _linear_tiff(h: int, w: int, comp: int, strip: bytes, rps: int) -> bytes:
+    """A little-endian 16-bit RGB TIFF whose strips of ``rps`` rows all point
+    at the same ``strip`` bytes."""
+    n = -(-h // rps)
+    bps = 8 + 2 + 10 * 12 + 4
+    offs = bps + 8
+    data = offs + (8 * n if n > 1 else 0)
+    tags = [(256, 4, 1, w), (257, 4, 1, h), (258, 3, 3, bps), (259, 3, 1, comp), (262, 3, 1, 2),
+            (273, 4, n, offs if n > 1 else data), (277, 3, 1, 3), (278, 4, 1, rps),
+            (279, 4, n, offs + 4 * n if n > 1 else len(strip)), (284, 3, 1, 1)]
+    ifd = struct.pack("<H", len(tags)) + b"".join(
+        struct.pack("<HHII", t, ty, k, v) if ty == 4 or k > 1 else struct.pack("<HHIHH", t, ty, k, v, 0)
+        for t, ty, k, v in tags) + b"\0\0\0\0"
+    arrays = struct.pack(f"<{2 * n}I", *[data] * n, *[len(strip)] * n) if n > 1 else b""
+    return b"II*\0" + struct.pack("<I", 8) + ifd + struct.pack("<HHH", 16, 16, 16) + b"\0\0" + arrays + strip
+
+
+def packbits_tiff(h: int, w: int) -> bytes:
+    """One PackBits strip of zeros (runs of 128 bytes, 2 bytes each): ~190x smaller than its pixels."""
+    n = h * w * 6
+    return _linear_tiff(h, w, 32773, b"\x81\x00" * (n // 128) + (bytes([257 - n % 128, 0]) if n % 128 else b""), h)
+
+
+def round2_cases(scale: float = 1.0) -> list[Case]:
+    """The issue-17 inputs, small enough for a test (``scale`` 1: bombs of a
+    few MB; the round-2 memory scripts send the 100 MB ones)."""
+    import zlib
+
+    from testing.dngwriter import scene_dng
+
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 48, 64, seed=1, make="Acme", model="Model 1")
+    dng = buf.getvalue()
+    cases: list[Case] = []
+    add = lambda *a, **kw: cases.append(Case(*a, **kw))  # noqa: E731
+    for text, tag in (("(c) José Müller", 315), ("© Ærøskøbing Straße", 33432), ("写真家 山田", 315),
+                      ("Привет мир", 33432), ("\u202egnp.evil \x07\x1b[2J", 315), ("Cámara\x00Ñ", 305)):
+        d = _utf8_dng(text, tag)
+        for fmt in ("tiff", "png", "jpeg"):
+            add("nonascii-metadata", f"tag {tag} {text!r} -> {fmt}", "POST", "/v1/white-balance",
+                files={"file": ("meta.dng", d)}, data={"format": fmt})
+    make = dng.replace(b"Acme\0", "Ñu\0".encode().ljust(5, b"\0")) if b"Acme\0" in dng else dng
+    add("nonascii-metadata", "UTF-8 Make", "POST", "/v1/white-balance", files={"file": ("make.dng", make)})
+    for name in ("写真.dng", "Привет.dng", "\u202egnp.dng", "a\x00b.dng", 'a";filename*=UTF-8\'\'evil.html;x=".dng',
+                 "a\r\nX-Injected: 1.dng", "..\\..\\boot.ini", "../../etc/passwd", "0", "😀" * 60 + ".dng",
+                 "x" * 300 + ".dng", "\\", ".dng", "%22%0d%0a.dng"):
+        for fmt in ("xmp", "png"):
+            add("hostile-name", f"{name[:40]!r} format={fmt}", "POST", "/v1/white-balance",
+                files={"file": (name, dng)}, data={"format": fmt})
+    for t in ("D²", "BB²", "BB0", "D0", "BB1", "BB" + "9" * 400, "D3999", "D999", "BB25001", "D-5000", "BB1e5",
+              "D٥٠٠٠", "BB 3200", "BB3200.5.5", ""):
+        add("bad-target", f"target {t[:20]!r} white-balance", "POST", "/v1/white-balance",
+            files={"file": ("s.dng", dng)}, data={"target": t, "format": "png"})
+        add("bad-target", f"target {t[:20]!r} json", "POST", "/v1/white-balance",
+            files={"file": ("s.dng", dng)}, data={"target": t, "response": "json"})
+        add("bad-target", f"target {t[:20]!r} preview", "POST", "/v1/preview",
+            files={"file": ("s.dng", dng)}, data={"target": t, "wb": "corrected"})
+        add("bad-target", f"target {t[:20]!r} batch", "POST", "/v1/batches",
+            files={"files": ("s.dng", dng)}, data={"target": t or "\u00b2", "format": "jpeg"})
+    big, deep = "[" + "9" * 5000 + ",0]", "[" * 100_000 + "]" * 100_000
+    for label, value in (("5000-digit int", big), ("100000 brackets", deep), ("100000 braces", "{" * 100_000),
+                         ("1 MB list", "[" + "1," * 500_000 + "1]"), ("nan", "[NaN, 1]"), ("1e999", "[1e999, 2]"),
+                         ("string", '["a", "b"]'), ("bool", "[true, false]"), ("negative", "[-1, -1]"),
+                         ("huge", "[99999999999999999999, 1]"), ("lone surrogate", '["\\ud800"]')):
+        for path, field, extra in (("/v1/analyze", "neutral", {}), ("/v1/surfaces", "points", {}),
+                                   ("/v1/surfaces", "rects", {}), ("/v1/preview", "neutral", {"wb": "corrected"}),
+                                   ("/v1/white-balance", "neutral", {"format": "png"})):
+            v = value if field == "neutral" or not value.startswith("[") or value.startswith("[[") else "[" + value + "]"
+            add("json-bomb", f"{field} {label} {path}", "POST", path, files={"file": ("s.dng", dng)},
+                data={field: v, **extra})
+    h, w = int(1000 * scale), int(1500 * scale)
+    add("packbits-bomb", f"PackBits {h}x{w} one strip", "POST", "/v1/analyze",
+        files={"file": ("p.tif", packbits_tiff(h, w))})
+    add("packbits-bomb", f"deflate {h}x{w}", "POST", "/v1/analyze",
+        files={"file": ("d.tif", _linear_tiff(h, w, 8, zlib.compress(bytes(100 * w * 6), 9), 100))})
+    for comp in (5, 7, 34925, 50000, 32773, 99):      # LZW, JPEG, LZMA, ZSTD, a damaged PackBits, unknown
+        strip = b"\x80" * 64 if comp == 32773 else bytes(64 * 96 * 6)
+        add("packbits-bomb", f"compression {comp}", "POST", "/v1/analyze",
+            files={"file": ("c.tif", _linear_tiff(64, 96, comp, strip, 64))})
+    add("packbits-bomb", "PackBits declaring 20000 x 20000", "POST", "/v1/analyze",
+        files={"file": ("p.tif", _linear_tiff(20000, 20000, 32773, b"\x81\x00" * 1000, 20000))})
+    n = int(1_000_000 * scale)
+    row = ",".join(["0"] * n)
+    for label, text in (("2 rows x 1M values", f"400,{row}\n410,{row}\n"),
+                        ("200k rows", "".join(f"{400 + i * 1e-3:.3f},0.5\n" for i in range(200_000))),
+                        ("ragged", "400,1,2\n410,1\n420,1,2\n"), ("header only", "nm,a,b\n"),
+                        ("not numbers", "a,b\nc,d\n"), ("decimal commas", "400;0,5\n" * 3),
+                        ("1M blank lines", "\n" * 1_000_000), ("nan", "\n".join(f"{400 + 10 * i},nan" for i in range(31))),
+                        ("binary", "\x00\xff" * 1000), ("one huge field", "400," + "9" * n + "\n")):
+        add("csv-bomb", f"render {label}", "POST", "/v1/render", files={"file": ("t.csv", text.encode("utf-8", "surrogateescape"))},
+            data={"response": "json"})
+    add("csv-bomb", "sensitivities 2 rows x 1M values", "POST", "/v1/analyze",
+        files={"file": ("s.dng", dng), "sensitivities": ("s.csv", f"400,{row}\n410,{row}\n".encode())})
+    for host in ("127.0.0.1:8000@evil.com", "[::1]evil.com", "localhost:80:80", "evil.com#@localhost",
+                 "localhost\\@evil", "[::1", "127.0.0.1:999999", "LOCALHOST.", "localhost:8000/x"):
+        add("host", f"Host {host!r}", "GET", "/health", headers={"host": host})
+    return cases
+
+
+def _vm(key: str) -> float:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def _reset_hwm() -> bool:
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _check_case(case: Case, r) -> str | None:
+    """As :func:`_check`, plus: a 200 image is not black, its
+    Content-Disposition has only ``filename``/``filename*``."""
+    mut = Mutation(0, case.kind, case.what, b"")
+    if case.path == "/v1/batches" and r.status_code == 202:
+        return None
+    if case.path == "/health" and r.status_code == 200:
+        return f"{case.kind} ({case.what}): served a hostile Host"
+    if case.path in ("/v1/render", "/health") and r.status_code == 200:
+        return None
+    if r.status_code == 200 and (case.data or {}).get("format") == "xmp":
+        if not r.content.startswith(b"<?xpacket"):
+            return f"{case.kind} ({case.what}): 200 that is not an XMP packet"
+        try:
+            summary = _strict_json(r.headers.get("x-illuminant", ""))
+        except ValueError as e:
+            return f"{case.kind} ({case.what}): XMP with a bad X-Illuminant ({e})"
+        if _finite_numbers(summary) or not all(math.isfinite(v) for v in summary.get("camera_rgb") or [math.nan]):
+            return f"{case.kind} ({case.what}): XMP whose estimate is not finite"
+        problem = None
+    elif r.status_code == 200 and case.path == "/v1/preview":
+        import cv2
+
+        img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+        return None if img is not None and int(img.max()) > 0 else f"{case.kind} ({case.what}): black preview"
+    else:
+        problem = _check(mut, case.path, r)
+    if problem or r.status_code != 200:
+        return problem
+    cd = r.headers.get("content-disposition")
+    if cd is not None:
+        import re
+
+        params = {k.lower() for k in re.findall(r';\s*([^=;\s]+)\s*=', cd)}
+        if params - {"filename", "filename*"}:
+            return f"{case.kind} ({case.what}): Content-Disposition rewritten: {cd!r}"
+    if r.headers.get("content-type", "").startswith("image/"):
+        import cv2
+
+        img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None or int(img.max()) == 0:
+            return f"{case.kind} ({case.what}): 200 with a black or unreadable image"
+    return None
+
+
+async def _run_round2(cases, timeout: float, report: FuzzReport, app, peaks: dict) -> None:
+    import httpx
+
+    transport = httpx.ASGITransport(app=app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://localhost") as client:
+        plain = seed_dngs()[0]
+        for fmt in ("tiff", "png", "jpeg", "xmp"):     # warm-up: imports and caches are not a request's cost
+            try:
+                await client.post("/v1/white-balance", files={"file": ("w.dng", plain)}, data={"format": fmt})
+            except Exception:  # noqa: BLE001 - the cases themselves report failures
+                pass
+        t0 = time.perf_counter()
+        report.rss_warm_mb = _rss_mb()
+        for case in cases:
+            hwm = _reset_hwm()
+            before = _vm("VmRSS")
+            t1 = time.perf_counter()
+            try:
+                r = await asyncio.wait_for(client.request(case.method, case.path, files=case.files, data=case.data,
+                                                          headers=case.headers), timeout)
+            except asyncio.TimeoutError:
+                report.failures.append(f"{case.kind} ({case.what}): no answer in {timeout} s")
+                continue
+            except Exception as e:  # raised through the transport: a 500 in a real server
+                report.failures.append(f"{case.kind} ({case.what}): {type(e).__name__}: {e}"[:300])
+                report.n += 1
+                report.statuses[500] += 1
+                report.by_kind.setdefault(case.kind, Counter())[500] += 1
+                continue
+            report.latencies_s.append(time.perf_counter() - t1)
+            if hwm:
+                grow = _vm("VmHWM") - before
+                if grow > peaks.get(case.kind, (0.0, ""))[0]:
+                    peaks[case.kind] = (grow, case.what)
+            report.n += 1
+            report.statuses[r.status_code] += 1
+            report.by_kind.setdefault(case.kind, Counter())[r.status_code] += 1
+            problem = _check_case(case, r)
+            if problem:
+                report.failures.append(problem)
+        report.elapsed_s = time.perf_counter() - t0
+        report.rss_end_mb = report.rss_peak_mb = _rss_mb()
+        report.health_after = (await asyncio.wait_for(client.get("/health"), timeout)).status_code
+
+
+def run_round2(*, scale: float = 1.0, timeout: float = 60.0, app=None) -> tuple[FuzzReport, dict]:
+    """:func:`round2_cases` through the ASGI app: the report (statuses by
+    kind, failures) and, per kind, the largest rise of this process's peak
+    RSS over one request (``VmHWM`` reset before each, Linux) with the input
+    that caused it: ``{kind: (MiB, what)}``."""
+    if app is None:
+        from service.app import app
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+    logging.getLogger("service").setLevel(logging.CRITICAL)
+    report, peaks = FuzzReport(), {}
+    asyncio.run(_run_round2(round2_cases(scale), timeout, report, app, peaks))
+    return report, peaks
+
+
+def round2_table(report: FuzzReport, peaks: dict) -> str:
+    lines = [f"{'kind':18s} {'n':>4s} {'2xx':>4s} {'4xx':>4s} {'5xx':>4s}  peak RSS rise (worst input)"]
+    for kind in ROUND2_KINDS:
+        c = report.by_kind.get(kind, Counter())
+        cls = Counter()
+        for st, v in c.items():
+            cls[st // 100] += v
+        mib, what = peaks.get(kind, (0.0, ""))
+        lines.append(f"{kind:18s} {sum(c.values()):4d} {cls[2]:4d} {cls[4]:4d} {cls[5]:4d}  +{mib:.0f} MiB ({what})")
+    lines.append(f"{report.n} requests in {report.elapsed_s:.1f} s; /health afterwards {report.health_after}; "
+                 f"failures {len(report.failures)}")
+    lines.extend(f"  {f}" for f in report.failures[:30])
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=2000, help="number of mutated files")
@@ -776,7 +1057,16 @@ def main(argv=None) -> int:
     ap.add_argument("--real-dng", metavar="PATH", default=None,
                     help="also send dng_mutations of this real DNG (e.g. ../shared/data/raw/Blackmagic.dng), each "
                          "after two different images, and count the answers that depend on the previous upload")
+    ap.add_argument("--round2", action="store_true",
+                    help="send only the issue-17 inputs (hostile names and metadata, bad targets, JSON, PackBits "
+                         "and CSV bombs, Host tricks): statuses by class and peak RSS rise per kind")
+    ap.add_argument("--scale", type=float, default=1.0, help="--round2: size factor of the bombs")
     args = ap.parse_args(argv)
+    if args.round2:
+        rep, peaks = run_round2(scale=args.scale, timeout=args.timeout)
+        print(round2_table(rep, peaks))
+        bad5 = sum(v for st, v in rep.statuses.items() if st >= 500)
+        return 0 if not rep.failures and not bad5 and rep.health_after == 200 else 1
 
     def progress(j, rep):
         print(f"  {j}/{args.n}: {dict(sorted(rep.statuses.items()))}, RSS {_rss_mb():.0f} MB", file=sys.stderr,

@@ -25,7 +25,18 @@ __all__ = [
     "daylight_basis",
     "daylight",
     "blackbody",
+    "DAYLIGHT_CCT_RANGE",
+    "BLACKBODY_RANGE",
+    "temperature_of",
 ]
+
+#: CCT (K) the CIE daylight series is defined for (CIE 015:2018, 4000-25000 K):
+#: ``D<cct>`` names outside it are refused.
+DAYLIGHT_CCT_RANGE = (4000.0, 25000.0)
+#: Temperatures (K) ``BB<K>`` names may take: below 1000 K Planck's law
+#: underflows on the visible grid (a black light), above 25000 K it is as
+#: blue as daylight's own upper end.
+BLACKBODY_RANGE = (1000.0, 25000.0)
 
 
 def light_to_array(sd, wavelengths=None) -> np.ndarray:
@@ -75,8 +86,11 @@ def _illuminant(name: str, wavelengths=None, normalise: bool = True) -> np.ndarr
     """One illuminant's relative spectral power, ``(N,)``.
 
     Besides colour-science's names, ``"D<cct>"`` with any CCT in 4000-25000 K
-    (e.g. ``"D93"``, ``"D5000"``) gives the CIE daylight at that CCT, and
-    ``"BB<cct>"`` (e.g. ``"BB3200"``) a blackbody.
+    (:data:`DAYLIGHT_CCT_RANGE`; e.g. ``"D93"``, ``"D5000"``) gives the CIE
+    daylight at that CCT, and ``"BB<K>"`` with 1000-25000 K
+    (:data:`BLACKBODY_RANGE`; e.g. ``"BB3200"``) a blackbody; other
+    temperatures, or temperatures not in ASCII digits, are a ``KeyError``
+    naming the range (:func:`temperature_of`).
 
     On a grid coarser than the data the spectrum is resampled with
     :func:`models.grid.resample_box` (each value is the mean over its
@@ -96,18 +110,60 @@ def _illuminant(name: str, wavelengths=None, normalise: bool = True) -> np.ndarr
 
     if name in colour.SDS_ILLUMINANTS:
         spd = light_to_array(colour.SDS_ILLUMINANTS[name], wavelengths)
-    elif name.startswith("BB") and name[2:].replace(".", "", 1).isdigit():
-        spd = blackbody(float(name[2:]), wavelengths)
-    elif name.startswith("D") and name[1:].isdigit():
-        cct = float(name[1:])
-        cct = cct * 100 if cct < 1000 else cct
-        spd = daylight(cct * 1.4388 / 1.4380, wavelengths)
+    elif (kind_t := temperature_of(name)) is not None:
+        kind, t = kind_t
+        spd = blackbody(t, wavelengths) if kind == "BB" else daylight(t * 1.4388 / 1.4380, wavelengths)
     else:
-        raise KeyError(f"unknown illuminant {name!r}; accepted: {illuminant_names()} or D<cct>, BB<cct>")
+        raise KeyError(f"unknown illuminant {name!r}; accepted: {illuminant_names()} or D<cct> "
+                       f"({DAYLIGHT_CCT_RANGE[0]:.0f}..{DAYLIGHT_CCT_RANGE[1]:.0f} K), BB<K> "
+                       f"({BLACKBODY_RANGE[0]:.0f}..{BLACKBODY_RANGE[1]:.0f} K)")
     if normalise:
         m = spd.mean()
         spd = spd / m if m > 0 else spd
     return spd
+
+
+def _ascii_number(text: str, decimals: bool) -> float | None:
+    """``text`` as a number if it is ASCII digits (one ``.`` when
+    ``decimals``) of at most 8 characters, else ``None`` (no Unicode digits
+    such as ``"²"``, no exponent, no sign)."""
+    if not text or len(text) > 8 or not text.isascii():
+        return None
+    body = text.replace(".", "", 1) if decimals else text
+    if not body or not body.isdigit():
+        return None
+    return float(text)
+
+
+def temperature_of(name: str) -> tuple[str, float] | None:
+    """``("D", cct)`` for ``D<cct>`` (a 2-3 digit value is hundreds of
+    kelvin: ``D93`` is 9300 K), ``("BB", kelvin)`` for ``BB<K>``; ``None`` when
+    the name names no temperature (the rest is not all digits: ``D65x``). A temperature outside
+    :data:`DAYLIGHT_CCT_RANGE` / :data:`BLACKBODY_RANGE`, or written with
+    anything but ASCII digits, is a ``KeyError`` naming the range.
+
+    >>> temperature_of("D93"), temperature_of("BB3200"), temperature_of("A")
+    (('D', 9300.0), ('BB', 3200.0), None)
+    """
+    if not isinstance(name, str):
+        return None
+    if name.startswith("BB") and name[2:].replace(".", "", 1).isdigit():    # digits, Unicode ones too ("²")
+        lo, hi = BLACKBODY_RANGE
+        t = _ascii_number(name[2:], decimals=True)
+        if t is None or not lo <= t <= hi:
+            raise KeyError(f"illuminant {name[:40]!r}: BB<K> takes a blackbody temperature of {lo:.0f}..{hi:.0f} K "
+                           "in ASCII digits (e.g. BB3200)")
+        return "BB", t
+    if name.startswith("D") and name[1:].isdigit():
+        lo, hi = DAYLIGHT_CCT_RANGE
+        t = _ascii_number(name[1:], decimals=False)
+        if t is not None and t < 1000:
+            t *= 100
+        if t is None or not lo <= t <= hi:
+            raise KeyError(f"illuminant {name[:40]!r}: D<cct> takes a daylight CCT of {lo:.0f}..{hi:.0f} K in ASCII "
+                           f"digits (D5000), or hundreds of K in 2-3 digits (D93 = 9300 K)")
+        return "D", t
+    return None
 
 
 def illuminants(names=None, wavelengths=None, normalise: bool = True) -> np.ndarray:

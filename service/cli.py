@@ -21,7 +21,8 @@ progress bar or table; failures and warnings still on stderr) and
 rerun whose options differ from those stored beside a finished output (its
 ``.wandell/NAME.json`` sidecar) says so in the summary. Exit status: 0 when
 every item succeeded or was already done, 1 when something failed, 2 for a
-usage error.
+usage error, 130 when interrupted (Ctrl-C: the pool stops at once, finished
+outputs are kept, the summary so far is printed; the same command resumes).
 
 Start-up stays light (``wandell --help`` imports no numerical library): the
 heavy modules are imported by the command that needs them.
@@ -30,15 +31,68 @@ heavy modules are imported by the command that needs them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import glob
 import json
 import os
+import re
+import shlex
 import sys
+import threading
 import time
 
 from . import jobs
 from .errors import ServiceError, service_error
+
+
+#: Never written raw to a terminal: C0 controls (ESC, BEL, CR, LF, ...), DEL,
+#: C1 controls (CSI U+009B ...), the bidirectional overrides and isolates
+#: (they reorder what follows on screen) and lone surrogates (undecodable
+#: bytes of a file name, which would also make the write fail).
+_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069\ud800-\udfff]")
+
+
+def term_safe(text, keep: str = "") -> str:
+    """``text`` with every control character shown as a visible escape
+    (``\\x1b``, ``\\x07``, ``\\u202e``; a byte of a name that is not UTF-8 as
+    ``\\xff``), except those in ``keep``: what the CLI prints of file names,
+    errors, notes and warnings cannot move the cursor, erase lines or set
+    the terminal's title."""
+    def esc(m):
+        ch = m.group()
+        if ch in keep:
+            return ch
+        o = ord(ch)
+        if 0xDC80 <= o <= 0xDCFF:  # os.fsdecode's surrogateescape of byte o - 0xDC00
+            return f"\\x{o - 0xDC00:02x}"
+        return f"\\x{o:02x}" if o < 0x100 else f"\\u{o:04x}"
+
+    return _UNPRINTABLE.sub(esc, str(text))
+
+
+class _SafeStream:
+    """stdout/stderr as the CLI writes them: :func:`term_safe` on everything
+    (line breaks and tabs kept, and ``\\r`` for the progress bar), so that no
+    message, warning or library text carries a raw control character."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text) -> int:
+        return self._stream.write(term_safe(text, keep="\n\r\t"))
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+class _ArgumentParser(argparse.ArgumentParser):
+    """argparse whose messages (usage errors quote the arguments raw) are
+    written through :func:`term_safe`."""
+
+    def _print_message(self, message, file=None):
+        if message:
+            (file or sys.stderr).write(term_safe(message, keep="\n\t"))
 
 
 def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
@@ -129,14 +183,16 @@ def _summary(rows: list[dict], stream, quiet: bool = False) -> None:
     ``quiet`` only failures, notes and warnings, on stderr."""
     if quiet:
         for r in rows:
+            name = term_safe(r["name"])
             if r["status"] == "failed":
-                sys.stderr.write(f"{r['name']}: failed: {r.get('error')}\n")
+                sys.stderr.write(f"{name}: failed: {term_safe(r.get('error'))}\n")
             if r.get("note"):
-                sys.stderr.write(f"{r['name']}: note: {r['note']}\n")
+                sys.stderr.write(f"{name}: note: {term_safe(r['note'])}\n")
             for w in _warnings_of(r):
-                sys.stderr.write(f"{r['name']}: warning: {w}\n")
+                sys.stderr.write(f"{name}: warning: {term_safe(w)}\n")
         return
-    w = max([4] + [len(r["name"]) for r in rows])
+    names = {id(r): term_safe(r["name"]) for r in rows}
+    w = max([4] + [len(n) for n in names.values()])
     stream.write(f"\n{'file':{w}s}  {'status':8s}  {'CCT K':>7s}  {'seconds':>7s}  light camera RGB / error\n")
     for r in rows:
         ill = r.get("illuminant") or {}
@@ -144,13 +200,13 @@ def _summary(rows: list[dict], stream, quiet: bool = False) -> None:
         rgb = ill.get("camera_rgb")
         what = r.get("error") or ("" if rgb is None else "(" + ", ".join(f"{v:.3f}" for v in rgb) + ")")
         sec = r.get("seconds")
-        stream.write(f"{r['name']:{w}s}  {r['status']:8s}  {'' if cct is None else f'{cct:7.0f}':>7s}  "
-                     f"{'' if sec is None else f'{sec:7.2f}':>7s}  {what}\n")
+        stream.write(f"{names[id(r)]:{w}s}  {r['status']:8s}  {'' if cct is None else f'{cct:7.0f}':>7s}  "
+                     f"{'' if sec is None else f'{sec:7.2f}':>7s}  {term_safe(what)}\n")
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "skipped", "failed")}
-    notes = [(r["name"], r["note"]) for r in rows if r.get("note")]
+    notes = [(names[id(r)], term_safe(r["note"])) for r in rows if r.get("note")]
     if notes:
         stream.write("\nnotes:\n" + "".join(f"  {n}: {t}\n" for n, t in notes))
-    warns = [(r["name"], w) for r in rows for w in _warnings_of(r)]
+    warns = [(names[id(r)], term_safe(w)) for r in rows for w in _warnings_of(r)]
     if warns:
         stream.write("\nwarnings:\n" + "".join(f"  {n}: {t}\n" for n, t in warns))
     stream.write(f"\n{counts['done']} done, {counts['skipped']} skipped (already finished), "
@@ -177,20 +233,78 @@ def _inputs(in_dir: str) -> list[str]:
                   and not os.path.basename(p).startswith("."))
 
 
+class BatchInterrupted(Exception):
+    """Ctrl-C stopped :func:`run_batch`; ``rows`` as it returns them, items
+    not finished marked ``stopped``."""
+
+    def __init__(self, rows: list[dict]):
+        super().__init__("interrupted")
+        self.rows = rows
+
+
+class _CtrlC:
+    """SIGINT during a batch (main thread only): the first raises
+    KeyboardInterrupt as usual; a second (pressed again while the pool is
+    being stopped) kills the workers outright instead of interrupting the
+    clean-up; a third leaves at once. So two Ctrl-C never end in a
+    traceback or a half-stopped pool."""
+
+    def __init__(self):
+        self.hits, self.executor, self._old = 0, None, None
+
+    def __enter__(self):
+        import signal
+
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def _handler(self, signum, frame):
+        self.hits += 1
+        if self.hits == 1:
+            raise KeyboardInterrupt
+        if self.hits >= 3:
+            os._exit(130)
+        if hasattr(self.executor, "terminate"):
+            with contextlib.suppress(Exception):
+                self.executor.terminate(kill=True, grace_s=0.5)
+
+    def __exit__(self, *exc):
+        import signal
+
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+def _stop_now(executor) -> None:
+    """After a Ctrl-C: end the pool now (queued items dropped, running ones
+    terminated; nothing partial keeps a final name)."""
+    if executor is None:
+        return
+    if hasattr(executor, "terminate"):
+        executor.terminate()
+    else:  # a Dask cluster: its tasks are the cluster's; stop waiting for them
+        executor.shutdown(wait=False)
+
+
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
               dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
               quiet: bool = False) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
     ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
-    ``note`` when they were made with other options) unless ``force``."""
+    ``note`` when they were made with other options) unless ``force``.
+
+    Ctrl-C (KeyboardInterrupt) stops the run promptly: the pool is ended
+    (:meth:`service.jobs.LocalExecutor.terminate`), what finished is kept,
+    and :class:`BatchInterrupted` carries the rows (unfinished ones
+    ``stopped``); the same command run again resumes."""
     import io
 
     stream = io.StringIO() if quiet else (stream or sys.stderr)
     files = _inputs(in_dir)
     os.makedirs(out_dir, exist_ok=True)
-    for stale in glob.glob(os.path.join(out_dir, ".*.part")):  # left by a killed run: never a result
-        os.unlink(stale)
     max_pixels, est_pixels = _limits()
     seen: set = set()
     tasks = []
@@ -199,6 +313,8 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
         out = os.path.join(out_dir, jobs.unique(f"{os.path.splitext(name)[0]}.{options.extension}", seen))
         tasks.append(jobs.ItemTask(src=p, out=out, name=name, options=options, max_pixels=max_pixels,
                                    estimation_pixels=est_pixels, force=force))
+    # the temporaries a killed run left for this batch's outputs (never another file of OUT_DIR)
+    jobs.remove_stale_temporaries(out_dir, {os.path.basename(t.out) for t in tasks} | {"shared-light"})
     rows = {t.name: {"name": t.name, "status": "pending"} for t in tasks}
     todo = []
     for t in tasks:
@@ -215,9 +331,11 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     count = {"done": 0, "failed": 0, "skipped": len(tasks) - len(todo)}
     bar.update(**count)
     own = executor is None and bool(todo)
-    if own:
-        executor = jobs.make_executor(workers or None, dask_scheduler or None)
+    interrupted = False
+    ctrl_c = _CtrlC().__enter__()
     try:
+        if own:
+            executor = ctrl_c.executor = jobs.make_executor(workers or None, dask_scheduler or None)
         if todo and options.lighting == "shared":
             light = _shared_light(tasks, options, out_dir, executor, rows, count, force)
             todo = [t for t in todo if rows[t.name]["status"] == "pending"]
@@ -239,10 +357,28 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
             rows[t.name].pop("adopted", None)
             count["done" if res["status"] == "done" else "failed"] += 1
             bar.update(**count)
+    except KeyboardInterrupt:
+        interrupted = True
     finally:
-        bar.close()
-        if own:
-            executor.shutdown()
+        try:
+            bar.close()
+            if interrupted and own:
+                _stop_now(executor)
+            elif own and executor is not None:
+                executor.shutdown()
+        finally:
+            ctrl_c.__exit__(None, None, None)
+    if interrupted:
+        for t in tasks:
+            r = rows[t.name]
+            if r["status"] != "pending":
+                continue
+            r["status"] = "stopped"
+            if jobs.is_finished(t.out):  # written just before the stop, its answer not yet read
+                with contextlib.suppress(OSError, ValueError):
+                    with open(jobs.meta_path(t.out, ".json")) as f:
+                        r.update(status="done", illuminant=json.load(f).get("illuminant"))
+        raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
 
 
@@ -287,8 +423,22 @@ def _cmd_batch(args) -> int:
         raise ServiceError(422, "folder_not_found", f"input folder {args.in_dir!r} does not exist")
     if not _inputs(args.in_dir):
         raise ServiceError(422, "empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
-    rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
-                     quiet=args.quiet)
+    try:
+        rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
+                         quiet=args.quiet)
+    except BatchInterrupted as e:
+        if threading.current_thread() is threading.main_thread():
+            import signal
+
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # stopped already: more Ctrl-C change nothing
+        _summary(e.rows, sys.stdout, args.quiet)
+        stopped = sum(r["status"] == "stopped" for r in e.rows)
+        finished = sum(r["status"] in ("done", "skipped") for r in e.rows)
+        cmd = " ".join(shlex.quote(a) for a in ["wandell"] + list(args.argv))
+        sys.stderr.write(f"\ninterrupted: {finished} of {len(e.rows)} finished and kept, {stopped} stopped before "
+                         f"they were written (nothing partial is kept).\nTo resume, run the same command again "
+                         f"(finished outputs are skipped):\n  {cmd}\n")
+        return 130
     _summary(rows, sys.stdout, args.quiet)
     return 1 if any(r["status"] == "failed" for r in rows) else 0
 
@@ -334,7 +484,7 @@ def _cmd_white_balance(args) -> int:
             tt = _write_xmp(args.file, res["illuminant"], opts, path)
             res["xmp"] = path
             if not args.quiet:
-                print(f"XMP sidecar: {path} (Temperature {tt['temperature']:.0f} K, Tint {tt['tint']:+.0f})")
+                print(f"XMP sidecar: {term_safe(path)} (Temperature {tt['temperature']:.0f} K, Tint {tt['tint']:+.0f})")
         except Exception as e:  # noqa: BLE001 - the image is written; say why the sidecar is not
             res["status"] = "failed"
             res["error"] = f"xmp: {getattr(e, 'detail', e)}"
@@ -369,7 +519,7 @@ def _cmd_analyze(args) -> int:
         err = service_error(e)
         if err is None:
             raise
-        print(f"error: {err.code}: {err.detail}", file=sys.stderr)
+        print(f"error: {err.code}: {term_safe(err.detail)}", file=sys.stderr)
         return 1
     print(json.dumps(clean(pipeline.analysis_json(run, decoded)), indent=1))
     return 0
@@ -385,7 +535,7 @@ def _version() -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="wandell", description="White balance and illuminant estimation of RAW "
+    ap = _ArgumentParser(prog="wandell", description="White balance and illuminant estimation of RAW "
                                  "files (Wandell 1985; Maloney & Wandell)")
     ap.add_argument("--version", action="version", version=f"wandell {_version()}")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -403,19 +553,27 @@ def main(argv=None) -> int:
     w.add_argument("--xmp", nargs="?", const="", default=None, metavar="PATH",
                    help="also write a Camera Raw XMP sidecar with the estimate as Temperature/Tint (default path: "
                         "beside OUT, named after the RAW, so editors apply it to the RAW of that name)")
-    args = ap.parse_args(argv)
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _SafeStream(out), _SafeStream(err)  # also what libraries and warnings print
     try:
+        args = ap.parse_args(argv)
+        args.argv = sys.argv[1:] if argv is None else list(argv)
         if args.command == "batch":
             return _cmd_batch(args)
         if args.command == "analyze":
             return _cmd_analyze(args)
         return _cmd_white_balance(args)
+    except KeyboardInterrupt:  # Ctrl-C outside a batch's items (or while printing): no traceback
+        sys.stderr.write("\ninterrupted\n")
+        return 130
     except ServiceError as e:
-        print(f"error: {e.code}: {e.detail}", file=sys.stderr)
+        print(f"error: {e.code}: {term_safe(e.detail)}", file=sys.stderr)
         return 2
     except OSError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {term_safe(e)}", file=sys.stderr)
         return 1
+    finally:
+        sys.stdout, sys.stderr = out, err
 
 
 if __name__ == "__main__":

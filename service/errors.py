@@ -15,7 +15,7 @@ import logging
 
 log = logging.getLogger("service")
 
-__all__ = ["ServiceError", "service_error", "error_response", "install_error_handlers"]
+__all__ = ["ServiceError", "service_error", "error_response", "install_error_handlers", "disk_full"]
 
 
 class ServiceError(Exception):
@@ -57,6 +57,31 @@ def service_error(exc: BaseException) -> ServiceError | None:
     if isinstance(exc, RecoveryError):
         return ServiceError(422, exc.code, str(exc))
     return None
+
+
+def disk_full(exc: BaseException | None) -> bool:
+    """Whether ``exc`` (or what caused it: ``__cause__``/``__context__``)
+    is a file system out of space or quota: ``ENOSPC``/``EDQUOT``, numpy's
+    errno-less ``OSError("Not enough free space to write ...")`` (tifffile
+    writes through ``ndarray.tofile``), or SQLite's "database or disk is full"."""
+    import errno
+
+    seen = 0
+    while exc is not None and seen < 16:
+        if isinstance(exc, OSError) and (exc.errno in (errno.ENOSPC, errno.EDQUOT)
+                                         or "not enough free space" in str(exc).lower()):
+            return True
+        if type(exc).__name__ == "OperationalError" and "full" in str(exc).lower():
+            return True
+        exc = exc.__cause__ or exc.__context__
+        seen += 1
+    return False
+
+
+#: The answer when the server's temporary space (``TMPDIR``: spooled uploads,
+#: the white-balance output before it is streamed) is full.
+INSUFFICIENT_STORAGE = ("the server's temporary space (TMPDIR) is full: the upload or its result could not be "
+                        "written; nothing was kept, try again when space is freed")
 
 
 def error_response(status: int, code: str, detail, headers: dict | None = None):
@@ -134,10 +159,16 @@ def install_error_handlers(app) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException):
+        if exc.status_code == 400 and disk_full(exc.__cause__):   # FastAPI: "error parsing the body"
+            log.error("upload not spooled, TMPDIR is full: %s", exc.__cause__)
+            return error_response(507, "insufficient_storage", INSUFFICIENT_STORAGE)
         code = {404: "not_found", 405: "method_not_allowed", 413: "too_large"}.get(exc.status_code, "http_error")
         return error_response(exc.status_code, code, str(exc.detail))
 
     @app.exception_handler(Exception)
     async def _internal(_: Request, exc: Exception):  # a bug, never a bad upload
+        if disk_full(exc):             # not a bug: the disk (TMPDIR) is full
+            log.error("request failed, TMPDIR is full: %s", exc)
+            return error_response(507, "insufficient_storage", INSUFFICIENT_STORAGE)
         log.exception("internal error")
         return error_response(500, "internal_error", f"{type(exc).__name__}: the service failed; please report")

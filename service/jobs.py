@@ -156,7 +156,17 @@ def _pool_worker_init() -> None:
     """Pool worker start-up: one numerical thread, and exit when the parent
     (the server or the CLI) is gone, so a killed server leaves no orphans
     (an item cut short this way is simply run again after the restart; its
-    output never got its final name)."""
+    output never got its final name).
+
+    Ctrl-C is the parent's to handle: a terminal sends SIGINT to the whole
+    process group, and a worker dying of KeyboardInterrupt mid-item (or
+    while idle) breaks the pool and prints tracebacks. The parent stops the
+    workers with SIGTERM (:meth:`LocalExecutor.terminate`): the worker
+    removes the temporary file it was writing and exits at once."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit_on_term)
     limit_threads()
     parent = os.getppid()
 
@@ -166,6 +176,18 @@ def _pool_worker_init() -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+#: Temporary files this process is writing (:func:`atomic_write`), removed
+#: when a pool worker is terminated.
+_PARTS: set = set()
+
+
+def _exit_on_term(signum, frame) -> None:  # pragma: no cover - runs in a pool worker
+    for p in list(_PARTS):
+        with contextlib.suppress(OSError):
+            os.unlink(p)
+    os._exit(128 + signum)
 
 
 @dataclass(frozen=True)
@@ -185,6 +207,20 @@ class ItemTask:
     exactly_once: bool = True
     #: True (CLI --force): a finished output is computed again and replaced
     force: bool = False
+    #: a file whose existence means "the batch was cancelled": the item
+    #: stops at its next step without writing (:meth:`BatchRunner.cancel`)
+    cancel_file: str | None = None
+    #: the item's index in its batch (recorded in the sidecar; None: the CLI)
+    index: int | None = None
+
+
+class ItemCancelled(Exception):
+    """The item's batch was cancelled while it ran (see ``ItemTask.cancel_file``)."""
+
+
+def _check_cancel(task: ItemTask) -> None:
+    if task.cancel_file and os.path.exists(task.cancel_file):
+        raise ItemCancelled(task.name)
 
 
 def _estimate_json(est, camera_name: str) -> dict:
@@ -261,6 +297,7 @@ def atomic_write(path: str, write) -> None:
     d, base = os.path.split(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=".part", dir=d or ".")
     os.close(fd)
+    _PARTS.add(tmp)
     os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are ordinary files
     try:
         write(tmp)
@@ -271,6 +308,68 @@ def atomic_write(path: str, write) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+    finally:
+        _PARTS.discard(tmp)
+
+
+#: The temporaries :func:`atomic_write` makes: ``.NAME.XXXXXXXX.part``
+#: (``tempfile.mkstemp``: 8 characters of ``a-z0-9_``); nothing else is one.
+_TEMPORARY = re.compile(r"\.(.+)\.[a-z0-9_]{8}\.part", re.S)
+
+
+def is_temporary(entry: str) -> bool:
+    """Whether a file name is one of :func:`atomic_write`'s temporaries."""
+    return _TEMPORARY.fullmatch(entry) is not None
+
+
+def remove_stale_temporaries(out_dir: str, outputs=None, locked: str | None = None) -> list[str]:
+    """Remove the temporaries (``.NAME.XXXXXXXX.part``) that a writer killed
+    mid-write left in ``out_dir`` and its ``.wandell`` folder; returns them.
+
+    Only :func:`atomic_write`'s own pattern is touched, only for outputs
+    named in ``outputs`` (None: any), and each only while holding the item
+    lock of its output (a writer still at work holds it, so its temporary is
+    left alone); ``locked``: the output whose lock the caller holds."""
+    import fcntl
+
+    removed = []
+    for d in (out_dir, os.path.dirname(meta_path(os.path.join(out_dir, "x"), ""))):
+        try:
+            entries = sorted(os.listdir(d))
+        except OSError:
+            continue
+        for entry in entries:
+            m = _TEMPORARY.fullmatch(entry)
+            if m is None:
+                continue
+            final = m[1]
+            if d != out_dir:  # a sidecar's: .<output>.json.XXXXXXXX.part
+                if not final.endswith(".json"):
+                    continue
+                final = final[:-5]
+            if outputs is not None and final not in outputs:
+                continue
+            path, out = os.path.join(d, entry), os.path.join(out_dir, final)
+            if os.path.islink(path) or not os.path.isfile(path):
+                continue
+            fd = None
+            if out != locked:
+                try:
+                    fd = os.open(meta_path(out, ".lock"), os.O_CREAT | os.O_RDWR, 0o644)
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:  # being written now (or no lock possible): not stale
+                    if fd is not None:
+                        os.close(fd)
+                    continue
+            try:
+                os.unlink(path)
+                removed.append(path)
+            except OSError:
+                pass
+            finally:
+                if fd is not None:
+                    os.close(fd)
+    return removed
 
 
 def is_finished(out: str) -> bool:
@@ -285,35 +384,43 @@ def process_item(task: ItemTask) -> dict:
     :mod:`service.pipeline`: eq. 36 and 23, Wandell 1985, one 3x3 matrix).
 
     Returns ``{"status": "done", "illuminant": ..., "adopted": bool,
-    "seconds": ...}`` or ``{"status": "failed", "error": text}``; never
-    raises for a bad file (a corrupt file fails its item only).
+    "seconds": ...}`` or ``{"status": "failed", "error": text}``, or
+    ``{"status": "cancelled"}`` when the batch was cancelled before the item
+    wrote anything (checked between the steps); never raises for a bad file
+    (a corrupt file fails its item only).
     """
     from . import pipeline
 
     t0, c0 = time.perf_counter(), time.process_time()
     try:
+        _check_cancel(task)
         with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
+            if task.exactly_once:  # under the lock: a temporary of this output is an earlier run's, killed
+                remove_stale_temporaries(os.path.dirname(task.out), {os.path.basename(task.out)}, task.out)
             if task.exactly_once and not task.force and is_finished(task.out):  # written by an earlier run: adopt, never write twice
                 with open(meta_path(task.out, ".json")) as f:
                     side = json.load(f)
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
                         "seconds": time.perf_counter() - t0}
             decoded, cam, warns = _open(task)
+            _check_cancel(task)
             opts = task.options.estimate_kwargs()
             if task.light is None:
                 run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
             else:
                 run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
+            _check_cancel(task)
             fmt = FORMATS[task.options.format]
             out, M, info, meta = pipeline.render_corrected(decoded, run, target=task.options.target,
                                                            output=task.options.output, fmt=fmt,
                                                            surface_basis=opts.get("surface_basis"),
                                                            threads=task.threads, exposure=task.options.exposure)
+            _check_cancel(task)  # the last point before anything is written
             file_warnings = list(decoded.warnings)
             del decoded
             illum = _estimate_json(run.estimate, cam.name)
             illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
-            side = {"name": task.name, "illuminant": illum, "correction_matrix": M.tolist(),
+            side = {"name": task.name, "index": task.index, "illuminant": illum, "correction_matrix": M.tolist(),
                     "rendering": pipeline.rendering_json(info),
                     "options": asdict(task.options)}
             if task.exactly_once:
@@ -325,6 +432,8 @@ def process_item(task: ItemTask) -> dict:
                                         "pid": os.getpid(), "time": time.time()}) + "\n")
             return {"status": "done", "illuminant": _clean(illum), "adopted": False,
                     "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
+    except ItemCancelled:
+        return {"status": "cancelled", "seconds": time.perf_counter() - t0}
     except MemoryError:
         return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
     except Exception as exc:
@@ -424,12 +533,57 @@ class LocalExecutor:
         self.workers = max(1, int(workers))
         self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_pool_worker_init)
+        # start every worker now, with SIGINT ignored from their first
+        # instruction on (an ignored signal stays ignored across exec, and
+        # Python then installs no KeyboardInterrupt handler): a Ctrl-C while
+        # a worker is still importing must not kill it with a traceback
+        with _sigint_ignored():
+            for _ in range(self.workers):
+                self._pool.submit(int)
 
     def submit(self, fn, *args) -> Future:
         return self._pool.submit(fn, *args)
 
     def shutdown(self, wait: bool = True) -> None:
         self._pool.shutdown(wait=wait, cancel_futures=True)
+
+    def terminate(self, kill: bool = False, grace_s: float = 3.0) -> None:
+        """Stop now: queued items are dropped, running ones are ended
+        (SIGTERM: the worker removes its temporary file and exits; ``kill``
+        or still alive after ``grace_s``: SIGKILL). Their outputs never got
+        their final names, so nothing partial remains. Afterwards the pool's
+        manager thread ends by itself (it sees its workers gone), so neither
+        this call nor the interpreter's exit waits for running work."""
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            with contextlib.suppress(Exception):
+                p.kill() if kill else p.terminate()
+        t_end = time.monotonic() + grace_s
+        for p in procs:
+            with contextlib.suppress(Exception):
+                p.join(max(0.0, t_end - time.monotonic()))
+                if p.is_alive():
+                    p.kill()
+                    p.join(1.0)
+        manager = getattr(self._pool, "_executor_manager_thread", None)
+        if manager is not None:
+            manager.join(max(1.0, t_end - time.monotonic()))
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored in this block (main thread only; elsewhere a no-op)."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def _dask_call(fn, *args):
@@ -542,6 +696,30 @@ def safe_name(name: str) -> str:
     return clip_name(base, MAX_NAME_BYTES)
 
 
+#: Beside each batch's ``in/`` and ``out/``: the manifest of its items
+#: (written once, with the batch) and the journal of their state changes,
+#: from which a damaged job store is rebuilt.
+MANIFEST = "batch.json"
+JOURNAL = "states.jsonl"
+
+
+def _read_sidecar(out: str) -> dict | None:
+    """The ``.json`` sidecar of a finished output, or None (not finished, unreadable)."""
+    if not is_finished(out):
+        return None
+    try:
+        with open(meta_path(out, ".json")) as f:
+            side = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return side if isinstance(side, dict) else None
+
+
+#: An item index in a URL: ASCII digits only (``str.isdigit`` also accepts
+#: ``²`` and other digits ``int`` refuses), at most 18 of them (64-bit).
+_INDEX_TEXT = re.compile(r"[0-9]{1,18}")
+
+
 class JobStore:
     """Batches and items in SQLite (WAL), every state change one atomic
     ``UPDATE ... WHERE status = <expected>`` inside a transaction."""
@@ -591,50 +769,141 @@ class JobStore:
 
     def adopt_from_disk(self) -> int:
         """Register every batch directory the store does not know, from what
-        is on disk: each finished output (its ``.json`` sidecar names the
-        item and holds the estimate and options) as a ``done`` item, each
-        input without an output as ``failed``. Returns how many batches."""
+        is on disk. A batch's manifest (``batch.json``, written with the
+        batch: each item's index, name, input and output) and its state
+        journal (``states.jsonl``: every item's end, the batch's end, the
+        shared light) give back the same items at the same indices in the
+        same states: done where the output and its sidecar are finished on
+        disk, failed or cancelled as journalled, and items that had not
+        finished pending again (their batch re-queued) while their input is
+        still there. Batches from before the manifest are rebuilt from their
+        inputs' names (:meth:`_legacy_rows`). Returns how many batches."""
         root = os.path.join(self.data_dir, "batches")
         n = 0
         for bid in sorted(os.listdir(root)):
             bdir = os.path.join(root, bid)
             if not os.path.isdir(bdir) or self.batch(bid) is not None:
                 continue
-            out_dir, in_dir = os.path.join(bdir, "out"), os.path.join(bdir, "in")
-            rows, options, done_names = [], None, set()
-            if os.path.isdir(out_dir):
-                for entry in sorted(os.listdir(out_dir)):
-                    out = os.path.join(out_dir, entry)
-                    if entry.startswith(".") or not is_finished(out):
-                        continue
-                    try:
-                        with open(meta_path(out, ".json")) as f:
-                            side = json.load(f)
-                        options = options or BatchOptions(**side.get("options", {}))
-                    except (OSError, ValueError, TypeError):
-                        continue
-                    name = str(side.get("name") or entry)
-                    done_names.add(name)
-                    rows.append((name, "", out, "done", None, json.dumps(side.get("illuminant"))))
-            if os.path.isdir(in_dir):
-                for entry in sorted(os.listdir(in_dir)):
-                    name = entry.split("-", 1)[1] if re.match(r"\d{5}-", entry) else entry
-                    if name not in done_names:
-                        rows.append((name, os.path.join(in_dir, entry), os.path.join(out_dir, name), "failed",
-                                     "store_recovered: the job store was damaged before this item finished; "
-                                     "submit it again", None))
+            try:
+                with open(os.path.join(bdir, MANIFEST)) as f:
+                    manifest = json.load(f)
+                options = BatchOptions(**manifest["options"])
+                items = [(int(it["index"]), str(it["name"]), str(it["src"]), str(it["out"]))
+                         for it in manifest["items"]]
+            except (OSError, ValueError, TypeError, KeyError):
+                manifest = None
+            if manifest is None:
+                rows, options = self._legacy_rows(bdir)
+                status, created, light = "done", os.path.getmtime(bdir), (None, None)
+            else:
+                rows, status, light = self._manifest_rows(bdir, items)
+                created = float(manifest.get("created") or os.path.getmtime(bdir))
             if not rows:
                 continue
             now = time.time()
             with self._tx() as db:
-                db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir) "
-                           "VALUES (?, ?, ?, ?, 'done', ?, ?)",
-                           (bid, os.path.getmtime(bdir), now, now, (options or BatchOptions()).to_json(), bdir))
+                db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir, light, "
+                           "light_error) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                           (bid, created, None if status == "queued" else now,
+                            None if status == "queued" else now, status, (options or BatchOptions()).to_json(),
+                            bdir, *light))
                 db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, illuminant, "
-                               "finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                               [(bid, i, *r, now) for i, r in enumerate(rows)])
+                               "completions, finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                               [(bid, *r, int(r[4] == "done"), None if r[4] == "pending" else now)
+                                for r in rows])
             n += 1
         return n
+
+    def _manifest_rows(self, bdir: str, items: list) -> tuple[list, str, tuple]:
+        """Rows ``(idx, name, src, out, status, error, illuminant)`` of a
+        batch with a manifest, its status and its (light, light_error)."""
+        states, batch_state, light = {}, None, (None, None)
+        with contextlib.suppress(OSError):
+            with open(os.path.join(bdir, JOURNAL)) as f:
+                for line in f:
+                    try:
+                        rec = json.loads(line)
+                    except ValueError:  # a line torn by a crash
+                        continue
+                    if "idx" in rec:
+                        states[rec["idx"]] = rec
+                    elif "batch" in rec:
+                        batch_state = rec["batch"]
+                    elif "light" in rec:
+                        light = (None if rec["light"] is None else json.dumps(rec["light"]), rec.get("light_error"))
+        rows, waiting = [], False
+        for idx, name, src, out in items:
+            src = src if os.path.isabs(src) else os.path.join(bdir, src)
+            out = os.path.join(bdir, "out", out)
+            rec = states.get(idx) or {}
+            side = _read_sidecar(out)
+            if side is not None:
+                rows.append((idx, name, src, out, "done", None, json.dumps(side.get("illuminant"))))
+            elif rec.get("status") in ("failed", "cancelled"):
+                rows.append((idx, name, src, out, rec["status"], rec.get("error"), None))
+            elif batch_state == "cancelled":
+                rows.append((idx, name, src, out, "cancelled", None, None))
+            elif os.path.isfile(src) and batch_state != "done":
+                rows.append((idx, name, src, out, "pending", None, None))
+                waiting = True
+            else:
+                rows.append((idx, name, src, out, "failed", "store_recovered: the job store was damaged before "
+                             "this item finished and its input is gone; submit it again", None))
+        status = "cancelled" if batch_state == "cancelled" else ("queued" if waiting else "done")
+        return rows, status, light
+
+    def _legacy_rows(self, bdir: str) -> tuple[list, "BatchOptions | None"]:
+        """Rows of a batch written before manifests: the uploaded inputs
+        (``NNNNN-name``: index and name) named again as
+        :meth:`create_batch` named them, so uniquified names (``A (2).dng``)
+        and their outputs match; finished outputs (``.``-names included)
+        done, the other inputs failed; outputs with no input (folder mode,
+        inputs removed) after them."""
+        out_dir, in_dir = os.path.join(bdir, "out"), os.path.join(bdir, "in")
+        done, options = {}, None
+        if os.path.isdir(out_dir):
+            for entry in sorted(os.listdir(out_dir)):
+                out = os.path.join(out_dir, entry)
+                side = None if is_temporary(entry) or not os.path.isfile(out) else _read_sidecar(out)
+                if side is None:
+                    continue
+                with contextlib.suppress(TypeError):
+                    options = options or BatchOptions(**side.get("options", {}))
+                done[entry] = side
+        inputs = []
+        if os.path.isdir(in_dir):
+            for entry in os.listdir(in_dir):
+                m = re.fullmatch(r"([0-9]{5})-(.*)", entry, re.S)
+                if m:
+                    inputs.append((int(m[1]), m[2], os.path.join(in_dir, entry)))
+        ext = (options or BatchOptions()).extension
+        rows, seen, outs = [], set(), set()
+        for idx, orig, src in sorted(inputs):
+            name = unique(safe_name(orig), seen)
+            out = unique(clip_name(f"{os.path.splitext(name)[0]}.{ext}", DISK_NAME_BYTES - 12), outs)
+            side = done.pop(out, None)
+            if side is not None:
+                rows.append((idx, name, src, os.path.join(out_dir, out), "done", None,
+                             json.dumps(side.get("illuminant"))))
+            else:
+                rows.append((idx, name, src, os.path.join(out_dir, out), "failed", "store_recovered: the job "
+                             "store was damaged before this item finished; submit it again", None))
+        nxt = max([r[0] for r in rows], default=-1) + 1
+        for entry, side in done.items():
+            rows.append((nxt, str(side.get("name") or entry), "", os.path.join(out_dir, entry), "done", None,
+                         json.dumps(side.get("illuminant"))))
+            nxt += 1
+        return rows, options
+
+    def _journal(self, batch_id: str, **record) -> None:
+        """Append one state change to the batch's ``states.jsonl`` (what
+        :meth:`adopt_from_disk` rebuilds a damaged store from). Best effort:
+        a full disk loses a line, never the transition."""
+        record["t"] = time.time()
+        with contextlib.suppress(OSError, TypeError, ValueError):
+            line = json.dumps(_clean(record)) + "\n"
+            with open(os.path.join(self.batch_dir(batch_id), JOURNAL), "a") as f:
+                f.write(line)
 
     def _db(self) -> sqlite3.Connection:
         db = getattr(self._local, "db", None)
@@ -679,9 +948,16 @@ class JobStore:
             # the output's name on disk stays short enough for its temporaries and sidecars
             out = unique(clip_name(f"{stem}.{options.extension}", DISK_NAME_BYTES - 12), outs)
             rows.append((batch_id, i, nm, os.path.abspath(src), os.path.join(out_dir, out)))
+        bdir, created = self.batch_dir(batch_id), time.time()
+        manifest = {"id": batch_id, "created": created, "options": asdict(options),
+                    "items": [{"index": r[1], "name": r[2], "out": os.path.basename(r[4]),
+                               "src": os.path.relpath(r[3], bdir) if r[3].startswith(bdir + os.sep) else r[3]}
+                              for r in rows]}
+        os.makedirs(bdir, exist_ok=True)
+        atomic_write(os.path.join(bdir, MANIFEST), lambda p: write_text(p, json.dumps(manifest)))
         with self._tx() as db:
             db.execute("INSERT INTO batches (id, created, status, options, dir) VALUES (?, ?, 'queued', ?, ?)",
-                       (batch_id, time.time(), options.to_json(), self.batch_dir(batch_id)))
+                       (batch_id, created, options.to_json(), bdir))
             db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status) "
                            "VALUES (?, ?, ?, ?, ?, 'pending')", rows)
 
@@ -692,13 +968,37 @@ class JobStore:
     def items(self, batch_id: str) -> list:
         return self._db().execute("SELECT * FROM items WHERE batch_id = ? ORDER BY idx", (batch_id,)).fetchall()
 
+    def item_by_index(self, batch_id: str, index):
+        """The item at ``index`` (an int, or its ASCII decimal digits); None
+        for anything else: other Unicode digits (``²``), signs, spaces, or
+        more digits than any index can have (never an error)."""
+        if not isinstance(index, int):
+            if not isinstance(index, str) or not _INDEX_TEXT.fullmatch(index):
+                return None
+            index = int(index)
+        if not 0 <= index < 2 ** 63:
+            return None
+        return self._db().execute("SELECT * FROM items WHERE batch_id = ? AND idx = ?", (batch_id, index)).fetchone()
+
+    def item_by_name(self, batch_id: str, name: str):
+        """The item of this (stored, made-unique) name, or None."""
+        return self._db().execute("SELECT * FROM items WHERE batch_id = ? AND name = ?",
+                                  (batch_id, str(name))).fetchone()
+
     def item(self, batch_id: str, key: str):
-        """An item by index (digits) or by name."""
-        db = self._db()
-        row = db.execute("SELECT * FROM items WHERE batch_id = ? AND name = ?", (batch_id, key)).fetchone()
-        if row is None and str(key).isdigit():
-            row = db.execute("SELECT * FROM items WHERE batch_id = ? AND idx = ?", (batch_id, int(key))).fetchone()
-        return row
+        """An item by name or by index (the ``items/{key}`` URL, which takes
+        both). A key that names one item and is the index of another is
+        ambiguous: :class:`~service.errors.ServiceError` 409
+        ``ambiguous_item``, never the wrong file (``by-index`` / ``by-name``
+        say which is meant)."""
+        by_name = self.item_by_name(batch_id, key)
+        by_index = self.item_by_index(batch_id, key)
+        if by_name is not None and by_index is not None and by_name["idx"] != by_index["idx"]:
+            raise ServiceError(409, "ambiguous_item",
+                               f"{key!r} is the name of item {by_name['idx']} and the index of item "
+                               f"{by_index['idx']} ({by_index['name']!r}): ask for items/by-index/{key} (item "
+                               f"{by_index['idx']}) or items/by-name/{key} (item {by_name['idx']})")
+        return by_name if by_name is not None else by_index
 
     def counts(self, batch_id: str) -> dict:
         c = {s: 0 for s in ("pending", "running", "done", "failed", "cancelled")}
@@ -720,6 +1020,9 @@ class JobStore:
         with self._tx() as db:
             n = db.execute("UPDATE items SET status = 'pending' WHERE status = 'running' AND batch_id IN "
                            "(SELECT id FROM batches WHERE status IN ('queued', 'running'))").rowcount
+            # a batch cancelled while items ran: their workers died with the server
+            db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE status = 'running' AND "
+                       "batch_id IN (SELECT id FROM batches WHERE status = 'cancelled')", (time.time(),))
         return n
 
     def start_batch(self, batch_id: str) -> bool:
@@ -748,19 +1051,26 @@ class JobStore:
                 "completions = completions + 1 WHERE batch_id = ? AND idx = ? AND status = 'running'",
                 ("done" if ok else "failed", None if ok else str(result.get("error")),
                  json.dumps(result.get("illuminant")) if ok else None, time.time(), batch_id, idx)).rowcount
+        if n == 1:
+            self._journal(batch_id, idx=idx, status="done" if ok else "failed",
+                          error=None if ok else str(result.get("error")))
         return n == 1
 
     def fail_item(self, batch_id: str, idx: int, error: str) -> None:
         with self._tx() as db:
-            db.execute("UPDATE items SET status = 'failed', error = ?, finished = ? "
-                       "WHERE batch_id = ? AND idx = ? AND status IN ('pending', 'running')",
-                       (error, time.time(), batch_id, idx))
+            n = db.execute("UPDATE items SET status = 'failed', error = ?, finished = ? "
+                           "WHERE batch_id = ? AND idx = ? AND status IN ('pending', 'running')",
+                           (error, time.time(), batch_id, idx)).rowcount
+        if n:
+            self._journal(batch_id, idx=idx, status="failed", error=error)
 
     def cancel_item(self, batch_id: str, idx: int) -> None:
         """``running`` -> ``cancelled`` for an item dropped before it started."""
         with self._tx() as db:
-            db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
-                       "AND status = 'running'", (time.time(), batch_id, idx))
+            n = db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
+                           "AND status = 'running'", (time.time(), batch_id, idx)).rowcount
+        if n:
+            self._journal(batch_id, idx=idx, status="cancelled")
 
     def expired_inputs(self, retention_s: float) -> list[str]:
         """The upload folders (``<batch>/in``) of batches finished or cancelled
@@ -782,6 +1092,7 @@ class JobStore:
         with self._tx() as db:
             db.execute("UPDATE batches SET light = ?, light_error = ? WHERE id = ?",
                        (None if light is None else json.dumps(light), error, batch_id))
+        self._journal(batch_id, light=light, light_error=error)
 
     def maybe_finish(self, batch_id: str) -> bool:
         """``running`` -> ``done`` once no item is pending or running."""
@@ -790,19 +1101,26 @@ class JobStore:
                               (batch_id,)).fetchone()[0]
             if left:
                 return False
-            return db.execute("UPDATE batches SET status = 'done', finished = ? WHERE id = ? AND status = "
+            done = db.execute("UPDATE batches SET status = 'done', finished = ? WHERE id = ? AND status = "
                               "'running'", (time.time(), batch_id)).rowcount == 1
+        if done:
+            self._journal(batch_id, batch="done")
+        return done
 
     def cancel(self, batch_id: str) -> bool:
-        """Cancel: pending items are cancelled, running ones finish (their
-        results are kept); the batch is ``cancelled``. False if it had
-        already finished."""
+        """Cancel: pending items are cancelled at once; running ones stay
+        ``running`` until their worker answers (``cancelled`` when it
+        stopped, ``done`` and kept when it had finished: see
+        :meth:`BatchRunner.cancel`); the batch is ``cancelled``. False if it
+        had already finished."""
         with self._tx() as db:
             n = db.execute("UPDATE batches SET status = 'cancelled', finished = ? WHERE id = ? AND status IN "
                            "('queued', 'running')", (time.time(), batch_id)).rowcount
             if n:
                 db.execute("UPDATE items SET status = 'cancelled' WHERE batch_id = ? AND status = 'pending'",
                            (batch_id,))
+        if n:
+            self._journal(batch_id, batch="cancelled")
         return n == 1
 
     def progress(self, batch_id: str) -> dict | None:
@@ -831,7 +1149,11 @@ class JobStore:
                                                             "low_confidence")}
             items.append(it)
         opts = json.loads(b["options"])
-        doc = {"id": batch_id, "status": b["status"], "lighting": opts.get("lighting"), "options": opts,
+        # settled: the batch is over and every count final (a cancelled
+        # batch's running items are still stopping until this is true)
+        settled = b["status"] in ("done", "cancelled") and left == 0
+        doc = {"id": batch_id, "status": b["status"], "settled": settled,
+               "lighting": opts.get("lighting"), "options": opts,
                "counts": {"done": c["done"], "failed": c["failed"], "pending": left, "running": c["running"],
                           "cancelled": c["cancelled"], "total": len(rows)},
                "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
@@ -918,37 +1240,85 @@ class BatchRunner:
         if self._thread is not None:
             self._thread.join(timeout=30)
         if self._executor is not None:
-            self._executor.shutdown(wait=wait)
+            if not wait and hasattr(self._executor, "terminate"):
+                # the server is going away: items in flight are run again after
+                # the restart (resume); never wait for them
+                self._executor.terminate()
+            else:
+                self._executor.shutdown(wait=wait)
 
     def wake(self) -> None:
         self._wake.set()
 
+    def cancel_file(self, batch_id: str) -> str:
+        """The marker that tells the batch's running items to stop."""
+        return os.path.join(self.store.batch_dir(batch_id), "cancelled")
+
     def cancel(self, batch_id: str) -> bool:
+        """Cancel a batch: pending items are dropped, items handed to the
+        executor but not started are dropped (cancelled future) or stop at
+        their first step, running ones stop at their next step without
+        writing (the marker file :meth:`cancel_file`, which workers on any
+        executor see) and become ``cancelled``; results finished before are
+        kept. The progress document says ``settled`` once all have answered."""
         ok = self.store.cancel(batch_id)
+        if ok:
+            with contextlib.suppress(OSError):
+                with open(self.cancel_file(batch_id), "w") as f:
+                    f.write(f"{time.time()}\n")
         with self._lock:
             futs = [fut for (b, _), fut in self._inflight.items() if b == batch_id]
         for fut in futs:  # outside the lock: cancel() runs the done callback at once
-            fut.cancel()  # not yet started: dropped; started: finishes, result kept
+            fut.cancel()  # not yet started: dropped; started: stops at its next step
         self._wake.set()
         return ok
 
     def wait(self, batch_id: str, timeout: float = 120.0) -> dict:
-        """Block until the batch is no longer queued/running (tests, CLI)."""
+        """Block until the batch is over and settled (tests, CLI)."""
         t_end = time.monotonic() + timeout
         while time.monotonic() < t_end:
             doc = self.store.progress(batch_id)
-            if doc and doc["status"] not in ("queued", "running"):
+            if doc and doc["status"] not in ("queued", "running") and doc.get("settled", True):
                 return doc
             time.sleep(0.1)
         raise TimeoutError(f"batch {batch_id} still running after {timeout} s")
 
     # -- internals -----------------------------------------------------------
     def _task(self, row, options: BatchOptions, light: dict | None) -> ItemTask:
-        return ItemTask(src=row["src"], out=row["out"], name=row["name"], options=options,
+        return ItemTask(src=row["src"], out=row["out"], name=row["name"], options=options, index=row["idx"],
                         max_pixels=self.config.max_pixels, estimation_pixels=self.config.estimation_pixels,
-                        light=light, write_log=os.path.join(self.store.batch_dir(row["batch_id"]), "writes.log"))
+                        light=light, write_log=os.path.join(self.store.batch_dir(row["batch_id"]), "writes.log"),
+                        cancel_file=self.cancel_file(row["batch_id"]))
+
+    def remove_stale_temporaries(self, batch_id: str | None = None) -> list[str]:
+        """The temporaries a killed writer left in one batch's ``out/``, or
+        in every batch's (at start-up); see :func:`remove_stale_temporaries`."""
+        root = os.path.join(self.store.data_dir, "batches")
+        try:
+            ids = [batch_id] if batch_id else sorted(os.listdir(root))
+        except OSError:
+            return []
+        gone = []
+        for bid in ids:
+            gone += remove_stale_temporaries(os.path.join(root, bid, "out"))
+        if gone:
+            import logging
+
+            logging.getLogger("service.jobs").info("removed %d stale temporary file(s): %s", len(gone), gone[:5])
+        return gone
+
+    def _finish(self, batch_id: str) -> None:
+        """Mark the batch done if nothing is left; then clear its temporaries."""
+        if self.store.maybe_finish(batch_id):
+            self.remove_stale_temporaries(batch_id)
 
     def _loop(self) -> None:
+        try:  # what a killed server left being written (its writers hold their locks if still alive)
+            self.remove_stale_temporaries()
+        except Exception:
+            import logging
+
+            logging.getLogger("service.jobs").exception("removing stale temporaries failed")
         while not self._stop.is_set():
             try:
                 self._tick()
@@ -1010,7 +1380,7 @@ class BatchRunner:
                     with self._lock:
                         self._inflight[(bid, row["idx"])] = fut
                     fut.add_done_callback(lambda f, k=(bid, row["idx"]): self._done(k, f))
-            self.store.maybe_finish(bid)
+            self._finish(bid)
 
     def _done(self, key, fut) -> None:
         bid, idx = key
@@ -1018,14 +1388,17 @@ class BatchRunner:
             self._inflight.pop(key, None)
         if fut.cancelled():  # dropped before it started
             self.store.cancel_item(bid, idx)
-            self.store.maybe_finish(bid)
+            self._finish(bid)
             return
         try:
             result = fut.result()
         except BaseException as e:  # the worker died (e.g. killed by the OOM killer)
             result = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
-        self.store.finish_item(bid, idx, result)
-        self.store.maybe_finish(bid)
+        if result.get("status") == "cancelled":  # stopped by the batch's cancel, nothing written
+            self.store.cancel_item(bid, idx)
+        else:
+            self.store.finish_item(bid, idx, result)
+        self._finish(bid)
         self._wake.set()
 
     def _shared_light_step(self, bid: str, options: BatchOptions) -> None:
@@ -1056,7 +1429,7 @@ class BatchRunner:
             if not cams:
                 self.store.set_light(bid, None, "no image of the batch could be read")
                 self._light_jobs.pop(bid, None)
-                self.store.maybe_finish(bid)
+                self._finish(bid)
                 return
             main = max(cams, key=lambda k: len(cams[k]))
             for name, lst in cams.items():
@@ -1079,7 +1452,7 @@ class BatchRunner:
             for r in self.store.items(bid):
                 if r["status"] in ("pending", "running"):
                     self.store.fail_item(bid, r["idx"], f"shared light could not be estimated: {err}")
-            self.store.maybe_finish(bid)
+            self._finish(bid)
         self._wake.set()
 
 

@@ -175,8 +175,11 @@ def _exif_of(tf, p0) -> dict:
                 val = src.get(name, src.get(code))
             if val is None:
                 continue
-            if isinstance(val, bytes):
-                val = val.decode("latin-1")
+            if isinstance(val, bytes):      # UTF-8 as most editors write it, else Latin-1
+                try:
+                    val = val.decode("utf-8")
+                except UnicodeDecodeError:
+                    val = val.decode("latin-1")
             if isinstance(val, str):
                 val = val.replace("\x00", " ").strip()
                 if not val:

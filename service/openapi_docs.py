@@ -12,6 +12,7 @@ and examples; uploads declare their 413/415/422 answers (``{"error",
 
 from __future__ import annotations
 
+import json
 import os
 
 #: The two Swagger UI files the page needs, and their media types.
@@ -55,7 +56,8 @@ PARAMS = {
     "rects": ("JSON [[r0, c0, r1, c1], ...] (end exclusive)", None, ["[[0, 0, 50, 80]]"]),
     "grid": ("a coarse grid, rows x columns", None, ["8x6"]),
     "batch_id": ("the batch id answered by POST /v1/batches", None, ["3f9c1d2e"]),
-    "item": ("an item's index in the batch (0-based)", None, [0]),
+    "item": ("an item's name, or its index in the batch (0-based); 409 when it is one item's name and "
+             "another's index", None, [0]),
     "strategy": ("a sampling rule (GET /v1/sampling lists them), auto or full", None, ["auto", "full"]),
     "n": ("number of samples, 1..64", None, [8]),
     "wavelengths": ("the cube's wavelengths in nm, comma-separated, strictly increasing", None,
@@ -118,7 +120,40 @@ def _is_file(schema: dict) -> bool:
                for p in parts)
 
 
-def _fill(schema: dict, path: str, name: str, desc_holder: dict) -> None:
+def _pop_examples(schema: dict, desc_holder: dict) -> list:
+    """Remove every example keyword from a field (its schema, the branches of
+    an ``anyOf``, the parameter object) and return the values, in order."""
+    found: list = []
+    for holder in [desc_holder, schema] + list(schema.get("anyOf", [])):
+        ex = holder.pop("examples", None)
+        if isinstance(ex, list):
+            found += ex
+        elif isinstance(ex, dict):   # a parameter's OpenAPI Example Objects
+            found += [v.get("value") for v in ex.values() if isinstance(v, dict) and "value" in v]
+        if "example" in holder:
+            found.append(holder.pop("example"))
+    return found
+
+
+def _example_text(values: list) -> str:
+    shown = []
+    for v in values:
+        t = v if isinstance(v, str) else json.dumps(v)
+        if t not in shown:
+            shown.append(t)
+    return ", ".join(f"`{t}`" for t in shown)
+
+
+def _fill(schema: dict, path: str, name: str, desc_holder: dict, form: bool = False) -> None:
+    """Description, enumeration and examples of one field.
+
+    Examples go into the description, never into ``example``/``examples``:
+    Swagger UI 5 fills "Try it out" with a field's first example (for a
+    form field even an optional one, and sends it), so an example there
+    becomes a value: ``neutral=1200,2040`` or ``surface_dim=2`` on every
+    try, a 422 or a run with other options than the defaults (issue 19,
+    item 3). A field's ``default`` stays: it is what the service does
+    without the field."""
     desc, enum, examples = PARAMS.get(name, (None, None, None))
     enum = ENUMS.get((path, name), enum)
     if not desc_holder.get("description") and desc:
@@ -128,13 +163,18 @@ def _fill(schema: dict, path: str, name: str, desc_holder: dict) -> None:
         target = next((s for s in schema["anyOf"] if s.get("type") in ("string", "integer")), schema)
     if enum and "enum" not in target and target.get("type") == "string":
         target["enum"] = list(enum)
-    if "examples" not in schema and "example" not in desc_holder and not _is_file(schema):
-        if examples:
-            schema["examples"] = list(examples)
-        elif enum:
-            schema["examples"] = [enum[0]]
-        elif "default" in schema and schema["default"] is not None:
-            schema["examples"] = [schema["default"]]
+    if form and "default" not in schema and {"type": "null"} in schema.get("anyOf", []) and not _is_file(schema):
+        # an optional form field without a value of its own: Swagger UI fills
+        # it with its schema's sample ("string", 0, the first choice; a null
+        # default is sent as the text "null"). An empty default is sent not
+        # at all, and FastAPI reads an empty form field as an absent one.
+        schema["default"] = ""
+    declared = _pop_examples(schema, desc_holder)
+    shown = declared or list(examples or [])
+    if shown and not _is_file(schema):
+        text = desc_holder.get("description") or ""
+        desc_holder["description"] = (text.rstrip(". ") + ". " if text else "") + "Examples: " + \
+            _example_text(shown) + "."
 
 
 def enrich(spec: dict) -> dict:
@@ -150,7 +190,7 @@ def enrich(spec: dict) -> dict:
                 ref = c.get("schema", {}).get("$ref", "")
                 sch = comps.get(ref.split("/")[-1], {})
                 for name, prop in sch.get("properties", {}).items():
-                    _fill(prop, path, name, prop)
+                    _fill(prop, path, name, prop, form=name not in sch.get("required", []))
                     if _is_file(prop):
                         upload = True
             responses = op.setdefault("responses", {})

@@ -16,7 +16,7 @@ from .errors import ServiceError
 
 __all__ = ["Format", "FORMATS", "MEDIA_TYPES", "IMAGE_FORMATS", "RENDER_FORMATS", "PREVIEW_FORMATS",
            "OUTPUTS", "RENDER_OUTPUTS", "SURFACE_MODELS", "LIGHT_MODELS", "choose_format", "check_output",
-           "check_target", "check_camera_name", "estimate_options", "parse_json_list", "parse_grid",
+           "check_target", "check_camera_name", "estimate_options", "parse_json_field", "parse_json_list", "parse_grid",
            "parse_exposure", "parse_neutral", "EXPOSURE_HELP", "NEUTRAL_HELP"]
 
 
@@ -144,18 +144,56 @@ def estimate_options(method: str, surface_dim, light_dim, region_size: int | Non
     return opts
 
 
+#: Longest JSON form field accepted (10,000 points or rectangles fit in well under it).
+JSON_FIELD_MAX_CHARS = 1_000_000
+#: Deepest bracket nesting a JSON form field may have (the documented shapes need 2).
+JSON_FIELD_MAX_DEPTH = 8
+
+
+def _json_depth(text: str) -> int:
+    """Deepest ``[``/``{`` nesting of ``text`` (brackets inside strings
+    counted too: no accepted shape has strings), vectorised."""
+    import numpy as np
+
+    b = np.frombuffer(text.encode("utf-8", "surrogatepass"), np.uint8)
+    step = (b == ord("[")).astype(np.int32) + (b == ord("{")) - (b == ord("]")) - (b == ord("}"))
+    return int(np.cumsum(step).max(initial=0))
+
+
+def parse_json_field(text: str, name: str, shape: str):
+    """The one parser of JSON form fields (``neutral``, ``points``,
+    ``rects``): the length (:data:`JSON_FIELD_MAX_CHARS`) and bracket depth
+    (:data:`JSON_FIELD_MAX_DEPTH`) are bounded before ``json.loads``, and
+    whatever it refuses (bad syntax, an integer of more than Python's 4,300
+    digits, recursion) is a 422 ``invalid_parameter`` saying ``shape``, the
+    form the field must take; never a 500."""
+    def bad(why: str):
+        return ServiceError(422, "invalid_parameter", f"{name} {why}; give {shape}")
+
+    if not isinstance(text, str):
+        raise bad("is not text")
+    if len(text) > JSON_FIELD_MAX_CHARS:
+        raise bad(f"is {len(text)} characters long, at most {JSON_FIELD_MAX_CHARS}")
+    if _json_depth(text) > JSON_FIELD_MAX_DEPTH:
+        raise bad(f"nests brackets deeper than {JSON_FIELD_MAX_DEPTH}")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise bad(f"is not valid JSON: {e.msg}") from None
+    except (ValueError, RecursionError, MemoryError) as e:   # e.g. an integer of more than 4300 digits
+        raise bad(f"is not usable JSON ({type(e).__name__}: {str(e)[:80]})") from None
+
+
 def parse_json_list(text: str | None, name: str, width: int) -> list:
     """A JSON list of ``width``-integer lists (points or rectangles)."""
     if not text:
         return []
-    try:
-        val = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ServiceError(422, "invalid_parameter", f"{name} is not valid JSON: {e.msg}") from None
+    shape = f"a JSON list of [{width} integers] lists"
+    val = parse_json_field(text, name, shape)
     if not isinstance(val, list) or not all(
             isinstance(v, list) and len(v) == width and all(isinstance(x, int) and not isinstance(x, bool) for x in v)
             for v in val):
-        raise ServiceError(422, "invalid_parameter", f"{name} must be a JSON list of [{width} integers] lists")
+        raise ServiceError(422, "invalid_parameter", f"{name} must be {shape}")
     if len(val) > 10000:
         raise ServiceError(422, "invalid_parameter", f"{name}: at most 10000 entries")
     return val
@@ -208,13 +246,10 @@ def parse_neutral(text) -> list[int] | None:
     ``None`` when absent; otherwise a 422 saying what is accepted."""
     if text is None or (isinstance(text, str) and not text.strip()):
         return None
-    try:
-        val = json.loads(text) if isinstance(text, str) else text
-    except json.JSONDecodeError as e:
-        raise ServiceError(422, "invalid_parameter", f"neutral is not valid JSON: {e.msg}; give [row, col] or "
-                           "[r0, c0, r1, c1]") from None
+    val = parse_json_field(text, "neutral", "[row, col] or [r0, c0, r1, c1]") if isinstance(text, str) else text
     if (not isinstance(val, list) or len(val) not in (2, 4)
             or not all(isinstance(x, int) and not isinstance(x, bool) for x in val)):
+        shown = repr(text) if len(repr(text)) <= 80 else repr(text)[:77] + "..."
         raise ServiceError(422, "invalid_parameter", f"neutral must be [row, col] or [r0, c0, r1, c1] "
-                           f"(integers), got {text!r}")
+                           f"(integers), got {shown}")
     return val

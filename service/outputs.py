@@ -14,7 +14,12 @@ Make, Model, Orientation (always 1: the pixels are already rotated, so the
 orientation is applied once), Software, DateTime, ImageDescription (the
 estimate as JSON), and an EXIF sub-IFD with the exposure facts of the
 source. JPEG gets it as APP1 ``Exif``, PNG as ``eXIf`` (PNG 1.5 extension),
-TIFF as tags of its own IFD0.
+TIFF as tags of its own IFD0. EXIF and TIFF text fields are 7-bit ASCII:
+text that is not (a photographer named José, a camera model in another
+script) is written there transliterated (:func:`ascii_text`) and whole, in
+UTF-8, in an XMP packet (:func:`xmp_facts`: JPEG APP1
+``http://ns.adobe.com/xap/1.0/``, PNG iTXt ``XML:com.adobe.xmp``, TIFF tag
+700), so no metadata ever fails an image.
 """
 
 from __future__ import annotations
@@ -26,7 +31,8 @@ from importlib import resources
 
 import numpy as np
 
-__all__ = ["icc_profile", "shipped_icc", "ICC_FOR_OUTPUT", "exif_block", "embed", "xmp_sidecar"]
+__all__ = ["icc_profile", "shipped_icc", "ICC_FOR_OUTPUT", "exif_block", "embed", "xmp_sidecar", "ascii_text",
+           "xmp_facts", "XMP_KEY"]
 
 D50_XYZ = (0.9642, 1.0, 0.8249)      # the ICC PCS white (s15Fixed16 rounding of D50)
 
@@ -137,6 +143,83 @@ _EXIF_LAYOUT = {
 }
 
 
+#: Letters NFKD does not take apart, and their usual ASCII spelling.
+_TRANSLIT = {"ß": "ss", "Æ": "AE", "æ": "ae", "Ø": "O", "ø": "o", "Œ": "OE", "œ": "oe", "Ł": "L", "ł": "l",
+             "Đ": "D", "đ": "d", "Þ": "Th", "þ": "th", "ð": "d", "©": "(c)", "®": "(R)", "™": "(TM)",
+             "\u2018": "'", "\u2019": "'", "\u201c": '"', "\u201d": '"', "\u2013": "-", "\u2014": "-"}
+
+
+def ascii_text(text) -> str:
+    """``text`` for a TIFF/EXIF ASCII field (7-bit only): accents dropped
+    (NFKD: "José Müller" -> "Jose Muller"), a few letters spelt out (ß ->
+    ss, © -> (c)), control characters and anything else outside ASCII as
+    ``?``. The full text goes into the file's XMP (:func:`xmp_facts`).
+
+    >>> ascii_text("(c) José Müller, Straße"), ascii_text("写真")
+    ('(c) Jose Muller, Strasse', '??')
+    """
+    import unicodedata
+
+    out = []
+    for ch in str(text):
+        if " " <= ch <= "~":
+            out.append(ch)
+            continue
+        if ch in _TRANSLIT:
+            out.append(_TRANSLIT[ch])
+            continue
+        base = "".join(c for c in unicodedata.normalize("NFKD", ch) if not unicodedata.combining(c))
+        out.append(base if base and all(" " <= c <= "~" for c in base) else "?")
+    return "".join(out)
+
+
+#: Facts carried in the XMP packet when their text is not ASCII: name ->
+#: (namespace prefix, property, kind); ``lang``/``seq`` are the rdf:Alt /
+#: rdf:Seq the Dublin Core properties take (XMP Specification Part 1 and 2).
+_XMP_FACTS = {
+    "Artist": ("dc", "creator", "seq"), "Copyright": ("dc", "rights", "lang"),
+    "Make": ("tiff", "Make", "text"), "Model": ("tiff", "Model", "text"),
+    "LensMake": ("exifEX", "LensMake", "text"), "LensModel": ("exifEX", "LensModel", "text"),
+    "BodySerialNumber": ("exifEX", "BodySerialNumber", "text"),
+}
+_XMP_NS = {"dc": "http://purl.org/dc/elements/1.1/", "tiff": "http://ns.adobe.com/tiff/1.0/",
+           "exifEX": "http://cipa.jp/exif/1.0/"}
+#: PNG iTXt keyword (and, with the ``http://ns.adobe.com/xap/1.0/`` APP1
+#: header, the JPEG carrier) of an XMP packet.
+XMP_KEY = "XML:com.adobe.xmp"
+
+
+def xmp_facts(facts: dict) -> str | None:
+    """An XMP packet with the text facts that are not ASCII (so cannot go
+    into EXIF/TIFF ASCII fields whole), in UTF-8 as XMP requires; ``None``
+    when every text fact is ASCII. The ASCII fields carry
+    :func:`ascii_text` of the same values."""
+    from xml.sax.saxutils import escape
+
+    props = []
+    for name, (ns, prop, kind) in _XMP_FACTS.items():
+        v = facts.get(name)
+        if not isinstance(v, str) or v.isascii():
+            continue
+        v = "".join(c for c in v if c.isprintable() or c == " ")      # no control characters in XML 1.0
+        if kind == "seq":
+            props.append(f"   <{ns}:{prop}><rdf:Seq><rdf:li>{escape(v)}</rdf:li></rdf:Seq></{ns}:{prop}>")
+        elif kind == "lang":
+            props.append(f'   <{ns}:{prop}><rdf:Alt><rdf:li xml:lang="x-default">{escape(v)}</rdf:li></rdf:Alt>'
+                         f"</{ns}:{prop}>")
+        else:
+            props.append(f"   <{ns}:{prop}>{escape(v)}</{ns}:{prop}>")
+    if not props:
+        return None
+    xmlns = "".join(f'\n   xmlns:{k}="{u}"' for k, u in _XMP_NS.items())
+    body = "\n".join(props)
+    return (f'<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
+            f'<x:xmpmeta xmlns:x="adobe:ns:meta/" x:xmptk="wandell-recovery">\n'
+            f' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
+            f'  <rdf:Description rdf:about=""{xmlns}>\n{body}\n  </rdf:Description>\n'
+            f' </rdf:RDF>\n</x:xmpmeta>\n<?xpacket end="w"?>')
+
+
 def _rational(v, signed=False):
     if isinstance(v, (tuple, list)) and len(v) == 2:
         return int(v[0]), int(v[1]) or 1
@@ -148,7 +231,7 @@ def _rational(v, signed=False):
 
 def _encode_value(typ, v) -> tuple[int, bytes]:
     if typ == _ASCII:
-        b = str(v).encode("utf-8", "replace") + b"\0"
+        b = ascii_text(v).encode("ascii") + b"\0"      # 7-bit: the full text is in the XMP
         return len(b), b
     if typ == _SHORT:
         vals = v if isinstance(v, (tuple, list)) else [v]
@@ -216,6 +299,9 @@ def output_facts(source_exif: dict, estimate: dict | None, software: str = "wand
     facts["Software"] = software
     if estimate is not None:
         facts["ImageDescription"] = "wandell estimate " + json.dumps(estimate, separators=(",", ":"))
+    xmp = xmp_facts(facts)
+    if xmp is not None:
+        facts["XMP"] = xmp
     return facts
 
 
@@ -247,6 +333,10 @@ def embed(encoded: bytes, fmt: str, icc: bytes | None, exif: bytes | None, text:
             payload = b"Exif\0\0" + exif
             if len(payload) + 2 <= 0xFFFF:
                 segs += b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+        if (text or {}).get(XMP_KEY):
+            payload = b"http://ns.adobe.com/xap/1.0/\0" + text[XMP_KEY].encode("utf-8")
+            if len(payload) + 2 <= 0xFFFF:
+                segs += b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
         if icc:
             chunk = 65519
             parts = [icc[i:i + chunk] for i in range(0, len(icc), chunk)]
@@ -271,7 +361,7 @@ def tiff_extratags(facts: dict) -> list:
         tag, typ, _ = _EXIF_LAYOUT[name]
         try:
             if typ == _ASCII:
-                out.append((tag, "s", 0, str(v), True))
+                out.append((tag, "s", 0, ascii_text(v), True))      # tifffile takes 7-bit ASCII only
             elif typ == _SHORT:
                 out.append((tag, "H", 1, int(v if not isinstance(v, (list, tuple)) else v[0]), True))
             else:
@@ -279,6 +369,9 @@ def tiff_extratags(facts: dict) -> list:
                 out.append((tag, dtype[typ], 1, (n, d), True))
         except (TypeError, ValueError):
             continue
+    if facts.get("XMP"):
+        xmp = facts["XMP"].encode("utf-8")
+        out.append((700, "B", len(xmp), xmp, True))                 # TIFF's XMP tag: UTF-8 bytes
     return out
 
 

@@ -357,6 +357,10 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
                                           profile=choice["profile"], tone=tone, exposure=exposure,
                                           image=_estimation_image(decoded))
     info["color_source"] = choice["color_source"] if info["rendering"] == "dng-matrix" else cam.source
+    if not np.all(np.isfinite(M)):
+        # never a black image (NaN matrix) answered as a success
+        raise ServiceError(422, "unrenderable", f"no finite correction from this light to target {target!r} "
+                           f"on {output}; choose another target (e.g. D65) or check the estimate")
     return M, info
 
 
@@ -692,6 +696,8 @@ def output_meta(decoded, output: str, estimate: dict | None) -> dict:
 
     facts = outputs.output_facts(metadata.source_exif(decoded), estimate)
     text = {"wandell:estimate": json.dumps(estimate, separators=(",", ":"))} if estimate is not None else None
+    if facts.get("XMP"):       # non-ASCII text facts, whole (PNG iTXt / JPEG APP1; TIFF takes them from facts)
+        text = dict(text or {}, **{outputs.XMP_KEY: facts["XMP"]})
     return {"icc": outputs.shipped_icc(output), "facts": facts, "text": text}
 
 

@@ -423,7 +423,7 @@ def file_string(value, limit: int = MAX_FILE_STRING) -> str | None:
     """A string read from an uploaded file, safe to echo in a header, JSON or
     the page.
 
-    Decoded as Latin-1 if bytes; every run of characters that are not
+    Decoded as UTF-8 (else Latin-1) if bytes; every run of characters that are not
     printable (NUL, CR/LF and other control characters, including C1) or
     whitespace becomes one space; trimmed; cut to ``limit`` characters (the
     last three ``...`` when cut).
@@ -448,7 +448,10 @@ def file_string(value, limit: int = MAX_FILE_STRING) -> str | None:
     if value is None:
         return None
     if isinstance(value, (bytes, bytearray)):
-        value = bytes(value).decode("latin-1")
+        try:
+            value = bytes(value).decode("utf-8")
+        except UnicodeDecodeError:
+            value = bytes(value).decode("latin-1")
     text = " ".join("".join(c if c.isprintable() and not c.isspace() else " " for c in str(value)).split())
     if len(text) > limit:
         text = text[:limit - 3].rstrip() + "..."
@@ -1143,6 +1146,33 @@ _NOT_LINEAR = ("8-bit images are gamma encoded (sRGB-like) and have lost the lin
                "analysis needs; send the camera RAW, or a linear 16-bit or float image")
 
 
+#: Compressions of a linear TIFF decoded, each by a C decoder (zlib, or
+#: imagecodecs for LZW and PackBits) straight into the image buffer: the
+#: peak memory of a decode is the image plus one strip or tile, whatever
+#: the file's size (tifffile's pure-Python PackBits decoder built a list of
+#: ints per strip: 3 GB for a 5.6 MB file). Anything else is a 415.
+LINEAR_TIFF_COMPRESSIONS = {1: "none", 5: "LZW", 8: "deflate", 32946: "deflate", 32773: "PackBits"}
+#: Of those, the ones tifffile decodes in pure Python without imagecodecs.
+_NEEDS_IMAGECODECS = (5, 32773)
+
+
+def _check_linear_compression(page, label: str) -> None:
+    """415 for a compression outside :data:`LINEAR_TIFF_COMPRESSIONS` (or
+    one that would be decoded in pure Python, if imagecodecs is missing)."""
+    comp = int(getattr(page, "compression", 1) or 1)
+    accepted = ", ".join(sorted(set(LINEAR_TIFF_COMPRESSIONS.values())))
+    ok = comp in LINEAR_TIFF_COMPRESSIONS
+    if ok and comp in _NEEDS_IMAGECODECS:
+        try:
+            import imagecodecs  # noqa: F401
+        except ImportError:
+            ok = False
+    if not ok:
+        raise ServiceError(415, "unsupported_format",
+                          f"{label}: TIFF compression {LINEAR_TIFF_COMPRESSIONS.get(comp, comp)!r} is not "
+                          f"supported for linear images; send it uncompressed, or {accepted} compressed")
+
+
 def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedImage:
     import tifffile
 
@@ -1201,6 +1231,7 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedI
                 raise ServiceError(422, "corrupt_file",
                                   f"{label}: image data at bytes {off}..{off + cnt} lies beyond the end of the "
                                   f"{size}-byte file (truncated?)")
+        _check_linear_compression(page, label)
         make, model = _ascii_tag(page, 271), _ascii_tag(page, 272)
         try:
             arr = page.asarray()

@@ -24,6 +24,7 @@ Every response also carries ``X-Content-Type-Options: nosniff`` and
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 
 from .errors import error_response
@@ -35,9 +36,27 @@ SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 SECURITY_HEADERS = [(b"x-content-type-options", b"nosniff"), (b"x-frame-options", b"DENY")]
 
 
-def host_name(host: str) -> str:
-    """``"127.0.0.1:8000"`` -> ``"127.0.0.1"``, ``"[::1]:80"`` -> ``"::1"``, lower case."""
+#: A ``Host`` header (RFC 9110 section 7.2, RFC 3986 section 3.2.2): a
+#: bracketed IPv6 literal, or a name/IPv4 of unreserved characters, then an
+#: optional ``:port`` of digits; nothing else (no userinfo ``@``, no text
+#: after the ``]``).
+_HOST_RE = re.compile(r"\[(?P<v6>[0-9a-f:.]+)\](?::\d{0,5})?|(?P<name>[a-z0-9._~-]+)(?::\d{0,5})?")
+
+
+def host_name(host: str, strict: bool = False) -> str | None:
+    """``"127.0.0.1:8000"`` -> ``"127.0.0.1"``, ``"[::1]:80"`` -> ``"::1"``, lower case.
+
+    ``strict`` (a request's ``Host`` header): ``None`` unless the whole
+    value is one host and an optional port (:data:`_HOST_RE`), so
+    ``127.0.0.1:8000@evil.com`` and ``[::1]evil.com`` match no allowed name.
+
+    >>> host_name("127.0.0.1:8000@evil.com", strict=True) is None, host_name("[::1]:80", strict=True)
+    (True, '::1')
+    """
     host = host.strip().lower()
+    if strict:
+        m = _HOST_RE.fullmatch(host)
+        return None if m is None else (m.group("v6") or m.group("name"))
     if host.startswith("["):
         return host[1:host.find("]")] if "]" in host else host
     return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
@@ -70,7 +89,7 @@ class HostOriginMiddleware:
         hosts, origins = _allowed(get_settings())
         headers = {k.lower(): v for k, v in scope.get("headers") or ()}
         host = headers.get(b"host", b"").decode("latin-1")
-        if host_name(host) not in hosts:
+        if host_name(host, strict=True) not in hosts:
             shown = host[:100] if host else "(none)"
             await error_response(400, "host_not_allowed", f"Host {shown!r} is not served here; allowed: "
                                  f"{sorted(hosts)} (WANDELL_ALLOWED_HOSTS adds names)")(scope, receive,

@@ -49,12 +49,12 @@ def test_batch_twice_second_run_skips_all(shoot, tmp_path, pool, capsys):
     mt = {p: os.stat(out / p).st_mtime_ns for p in ("im0.png", "im1.png")}
     assert cv2.imread(str(out / "im0.png")).shape == (160, 240, 3)
     # a partial file left by a killed run is never a result: removed, not skipped
-    (out / ".im1.png.abc.part").write_bytes(b"half")
+    (out / ".im1.png.abcd1234.part").write_bytes(b"half")  # tempfile.mkstemp's pattern
     rows2 = cli.run_batch(str(d), str(out), opts, executor=pool)
     assert [r["status"] for r in rows2] == ["skipped", "skipped"]
     assert rows2[0]["illuminant"]["camera_rgb"] == rows[0]["illuminant"]["camera_rgb"]
     assert {p: os.stat(out / p).st_mtime_ns for p in mt} == mt
-    assert not (out / ".im1.png.abc.part").exists()
+    assert not (out / ".im1.png.abcd1234.part").exists()
     err = capsys.readouterr().err
     assert "2/2" in err and "skipped 2" in err  # the progress bar
 

@@ -93,3 +93,23 @@ def test_real_dng_mutations_answer_the_same_whatever_came_before():
     assert all(400 <= s < 500 or s == 200 for s in rep.statuses), rep.statuses
     assert rep.statuses[200] > 0 and rep.statuses[422] > 0
     assert rep.health_after == 200
+
+
+def test_issue17_hostile_inputs_never_5xx():
+    """fuzz.run_round2 (``python -m benchmarks.fuzz --round2``): non-ASCII
+    metadata, hostile file names, temperature targets out of range or in
+    Unicode digits, JSON bombs, PackBits/CSV bombs (small), Host tricks.
+    Before issue 17: 28 of 191 raised (a 500 in a server), 8 black images
+    or rewritten headers answered 200, 4 hostile Hosts served; now every
+    answer is a JSON 4xx or a checked 200 (finite numbers, a non-black
+    image, only filename/filename* in Content-Disposition)."""
+    rep, peaks = fuzz.run_round2()
+    print(fuzz.round2_table(rep, peaks))
+    assert rep.failures == []
+    assert not [s for s in rep.statuses if s >= 500], rep.statuses
+    assert set(rep.by_kind) == set(fuzz.ROUND2_KINDS)
+    assert rep.health_after == 200
+    # the valid ones still work: every non-ASCII-metadata and hostile-name file renders
+    for kind in ("nonascii-metadata", "hostile-name"):
+        assert set(rep.by_kind[kind]) == {200}, (kind, rep.by_kind[kind])
+    assert set(rep.by_kind["host"]) == {400}

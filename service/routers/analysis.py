@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -15,10 +16,11 @@ from starlette.background import BackgroundTask
 
 from .. import pipeline
 from ..deps import read_upload
-from ..errors import ServiceError
+from ..errors import INSUFFICIENT_STORAGE, ServiceError, disk_full
+from ..headers import content_disposition, download_name
 from ..jsonsafe import clean
 from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, check_output, choose_format, estimate_options,
-                       parse_exposure, parse_grid, parse_json_list, parse_neutral)
+                       check_target, parse_exposure, parse_grid, parse_json_list, parse_neutral)
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -87,16 +89,33 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
     decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral)
     del data
     run = _with_white(decoded, run, white)
-    fd, path = tempfile.mkstemp(prefix="wb-", suffix="." + fmt.encoder)
-    os.close(fd)
-    try:
+    with temp_output(prefix="wb-", suffix="." + fmt.encoder) as path:
         M, info = pipeline.write_corrected(decoded, run, path, target=target, output=output, fmt=fmt,
                                            surface_basis=opts.get("surface_basis"), white=white,
                                            exposure=exposure)
-    except BaseException:
-        os.unlink(path)
-        raise
     return decoded, run, M, path, info
+
+
+@contextlib.contextmanager
+def temp_output(**kw):
+    """A temporary file in TMPDIR for an output to be streamed: removed if
+    anything fails while it is written, and a full file system (ENOSPC,
+    EDQUOT) is a 507 ``insufficient_storage``, not a 500."""
+    try:
+        fd, path = tempfile.mkstemp(**kw)
+    except OSError as e:
+        if disk_full(e):
+            raise ServiceError(507, "insufficient_storage", INSUFFICIENT_STORAGE) from None
+        raise
+    os.close(fd)
+    try:
+        yield path
+    except BaseException as e:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        if disk_full(e):
+            raise ServiceError(507, "insufficient_storage", INSUFFICIENT_STORAGE) from None
+        raise
 
 
 @router.post("/white-balance")
@@ -128,6 +147,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     if response not in ("image", "json"):
         raise ServiceError(422, "invalid_parameter", "response must be image or json")
     check_output(output)
+    check_target(target)
     opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model,
                             quality)
     ev = parse_exposure(exposure)
@@ -142,9 +162,9 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                                        where, request=request)
         run = _with_white(decoded, run, white)
         text, _, summary = pipeline.xmp_sidecar(decoded, run)
-        stem = os.path.splitext(os.path.basename(file.filename or "image"))[0] or "image"
+        stem = os.path.splitext(download_name(file.filename, "image"))[0] or "image"
         return Response(text, media_type=MEDIA_TYPES["xmp"],
-                        headers={"Content-Disposition": f'attachment; filename="{stem}.xmp"',
+                        headers={"Content-Disposition": content_disposition(f"{stem}.xmp", default="image"),
                                  "X-Illuminant": json.dumps(clean(summary), separators=(",", ":"))})
     if response == "json":
         decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
@@ -169,8 +189,8 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     if "neutral" in body:
         header["neutral"] = body["neutral"]
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
-               "Content-Disposition": f'inline; filename="{"as-shot" if white == "as-shot" else "corrected"}.'
-                                      f'{fmt.extension}"'}
+               "Content-Disposition": content_disposition(
+                   f'{"as-shot" if white == "as-shot" else "corrected"}.{fmt.extension}', "inline")}
     # streamed from a temporary file (deleted after sending): the encoded
     # image never sits in memory next to the decoded one
     return FileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers,

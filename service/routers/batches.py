@@ -17,12 +17,13 @@ import sqlite3
 import threading
 import zipfile
 
-from fastapi import APIRouter, Depends, File, Form, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Path, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
 from .. import jobs
 from ..errors import ServiceError
+from ..headers import content_disposition
 from ..jsonsafe import clean
 from ..options import EXPOSURE_HELP
 from ..settings import Settings, get_settings
@@ -188,32 +189,64 @@ def _progress(bid: str) -> dict:
         doc["runner_error"] = runner.executor_error
     for it in doc["items"]:
         if it["status"] == "done":
-            it["url"] = f"/v1/batches/{bid}/items/{it['index']}"
+            it["url"] = f"/v1/batches/{bid}/items/by-index/{it['index']}"  # never taken for a name
     return doc
 
 
 @router.get("/batches/{batch_id}")
 def batch_status(batch_id: str):
     """Progress (done, failed, pending, rate per minute, time left) and
-    each item's status with its estimate or error."""
+    each item's status with its estimate or error; ``settled`` is true once
+    the batch is over and every count final (poll until then)."""
     return JSONResponse(clean(_progress(batch_id)))
+
+
+@router.get("/batches/{batch_id}/items/by-index/{index}")
+def batch_item_by_index(batch_id: str, index: str = Path(description="the item's index in the batch (0-based), "
+                                                                       "as its url in the progress document",
+                                                           examples=["0"])):
+    """Download one result by its index (the ``url`` of each item in the
+    progress document): only ever that item, whatever the files are named."""
+    store = _store_of(batch_id)
+    return _item_file(store, batch_id, store.item_by_index(batch_id, index), index, "index")
+
+
+@router.get("/batches/{batch_id}/items/by-name/{name}")
+def batch_item_by_name(batch_id: str, name: str = Path(description="the item's name as the progress document "
+                                                                    "lists it (URL-encoded)",
+                                                        examples=["a.dng"])):
+    """Download one result by its item name (as listed, made unique:
+    ``a (2).dng``)."""
+    store = _store_of(batch_id)
+    return _item_file(store, batch_id, store.item_by_name(batch_id, name), name, "name")
 
 
 @router.get("/batches/{batch_id}/items/{item}")
 def batch_item(batch_id: str, item: str):
-    """Download one result, by item name or index."""
+    """Download one result, by item name or index; a key that is the name of
+    one item and the index of another is refused (409 ``ambiguous_item``):
+    ``items/by-index/{index}`` and ``items/by-name/{name}`` never are."""
+    store = _store_of(batch_id)
+    return _item_file(store, batch_id, store.item(batch_id, item), item, "name or index")
+
+
+def _store_of(batch_id: str) -> jobs.JobStore:
     store = get_runner().store
     if store.batch(batch_id) is None:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
-    row = store.item(batch_id, item)
+    return store
+
+
+def _item_file(store: jobs.JobStore, batch_id: str, row, key: str, kind: str):
     if row is None:
-        raise ServiceError(404, "not_found", f"batch {batch_id!r} has no item {item!r} (a name or an index)")
+        raise ServiceError(404, "not_found", f"batch {batch_id!r} has no item {key!r} (by {kind})")
     if row["status"] != "done" or not os.path.exists(row["out"]):
         raise ServiceError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
                        + (f": {row['error']}" if row["error"] else ""))
     fmt = jobs.BatchOptions.from_json(store.batch(batch_id)["options"]).format
     media = {"tiff": "image/tiff", "png": "image/png", "png16": "image/png"}.get(fmt, "image/jpeg")
-    return FileResponse(row["out"], media_type=media, filename=os.path.basename(row["out"]))
+    return FileResponse(row["out"], media_type=media,
+                        headers={"Content-Disposition": content_disposition(os.path.basename(row["out"]))})
 
 
 class _Sink:
@@ -259,12 +292,15 @@ def batch_zip(batch_id: str):
     if not entries:
         raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
     return StreamingResponse(_zip_stream(entries), media_type="application/zip",
-                             headers={"Content-Disposition": f'attachment; filename="batch-{batch_id}.zip"'})
+                             headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
 
 
 @router.delete("/batches/{batch_id}")
 def cancel_batch(batch_id: str):
-    """Cancel: pending items are dropped, running ones finish and are kept."""
+    """Cancel: pending items are dropped, running ones stop at their next
+    step without writing (``cancelled``); results finished before are kept.
+    The answer is the progress document: ``settled`` turns true once every
+    running item has answered and the counts are final."""
     runner = get_runner()
     if runner.store.batch(batch_id) is None:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")

@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse, Response
 
 from ..deps import read_upload
 from ..errors import ServiceError
+from ..headers import content_disposition
 from ..jsonsafe import clean
 from ..options import MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, check_output, choose_format
 from ..settings import Settings, get_settings
@@ -114,14 +115,30 @@ def load_npy(data: bytes, settings: Settings) -> np.ndarray:
     return arr.reshape(shape, order="F" if fortran else "C")
 
 
-def load_csv(data: bytes, what: str = "file") -> tuple[np.ndarray, np.ndarray, list]:
+def load_csv(data: bytes, what: str = "file", max_values: int | None = None) -> tuple[np.ndarray, np.ndarray, list]:
     """CSV with one row per wavelength (:func:`recovery.tables.read_csv_table`):
     the first column is the wavelength in nm, each further column one
     spectrum; an optional first row of names. Returns wavelengths ``(N,)``,
-    spectra ``(M, N)`` and the names."""
-    from recovery.tables import read_csv_table
+    spectra ``(M, N)`` and the names. The value limit (413
+    ``cube_too_large``) and the 6-wavelength rule (422
+    ``too_few_wavelengths``) are checked from a scan of the text, before any
+    value is parsed (a 100 MB row of 25 million values costs no more than
+    its text)."""
+    from recovery.errors import InputError
+    from recovery.tables import MAX_CSV_VALUES, read_csv_table
 
-    table = read_csv_table(data, what, finite=False)   # InputError "bad_csv" -> 422
+    try:
+        table = read_csv_table(data, what, finite=False, min_rows=MIN_WAVELENGTHS,   # InputError "bad_csv" -> 422
+                               max_values=max_values or MAX_CSV_VALUES)
+    except InputError as e:
+        if e.code == "too_many_values":
+            raise ServiceError(413, "cube_too_large", f"{e} (WANDELL_MAX_RENDER_VALUES)") from None
+        if e.code == "too_few_rows":
+            label = "the spectra have" if what == "file" else f"{what} has"
+            raise ServiceError(422, "too_few_wavelengths", f"{label} {e.rows} wavelength(s); at least "
+                               f"{MIN_WAVELENGTHS} are needed (they are interpolated with Sprague's 6-point "
+                               "rule)") from None
+        raise
     if table.values.shape[1] < 1 or table.wavelengths.size < 2:
         raise ServiceError(422, "bad_csv", f"{what}: need a wavelength column and at least one spectrum column, "
                            "at least two rows, every row the same length")
@@ -129,7 +146,7 @@ def load_csv(data: bytes, what: str = "file") -> tuple[np.ndarray, np.ndarray, l
     if not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
         raise ServiceError(422, "bad_wavelengths", f"{what}: the first column (wavelength, nm) must be finite and "
                            "strictly increasing")
-    return wl, table.values.T.copy(), table.names("spectrum")
+    return wl, np.ascontiguousarray(table.values.T), table.names("spectrum")   # no copy: column-major
 
 
 def check_values(arr: np.ndarray, what: str = "spectra") -> None:
@@ -204,7 +221,7 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
                                "with a .npy cube")
             wl = wl_form
         else:
-            wl, arr, names = load_csv(data)
+            wl, arr, names = load_csv(data, max_values=settings.max_render_values)
             if arr.size > settings.max_render_values:
                 raise ServiceError(413, "cube_too_large", f"{arr.size} values, over the limit of "
                                f"{settings.max_render_values}")
@@ -221,7 +238,7 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
         check_values(arr)
         light, light_wl = illuminant or "D65", None
         if light_data is not None:
-            light_wl, lv, _ = load_csv(light_data, "light_file")
+            light_wl, lv, _ = load_csv(light_data, "light_file", settings.max_render_values)
             if lv.shape[0] != 1:
                 raise ServiceError(422, "bad_csv", "light_file must have exactly one spectrum column")
             if light_wl.size < MIN_WAVELENGTHS:
@@ -263,7 +280,7 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
         header = {k: v for k, v in report.items() if k != "tried"}
         header["tried"] = len(report.get("tried", []))
         headers = {"X-Render-Report": json.dumps(clean(header), separators=(",", ":")),
-                   "Content-Disposition": f'inline; filename="render.{fmt.extension}"'}
+                   "Content-Disposition": content_disposition(f"render.{fmt.extension}", "inline")}
         return Response(payload, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
 
     # under the same bound as every other heavy request (service.workers)

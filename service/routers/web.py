@@ -24,7 +24,7 @@ from ..deps import read_upload
 from ..errors import ServiceError
 from ..jsonsafe import clean
 from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, PREVIEW_FORMATS, check_output, choose_format,
-                       estimate_options, parse_exposure, parse_neutral)
+                       check_target, estimate_options, parse_exposure, parse_neutral)
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -149,12 +149,40 @@ def corrected_preview(decoded, run, target: str, output: str, surface_basis, max
                  "correction_matrix": M.tolist(), "rendering": pipeline.rendering_json(minfo), "warnings": []}
 
 
+def output_box(decoded) -> tuple[int, int, int, int]:
+    """``(top, left, height, width)`` of what ``/v1/white-balance`` writes (the
+    DNG DefaultCrop, :func:`service.pipeline.default_crop`, orientation
+    included) in the decoded image's full-resolution pixels; the whole image
+    when the file has no crop."""
+    H, W = decoded.full_shape
+    rows = pipeline.default_crop(decoded, np.broadcast_to(np.arange(H)[:, None], (H, W)))
+    cols = pipeline.default_crop(decoded, np.broadcast_to(np.arange(W)[None, :], (H, W)))
+    return int(rows[0, 0]), int(cols[0, 0]), int(rows.shape[0]), int(rows.shape[1])
+
+
+def crop_preview(img: np.ndarray, full_shape, box) -> np.ndarray:
+    """The part of a downsized image ``img`` (of a ``full_shape`` image) that
+    is the output ``box`` (:func:`output_box`), in the preview's pixels."""
+    H, W = full_shape
+    top, left, h, w = box
+    if (h, w) == (H, W):
+        return img
+    sy, sx = img.shape[0] / H, img.shape[1] / W
+    r0, c0 = int(round(top * sy)), int(round(left * sx))
+    r1 = max(r0 + 1, min(img.shape[0], int(round((top + h) * sy))))
+    c1 = max(c0 + 1, min(img.shape[1], int(round((left + w) * sx))))
+    return np.ascontiguousarray(img[r0:r1, c0:c1])
+
+
 @router.post("/v1/preview", response_class=Response, responses={
     200: {"content": {"image/jpeg": {}, "image/png": {}},
-          "description": "An 8-bit preview image; the header ``X-Preview`` (JSON) says what it shows: "
+          "description": "An 8-bit preview image of what the downloads hold (the DNG DefaultCrop "
+                         "applied); the header ``X-Preview`` (JSON) says what it shows: "
                          "``wb``, ``width``/``height`` of the preview, ``full_width``/``full_height`` "
-                         "of the image, ``warnings``, and the camera multipliers (camera) or the "
-                         "correction matrix, method and target (corrected)."},
+                         "of the decoded image (the frame of ``neutral``), ``crop`` [top, left, height, "
+                         "width] of the output in that frame, ``output_width``/``output_height`` (the "
+                         "size /v1/white-balance writes), ``warnings``, and the camera multipliers "
+                         "(camera) or the correction matrix, method and target (corrected)."},
     415: {"description": "not a format the service reads"},
     422: {"description": "bad option or unusable file"}})
 async def preview(request: Request, file: UploadFile = File(..., description="RAW file (anything LibRaw reads) or linear "
@@ -186,6 +214,8 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
         raise ServiceError(422, "invalid_parameter", f"max_side must be in {lo}..{hi} pixels, not {max_side}")
     fmt = choose_format(format, PREVIEW_FORMATS).encoder
     check_output(output)
+    if wb == "corrected":
+        check_target(target)
     opts = estimate_options(method, None, None, None, False, None, None, quality)
     ev = parse_exposure(exposure)
     where = parse_neutral(neutral)
@@ -201,8 +231,11 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
                                             neutral=where)
             img, info = corrected_preview(decoded, run, target, output, opts.get("surface_basis"), max_side, ev)
             info["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
+        box = output_box(decoded)
+        img = crop_preview(img, decoded.full_shape, box)
         info.update(width=int(img.shape[1]), height=int(img.shape[0]),
-                    full_width=int(decoded.full_shape[1]), full_height=int(decoded.full_shape[0]))
+                    full_width=int(decoded.full_shape[1]), full_height=int(decoded.full_shape[0]),
+                    crop=list(box), output_width=box[3], output_height=box[2])
         return pipeline.encode_image(img, fmt), info
 
     body, info = await run_heavy(work, request=request)

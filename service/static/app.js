@@ -332,8 +332,12 @@ async function run() {
       setImage($("img-corrected"), await corrected.blob())]);
     $("original-note").textContent = (on.warnings || []).join("; ");
     $("corrected-target").textContent = opts.target === "estimate" ? "the estimated light (as seen)" : (opts.target || "D65");
-    $("corrected-note").textContent = cn.full_width ? `(preview ${cn.width}×${cn.height} of ${cn.full_width}×${cn.full_height})` : "";
-    current.full = cn.full_width ? {w: cn.full_width, h: cn.full_height} : null;
+    // the previews show what the downloads hold (the DNG DefaultCrop): caption
+    // that size; clicks map through the crop to the decoded image's pixels
+    const outW = cn.output_width || cn.full_width, outH = cn.output_height || cn.full_height;
+    $("corrected-note").textContent = outW ? `(preview ${cn.width}×${cn.height}; the downloads are ${outW}×${outH})` : "";
+    current.full = cn.full_width ? {w: cn.full_width, h: cn.full_height,
+      crop: cn.crop || [0, 0, cn.full_height, cn.full_width]} : null;
     showNeutral(analysis);
     const failed = analysis.method_failed;
     $("corrected-flag").hidden = !failed;
@@ -388,10 +392,10 @@ function neutralFromClick(img, ev) {
   if (!current || !current.full) return;
   const box = img.getBoundingClientRect();
   if (!box.width || !box.height) return;
-  const {w: W, h: H} = current.full;
+  const {w: W, h: H, crop: [top, left, ch, cw]} = current.full;
   const fx = Math.min(Math.max((ev.clientX - box.left) / box.width, 0), 1);
   const fy = Math.min(Math.max((ev.clientY - box.top) / box.height, 0), 1);
-  const r = Math.min(H - 1, Math.floor(fy * H)), c = Math.min(W - 1, Math.floor(fx * W));
+  const r = Math.min(H - 1, top + Math.floor(fy * ch)), c = Math.min(W - 1, left + Math.floor(fx * cw));
   const half = Math.max(2, Math.round(0.005 * Math.max(W, H)));
   current.neutral = [Math.max(0, r - half), Math.max(0, c - half), Math.min(H, r + half + 1), Math.min(W, c + half + 1)];
   run();
@@ -429,8 +433,9 @@ function chooseBatch(files) {
 }
 
 function itemLink(id, item, index) {
-  const href = item.url || item.download ||
-    `/v1/batches/${encodeURIComponent(id)}/items/${encodeURIComponent(item.id ?? index)}`;
+  // by index, never by name: a file named "0" must not take item 0's link
+  const href = item.url ||
+    `/v1/batches/${encodeURIComponent(id)}/items/by-index/${encodeURIComponent(item.index ?? index)}`;
   const a = document.createElement("a");
   a.href = href;
   a.textContent = "download";
@@ -438,16 +443,35 @@ function itemLink(id, item, index) {
   return a;
 }
 
+// Over and every count final: the API's "settled" (a cancelled batch's items
+// that were running keep answering for a moment: done, kept, or cancelled).
+function batchSettled(j) {
+  const c = j.counts || {};
+  const over = ["done", "cancelled", "failed"].includes(j.status);
+  if (typeof j.settled === "boolean") return j.settled;
+  return over && !(c.pending || 0) && !(c.running || 0);
+}
+
 function renderBatch(j) {
   const c = j.counts || {};
-  const done = c.done || 0, failed = c.failed || 0, pending = c.pending || 0;
-  const total = done + failed + pending;
+  const done = c.done || 0, failed = c.failed || 0, pending = c.pending || 0, cancelled = c.cancelled || 0;
+  const running = c.running || 0;
+  const total = c.total || done + failed + pending + cancelled;
+  const settled = batchSettled(j);
   const bar = $("batch-progress");
   bar.max = Math.max(1, total);
-  bar.value = done + failed;
-  let s = `Batch ${j.id}: ${j.status}. ${done} done, ${failed} failed, ${pending} pending of ${total}.`;
+  bar.value = done + failed + cancelled;
+  const state = j.status === "cancelled" && !settled
+    ? `cancelling (${running} running item${running === 1 ? "" : "s"} stopping)`
+    : j.status === "done" ? "finished" : j.status;
+  let s = `Batch ${j.id}: ${state}. ${done} done, ${failed} failed, ${pending} pending` +
+    (cancelled ? `, ${cancelled} cancelled` : "") + ` of ${total}.`;
   if (typeof j.rate === "number" && j.rate > 0) s += ` ${fmt(j.rate, 1)} images per minute.`;
-  if (typeof j.eta_s === "number") s += ` About ${Math.ceil(j.eta_s)} s left.`;
+  if (!settled && j.status !== "cancelled" && typeof j.eta_s === "number" && j.eta_s > 0) {
+    s += ` About ${Math.ceil(j.eta_s)} s left.`;
+  } else if (settled && typeof j.elapsed_s === "number") {
+    s += ` Took ${fmt(j.elapsed_s, j.elapsed_s < 10 ? 1 : 0)} s.`;
+  }
   $("batch-status").textContent = s;
   const tbody = $("batch-table").tBodies[0];
   tbody.textContent = "";
@@ -474,21 +498,29 @@ function renderBatch(j) {
       }
     }
   });
-  const finished = ["done", "cancelled", "failed"].includes(j.status);
   const zip = $("batch-zip");
-  zip.hidden = !(finished && done > 0);
+  zip.hidden = !(settled && done > 0);
   zip.href = `/v1/batches/${encodeURIComponent(j.id)}/zip`;
-  $("batch-cancel").hidden = finished;
-  return finished;
+  const cancel = $("batch-cancel");
+  cancel.hidden = settled;
+  cancel.disabled = j.status === "cancelled";
+  cancel.textContent = j.status === "cancelled" ? "Cancelling…" : "Cancel";
+  return settled;
 }
 
+// Polls until the batch is settled (not merely "cancelled": its running items
+// still answer after that, and the counts change until they have).
 async function poll() {
   if (!batch) return;
+  const mine = batch;
+  mine.timer = null;
   try {
-    const resp = await fetch(`/v1/batches/${encodeURIComponent(batch.id)}`);
+    const resp = await fetch(`/v1/batches/${encodeURIComponent(mine.id)}`);
     if (!resp.ok) throw await failure(resp);
-    const finished = renderBatch(await resp.json());
-    if (!finished) batch.timer = setTimeout(poll, 500);
+    const j = await resp.json();
+    if (batch !== mine) return;   // another batch was started meanwhile
+    const settled = renderBatch(j);
+    if (!settled) mine.timer = setTimeout(poll, 500);
     else { $("batch-run").disabled = batchFiles.length === 0; }
   } catch (err) {
     showError($("batch-error"), err);
@@ -518,6 +550,7 @@ async function startBatch() {
     }
     if (!resp.ok) throw await failure(resp);
     const j = await resp.json();
+    if (batch && batch.timer) clearTimeout(batch.timer);
     batch = {id: j.id, timer: null};
     $("batch-view").hidden = false;
     renderBatch(Object.assign({status: "queued", counts: {done: 0, failed: 0, pending: batchFiles.length},
@@ -531,17 +564,32 @@ async function startBatch() {
 
 async function cancelBatch() {
   if (!batch) return;
+  const mine = batch;
+  $("batch-cancel").disabled = true;
+  $("batch-cancel").textContent = "Cancelling…";
   try {
-    const resp = await fetch(`/v1/batches/${encodeURIComponent(batch.id)}`, {method: "DELETE"});
+    const resp = await fetch(`/v1/batches/${encodeURIComponent(mine.id)}`, {method: "DELETE"});
     if (!resp.ok) throw await failure(resp);
+    if (batch === mine && !renderBatch(await resp.json()) && mine.timer === null) poll();
   } catch (err) {
     showError($("batch-error"), err);
+    $("batch-cancel").disabled = false;
+    $("batch-cancel").textContent = "Cancel";
   }
 }
 
 // ---------------------------------------------------------------- wiring
 
-function dropZone(zone, onFiles) {
+// A drop zone: files dropped on it, or its file chooser opened by a click
+// anywhere on it or, focused, by Enter or Space (its <input type=file> is
+// hidden, so the zone is the keyboard's way in).
+function dropZone(zone, input, onFiles) {
+  zone.addEventListener("keydown", (e) => {
+    if (e.target === zone && (e.key === "Enter" || e.key === " ")) { e.preventDefault(); input.click(); }
+  });
+  zone.addEventListener("click", (e) => {
+    if (!e.target.closest("label, input, button, a")) input.click();
+  });
   zone.addEventListener("dragover", (e) => { e.preventDefault(); zone.classList.add("over"); });
   zone.addEventListener("dragleave", () => zone.classList.remove("over"));
   zone.addEventListener("drop", (e) => {
@@ -557,7 +605,7 @@ document.addEventListener("DOMContentLoaded", () => {
   // listener, not an inline onsubmit, which the page's Content-Security-Policy refuses
   $("options").addEventListener("submit", (e) => e.preventDefault());
   $("file").addEventListener("change", (e) => chooseFile(e.target.files[0]));
-  dropZone($("drop"), (files) => chooseFile(files[0]));
+  dropZone($("drop"), $("file"), (files) => chooseFile(files[0]));
   $("run").addEventListener("click", run);
   for (const id of ["img-original", "img-corrected"]) $(id).addEventListener("click", (e) => neutralFromClick($(id), e));
   $("neutral-clear").addEventListener("click", () => { if (current) { current.neutral = null; run(); } });
@@ -567,7 +615,7 @@ document.addEventListener("DOMContentLoaded", () => {
   $("dl-asshot").addEventListener("click", () => downloadCorrected("png", "png", "as-shot"));
   $("dl-xmp").addEventListener("click", () => downloadCorrected("xmp", "xmp"));
   $("batch-files").addEventListener("change", (e) => chooseBatch(e.target.files));
-  dropZone($("batch-drop"), chooseBatch);
+  dropZone($("batch-drop"), $("batch-files"), chooseBatch);
   $("batch-run").addEventListener("click", startBatch);
   $("batch-cancel").addEventListener("click", cancelBatch);
 });

@@ -1,0 +1,106 @@
+"""Issue 17, item 8: a full temporary directory (TMPDIR) is a 507
+``insufficient_storage`` with a JSON body, never a 500 (white-balance
+output) or a 400 "error parsing the body" (upload spooling), and leaves no
+partial file behind."""
+
+from __future__ import annotations
+
+import errno
+import io
+import os
+import shutil
+import subprocess
+import tempfile
+
+import pytest
+from fastapi.testclient import TestClient
+
+from testing.dngwriter import scene_dng
+
+from .conftest import running_server
+
+
+def _dng(h=96, w=128) -> bytes:
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", "D65", h, w, seed=1)
+    return buf.getvalue()
+
+
+@pytest.fixture
+def client():
+    from service.app import app
+
+    with TestClient(app, raise_server_exceptions=False) as c:
+        yield c
+
+
+@pytest.fixture
+def tmpdir_only(tmp_path, monkeypatch):
+    """TMPDIR for this test alone (what is left in it is checked)."""
+    d = tmp_path / "tmp"
+    d.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(d))
+    return d
+
+
+@pytest.mark.parametrize("error", [OSError(errno.ENOSPC, "No space left on device"),
+                                   OSError(errno.EDQUOT, "Disk quota exceeded"),
+                                   OSError("Not enough free space to write 53084160 bytes after offset 272")])
+@pytest.mark.parametrize("fmt", ["tiff", "png"])
+def test_white_balance_output_on_a_full_tmpdir_is_507(client, tmpdir_only, monkeypatch, error, fmt):
+    from service import pipeline
+
+    def full(decoded, run, path, **kw):
+        with open(path, "wb") as f:
+            f.write(b"partial")
+        raise error
+
+    monkeypatch.setattr(pipeline, "write_corrected", full)
+    r = client.post("/v1/white-balance", data={"format": fmt}, files={"file": ("a.dng", _dng())})
+    assert r.status_code == 507, r.text
+    assert r.json()["error"] == "insufficient_storage" and "TMPDIR" in r.json()["detail"]
+    assert os.listdir(tmpdir_only) == []
+
+
+def test_upload_spooling_on_a_full_tmpdir_is_507(client, monkeypatch):
+    """Starlette spools each upload part to TMPDIR; ENOSPC there was
+    FastAPI's 400 "There was an error parsing the body"."""
+    from starlette.datastructures import UploadFile
+
+    async def full(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(UploadFile, "write", full)
+    for path in ("/v1/white-balance", "/v1/analyze"):
+        r = client.post(path, files={"file": ("a.dng", _dng())})
+        assert r.status_code == 507 and r.json()["error"] == "insufficient_storage", (path, r.text)
+
+
+def test_a_real_small_tmpfs(tmp_path, monkeypatch):
+    """``python -m service`` with TMPDIR on an 8 MB tmpfs (needs root for
+    mount): a 1500 x 2000 DNG's 18 MB TIFF does not fit (507, TMPDIR left
+    empty); a 12 MB upload cannot even be spooled (507); /health still 200."""
+    import httpx
+
+    small = tmp_path / "small"
+    small.mkdir()
+    if shutil.which("mount") is None:
+        pytest.skip("no mount command")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(small)], capture_output=True,
+                       text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {r.stderr.strip()[:200]}")
+    try:
+        (small / "tmp").mkdir()
+        dng = _dng(1500, 2000)
+        monkeypatch.setenv("TMPDIR", str(small / "tmp"))
+        with running_server({"data_dir": tmp_path / "data"}) as (base, _, _log):
+            r = httpx.post(base + "/v1/white-balance", files={"file": ("big.dng", dng)}, timeout=120)
+            assert r.status_code == 507 and r.json()["error"] == "insufficient_storage", r.text
+            assert os.listdir(small / "tmp") == []
+            r = httpx.post(base + "/v1/analyze", files={"file": ("huge.dng", b"\0" * (12 << 20))}, timeout=120)
+            assert r.status_code == 507 and r.json()["error"] == "insufficient_storage", r.text
+            assert os.listdir(small / "tmp") == []
+            assert httpx.get(base + "/health", timeout=10).status_code == 200
+    finally:
+        subprocess.run(["umount", "-l", str(small)], capture_output=True)
