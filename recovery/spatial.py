@@ -55,7 +55,6 @@ Kass & Raftery (1995), Bayes factors, JASA 90 (the scale of log B).
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 from scipy.special import logsumexp
 
 from .bayes import estimate_bayes, helmert, modulated_spectrum
@@ -180,6 +179,8 @@ def chromaticity_trend(image: np.ndarray, mask: np.ndarray | None = None, *, dar
         delta = grads[0] * (h - 1) + sgn * grads[1] * (w - 1)
         other = ref * np.exp(Hm.T @ delta)
         eff = max(eff, float(angular_error(ref, other)))
+    from scipy import stats      # here, not at import: scipy.stats costs ~0.3 s, the first estimate's budget
+
     logp = float(stats.chi2.logsf(chi2, dof) / np.log(10))
     out.update(defined=True, gradient_row=[float(x) for x in grads[0]], gradient_col=[float(x) for x in grads[1]],
                se_row=[float(x) if np.isfinite(x) else None for x in ses[0]],
