@@ -244,7 +244,14 @@ def apply(model, rs, feats, tuv, Ks, idx, sog=None) -> dict:
     err = np.zeros(len(idx))
     err[ok] = camera_errors(uv[ok], rs.truth[idx[ok]], rs.camera[idx[ok]], Ks)
     if (~ok).any():
-        err[~ok] = sog[idx[~ok]] if sog is not None else 90.0
+        if sog is None:
+            from recovery.estimators import shades_of_gray
+
+            bad = idx[~ok]
+            est = np.array([shades_of_gray(rs.images[i], usable_mask(rs.images[i]), 6.0) for i in bad])
+            err[~ok] = angular_error(est, rs.truth[bad])
+        else:
+            err[~ok] = sog[idx[~ok]]
     spread = L._spread(feats[idx[ok]], uv[ok])
     var = L.variance_from_spread(spread, model.sigma)
     d2 = ((uv[ok] - tuv[idx[ok]]) ** 2).sum(axis=1)
