@@ -478,6 +478,9 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
             d.setdefault("region90_deg", float(spread) * float(np.sqrt(-2 * np.log(0.1))) if spread else
                          res.radius90_deg)
             d["low_confidence"] = bool(conf < LOW_CONFIDENCE)
+            if d["low_confidence"] and not any(w.startswith("low confidence") for w in est.warnings):
+                est.warnings.append(f"low confidence in the light estimate ({conf:.0%}, the light posterior's); "
+                                    "check it or give a neutral point")
             return est
     spd, best = _learned_spectrum(camera, res.rgb, res.uv, res.cov, K)
     d = dict(run.diag)
