@@ -75,9 +75,40 @@ def test_ohno2013_is_colour_sciences():
 
 @pytest.mark.skipif(not os.path.exists(RAW), reason="the real CinemaDNG is not here")
 @pytest.mark.parametrize("cmd", [["analyze", RAW], ["white-balance", RAW, "OUT.tif", "--quiet"]])
-def test_cli_does_not_import_colour_science(cmd, tmp_path):
+def test_cli_imports_neither_colour_science_nor_pydantic_settings(cmd, tmp_path):
     cmd = [str(tmp_path / c) if c == "OUT.tif" else c for c in cmd]
     code = ("import sys\nfrom service.cli import main\nrc = main(%r)\n"
-            "assert 'colour' not in sys.modules, 'colour-science was imported'\nsys.exit(rc)" % (cmd,))
-    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+            "assert 'colour' not in sys.modules, 'colour-science was imported'\n"
+            "assert 'pydantic_settings' not in sys.modules, 'pydantic-settings was imported'\nsys.exit(rc)" % (cmd,))
+    env = {k: v for k, v in os.environ.items() if not k.upper().startswith("WANDELL_")}
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_cli_default_limits_are_the_settings_defaults(monkeypatch):
+    """The CLI's settings without any ``WANDELL_*`` variable (read without
+    pydantic-settings, issue 19) are the service's embedded defaults; with
+    one set, they are the service's settings."""
+    from service import cli
+    from service.settings import Settings, get_settings
+
+    for k in list(os.environ):
+        if k.upper().startswith("WANDELL_"):
+            monkeypatch.delenv(k)
+    fast = cli._settings()
+    assert isinstance(fast, cli._DefaultLimits)
+    full = Settings()
+    for f in dataclasses_fields(fast):
+        assert getattr(fast, f) == getattr(full, f), f
+    monkeypatch.setenv("wandell_estimation_pixels", "5000")
+    get_settings.cache_clear()
+    try:
+        assert cli._settings().estimation_pixels == 5000
+    finally:
+        get_settings.cache_clear()
+
+
+def dataclasses_fields(obj):
+    import dataclasses
+
+    return [f.name for f in dataclasses.fields(obj)]
