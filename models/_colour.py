@@ -8,7 +8,8 @@ that the CLI and the service call with the same arguments every time are
 wrapped in :func:`cached`: their results for those arguments ship in
 ``models/data/colour_cache.npz``, computed by colour-science itself
 (``python -m benchmarks.build_colour_cache``). A call whose arguments are not in the file
-runs the wrapped function (and so colour-science) as before. The test
+runs the wrapped function (and so colour-science) as before, and so does every
+call with ``WANDELL_NO_COLOUR_CACHE=1`` in the environment. The test
 ``tests/test_colour_cache.py`` recomputes every entry from colour-science and
 asserts exact equality, so the file cannot drift from the library.
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +35,7 @@ _REGISTRY: dict = {}      # function name -> the uncached function
 _cache: dict | None = None  # key -> index in the file
 _npz = None
 _recording: dict | None = None  # while building: key -> value
+_lock = threading.RLock()
 
 
 def sd_to_array(sd, wavelengths=None) -> np.ndarray:
@@ -71,10 +74,13 @@ def make_key(name: str, args: tuple) -> str | None:
 def _index() -> dict:
     global _cache, _npz
     if _cache is None:
-        _cache = {}
-        if CACHE_FILE.exists() and not os.environ.get("WANDELL_NO_COLOUR_CACHE"):
-            _npz = np.load(CACHE_FILE, allow_pickle=False)
-            _cache = {k: i for i, k in enumerate(_npz["keys"].tolist())}
+        with _lock:
+            if _cache is None:
+                index = {}
+                if CACHE_FILE.exists() and not os.environ.get("WANDELL_NO_COLOUR_CACHE"):
+                    _npz = np.load(CACHE_FILE, allow_pickle=False)
+                    index = {k: i for i, k in enumerate(_npz["keys"].tolist())}
+                _cache = index
     return _cache
 
 
@@ -85,10 +91,11 @@ def _decode(arr: np.ndarray):
 
 
 def _get(i: int):
-    n = int(_npz[f"n{i}"])
-    if n < 0:
-        return _decode(_npz[f"v{i}_0"])
-    return tuple(_decode(_npz[f"v{i}_{j}"]) for j in range(n))
+    with _lock:  # one reader of the zip at a time (the service's threads)
+        n = int(_npz[f"n{i}"])
+        if n < 0:
+            return _decode(_npz[f"v{i}_0"])
+        return tuple(_decode(_npz[f"v{i}_{j}"]) for j in range(n))
 
 
 def lookup(key: str):
