@@ -561,8 +561,17 @@ def _locus(kind: str, wl: tuple):
     Planckian locus (1000-25000 K), 2 mired apart, and their temperatures."""
     lo = 4000.0 if kind == "daylight" else 1000.0
     temps = 1e6 / np.arange(1e6 / 25000.0, 1e6 / lo + 1e-9, 2.0)
-    f = models.daylight if kind == "daylight" else models.blackbody
-    sp = np.stack([f(float(t), np.asarray(wl)) for t in temps])
+    if kind == "daylight":      # CIE 015:2018 eq. 4.7-4.10 on S0, S1, S2, as models.daylight (vectorised)
+        import colour
+
+        x, y = np.asarray(colour.temperature.CCT_to_xy_CIE_D(temps)).T
+        m = 0.0241 + 0.2562 * x - 0.7341 * y
+        m1 = np.round((-1.3515 - 1.7703 * x + 5.9114 * y) / m, 3)
+        m2 = np.round((0.0300 - 31.4424 * x + 30.0717 * y) / m, 3)
+        S = models.daylight_basis(np.asarray(wl))
+        sp = np.clip(S[:, 0][None] + m1[:, None] * S[:, 1][None] + m2[:, None] * S[:, 2][None], 0.0, None)
+    else:
+        sp = np.stack([models.blackbody(float(t), np.asarray(wl)) for t in temps])
     return temps, sp / sp.mean(axis=1, keepdims=True)
 
 
