@@ -397,15 +397,18 @@ def _estimate_posterior(run: _Run) -> IlluminantEstimate:
 
 
 def _learned_spectrum(camera: Camera, rgb: np.ndarray, uv: np.ndarray, cov: np.ndarray,
-                      K: np.ndarray) -> tuple[np.ndarray, str]:
+                      K: np.ndarray) -> tuple[np.ndarray, dict]:
     """A physical spectrum for the learnt estimate: the candidate lights of
     :func:`recovery.illuminant_prior.default_candidates` (CIE daylight,
     blackbody, named illuminants, mixtures) weighted by their prior and the
-    estimate's Gaussian in canonical log-chroma, mixed with unit camera
-    response sum and modulated so the camera response is exactly ``rgb``
-    (:func:`recovery.bayes.modulated_spectrum`). Returns the spectrum and
-    the name of the most probable candidate."""
-    from .bayes import modulated_spectrum
+    estimate's Gaussian in canonical log-chroma; one kind of light is chosen
+    from those weights and its spectrum modulated so the camera response is
+    exactly ``rgb`` (:func:`recovery.bayes.plausible_spectrum`: daylight or
+    Planckian unless a spiky kind clearly dominates; a mixture of every
+    candidate would put fluorescent lines into a daylight-coloured light).
+    Returns the spectrum and the diagnostics ``best_candidate``,
+    ``spectrum_family``, ``spectrum_rule``."""
+    from .bayes import plausible_spectrum
     from .illuminant_prior import default_candidates
     from .learned import rgb_to_uv
 
@@ -416,12 +419,8 @@ def _learned_spectrum(camera: Camera, rgb: np.ndarray, uv: np.ndarray, cov: np.n
     d = rgb_to_uv(np.clip(can, 1e-9, None)) - uv
     logw = np.log(np.maximum(cands.prior, 1e-300)) - 0.5 * np.einsum("mi,ij,mj->m", d, np.linalg.inv(cov), d)
     w = np.exp(logw - logw.max())
-    w /= w.sum()
-    keep = w > 1e-4 * w.max()
-    tot = resp[keep].sum(axis=1, keepdims=True)
-    mix = (w[keep, None] * cands.spectra[keep] / tot).sum(axis=0)
-    spd = modulated_spectrum(mix, camera, np.asarray(rgb, float) / np.sum(rgb) * camera.response(mix).sum())
-    return spd / (spd.mean() or 1.0), cands.names[int(np.argmax(w))]
+    spd, info = plausible_spectrum(cands, w / w.sum(), camera, np.asarray(rgb, float))
+    return spd, info
 
 
 #: ``auto``: a scene with at least this fraction of its analysis cells inside
@@ -482,7 +481,7 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
                 est.warnings.append(f"low confidence in the light estimate ({conf:.0%}, the light posterior's); "
                                     "check it or give a neutral point")
             return est
-    spd, best = _learned_spectrum(camera, res.rgb, res.uv, res.cov, K)
+    spd, spec_info = _learned_spectrum(camera, res.rgb, res.uv, res.cov, K)
     d = dict(run.diag)
     d.update({"decision": (f"auto: {patches:.0%} of the analysis cells lie in uniform patches (under "
                            f"{UNIFORM_PATCH_SCENE:.0%}): a real scene, the learnt estimator decides; " if scene_choice
@@ -492,7 +491,7 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
               "confidence": res.confidence,
               "confidence_rule": "P(error < 3 deg) under the reported 90 % region (calibrated on held-out benchmarks)",
               "low_confidence": bool(res.confidence < LOW_CONFIDENCE),
-              "region90_deg": res.radius90_deg, "best_candidate": best, "analysis_cells": res.n_cells,
+              "region90_deg": res.radius90_deg, **spec_info, "analysis_cells": res.n_cells,
               "evidence_spread": res.diagnostics["evidence_spread"], "uniform_patch_fraction": patches,
               "color_matrix_source": ("file / LibRaw" if getattr(camera, "color_matrix", None) is not None
                                       else "fitted to the camera's sensitivities")})

@@ -128,7 +128,7 @@ from .estimators import shades_of_gray
 from .illuminant_prior import CandidateLights, default_candidates
 from .metrics import angular_error
 
-__all__ = ["estimate_bayes", "BayesModel", "bayes_model", "helmert", "modulated_spectrum", "DEFAULTS"]
+__all__ = ["estimate_bayes", "BayesModel", "bayes_model", "helmert", "modulated_spectrum", "plausible_spectrum", "DEFAULTS"]
 
 #: Default settings of the model (see :func:`bayes_model`) and of the
 #: image summary (see :func:`estimate_bayes`).
@@ -547,6 +547,98 @@ def modulated_spectrum(spd: np.ndarray, camera: Camera, target_rgb: np.ndarray) 
     return out if np.any(out > 0) else spd
 
 
+#: A spiky kind of light (fluorescent, LED, high-pressure, narrow-band, a
+#: mixture with one of them) is reported as the light's spectrum only when its
+#: posterior mass is at least this many times that of the smooth kinds
+#: (daylight and Planckian) together: a posterior that merely spreads over
+#: lights of one colour does not make a fluorescent lamp.
+SPIKY_MARGIN = 3.0
+
+
+@lru_cache(maxsize=8)
+def _locus(kind: str, wl: tuple):
+    """Unit-mean spectra along the CIE daylight locus (4000-25000 K) or the
+    Planckian locus (1000-25000 K), 2 mired apart, and their temperatures."""
+    lo = 4000.0 if kind == "daylight" else 1000.0
+    temps = 1e6 / np.arange(1e6 / 25000.0, 1e6 / lo + 1e-9, 2.0)
+    if kind == "daylight":      # CIE 015:2018 eq. 4.7-4.10 on S0, S1, S2, as models.daylight (vectorised)
+        import colour
+
+        x, y = np.asarray(colour.temperature.CCT_to_xy_CIE_D(temps)).T
+        m = 0.0241 + 0.2562 * x - 0.7341 * y
+        m1 = np.round((-1.3515 - 1.7703 * x + 5.9114 * y) / m, 3)
+        m2 = np.round((0.0300 - 31.4424 * x + 30.0717 * y) / m, 3)
+        S = models.daylight_basis(np.asarray(wl))
+        sp = np.clip(S[:, 0][None] + m1[:, None] * S[:, 1][None] + m2[:, None] * S[:, 2][None], 0.0, None)
+    else:
+        sp = np.stack([models.blackbody(float(t), np.asarray(wl)) for t in temps])
+    return temps, sp / sp.mean(axis=1, keepdims=True)
+
+
+def plausible_spectrum(cands: CandidateLights, weights: np.ndarray, camera: Camera, target_rgb: np.ndarray,
+                       margin: float = SPIKY_MARGIN) -> tuple[np.ndarray, dict]:
+    """One plausible light for a light estimate (issue 19 item 5): the
+    candidates' weights (posterior or prior times likelihood) are summed per
+    kind of light (:func:`recovery.illuminant_prior.light_kinds`); the
+    spectrum comes from one kind only, a smooth one (daylight or Planckian,
+    whichever has more mass) unless a spiky kind has at least ``margin``
+    times the smooth kinds' mass. Daylight is the CIE D-series and Planckian
+    a blackbody at the temperature whose camera chromaticity is nearest
+    ``target_rgb``; a spiky kind gives its most probable member. The
+    spectrum is modulated (:func:`modulated_spectrum`) so the camera
+    response is exactly ``target_rgb`` up to scale. Returns the unit-mean
+    spectrum and diagnostics ``spectrum_family``, ``spectrum_rule``,
+    ``best_candidate`` (the most probable candidate of that kind) and
+    ``spectrum_family_mass``."""
+    from .illuminant_prior import SMOOTH_KINDS, light_kinds
+
+    w = np.asarray(weights, float)
+    w = w / w.sum()
+    mass: dict[str, float] = {}
+    pure: dict[str, list[int]] = {}
+    for i, (n, f) in enumerate(zip(cands.names, cands.families)):
+        ks = light_kinds(n, f)
+        for k, share in ks:
+            mass[k] = mass.get(k, 0.0) + float(w[i]) * share
+        if len(ks) == 1:
+            pure.setdefault(ks[0][0], []).append(i)
+    smooth = {k: mass.get(k, 0.0) for k in SMOOTH_KINDS}
+    m_smooth = sum(smooth.values())
+    spiky = {k: v for k, v in mass.items() if k not in SMOOTH_KINDS}
+    k_spiky = max(spiky, key=spiky.get) if spiky else None
+    if k_spiky is not None and (spiky[k_spiky] >= margin * m_smooth and spiky[k_spiky] > 0):
+        kind = k_spiky
+        rule = (f"{kind} holds {spiky[kind]:.0%} of the posterior mass, at least {margin:g} times the smooth "
+                f"lights' (daylight + Planckian {m_smooth:.0%}): its most probable lamp")
+    else:
+        kind = max(smooth, key=smooth.get)
+        rule = (f"{kind} holds {smooth[kind]:.0%} of the posterior mass (daylight {smooth['daylight']:.0%}, "
+                f"Planckian {smooth['planckian']:.0%}"
+                + (f"; most probable spiky kind {k_spiky} {spiky[k_spiky]:.0%}, under {margin:g} times the "
+                   f"smooth lights'" if k_spiky is not None else "") + ")")
+    members = [i for i in pure.get(kind, []) if w[i] > 0] or \
+        [i for i in range(len(w)) if any(k == kind for k, _ in light_kinds(cands.names[i], cands.families[i]))]
+    best = max(members, key=lambda i: w[i]) if members else int(np.argmax(w))
+    tgt = np.asarray(target_rgb, float)
+    info: dict = {"spectrum_family": kind, "spectrum_family_mass": float(mass.get(kind, 0.0))}
+    if kind in SMOOTH_KINDS:
+        temps, sp = _locus(kind, tuple(np.asarray(camera.wavelengths, float).tolist()))
+        r = camera.response(sp)
+        r = r / np.linalg.norm(r, axis=1, keepdims=True)
+        j = int(np.argmax(r @ (tgt / np.linalg.norm(tgt))))
+        base = sp[j]
+        info["spectrum_cct_K"] = float(temps[j])
+        rule += (f"; {'CIE D-series' if kind == 'daylight' else 'blackbody'} at {temps[j]:.0f} K, the temperature "
+                 "nearest the estimate in camera chromaticity, modulated to the estimate's camera response")
+    else:
+        base = np.asarray(cands.spectra[best], float)
+        rule += f"; {cands.names[best]}, modulated to the estimate's camera response"
+    spd = modulated_spectrum(base, camera, tgt / tgt.sum() * camera.response(base).sum())
+    info["spectrum_rule"] = rule
+    info["best_candidate"] = cands.names[best]
+    return spd / (spd.mean() or 1.0), info
+
+
 # --------------------------------------------------------------------------- the image
 def _rowmin(x: np.ndarray) -> np.ndarray:
     out = x[:, 0].copy()
@@ -894,13 +986,13 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
     mean_chroma = post @ chroma
     rgb = mean_chroma / np.linalg.norm(mean_chroma)
 
-    # spectrum: posterior mixture of the lights, each scaled to unit response sum
+    # spectrum: one plausible light of the most probable kind (issue 19 item
+    # 5: the posterior mixture of every candidate put fluorescent lines into
+    # daylight-coloured lights), response exactly the estimate; off-set
+    # lights count for their nearest candidate
     sig = np.flatnonzero(post > 1e-4 * post.max())
-    spd = (post[:M] / model.light_rgb.sum(axis=1)) @ cands.spectra
-    for i in sig[sig >= M]:
-        s_i = modulated_spectrum(cands.spectra[nearest[i]], camera, light_rgb[i])
-        spd = spd + post[i] * s_i / max(float(camera.response(s_i).sum()), 1e-300)
-    spectrum = spd / spd.mean() if spd.mean() > 0 else None
+    spectrum, spec_info = plausible_spectrum(cands, np.bincount(nearest, weights=post, minlength=M)[:M], camera,
+                                             mean_chroma)
 
     # evidence accounting
     ang = angular_error(chroma[sig], mean_chroma[None])
@@ -939,9 +1031,14 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
         "confidence": confidence,
         "posterior_entropy": _entropy(post),
         "posterior_spread_deg": spread,
-        "best_candidate": best_name,
-        "best_candidate_family": cands.families[nearest[best]],
-        "best_candidate_probability": float(post[best]),
+        "best_candidate": spec_info["best_candidate"],
+        "best_candidate_family": cands.families[cands.names.index(spec_info["best_candidate"])],
+        "best_candidate_probability": float(post[cands.names.index(spec_info["best_candidate"])]),
+        "most_probable_light": best_name,
+        "spectrum_family": spec_info["spectrum_family"],
+        "spectrum_rule": spec_info["spectrum_rule"],
+        "spectrum_family_mass": spec_info["spectrum_family_mass"],
+        "spectrum_cct_K": spec_info.get("spectrum_cct_K"),
         "top_candidates": top_txt,
         "decided_by": why,
         "shift_by_chromaticity_deg": shift_chroma,

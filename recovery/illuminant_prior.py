@@ -265,3 +265,60 @@ def random_lights(rng: np.random.Generator, n: int, wavelengths=None) -> tuple[n
         out.append(spd / spd.mean())
         names.append(f"{f:.2f} {na} + {1 - f:.2f} {nb}")
     return np.stack(out), names
+
+
+# --------------------------------------------------------------------------- kinds of light
+#: Kinds of light whose spectrum is smooth (no emission lines): a reported
+#: spectrum is one of these unless the evidence says otherwise
+#: (:func:`recovery.bayes.plausible_spectrum`).
+SMOOTH_KINDS = ("daylight", "planckian")
+
+_NAMED_KIND = {"B": "daylight", "C": "daylight", "E": "planckian", "A": "planckian",
+               "ISO 7589 Photographic Daylight": "daylight", "ISO 7589 Studio Tungsten": "planckian",
+               "ISO 7589 Photoflood": "planckian"}
+
+
+def _name_kind(name: str) -> str:
+    n = name.strip()
+    if n in _NAMED_KIND:
+        return _NAMED_KIND[n]
+    if n.startswith(("daylight", "ID")) or (n.startswith("D") and n[1:].isdigit()):
+        return "daylight"
+    if n.startswith(("blackbody", "BB")):
+        return "planckian"
+    if n.startswith("FL"):
+        return "fluorescent"
+    if n.startswith("LED"):
+        return "LED"
+    if n.startswith("HP"):
+        return "high-pressure"
+    if n.startswith("band"):
+        return "narrowband"
+    return "other"
+
+
+def light_kinds(name: str, family: str) -> list[tuple[str, float]]:
+    """The physical kind(s) of a candidate light as ``[(kind, share)]``:
+    ``daylight`` (the CIE daylight locus, D-series, B, C), ``planckian``
+    (blackbody radiators, A, E, tungsten), ``fluorescent``, ``LED``,
+    ``high-pressure``, ``narrowband``, ``user`` or ``other``; a two-light
+    mixture ``"f a + g b"`` shares its mass between its lights' kinds by
+    power fraction."""
+    if family == "daylight":
+        return [("daylight", 1.0)]
+    if family == "blackbody":
+        return [("planckian", 1.0)]
+    if family == "narrowband":
+        return [("narrowband", 1.0)]
+    if family == "user":
+        return [("user", 1.0)]
+    if family == "mixture":
+        out = []
+        for part in name.split(" + "):
+            f, _, light = part.strip().partition(" ")
+            try:
+                out.append((_name_kind(light), float(f)))
+            except ValueError:
+                return [("other", 1.0)]
+        return out
+    return [(_name_kind(name), 1.0)]
