@@ -562,9 +562,12 @@ def _locus(kind: str, wl: tuple):
     lo = 4000.0 if kind == "daylight" else 1000.0
     temps = 1e6 / np.arange(1e6 / 25000.0, 1e6 / lo + 1e-9, 2.0)
     if kind == "daylight":      # CIE 015:2018 eq. 4.7-4.10 on S0, S1, S2, as models.daylight (vectorised)
-        import colour
-
-        x, y = np.asarray(colour.temperature.CCT_to_xy_CIE_D(temps)).T
+        # CIE 015:2018 eq. 4.7-4.9 (colour-science's CCT_to_xy_CIE_D, written out so the
+        # estimate does not import colour-science: start-up, issue 19)
+        t = temps
+        x = np.where(t <= 7000.0, -4.6070e9 / t ** 3 + 2.9678e6 / t ** 2 + 0.09911e3 / t + 0.244063,
+                     -2.0064e9 / t ** 3 + 1.9018e6 / t ** 2 + 0.24748e3 / t + 0.237040)
+        y = -3.0 * x ** 2 + 2.87 * x - 0.275
         m = 0.0241 + 0.2562 * x - 0.7341 * y
         m1 = np.round((-1.3515 - 1.7703 * x + 5.9114 * y) / m, 3)
         m2 = np.round((0.0300 - 31.4424 * x + 30.0717 * y) / m, 3)
