@@ -19,6 +19,8 @@ from models import illuminant as get_illuminant
 
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation, ModelDimensionError
+from .methods import METHODS as METHOD_TABLE
+from .methods import QUALITY_PRESETS
 from .metrics import angular_error
 from .estimators import PEERS, maloney_wandell_pixels
 from .lighting import lighting_matrix, lighting_matrix_from_spectrum, lighting_tensor
@@ -559,28 +561,22 @@ def _estimate_subspace(run: _Run) -> IlluminantEstimate:
         return run_peer(fallback, str(e))
 
 
-#: Estimator dispatch: method name -> the function that runs it on a prepared
-#: :class:`_Run`. :data:`METHODS` are its keys.
-ESTIMATORS = {
-    "auto": _estimate_learned,
+#: The kinds of estimator (:data:`recovery.methods.METHODS` names the one
+#: each method runs): kind -> the function that runs it on a prepared
+#: :class:`_Run`.
+ESTIMATOR_KINDS = {
     "learned": _estimate_learned,
-    "bayes": _estimate_posterior,
-    "maloney-wandell": _estimate_subspace,
-    **dict.fromkeys(PEERS, _estimate_peer),
+    "posterior": _estimate_posterior,
+    "subspace": _estimate_subspace,
+    "peer": _estimate_peer,
 }
+#: Estimator dispatch: method name -> its function. :data:`METHODS` are its keys.
+ESTIMATORS = {name: ESTIMATOR_KINDS[m.runs] for name, m in METHOD_TABLE.items()}
 METHODS = tuple(ESTIMATORS)
+assert set(PEERS) <= set(METHODS), "every classical peer is a method (recovery.methods.METHODS)"
 
 
 
-#: The ``quality`` presets: points of the measured speed/accuracy trade
-#: (``python -m benchmarks.tradeoff``; figures in the README). Each sets the
-#: analysis resolution (block-averaged pixels) and the wavelength grid.
-QUALITY_PRESETS = {
-    # fast pins one light: the light-map test costs more than its estimate
-    "fast": {"analysis_pixels": 4096, "wavelength_step": 20.0, "spatial": False},
-    "balanced": {"analysis_pixels": 65536, "wavelength_step": 10.0},
-    "accurate": {"analysis_pixels": None, "wavelength_step": 10.0},
-}
 
 #: Pixels the estimate runs on when no ``quality`` is asked for (the image
 #: block-averaged to at most this many, :func:`recovery.resolution.block_average`).

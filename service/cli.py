@@ -44,6 +44,8 @@ import time
 
 from . import jobs
 from .errors import ServiceError, service_error
+from .schemas import BatchOptions, Estimation, Rendering
+from .schemas.cli import add_options
 
 
 #: Never written raw to a terminal: C0 controls (ESC, BEL, CR, LF, ...), DEL,
@@ -95,40 +97,33 @@ class _ArgumentParser(argparse.ArgumentParser):
             (file or sys.stderr).write(term_safe(message, keep="\n\t"))
 
 
-def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
-    ap.add_argument("--camera", help="measured camera name, 'matrix' or 'generic' (default: from the file)")
-    ap.add_argument("--method", default="auto", help="auto, bayes, maloney-wandell, gray-world, ...")
-    ap.add_argument("--quality", help="fast, balanced or accurate")
-    ap.add_argument("--surface-model", help="pca or fourier")
-    ap.add_argument("--light-model", help="daylight, illuminant-pca or fourier")
+def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
+    """The API's options as flags (from :mod:`service.schemas`: the same
+    descriptions, defaults and accepted values as ``/docs``): estimation for
+    every command, rendering for ``white-balance`` and ``batch``, the
+    lighting mode for ``batch``."""
+    add_options(ap, Estimation, describe={"camera": "measured camera name, 'matrix' or 'generic' (default: from "
+                                                    "the file)"})
     if batch is None:
         return
-    ap.add_argument("--target", default="D65", help="light to render under, or 'estimate'")
-    ap.add_argument("--output", default="sRGB", help="sRGB, linear-sRGB, Display P3 or a display name")
-    ap.add_argument("--format", default=None,
-                    help="tiff (16-bit), png (8-bit), png16, jpeg; white-balance: taken from OUT's extension "
-                         "(.tif, .png, .jpg), and an error if this disagrees; batch: default tiff")
-    ap.add_argument("--exposure", default="auto", metavar="EV|auto",
-                    help="auto (default): LibRaw's auto-brightness (the 99th percentile of the brightest "
-                         "channel is white); a number of EV overrides it (0: the sensor's brightest neutral is "
-                         "white, +1 doubles)")
+    add_options(ap, Rendering, defaults={"format": None},
+                describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg; white-balance: taken from OUT's "
+                                    "extension (.tif, .png, .jpg), and an error if this disagrees; batch: default "
+                                    "tiff"})
     ap.add_argument("-q", "--quiet", action="store_true",
                     help="no progress bar and no summary table; failures, notes and warnings still go to stderr")
     if batch:
         ap.add_argument("--force", action="store_true",
                         help="compute finished outputs again (default: skip them, resumable)")
-        ap.add_argument("--lighting", default="per-image", help="per-image, or shared: one light for all")
+        add_options(ap, BatchOptions, include=("lighting",))
         ap.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
         ap.add_argument("--dask-scheduler", default=os.environ.get("WANDELL_DASK_SCHEDULER", ""),
                         help="run on this Dask cluster (tcp://host:8786) instead of the local pool")
 
 
 def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
-    return jobs.batch_options(camera=args.camera, method=args.method, quality=args.quality,
-                              target=getattr(args, "target", None), output=getattr(args, "output", None),
-                              format=getattr(args, "format", None), lighting=lighting,
-                              surface_model=args.surface_model, light_model=args.light_model,
-                              exposure=getattr(args, "exposure", None))
+    given = {n: getattr(args, n, None) for n in BatchOptions.model_fields if n != "lighting"}
+    return jobs.batch_options(**given, lighting=lighting)
 
 
 def _settings():

@@ -39,11 +39,11 @@ import threading
 import time
 import uuid
 from concurrent.futures import Future
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 from .errors import ServiceError, service_error
-from .options import FORMATS, IMAGE_FORMATS, check_camera_name, check_output, check_target, choose_format, \
-    estimate_options, parse_exposure
+from .options import FORMATS, check_camera_name
+from .schemas.options import LIGHTING, BatchOptions
 
 #: The environment variables that cap the internal thread pools of the
 #: numerical libraries; set to 1 in every pool worker so that N workers use
@@ -51,7 +51,6 @@ from .options import FORMATS, IMAGE_FORMATS, check_camera_name, check_output, ch
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
               "VECLIB_MAXIMUM_THREADS", "OPENCV_FOR_THREADS_NUM")
 
-LIGHTING = ("per-image", "shared")
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".rw2", ".orf",
                 ".pef", ".srw", ".x3f", ".3fr", ".iiq", ".erf", ".kdc", ".dcr", ".mrw", ".mos", ".rwl",
                 ".tif", ".tiff", ".png")
@@ -71,61 +70,18 @@ def shared_pool_pixels() -> int:
 # Options
 # ---------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class BatchOptions:
-    """The white-balance options of ``POST /v1/white-balance`` plus the
-    lighting mode; validated by :func:`batch_options`."""
-
-    camera: str | None = None
-    method: str = "auto"
-    quality: str | None = None
-    target: str = "D65"
-    output: str = "sRGB"
-    format: str = "tiff"
-    lighting: str = "per-image"
-    surface_model: str | None = None
-    light_model: str | None = None
-    surface_dim: str | None = None
-    light_dim: str | None = None
-    region_size: int | None = None
-    exposure: float | None = None          # EV; None: the auto rule (recovery.synthesis.exposure_gain)
-
-    @property
-    def extension(self) -> str:
-        return FORMATS[self.format].extension
-
-    def estimate_kwargs(self) -> dict:
-        """Keyword options of :func:`recovery.estimate_illuminant` (the same
-        validation as the white-balance endpoint)."""
-        return estimate_options(self.method, self.surface_dim, self.light_dim, self.region_size, False,
-                                self.surface_model, self.light_model, self.quality)
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
-
-    @classmethod
-    def from_json(cls, text: str) -> "BatchOptions":
-        return cls(**json.loads(text))
-
-
 def batch_options(**kw) -> BatchOptions:
-    """Validated :class:`BatchOptions`; :class:`~service.errors.ServiceError`
-    (422) naming the bad option and what is accepted."""
+    """Validated :class:`BatchOptions` (declared in :mod:`service.schemas.options`,
+    with the checks of the white-balance endpoint, and a camera name checked
+    now since the batch runs later); :class:`~service.errors.ServiceError`
+    (422) naming the bad option and what is accepted. ``None`` and ``""``
+    mean the default."""
     kw = {k: v for k, v in kw.items() if v is not None and v != ""}
-    unknown = set(kw) - set(BatchOptions.__dataclass_fields__)
+    unknown = set(kw) - set(BatchOptions.model_fields)
     if unknown:
         raise ServiceError(422, "invalid_parameter", f"unknown options {sorted(unknown)}")
-    if "exposure" in kw:
-        kw["exposure"] = parse_exposure(kw["exposure"])
     opts = BatchOptions(**kw)
-    choose_format(opts.format, IMAGE_FORMATS)
-    check_output(opts.output)
-    if opts.lighting not in LIGHTING:
-        raise ServiceError(422, "invalid_parameter",
-                           f"lighting {opts.lighting!r} unknown; accepted: {list(LIGHTING)}")
-    check_target(opts.target)
     check_camera_name(opts.camera)
-    opts.estimate_kwargs()
     return opts
 
 
@@ -422,7 +378,7 @@ def process_item(task: ItemTask) -> dict:
             illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
             side = {"name": task.name, "index": task.index, "illuminant": illum, "correction_matrix": M.tolist(),
                     "rendering": pipeline.rendering_json(info),
-                    "options": asdict(task.options)}
+                    "options": task.options.as_dict()}
             if task.exactly_once:
                 atomic_write(meta_path(task.out, ".json"), lambda p: write_text(p, json.dumps(_clean(side))))
             atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta))
@@ -949,7 +905,7 @@ class JobStore:
             out = unique(clip_name(f"{stem}.{options.extension}", DISK_NAME_BYTES - 12), outs)
             rows.append((batch_id, i, nm, os.path.abspath(src), os.path.join(out_dir, out)))
         bdir, created = self.batch_dir(batch_id), time.time()
-        manifest = {"id": batch_id, "created": created, "options": asdict(options),
+        manifest = {"id": batch_id, "created": created, "options": options.as_dict(),
                     "items": [{"index": r[1], "name": r[2], "out": os.path.basename(r[4]),
                                "src": os.path.relpath(r[3], bdir) if r[3].startswith(bdir + os.sep) else r[3]}
                               for r in rows]}

@@ -16,7 +16,7 @@ from .errors import ServiceError
 
 __all__ = ["Format", "FORMATS", "MEDIA_TYPES", "IMAGE_FORMATS", "RENDER_FORMATS", "PREVIEW_FORMATS",
            "OUTPUTS", "RENDER_OUTPUTS", "SURFACE_MODELS", "LIGHT_MODELS", "choose_format", "check_output",
-           "check_target", "check_camera_name", "estimate_options", "parse_json_field", "parse_json_list", "parse_grid",
+           "check_target", "check_camera_name", "check_dim", "check_region_size", "check_spatial", "estimate_options", "parse_json_field", "parse_json_list", "parse_grid",
            "parse_exposure", "parse_neutral", "EXPOSURE_HELP", "NEUTRAL_HELP"]
 
 
@@ -97,50 +97,72 @@ def check_camera_name(camera: str | None) -> str | None:
     return camera
 
 
+def check_dim(value, name: str) -> int | str | None:
+    """``surface_dim``/``light_dim``: ``None``/``""`` (the default), ``auto``
+    (BIC) or an integer in 1..16."""
+    if value is None or value == "":
+        return None
+    if str(value) == "auto":
+        return "auto"
+    try:
+        iv = int(value)
+    except (TypeError, ValueError):
+        raise ServiceError(422, "invalid_parameter", f"{name} must be an integer in 1..16 or 'auto', "
+                           f"not {value!r}") from None
+    if not 1 <= iv <= 16:
+        raise ServiceError(422, "invalid_parameter", f"{name} must be in 1..16 or 'auto'")
+    return iv
+
+
+def check_region_size(region_size: int | None) -> int | None:
+    """A light map's region side: 8..100000 pixels, or ``None``."""
+    if region_size is not None and not 8 <= region_size <= 100000:
+        raise ServiceError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")
+    return region_size
+
+
+def check_spatial(spatial):
+    """``spatial`` as :func:`recovery.estimate_illuminant` takes it (``True``,
+    ``False`` or ``"auto"``), ``None`` when absent."""
+    if spatial is None or spatial == "":
+        return None
+    from recovery.spatial import parse_spatial
+
+    try:
+        mode = parse_spatial(spatial)
+    except ValueError:
+        raise ServiceError(422, "invalid_parameter", f"spatial {spatial!r} unknown; accepted: auto, true "
+                           "(a light map), false (one light)") from None
+    return {"map": True, "uniform": False, "auto": "auto"}[mode]
+
+
 def estimate_options(method: str, surface_dim, light_dim, region_size: int | None,
                      spatial, surface_model: str | None = None, light_model: str | None = None,
                      quality: str | None = None) -> dict:
-    """Validated keyword options for :func:`recovery.estimate_illuminant`."""
-    from recovery import METHODS, QUALITY_PRESETS  # here: importing this module stays light (the CLI)
+    """Validated keyword options for :func:`recovery.estimate_illuminant`
+    (what :class:`service.schemas.Estimation` hands the estimator)."""
+    from recovery.methods import METHOD_NAMES, QUALITY_NAMES  # plain data: importing this module stays light
 
-    if method not in METHODS:
-        raise ServiceError(422, "invalid_parameter", f"method {method!r} unknown; accepted: {list(METHODS)}")
+    if method not in METHOD_NAMES:
+        raise ServiceError(422, "invalid_parameter", f"method {method!r} unknown; accepted: {list(METHOD_NAMES)}")
     opts: dict = {"white_level": 1.0}
     for field, value, accepted, key in (("surface_model", surface_model, SURFACE_MODELS, "surface_basis"),
                                         ("light_model", light_model, LIGHT_MODELS, "light_basis"),
-                                        ("quality", quality, tuple(QUALITY_PRESETS), "quality")):
+                                        ("quality", quality, QUALITY_NAMES, "quality")):
         if value is not None:
             if value not in accepted:
                 raise ServiceError(422, "invalid_parameter",
                                    f"{field} {value!r} unknown; accepted: {list(accepted)}")
             opts[key] = value
     for name, val in (("surface_dim", surface_dim), ("light_dim", light_dim)):
-        if val is None or val == "":
-            continue
-        if str(val) == "auto":
-            opts[name] = "auto"
-            continue
-        try:
-            iv = int(val)
-        except (TypeError, ValueError):
-            raise ServiceError(422, "invalid_parameter", f"{name} must be an integer in 1..16 or 'auto', "
-                               f"not {val!r}") from None
-        if not 1 <= iv <= 16:
-            raise ServiceError(422, "invalid_parameter", f"{name} must be in 1..16 or 'auto'")
-        opts[name] = iv
-    if region_size is not None:
-        if not 8 <= region_size <= 100000:
-            raise ServiceError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")
+        dim = check_dim(val, name)
+        if dim is not None:
+            opts[name] = dim
+    if check_region_size(region_size) is not None:
         opts["region_size"] = region_size
-    if spatial is not None and spatial != "":
-        from recovery.spatial import parse_spatial
-
-        try:
-            mode = parse_spatial(spatial)
-        except ValueError:
-            raise ServiceError(422, "invalid_parameter", f"spatial {spatial!r} unknown; accepted: auto, true "
-                               "(a light map), false (one light)") from None
-        opts["spatial"] = {"map": True, "uniform": False, "auto": "auto"}[mode]
+    mode = check_spatial(spatial)
+    if mode is not None:
+        opts["spatial"] = mode
     return opts
 
 

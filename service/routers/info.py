@@ -17,7 +17,7 @@ def health(settings: Settings = Depends(get_settings)) -> dict:
     """Liveness: the service is up and the numerical core imports;
     ``job_store`` says whether the batch store opened cleanly (``recovered``:
     a damaged one was moved aside at start-up, with where to)."""
-    import recovery  # noqa: F401
+    import recovery.api  # noqa: F401
 
     from .batches import store_health
 
