@@ -3,7 +3,9 @@
 ``wandell batch IN_DIR OUT_DIR [options]``
     White-balance every RAW in ``IN_DIR`` into ``OUT_DIR`` on a local process
     pool (``--workers``) or a Dask cluster (``--dask-scheduler``), with a
-    progress bar on stderr and a summary table at the end. Resumable: an
+    progress bar on stderr and a summary table at the end, followed by the
+    subfolders and non-RAW files it did not process (``--recursive`` walks
+    the subfolders, the outputs mirroring the tree). Resumable: an
     output already finished (renamed into place with its sidecar, see
     :mod:`service.jobs`) is skipped; a partially written one never counts.
 ``wandell analyze FILE``
@@ -21,7 +23,8 @@ progress bar or table; failures and warnings still on stderr) and
 rerun whose options differ from those stored beside a finished output (its
 ``.wandell/NAME.json`` sidecar) says so in the summary. Exit status: 0 when
 every item succeeded or was already done, 1 when something failed, 2 for a
-usage error, 130 when interrupted (Ctrl-C: the pool stops at once, finished
+usage error (bad options, a FILE or IN_DIR that does not exist or is not
+a file/folder), 130 when interrupted (Ctrl-C: the pool stops at once, finished
 outputs are kept, the summary so far is printed; the same command resumes).
 
 Start-up stays light (``wandell --help`` imports no numerical library): the
@@ -117,6 +120,9 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
                         help="compute finished outputs again (default: skip them, resumable)")
         add_options(ap, BatchOptions, include=("lighting",))
         ap.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
+        ap.add_argument("-r", "--recursive", action="store_true",
+                        help="also the RAWs of IN_DIR's subfolders, their outputs in the same subfolders of "
+                             "OUT_DIR (default: subfolders are listed as not processed)")
         ap.add_argument("--dask-scheduler", default=os.environ.get("WANDELL_DASK_SCHEDULER", ""),
                         help="run on this Dask cluster (tcp://host:8786) instead of the local pool")
 
@@ -222,10 +228,55 @@ def options_difference(stored: dict | None, options: jobs.BatchOptions) -> str |
     return "made with other options (" + "; ".join(diff) + ")" if diff else None
 
 
-def _inputs(in_dir: str) -> list[str]:
-    return sorted(p for p in glob.glob(os.path.join(in_dir, "*"))
-                  if os.path.isfile(p) and p.lower().endswith(jobs.RAW_SUFFIXES)
-                  and not os.path.basename(p).startswith("."))
+def _inputs(in_dir: str, recursive: bool = False, out_dir: str | None = None) -> list[str]:
+    return scan_inputs(in_dir, recursive, out_dir)[0]
+
+
+def scan_inputs(in_dir: str, recursive: bool = False, out_dir: str | None = None) -> tuple[list[str], list]:
+    """The RAW/TIFF/PNG files of ``in_dir`` (with ``recursive``, of its
+    subfolders too, hidden ones and ``out_dir`` left out), and what was left
+    out, for the summary: ``(files, ignored)``, ``ignored`` a list of
+    ``(relative path, "folder" | "not RAW")`` (hidden files such as
+    ``.DS_Store`` are not listed)."""
+    files, ignored = [], []
+    skip = os.path.realpath(out_dir) if out_dir else None
+    seen = {os.path.realpath(in_dir)}  # a symlink back up the tree is walked once
+
+    def walk(rel: str) -> None:
+        here = os.path.join(in_dir, rel) if rel else in_dir
+        for name in sorted(os.listdir(here)):
+            if name.startswith("."):
+                continue
+            path, relp = os.path.join(here, name), os.path.join(rel, name) if rel else name
+            if os.path.isdir(path):
+                if skip is not None and os.path.realpath(path) == skip:
+                    continue
+                if recursive:
+                    real = os.path.realpath(path)
+                    if real not in seen:
+                        seen.add(real)
+                        walk(relp)
+                else:
+                    ignored.append((relp + os.sep, "folder"))
+            elif os.path.isfile(path) and name.lower().endswith(jobs.RAW_SUFFIXES):
+                files.append(path)
+            else:
+                ignored.append((relp, "not RAW"))
+
+    walk("")
+    return files, ignored
+
+
+def _ignored_text(ignored: list, limit: int = 10) -> str:
+    """The summary's lines for what the batch did not process."""
+    out = []
+    for kind, what, hint in (("folder", "subfolder", " (--recursive processes them, mirroring the tree)"),
+                             ("not RAW", "file", " not RAW/TIFF/PNG (by name)")):
+        names = [n for n, k in ignored if k == kind]
+        if names:
+            shown = ", ".join(names[:limit]) + (f", and {len(names) - limit} more" if len(names) > limit else "")
+            out.append(f"not processed: {len(names)} {what}{'s' if len(names) != 1 else ''}{hint}: {shown}\n")
+    return "".join(out)
 
 
 class BatchInterrupted(Exception):
@@ -285,7 +336,7 @@ def _stop_now(executor) -> None:
 
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
               dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
-              quiet: bool = False) -> list[dict]:
+              quiet: bool = False, recursive: bool = False) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
     ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
@@ -294,18 +345,22 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     Ctrl-C (KeyboardInterrupt) stops the run promptly: the pool is ended
     (:meth:`service.jobs.LocalExecutor.terminate`), what finished is kept,
     and :class:`BatchInterrupted` carries the rows (unfinished ones
-    ``stopped``); the same command run again resumes."""
+    ``stopped``); the same command run again resumes.
+
+    With ``recursive`` the subfolders' files too, named by their path
+    under ``in_dir``, their outputs in the same subfolders of ``out_dir``."""
     import io
 
     stream = io.StringIO() if quiet else (stream or sys.stderr)
-    files = _inputs(in_dir)
+    files = _inputs(in_dir, recursive, out_dir)
     os.makedirs(out_dir, exist_ok=True)
     max_pixels, est_pixels = _limits()
     seen: set = set()
     tasks = []
     for p in files:
-        name = os.path.basename(p)
+        name = os.path.relpath(p, in_dir)
         out = os.path.join(out_dir, jobs.unique(f"{os.path.splitext(name)[0]}.{options.extension}", seen))
+        os.makedirs(os.path.dirname(out), exist_ok=True)
         tasks.append(jobs.ItemTask(src=p, out=out, name=name, options=options, max_pixels=max_pixels,
                                    estimation_pixels=est_pixels, force=force))
     # the temporaries a killed run left for this batch's outputs (never another file of OUT_DIR)
@@ -381,14 +436,13 @@ def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = 
     """One light from all input images (finished ones included, so a resumed
     run corrects with the same light), kept in ``OUT_DIR/.wandell``."""
     path = os.path.join(out_dir, ".wandell", "shared-light.json")
-    key = {"inputs": [os.path.basename(t.src) for t in tasks], "options": json.loads(options.to_json())}
+    key = {"inputs": [t.name for t in tasks], "options": json.loads(options.to_json())}
     if os.path.exists(path) and not force:
         with open(path) as f:
             saved = json.load(f)
         if saved.get("key") == key:
             return saved["light"]
-    pixels = max(4096, jobs.shared_pool_pixels() // max(1, len(tasks)))
-    futs = [(t, executor.submit(jobs.estimation_sample, t, pixels)) for t in tasks]
+    futs = [(t, executor.submit(jobs.estimation_sample, t)) for t in tasks]
     samples = []
     for t, f in futs:
         s = f.result()
@@ -416,11 +470,14 @@ def _cmd_batch(args) -> int:
     opts = _options(args, args.lighting)
     if not os.path.isdir(args.in_dir):
         raise ServiceError(422, "folder_not_found", f"input folder {args.in_dir!r} does not exist")
-    if not _inputs(args.in_dir):
-        raise ServiceError(422, "empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}")
+    files, ignored = scan_inputs(args.in_dir, args.recursive, args.out_dir)
+    if not files:
+        raise ServiceError(422, "empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}"
+                           + (" or its subfolders" if args.recursive else "")
+                           + ("; " + _ignored_text(ignored).strip().replace("\n", "; ") if ignored else ""))
     try:
         rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
-                         quiet=args.quiet)
+                         quiet=args.quiet, recursive=args.recursive)
     except BatchInterrupted as e:
         if threading.current_thread() is threading.main_thread():
             import signal
@@ -435,6 +492,8 @@ def _cmd_batch(args) -> int:
                          f"(finished outputs are skipped):\n  {cmd}\n")
         return 130
     _summary(rows, sys.stdout, args.quiet)
+    if ignored:
+        (sys.stderr if args.quiet else sys.stdout).write(_ignored_text(ignored))
     return 1 if any(r["status"] == "failed" for r in rows) else 0
 
 
@@ -463,7 +522,22 @@ def format_for(out: str, given: str | None) -> str:
     return given or allowed[0]
 
 
+def _input_file(path: str) -> str:
+    """The FILE argument, checked before any work: a missing file or a
+    folder is a usage error (exit 2) in words, not a Python traceback or
+    an errno."""
+    if os.path.isdir(path):
+        raise ServiceError(422, "not_a_file", f"{path!r} is a folder; give one file, or use 'wandell batch "
+                           f"{path} OUT_DIR' for every RAW in it")
+    if not os.path.exists(path):
+        raise ServiceError(422, "file_not_found", f"{path!r} does not exist (current folder {os.getcwd()!r})")
+    if not os.access(path, os.R_OK):
+        raise ServiceError(422, "file_not_readable", f"{path!r} cannot be read (permission denied)")
+    return path
+
+
 def _cmd_white_balance(args) -> int:
+    _input_file(args.file)
     args.format = format_for(args.out, args.format)
     opts = _options(args)
     max_pixels, est_pixels = _limits()
@@ -494,8 +568,7 @@ def _write_xmp(src: str, illuminant: dict, opts, path: str) -> dict:
 
     with open(src, "rb") as f:
         decoded, cam, warns, _ = pipeline.open_image(f.read(), os.path.basename(src), _settings(), opts.camera)
-    run = pipeline.run_with_white(pipeline.EstimateRun(None, cam, warns), illuminant["camera_rgb"],
-                                  illuminant.get("method", "estimate"))
+    run = pipeline.EstimateRun(jobs._estimate_from_json(illuminant, cam), cam, warns)  # the item's own light
     text, tt, _ = pipeline.xmp_sidecar(decoded, run)
     with open(path, "w", encoding="utf-8") as f:
         f.write(text)
@@ -506,6 +579,7 @@ def _cmd_analyze(args) -> int:
     from . import pipeline
     from .jsonsafe import clean
 
+    _input_file(args.file)
     opts = _options(args)
     try:
         decoded, run = pipeline.analyze_file(args.file, _settings(), camera=opts.camera, method=opts.method,

@@ -10,10 +10,12 @@ Every item is the white-balance pipeline of ``POST /v1/white-balance``
 (:func:`service.pipeline.analyze` and :func:`service.pipeline.render_corrected`)
 (Wandell 1985, Fig. 6 and eq. 22-25/36: estimate the light, then one 3x3
 matrix per pixel from camera RGB to the display). In ``shared`` lighting
-mode the light is estimated once from all the images of the batch pooled
-together: images taken under one light lie in the same D(S)-dimensional
-subspace of sensor space (eq. 26-29), so pooling only adds evidence for the
-subspace normal (eq. 30), and every image is then corrected with that light.
+mode one light is made for all the images of the batch, and every image is
+corrected with it: each image's own estimate (as per-image mode makes it)
+combined by :func:`shared_light`, their confidence-weighted mean. (Pooling
+the pixels into one stacked image, as before issue 19, made the light
+depend on the number and layout of the images: N copies of one image moved
+it 0.8 degrees.)
 
 Exactly-once outputs
 --------------------
@@ -54,16 +56,6 @@ THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUM
 RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".rw2", ".orf",
                 ".pef", ".srw", ".x3f", ".3fr", ".iiq", ".erf", ".kdc", ".dcr", ".mrw", ".mos", ".rwl",
                 ".tif", ".tiff", ".png")
-
-
-def shared_pool_pixels() -> int:
-    """Pixels of pooled estimation data in ``shared`` mode (split between the
-    images): the same budget as one image's estimation without a quality
-    preset (:data:`recovery.DEFAULT_ANALYSIS_PIXELS`; imported here, not at
-    the top, so that the CLI's start-up imports no numerical library)."""
-    from recovery import DEFAULT_ANALYSIS_PIXELS
-
-    return DEFAULT_ANALYSIS_PIXELS
 
 
 # ---------------------------------------------------------------------------
@@ -179,20 +171,22 @@ def _check_cancel(task: ItemTask) -> None:
         raise ItemCancelled(task.name)
 
 
-def _estimate_json(est, camera_name: str) -> dict:
+def _estimate_json(est, camera, profile=None) -> dict:
     from .pipeline import illuminant_json
 
     from recovery.api import LOW_CONFIDENCE
 
     conf = est.diagnostics.get("confidence")
     conf = float(conf) if isinstance(conf, (int, float)) else None
-    return dict(illuminant_json(est), method=est.method, camera=camera_name, confidence=conf,
+    return dict(illuminant_json(est, profile, camera), method=est.method, camera=camera.name, confidence=conf,
                 low_confidence=conf is not None and conf < LOW_CONFIDENCE)
 
 
 def _estimate_from_json(light: dict, camera):
-    """The shared light as an estimate for ``camera``: its camera RGB is the
-    camera's response to the light's spectrum (eq. 1: rho_k = sum_n E R_k)."""
+    """The shared light as an estimate for ``camera``: the light's own camera
+    RGB when it was estimated for this camera (shared lighting pools one
+    camera), else the camera's response to the light's spectrum (eq. 1:
+    rho_k = sum_n E R_k); its confidence is the shared estimate's."""
     import numpy as np
 
     from recovery import IlluminantEstimate
@@ -201,10 +195,14 @@ def _estimate_from_json(light: dict, camera):
     wl = np.asarray(light["wavelengths"], float)
     if wl.shape != camera.wavelengths.shape or not np.allclose(wl, camera.wavelengths):
         spd = np.interp(camera.wavelengths, wl, spd)
-    rgb = spd @ camera.sensitivities
-    rgb = rgb / np.linalg.norm(rgb)
-    return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"),
-                              {"lighting": "shared"}, [])
+    rgb = np.asarray(light.get("camera_rgb") or [], float)
+    if light.get("camera") != camera.name or rgb.shape != (camera.channels,):
+        rgb = spd @ camera.sensitivities
+        rgb = rgb / np.linalg.norm(rgb)
+    diag = {"lighting": "shared"}
+    if isinstance(light.get("confidence"), (int, float)):
+        diag["confidence"] = float(light["confidence"])
+    return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"), diag, [])
 
 
 def _open(task: "ItemTask") -> tuple:
@@ -236,14 +234,33 @@ def meta_path(out: str, suffix: str) -> str:
 
 @contextlib.contextmanager
 def _item_lock(out: str):
+    """One writer per output at a time (``flock`` on ``.wandell/NAME.lock``),
+    the lock file removed when the item is done, so a batch leaves none.
+    Removing a locked file is safe with the usual check: a process that
+    got the lock on a file since unlinked (or replaced) opens it again."""
     import fcntl
 
-    os.makedirs(os.path.dirname(meta_path(out, ".lock")), exist_ok=True)
-    fd = os.open(meta_path(out, ".lock"), os.O_CREAT | os.O_RDWR, 0o644)
+    path = meta_path(out, ".lock")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    while True:
+        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:
+            break
+        os.close(fd)  # the holder before us removed it: lock the current one
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # still holding the lock: nobody else owns this name now
         os.close(fd)  # closing releases the lock
 
 
@@ -373,8 +390,9 @@ def process_item(task: ItemTask) -> dict:
                                                            threads=task.threads, exposure=task.options.exposure)
             _check_cancel(task)  # the last point before anything is written
             file_warnings = list(decoded.warnings)
+            profile = pipeline.profile_of(decoded)
             del decoded
-            illum = _estimate_json(run.estimate, cam.name)
+            illum = _estimate_json(run.estimate, cam, profile)
             illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
             side = {"name": task.name, "index": task.index, "illuminant": illum, "correction_matrix": M.tolist(),
                     "rendering": pipeline.rendering_json(info),
@@ -408,17 +426,21 @@ def _clean(obj):
     return clean(obj)
 
 
-def estimation_sample(task: ItemTask, pixels: int) -> dict:
-    """Shared mode, step 1: an image's estimation data (RAW: binned CFA
-    cells, no demosaic) block-averaged to at most ``pixels`` pixels, with its
-    usable-pixel mask and camera. Block means of surfaces under one light
-    stay in that light's subspace (eq. 29), so averaging loses no validity."""
-    from recovery.resolution import block_average
+def estimation_sample(task: ItemTask, pixels: int | None = None) -> dict:
+    """Shared mode, step 1: an image's own estimate, made exactly as in
+    per-image mode (:func:`service.pipeline.run_estimate` with the batch's
+    method and options, on the analysis image of its ``quality``), with its
+    camera and colour profile. ``pixels`` is not used (it was the share of a
+    pooled image, which made the light depend on the number of images)."""
+    from . import pipeline
 
     try:
-        decoded, cam, _ = _open(task)
-        img, mask, _ = block_average(decoded.estimation, ~decoded.saturated, pixels)
-        return {"status": "ok", "image": img, "mask": mask, "camera": cam}
+        decoded, cam, warns = _open(task)
+        run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method,
+                                    options=task.options.estimate_kwargs())
+        profile = pipeline.profile_of(decoded)
+        return {"status": "ok", "estimate": _clean(_estimate_json(run.estimate, cam, profile)),
+                "warnings": list(run.estimate.warnings), "camera": cam, "profile": profile}
     except MemoryError:
         return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
     except Exception as exc:
@@ -440,21 +462,63 @@ def pool_images(images: list, masks: list):
     return np.concatenate(rows, 0), np.concatenate(mrows, 0)
 
 
+#: Above this angle (degrees) between an image's own light and the shared
+#: one, the shared light warns that the images may not share one light.
+SHARED_SPREAD_WARN_DEG = 3.0
+
+
 def shared_light(samples: list, options: BatchOptions) -> dict:
-    """Shared mode, step 2: one light from all images pooled (Maloney &
-    Wandell: one light, one subspace normal for every image, eq. 30-35).
+    """Shared mode, step 2: one light for all the images, from their own
+    estimates (:func:`estimation_sample`, one camera): the mean of their
+    lights (camera RGB and spectrum, each scaled to a unit camera response,
+    then back to the mean scale), weighted by their confidence when every
+    one has one, else equally. N identical images therefore give that
+    image's own estimate whatever N (pooling their pixels into one image
+    did not: the light moved with the number and layout of the images).
 
-    ``samples`` are :func:`estimation_sample` results of one camera.
-    Returns the light as JSON (``camera_rgb``, ``spectrum``, ``cct``...,
-    ``images``: how many were pooled)."""
+    Its ``confidence`` is the weighted mean of theirs times
+    ``1 / (1 + (rms / 3 deg)^2)``, ``rms`` the weighted RMS angle of the
+    images' lights to the shared one (the just-visible error of
+    :data:`service.pipeline.VISIBLE_WB_ERROR_DEG`): images that agree keep
+    their confidence, images that disagree lower it, and above 3 degrees a
+    warning says so. Returns the light as JSON (``camera_rgb``,
+    ``spectrum``, ``cct``..., ``confidence``, ``images``: how many were
+    combined, ``image_angles_deg``: each image's light to the shared one)."""
+    import numpy as np
+
+    from recovery import IlluminantEstimate, angular_error
+
+    from .pipeline import VISIBLE_WB_ERROR_DEG
+
     cam = samples[0]["camera"]
-    img, mask = pool_images([s["image"] for s in samples], [s["mask"] for s in samples])
-    from recovery import estimate_illuminant
-
-    est = estimate_illuminant(img, cam, options.method, mask=mask, **options.estimate_kwargs())
-    light = _estimate_json(est, cam.name)
+    ests = [s["estimate"] for s in samples]
+    rgbs = np.array([e["camera_rgb"] for e in ests], float)
+    spds = np.array([e["spectrum"] for e in ests], float)
+    wl = np.asarray(ests[0]["wavelengths"], float)
+    norms = np.linalg.norm(rgbs, axis=1)
+    confs = [e.get("confidence") for e in ests]
+    have_conf = all(isinstance(c, (int, float)) and c > 0 for c in confs)
+    w = np.array(confs, float) if have_conf else np.ones(len(ests))
+    w = w / w.sum()
+    scale = float(w @ norms)
+    rgb = (w @ (rgbs / norms[:, None])) * scale
+    spd = (w @ (spds / norms[:, None])) * scale
+    angles = np.array([float(angular_error(r, rgb)) for r in rgbs])
+    rms = float(np.sqrt(w @ angles ** 2))
+    warnings = [x for x in dict.fromkeys(x for s in samples for x in s.get("warnings", []))
+                if all(x in s.get("warnings", []) for s in samples)]
+    if angles.max() > SHARED_SPREAD_WARN_DEG:
+        warnings.append(f"the images' own lights are up to {angles.max():.1f} degrees from the shared light "
+                        f"(RMS {rms:.1f}): they may not all be under one light")
+    diag = {"lighting": "shared"}
+    if have_conf:
+        diag["confidence"] = float(w @ np.array(confs, float)) / (1.0 + (rms / VISIBLE_WB_ERROR_DEG) ** 2)
+    methods = {e.get("method") for e in ests}
+    est = IlluminantEstimate(rgb, spd, wl, methods.pop() if len(methods) == 1 else "shared", diag, warnings)
+    light = _estimate_json(est, cam, samples[0].get("profile"))
     light["images"] = len(samples)
-    light["warnings"] = list(est.warnings)
+    light["image_angles_deg"] = angles.tolist()
+    light["warnings"] = warnings
     return _clean(light)
 
 
@@ -1358,14 +1422,13 @@ class BatchRunner:
         self._wake.set()
 
     def _shared_light_step(self, bid: str, options: BatchOptions) -> None:
-        """Shared mode: sample every pending/running image (in the pool),
-        pool the samples, estimate one light, store it. Items whose file
+        """Shared mode: estimate every pending/running image's own light (in
+        the pool), combine them into one light (:func:`shared_light`), store it. Items whose file
         cannot be read fail here, with their error."""
         fut = self._light_jobs.get(bid)
         if fut is None:
             rows = [r for r in self.store.items(bid) if r["status"] in ("pending", "running", "done")]
-            pixels = max(4096, shared_pool_pixels() // max(1, len(rows)))
-            futs = [(r, self.executor.submit(estimation_sample, self._task(r, options, None), pixels)) for r in rows]
+            futs = [(r, self.executor.submit(estimation_sample, self._task(r, options, None))) for r in rows]
             self._light_jobs[bid] = (futs, None)
             return
         futs, light_fut = fut

@@ -75,7 +75,8 @@ _ERRORS = {
            "file (corrupt_file, no_color_matrix, unusable_neutral, ...)",
 }
 
-X_ILLUMINANT = ("JSON: the estimate (method, camera, illuminant camera_rgb/wb_multipliers/cct/duv), warnings, "
+X_ILLUMINANT = ("JSON: the estimate (method, camera, illuminant camera_rgb/wb_multipliers/cct/duv, and "
+                "xy/chromaticity_basis of the CCT/Duv and Camera Raw's temperature/tint/temperature_basis), warnings, "
                 "timings_ms, correction_matrix, white (estimate, as-shot or neutral), neutral (where the white "
                 "came from) and rendering: rendering (dng-matrix or spectral), color_source, exposure {rule: "
                 "auto (LibRaw's auto-brightness: the 99th percentile of the brightest display channel is white) "

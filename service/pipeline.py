@@ -215,6 +215,13 @@ def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
 AS_SHOT_WARN_DEG = 5.0
 
 
+#: A surface chosen as white whose brightest channel averages less than
+#: this fraction of the white level gets a low-signal warning (a 14-bit
+#: sensor keeps about 800 levels there, and a 0.1 % black-level error is
+#: already a 2 % colour error).
+NEUTRAL_LOW_SIGNAL = 0.05
+
+
 def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
     """The light's camera RGB from a surface the user says is white or grey:
     the mean camera RGB of the unclipped cells of the estimation image under
@@ -223,6 +230,12 @@ def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
     there is clipped or black."""
     H, W = decoded.full_shape
     r0, c0, r1, c1 = (where[0], where[1], where[0] + 1, where[1] + 1) if len(where) == 2 else where
+    if len(where) == 4 and (r0 >= r1 or c0 >= c1):
+        bad = " and ".join(x for x, b in ((f"r0 >= r1 ({r0} >= {r1})", r0 >= r1),
+                                          (f"c0 >= c1 ({c0} >= {c1})", c0 >= c1)) if b)
+        raise ServiceError(422, "invalid_parameter", f"neutral {list(where)} is an inverted or empty rectangle: "
+                           f"{bad}; give [r0, c0, r1, c1] with r0 < r1 and c0 < c1 (top-left, then bottom-right, "
+                           "exclusive)")
     if not (0 <= r0 < r1 <= H and 0 <= c0 < c1 <= W):
         raise ServiceError(422, "invalid_parameter", f"neutral {list(where)} is outside the {H}x{W} image: "
                            f"a point needs 0 <= row < {H} and 0 <= col < {W}; a rectangle 0 <= r0 < r1 <= {H} "
@@ -242,9 +255,11 @@ def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
     rgb = cells[ok].mean(axis=0)
     info = {"where": list(where), "cells_used": n_ok, "cells_clipped_or_black": int(ok.size - n_ok),
             "camera_rgb": (rgb / np.linalg.norm(rgb)).tolist(), "level": float(rgb.max())}
-    if rgb.max() < 0.01:
-        info["warning"] = (f"the neutral surface is very dark ({100 * rgb.max():.2f} % of saturation): its colour "
-                           "is noisy")
+    if rgb.max() < NEUTRAL_LOW_SIGNAL:
+        info["warning"] = (f"the surface chosen as white is dark: its brightest channel averages "
+                           f"{100 * rgb.max():.1f} % of the white level (below {100 * NEUTRAL_LOW_SIGNAL:g} %), "
+                           "so its colour is dominated by noise and black-level error; a brighter white or grey "
+                           "surface gives a more reliable white")
     return rgb, info
 
 
@@ -261,8 +276,79 @@ def with_neutral(decoded, run: EstimateRun, where: list[int]) -> EstimateRun:
     return out
 
 
-def illuminant_json(est: IlluminantEstimate) -> dict:
-    cct, duv = est.cct_duv()
+def profile_of(decoded):
+    """The file's camera -> XYZ profile (:func:`service.metadata.color_profile`),
+    ``None`` without one (TIFF/PNG input, a RAW LibRaw has no matrix for)."""
+    from .metadata import color_profile
+
+    return color_profile(decoded) if decoded is not None else None
+
+
+#: Camera sources whose sensitivities approximate the file's colour matrix
+#: (:mod:`recovery.cameras`): their light's chromaticity is read through the
+#: file's matrices; measured and uploaded sensitivities see the spectrum.
+MATRIX_COLORIMETRY = ("matrix-derived", "generic")
+
+
+def light_xy(est: IlluminantEstimate, profile=None, camera: Camera | None = None) -> tuple[np.ndarray | None, str]:
+    """The chromaticity (CIE 1931 xy) of the estimated light, the one from
+    which the temperatures the service reports are computed: the light's
+    camera RGB through the file's colour matrices (DNG ``NeutralToXY``, as
+    Camera Raw does) when the file has them and the camera's sensitivities
+    are only derived from them (``camera`` matrix-derived or generic, or not
+    given); else the xy of the estimate's spectrum (CIE 1931 2 degree
+    observer; for measured sensitivities that is the better colorimetry).
+    ``(xy, basis)``: basis is the profile's source (``"DNG tags"``,
+    ``"LibRaw"``) or ``"spectrum"``; ``xy`` is ``None`` for a non-physical
+    light."""
+    rgb = np.asarray(est.rgb, float)
+    if (profile is not None and rgb.shape == (3,) and np.all(np.isfinite(rgb)) and np.all(rgb > 0)
+            and (camera is None or camera.source in MATRIX_COLORIMETRY)):
+        from recovery.dng_color import neutral_to_xy
+
+        return np.asarray(neutral_to_xy(profile, rgb), float), profile.source
+    from models import observer
+
+    spd = np.asarray(est.spectrum, float)
+    if not np.all(np.isfinite(spd)) or np.any(spd < -0.01 * np.max(np.abs(spd))):
+        return None, "spectrum"
+    XYZ = np.clip(spd, 0, None) @ observer("XYZ", est.wavelengths)
+    if XYZ[1] <= 0 or XYZ.sum() <= 0:
+        return None, "spectrum"
+    return XYZ[:2] / XYZ.sum(), "spectrum"
+
+
+def light_cct_duv(est: IlluminantEstimate, profile=None,
+                  camera: Camera | None = None) -> tuple[float | None, float | None]:
+    """The one CCT (K) and Duv the service reports for a light (``/v1/analyze``,
+    headers, batches, the CLI, the metadata of outputs and XMP sidecars):
+    Ohno (2013) on the xy of :func:`light_xy`; ``(None, None)`` when the light
+    is not physical or far from the Planckian locus (|Duv| > 0.05, 1000 to
+    100000 K, as :meth:`recovery.IlluminantEstimate.cct_duv`)."""
+    import colour
+
+    xy, _ = light_xy(est, profile, camera)
+    if xy is None:
+        return None, None
+    try:
+        cct, duv = colour.temperature.uv_to_CCT_Ohno2013(colour.xy_to_UCS_uv(xy))
+    except Exception:
+        return None, None
+    if not (np.isfinite(cct) and np.isfinite(duv)) or abs(duv) > 0.05 or not 1000 <= cct <= 100000:
+        return None, None
+    return float(cct), float(duv)
+
+
+def illuminant_json(est: IlluminantEstimate, profile=None, camera: Camera | None = None) -> dict:
+    """The light as JSON: camera RGB, multipliers, spectrum, its CCT/Duv
+    (:func:`light_cct_duv`) with the xy and basis they come from
+    (:func:`light_xy`), and its Camera Raw Temperature/Tint with theirs
+    (:func:`temperature_tint`: always through the file's matrices when it
+    has them, the same xy for a matrix-derived camera). ``profile``: the
+    file's (:func:`profile_of`); ``camera``: the camera of the estimate."""
+    cct, duv = light_cct_duv(est, profile, camera)
+    xy, basis = light_xy(est, profile, camera)
+    tt = _temperature_tint_xy(est, profile)
     return {
         "camera_rgb": est.rgb.tolist(),
         "wb_multipliers": est.wb_multipliers.tolist(),
@@ -270,6 +356,11 @@ def illuminant_json(est: IlluminantEstimate) -> dict:
         "spectrum": est.spectrum.tolist(),
         "cct": cct,
         "duv": duv,
+        "xy": None if xy is None else [float(xy[0]), float(xy[1])],
+        "chromaticity_basis": basis,
+        "temperature": tt.get("temperature"),
+        "tint": tt.get("tint"),
+        "temperature_basis": tt.get("basis"),
     }
 
 
@@ -281,7 +372,7 @@ def camera_json(camera: Camera) -> dict:
 def analysis_json(run: EstimateRun, decoded) -> dict:
     est = run.estimate
     out = {
-        "illuminant": illuminant_json(est),
+        "illuminant": illuminant_json(est, profile_of(decoded), run.camera),
         "camera": camera_json(run.camera),
         "method": est.method,
         "diagnostics": dict(est.diagnostics, analysis_block_factor=run.factor),
@@ -433,12 +524,12 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
     return out, M, info
 
 
-def estimate_summary(run: EstimateRun, info: dict | None = None, **extra) -> dict:
+def estimate_summary(run: EstimateRun, info: dict | None = None, profile=None, **extra) -> dict:
     """The estimate in short (the ``X-Illuminant`` of an XMP download, the
     JSON an output file carries, the XMP sidecar's): method, camera RGB,
     multipliers, CCT/Duv, camera name, and the rendering when ``info``."""
     est = run.estimate
-    cct, duv = est.cct_duv()
+    cct, duv = light_cct_duv(est, profile, run.camera)
     out = {"method": est.method, "camera_rgb": est.rgb.tolist(), "wb_multipliers": est.wb_multipliers.tolist(),
            "cct": cct, "duv": duv, "camera": run.camera.name}
     if info:
@@ -457,7 +548,7 @@ def render_corrected(decoded, run: EstimateRun, *, target: str, output: str, fmt
     Returns ``(image, M, info, meta)``; timings go to ``run.timings_ms``."""
     out, M, info = render_full(decoded, run, target, output, fmt.bits, surface_basis, threads=threads,
                                timings=run.timings_ms, exposure=exposure)
-    summary = estimate_summary(run, info, white=white, target=target, output=output)
+    summary = estimate_summary(run, info, profile_of(decoded), white=white, target=target, output=output)
     return out, M, info, output_meta(decoded, output, summary)
 
 
@@ -476,7 +567,8 @@ def xmp_sidecar(decoded, run: EstimateRun) -> tuple[str, dict, dict]:
     from .outputs import xmp_sidecar as _xmp
 
     tt = temperature_tint(decoded, run)
-    summary = estimate_summary(run, temperature=tt["temperature"], tint=tt["tint"], basis=tt["basis"])
+    summary = estimate_summary(run, None, profile_of(decoded), temperature=tt["temperature"], tint=tt["tint"],
+                               basis=tt["basis"])
     return _xmp(tt["temperature"], tt["tint"], summary), tt, summary
 
 
@@ -702,25 +794,31 @@ def output_meta(decoded, output: str, estimate: dict | None) -> dict:
 
 
 def temperature_tint(decoded, run: EstimateRun) -> dict:
-    """Camera Raw's Temperature/Tint of the estimated light: the camera
-    neutral -> xy through the file's colour matrices (DNG ``NeutralToXY``),
-    then Adobe's Robertson temperature and tint
-    (:func:`recovery.dng_color.xy_to_temperature_tint`). Without matrices,
-    the spectrum's CCT and ``3000 * Duv`` (approximate)."""
-    from recovery.dng_color import neutral_to_xy, xy_to_temperature_tint
-
-    from .metadata import color_profile
-
-    prof = color_profile(decoded) if decoded is not None else None
-    if prof is not None and run.camera.channels == 3:
-        xy = neutral_to_xy(prof, np.asarray(run.estimate.rgb, float))
-        t, tint = xy_to_temperature_tint(xy)
-        return {"temperature": t, "tint": tint, "xy": [float(xy[0]), float(xy[1])], "basis": prof.source}
-    cct, duv = run.estimate.cct_duv()
-    if cct is None:
+    """Camera Raw's Temperature/Tint of the estimated light (Adobe's scale:
+    Robertson's temperature, and the tint, -3000 times the distance from the
+    locus, of the DNG SDK, :func:`recovery.dng_color.xy_to_temperature_tint`):
+    the camera neutral -> xy through the file's colour matrices (DNG
+    ``NeutralToXY``, so Camera Raw gets back this neutral), else the
+    spectrum's xy (:func:`light_xy`). For a matrix-derived camera this is
+    the xy of the reported CCT/Duv, so they differ only by the method and
+    the scale (a few kelvin; Tint about 3000 x Duv); with measured
+    sensitivities the CCT is the spectrum's and may differ more. 422
+    ``no_temperature`` for a light far from the Planckian locus."""
+    tt = _temperature_tint_xy(run.estimate, profile_of(decoded))
+    if tt.get("temperature") is None:
         raise ServiceError(422, "no_temperature", "the estimated light is too far from the Planckian locus for a "
-                       "temperature/tint white balance")
-    return {"temperature": cct, "tint": 3000.0 * duv, "basis": "spectrum CCT/Duv (approximate)"}
+                           "temperature/tint white balance")
+    return tt
+
+
+def _temperature_tint_xy(est: IlluminantEstimate, profile=None) -> dict:
+    from recovery.dng_color import xy_to_temperature_tint
+
+    xy, basis = light_xy(est, profile)
+    if xy is None or light_cct_duv(est, profile)[0] is None:
+        return {"basis": basis}
+    t, tint = xy_to_temperature_tint(xy)
+    return {"temperature": t, "tint": tint, "xy": [float(xy[0]), float(xy[1])], "basis": basis}
 
 
 def _box_sums(a: np.ndarray) -> np.ndarray:

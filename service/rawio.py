@@ -254,12 +254,43 @@ def _sniff(data: bytes) -> str:
         return "Canon CRW"
     if head.startswith(b"\x00MRM"):
         return "Minolta MRW"
+    if _is_text(data):
+        return "text"
     return "unknown"
+
+
+def _is_text(data: bytes, n: int = 4096) -> bool:
+    """Whether the file starts as text (UTF-8, no NUL byte, at least 95 %
+    printable or whitespace in its first ``n`` bytes, at least 16 of them,
+    not starting with a TIFF byte order ``II``/``MM``): every RAW and TIFF
+    starts with a binary header, so such a file is certainly not one,
+    whatever its name (a header cut to a few bytes stays "damaged")."""
+    head = bytes(data[:n])
+    if len(head) < 16 or head[:2] in (b"II", b"MM") or b"\0" in head:
+        return False
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as e:
+        if e.start < len(head) - 3:      # only a character cut at the end is forgiven
+            return False
+        text = head[:e.start].decode("utf-8")
+    ok = sum(c.isprintable() or c in "\t\n\r\f\v" for c in text)
+    return bool(text) and ok >= 0.95 * len(text)
+
+
+def camera_label(make: str | None, model: str | None) -> str:
+    """``make model`` for messages, the make once: LibRaw and many files
+    give a model that already starts with the make ("Nikon" + "Nikon
+    COOLSCAN IV ED")."""
+    make, model = (make or "").strip(), (model or "").strip()
+    if make and model.lower().startswith(make.lower()):
+        return model
+    return " ".join(x for x in (make, model) if x)
 
 
 #: Formats that are certainly not RAW: refused without asking LibRaw.
 _NOT_RAW = {"JPEG", "GIF", "BMP", "WebP", "HEIF", "AVIF", "JPEG 2000", "OpenEXR", "PDF", "ZIP",
-            "NumPy .npy"}
+            "NumPy .npy", "text"}
 
 
 def _extension(filename: str | None) -> str:
@@ -320,8 +351,10 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
         if fmt == "PNG":
             return _decode_png(data, max_pixels)
         if fmt in _NOT_RAW:
+            named = (f" named {_extension(filename)}, but its content has no TIFF or RAW signature LibRaw "
+                     "recognises" if _extension(filename) in RAW_EXTENSIONS else "")
             raise ServiceError(415, "unsupported_format",
-                              f"{label} is a {fmt} file; send a camera RAW (DNG, NEF, CR2, ARW, ...) or a "
+                              f"{label} is a {fmt} file (detected from its content){named}; send a camera RAW (DNG, NEF, CR2, ARW, ...) or a "
                               "linear 16-bit/float TIFF or 16-bit PNG")
         return _decode_raw_or_tiff(data, fmt, filename, max_pixels, estimation_pixels)
     except ServiceError:
@@ -972,7 +1005,7 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
     white = float(raw.white_level)
     if raw.raw_type != rawpy.RawType.Flat and white <= 255 and raw.raw_pattern is None:
         # e.g. a Nikon Coolscan NEF: 8-bit RGB per pixel, no sensor mosaic, no colour matrix
-        who = " ".join(x for x in (make, model) if x)
+        who = camera_label(make, model)
         raise ServiceError(415, "not_camera_raw",
                           f"{label} is not a camera RAW: a scanned 8-bit RGB image"
                           + (f" ({who})" if who else "") + "; it carries no linear sensor data to analyse")

@@ -105,9 +105,17 @@ def test_upload_batch_end_to_end_with_a_corrupt_file(client, env):
     z = client.get(f"/v1/batches/{bid}/zip")
     assert z.status_code == 200 and z.headers["content-type"] == "application/zip"
     with zipfile.ZipFile(io.BytesIO(z.content)) as zf:
-        assert sorted(zf.namelist()) == ["im0.png", "im1.png", "im2.png"]
+        assert sorted(zf.namelist()) == ["FAILURES.txt", "im0.png", "im1.png", "im2.png", "manifest.json"]
         assert zf.read("im0.png") == a.content
         assert zf.testzip() is None
+        # the zip says what is missing from it and why (issue 19, item 11)
+        failures = zf.read("FAILURES.txt").decode()
+        assert "1 of the 4 items" in failures and "broken.dng\tfailed\tcorrupt_file" in failures
+        manifest = json.loads(zf.read("manifest.json"))
+        assert manifest["counts"]["done"] == 3 and manifest["counts"]["failed"] == 1
+        by_m = {it["name"]: it for it in manifest["items"]}
+        assert by_m["im0.dng"]["output"] == "im0.png" and by_m["broken.dng"]["output"] is None
+        assert by_m["broken.dng"]["error"].startswith("corrupt_file")
 
 
 def test_folder_batch_shared_light_is_one_light_close_to_the_truth(client, env):

@@ -115,4 +115,4 @@ def test_analyze_and_white_balance_single_files(shoot, tmp_path):
     assert img.shape == (160, 240, 3) and img.dtype == np.uint16
     assert not (tmp_path / ".wandell").exists()  # single files: no sidecar
     r = _cli("white-balance", str(tmp_path / "missing.dng"), str(out))
-    assert r.returncode == 1 and "failed" in r.stdout
+    assert r.returncode == 2 and "file_not_found" in r.stderr  # a usage error, in words (issue 19, item 9)

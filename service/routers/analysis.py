@@ -198,7 +198,7 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     def work():
         decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings)
         res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts)
-        res["illuminant"] = pipeline.illuminant_json(run.estimate)
+        res["illuminant"] = pipeline.illuminant_json(run.estimate, pipeline.profile_of(decoded), run.camera)
         res["method"] = run.estimate.method
         res["camera"] = pipeline.camera_json(run.camera)
         res["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)

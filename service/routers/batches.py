@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import logging
 import os
 import shutil
 import sqlite3
 import threading
+import time
 import zipfile
 
 from fastapi import APIRouter, Depends, File, Form, Path, UploadFile
@@ -259,9 +261,12 @@ class _Sink:
         return data
 
 
-def _zip_stream(entries: list[tuple[str, str]]):
+def _zip_stream(entries: list[tuple[str, str]], texts: list[tuple[str, str]] = ()):
     sink = _Sink()
     with zipfile.ZipFile(sink, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for arcname, text in texts:  # small, made here: the manifest and the list of failures
+            zf.writestr(zipfile.ZipInfo(arcname, time.localtime()[:6]), text.encode("utf-8"))
+            yield sink.take()
         for arcname, path in entries:
             info = zipfile.ZipInfo.from_file(path, arcname)  # the result's own time stamp
             with open(path, "rb") as src, zf.open(info, "w", force_zip64=True) as dst:
@@ -272,17 +277,45 @@ def _zip_stream(entries: list[tuple[str, str]]):
     yield sink.take()
 
 
+def zip_texts(batch_id: str, rows: list[dict], zipped: dict) -> list[tuple[str, str]]:
+    """What a batch's zip says about itself when some item is not in it
+    (failed, cancelled, not finished): ``FAILURES.txt`` (one line per such
+    item: name, status, error) and ``manifest.json`` (every item: name,
+    status, its output in the zip or its error). A zip of a batch whose
+    every item is in it holds only the results."""
+    items, bad = [], []
+    for r in map(dict, rows):
+        out = os.path.basename(r["out"]) if r.get("out") else None
+        it = {"name": r["name"], "status": r["status"],
+              "output": out if r["status"] == "done" and out in zipped else None}
+        if r.get("error"):
+            it["error"] = r["error"]
+        if r["status"] == "done" and it["output"] is None:
+            it["error"] = "the result is no longer on the server"
+        items.append(it)
+        if r["status"] != "done" or it["output"] is None:
+            bad.append(f"{r['name']}\t{r['status']}\t{it.get('error') or 'not finished when the zip was made'}")
+    counts = {k: sum(i["status"] == k for i in items) for k in ("done", "failed", "cancelled", "pending", "running")}
+    if not bad:
+        return []
+    return [("FAILURES.txt", f"{len(bad)} of the {len(items)} items of batch {batch_id} are not in this zip "
+             "(name, status, error):\n" + "\n".join(bad) + "\n"),
+            ("manifest.json", json.dumps({"batch": batch_id, "counts": counts, "items": items}, indent=1) + "\n")]
+
+
 @router.get("/batches/{batch_id}/zip")
 def batch_zip(batch_id: str):
     """Every finished result in one zip, streamed (not built in memory)."""
     store = get_runner().store
     if store.batch(batch_id) is None:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
-    entries = [(os.path.basename(r["out"]), r["out"]) for r in store.items(batch_id)
+    rows = store.items(batch_id)
+    entries = [(os.path.basename(r["out"]), r["out"]) for r in rows
                if r["status"] == "done" and os.path.exists(r["out"])]
     if not entries:
         raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
-    return StreamingResponse(_zip_stream(entries), media_type="application/zip",
+    return StreamingResponse(_zip_stream(entries, zip_texts(batch_id, rows, dict(entries))),
+                             media_type="application/zip",
                              headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
 
 

@@ -42,6 +42,14 @@ const ERROR_WORDS = {
   "no_color_matrix": "The file has no colour matrix",
   "not_found": "Not found",
   "internal_error": "The service failed (please report this)",
+  "not_camera_raw": "No camera sensor data to analyse",
+  "unusable_neutral": "That spot cannot be used as white",
+  "no_temperature": "The light has no colour temperature",
+  "no_as_shot_white": "The file has no as-shot white balance",
+  "too_many_items": "Too many files",
+  "name_too_long": "A file name is too long",
+  "insufficient_storage": "The server's disk is full",
+  "camera_mismatch": "The files come from different cameras",
 };
 
 // ---------------------------------------------------------------- helpers
@@ -57,8 +65,9 @@ function percent(x) {
 // An Error whose message is the API's {"error","detail"} in words.
 class ApiError extends Error {
   constructor(status, code, detail) {
-    const words = ERROR_WORDS[code] || "The request failed";
-    super(`${words}: ${detail} (HTTP ${status}, ${code})`);
+    // the server's detail always shows; a code without words of its own shows the detail alone
+    const words = ERROR_WORDS[code];
+    super(`${words ? words + ": " : ""}${detail} (HTTP ${status}, ${code})`);
     this.status = status;
     this.code = code;
   }
@@ -153,7 +162,9 @@ async function loadOptions() {
 function diagnosticsInWords(j) {
   const d = j.diagnostics || {};
   const method = j.method || d.method || "unknown";
-  let summary = `The light was estimated by ${METHOD_WORDS[method] || method}.`;
+  let summary = method === "neutral-surface"
+    ? "The white was taken from the surface you clicked (its mean colour is used as the light)."
+    : `The light was estimated by ${METHOD_WORDS[method] || method}.`;
   const why = d.decided_by || (typeof d.decision === "string" ? d.decision.replace(/^[\w-]+: /, "") : "");
   if (why) summary += ` It was decided by ${why}.`;
   if (typeof d.confidence === "number") {
@@ -207,7 +218,13 @@ function diagnosticsInWords(j) {
     details.push(`The camera's own as-shot white balance is ${fmt(j.as_shot.angle_to_estimate_deg, 1)}° ` +
       "from this estimate.");
   }
-  return {summary, details, warnings: (j.warnings || []).map(String)};
+  return {summary, details, warnings: (j.warnings || []).map((w) => pageWords(String(w)))};
+}
+
+// The server's warnings name API parameters; on the page they are clicks and buttons.
+function pageWords(w) {
+  return w.replace("use a white surface ('neutral') or white=as-shot",
+    "click a white or grey surface in either image, or use the camera's own white (Download as-shot PNG)");
 }
 
 function lightFacts(il) {
@@ -217,6 +234,9 @@ function lightFacts(il) {
     $("cct").textContent = "undefined (the light is too far from the Planckian locus)";
   }
   $("duv").textContent = (typeof il.duv === "number") ? (il.duv >= 0 ? "+" : "") + il.duv.toFixed(4) : "–";
+  // the same chromaticity on Adobe's scale: Temperature within a few kelvin of the CCT, Tint about 3000 x Duv
+  $("temp-tint").textContent = (typeof il.temperature === "number" && typeof il.tint === "number")
+    ? `${Math.round(il.temperature)} K / ${il.tint >= 0 ? "+" : ""}${Math.round(il.tint)}` : "–";
   const rgb = il.camera_rgb || [];
   const g = rgb[1] || 1;
   $("camera-rgb").textContent = rgb.map((v) => fmt(v / g, 3)).join(" : ");
