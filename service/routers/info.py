@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 
 import models
-from recovery import METHODS
+from recovery.methods import METHODS
 
 from ..settings import Settings, get_settings
 
@@ -52,6 +52,7 @@ def linear_models() -> dict:
         "rules": ["D(S) < C (number of camera channels)", "D(E) <= D(S) + 1"],
         "defaults": {"D(S)": "C - 1", "D(E)": "D(S) + 1"},
         "methods": list(METHODS),
+        "method_descriptions": {name: m.description for name, m in METHODS.items()},
         "wavelengths": models.DEFAULT_WAVELENGTHS.tolist(),
         "reflectance_sets": models.reflectance_set_names(),
         "illuminants": models.illuminant_names(),
