@@ -145,32 +145,53 @@ def _limits():
 
 
 class Progress:
-    """A one-line text progress bar on stderr (redrawn with ``\\r`` on a
-    terminal, one line per update otherwise)."""
+    """The batch's progress bar on stderr, drawn by tqdm: redrawn in place on
+    a terminal, one line per update otherwise (a log or a pipe gets no
+    carriage returns). The line gives the counts (done, failed, skipped), the
+    rate in images per minute and the time left, both over the images
+    worked on (those skipped as already finished are tqdm's ``initial``, so
+    they make the run look no faster)."""
+
+    #: The line: tqdm's bar, count and time left; the counts and rate are its description.
+    FORMAT = "[{bar:30}] {n_fmt}/{total_fmt}  left {remaining}  {desc}"
 
     def __init__(self, total: int, stream=None, width: int = 30):
         self.total, self.width = total, width
         self.stream = stream or sys.stderr
-        self.t0 = time.monotonic()
-        self.tty = getattr(self.stream, "isatty", lambda: False)()
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._bar = None
+
+    def _start(self, skipped: int):
+        import io
+        import shutil
+
+        from tqdm import tqdm   # here: wandell --help and the other commands do not load it
+
+        # the size given (on a pseudo-terminal of 0 x 0, tqdm would hide its line)
+        size = shutil.get_terminal_size()
+        return tqdm(total=self.total, initial=skipped, file=self.stream if self.tty else io.StringIO(),
+                    bar_format=self.FORMAT.replace("{bar:30}", "{bar:%d}" % self.width), ascii=" #",
+                    mininterval=0, miniters=1, ncols=size.columns if self.tty else None,
+                    nrows=size.lines if self.tty else None, leave=True)
 
     def update(self, done: int, failed: int, skipped: int) -> None:
-        n = done + failed + skipped
-        frac = n / self.total if self.total else 1.0
-        bar = "#" * int(frac * self.width)
-        el = time.monotonic() - self.t0
+        bar = self._bar = self._bar or self._start(skipped)
+        el = bar.format_dict["elapsed"]
         worked = done + failed
         rate = worked / el * 60 if el > 0 and worked else 0.0
-        left = self.total - n
-        eta = f"{left / (rate / 60):.0f} s" if rate else "?"
-        line = (f"[{bar:<{self.width}}] {n}/{self.total}  done {done}  failed {failed}  skipped {skipped}  "
-                f"{rate:.1f} img/min  left {eta}")
-        self.stream.write(("\r" + line) if self.tty else line + "\n")
-        self.stream.flush()
+        bar.set_description_str(f"done {done}  failed {failed}  skipped {skipped}  {rate:.1f} img/min", refresh=False)
+        step = done + failed + skipped - bar.n
+        if step:
+            bar.update(step)       # redraws on a terminal
+        elif self.tty:
+            bar.refresh()
+        if not self.tty:
+            self.stream.write(str(bar) + "\n")
+            self.stream.flush()
 
     def close(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
+        if self._bar is not None:
+            self._bar.close()
 
 
 def _warnings_of(row: dict) -> list[str]:
