@@ -45,11 +45,28 @@ import sys
 import threading
 import time
 
-from . import jobs
 from .errors import ServiceError, service_error
-from .schemas import BatchOptions, Estimation, Rendering
 from .schemas.cli import add_options
+from .schemas.fields import BATCH, ESTIMATION, RENDERING
 
+
+def _lazy_module(name: str):
+    """``name`` imported on first attribute access (:class:`importlib.util.LazyLoader`):
+    the batch machinery (and the pydantic options models it loads) costs
+    ``wandell --help`` nothing."""
+    import importlib.util
+
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.find_spec(name)
+    spec.loader = importlib.util.LazyLoader(spec.loader)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+jobs = _lazy_module("service.jobs")
 
 #: Never written raw to a terminal: C0 controls (ESC, BEL, CR, LF, ...), DEL,
 #: C1 controls (CSI U+009B ...), the bidirectional overrides and isolates
@@ -105,11 +122,11 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
     descriptions, defaults and accepted values as ``/docs``): estimation for
     every command, rendering for ``white-balance`` and ``batch``, the
     lighting mode for ``batch``."""
-    add_options(ap, Estimation, describe={"camera": "measured camera name, 'matrix' or 'generic' (default: from "
+    add_options(ap, ESTIMATION, describe={"camera": "measured camera name, 'matrix' or 'generic' (default: from "
                                                     "the file)"})
     if batch is None:
         return
-    add_options(ap, Rendering, defaults={"format": None},
+    add_options(ap, RENDERING, defaults={"format": None},
                 describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg; white-balance: taken from OUT's "
                                     "extension (.tif, .png, .jpg), and an error if this disagrees; batch: default "
                                     "tiff"})
@@ -118,7 +135,7 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
     if batch:
         ap.add_argument("--force", action="store_true",
                         help="compute finished outputs again (default: skip them, resumable)")
-        add_options(ap, BatchOptions, include=("lighting",))
+        add_options(ap, BATCH)
         ap.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
         ap.add_argument("-r", "--recursive", action="store_true",
                         help="also the RAWs of IN_DIR's subfolders, their outputs in the same subfolders of "
@@ -128,7 +145,7 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
 
 
 def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
-    given = {n: getattr(args, n, None) for n in BatchOptions.model_fields if n != "lighting"}
+    given = {n: getattr(args, n, None) for n in {**ESTIMATION, **RENDERING}}
     return jobs.batch_options(**given, lighting=lighting)
 
 

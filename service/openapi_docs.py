@@ -23,12 +23,12 @@ SWAGGER_PREFIX = "/docs-assets"
 
 def _option_params() -> dict:
     """The request options' entries, from their models (:mod:`service.schemas`)."""
-    from .schemas.options import CONCERNS, option_fields
+    from .schemas.fields import CONCERNS
 
     out = {}
-    for _, model in CONCERNS:
-        for name, (f, opt) in option_fields(model).items():
-            out.setdefault(name, (f.description, list(opt.choices) if opt.choices else None,
+    for _, fields, _ in CONCERNS:
+        for name, opt in fields.items():
+            out.setdefault(name, (opt.description, list(opt.choices) if opt.choices else None,
                                   list(opt.examples) or None))
     return out
 

@@ -1,6 +1,7 @@
-"""CLI flags from the option models (:mod:`service.schemas.options`).
+"""CLI flags from the option declarations (:mod:`service.schemas.fields`,
+the same as the models': no pydantic is loaded for ``--help``).
 
-:func:`add_options` adds one ``--flag`` per model field with the field's
+:func:`add_options` adds one ``--flag`` per declared option with its
 description, default and accepted values as its help (``wandell batch
 --help`` lists the same methods as ``/docs``). The values are not given to
 argparse as ``choices``: the model checks them, so a bad value is the same
@@ -13,7 +14,6 @@ from __future__ import annotations
 import types
 import typing
 
-from .options import _UNSET, option_fields
 
 __all__ = ["add_options", "choices_help"]
 
@@ -29,23 +29,24 @@ def _is_int(annotation) -> bool:
     return int in args
 
 
-def add_options(parser, model, *, include=None, exclude=(), defaults=None, describe=None) -> list[str]:
-    """Add ``model``'s CLI fields (those with ``Opt.cli``) to ``parser``;
-    returns their names. ``defaults``/``describe``: another default or help
-    text per field for this command."""
+def add_options(parser, fields: dict, *, include=None, exclude=(), defaults=None, describe=None) -> list[str]:
+    """Add the CLI options (those with ``Opt.cli``) of ``fields`` (a group of
+    :mod:`service.schemas.fields`) to ``parser``; returns their names.
+    ``defaults``/``describe``: another default or help text per option for
+    this command."""
     defaults, describe = defaults or {}, describe or {}
     names = []
-    for name, (f, opt) in option_fields(model).items():
+    for name, opt in fields.items():
         if not opt.cli or (include is not None and name not in include) or name in exclude:
             continue
-        default = defaults.get(name, f.default if opt.wire_default is _UNSET else opt.wire_default)
-        text = describe.get(name, f.description)
+        default = defaults.get(name, opt.given_default)
+        text = describe.get(name, opt.description)
         if opt.choices:
             text += f" ({choices_help(opt.choices)})"
         if default is not None:
             text += f"; default: {default}"
         kw = {"default": default, "help": text.replace("%", "%%")}
-        if _is_int(opt.wire if opt.wire is not None else f.annotation):
+        if _is_int(opt.wire_type):
             kw["type"] = int
         if opt.metavar:
             kw["metavar"] = opt.metavar

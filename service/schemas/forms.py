@@ -19,7 +19,7 @@ import inspect
 
 from fastapi import Form
 
-from .options import _UNSET, option_fields
+from .options import option_fields
 
 __all__ = ["form"]
 
@@ -36,16 +36,15 @@ def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix
     whose check the endpoint runs itself when it matters (:meth:`~service.schemas.options.OptionModel.check`)."""
     choices, defaults, fixed, describe = choices or {}, defaults or {}, fixed or {}, describe or {}
     params = []
-    for name, (f, opt) in option_fields(model).items():
+    for name, opt in option_fields(model).items():
         if (include is not None and name not in include) or name in exclude or name in fixed:
             continue
-        wire = opt.wire if opt.wire is not None else f.annotation
-        default = defaults.get(name, f.default if opt.wire_default is _UNSET else opt.wire_default)
+        default = defaults.get(name, opt.given_default)
         accepted = choices.get(name, opt.choices)
         extra = {"x-choices": list(accepted)} if accepted else None
         params.append(inspect.Parameter(
-            name, inspect.Parameter.KEYWORD_ONLY, annotation=wire,
-            default=Form(default, description=prefix + describe.get(name, f.description),
+            name, inspect.Parameter.KEYWORD_ONLY, annotation=opt.wire_type,
+            default=Form(default, description=prefix + describe.get(name, opt.description),
                          examples=list(opt.examples) or None, json_schema_extra=extra)))
 
     async def dependency(**values):
