@@ -13,12 +13,14 @@
 ``wandell white-balance FILE OUT``
     One corrected image (``POST /v1/white-balance``).
 
-Options are those of the API: ``--camera``, ``--method``, ``--quality``,
+Options are those of the API, generated from the same declarations
+(:mod:`service.schemas.fields`: descriptions, defaults, accepted values):
+``--camera``, ``--method``, ``--quality``, ``--surface-dim``,
+``--light-dim``, ``--region-size``, ``--surface-model``, ``--light-model``,
 ``--target``, ``--output``, ``--format``, ``--exposure``, ``--lighting``
-(per-image or shared), ``--surface-model``, ``--light-model``; plus
-``--force`` (batch: compute finished outputs again), ``--quiet`` (no
-progress bar or table; failures and warnings still on stderr) and
-``--version``. ``white-balance`` takes the format from OUT's extension
+(per-image or shared); plus ``--force`` (batch: compute finished outputs
+again), ``--quiet`` (no progress bar or table; failures and warnings still
+on stderr) and ``--version``. ``white-balance`` takes the format from OUT's extension
 (.tif/.tiff, .png, .jpg/.jpeg); ``--format`` must agree with it. A batch
 rerun whose options differ from those stored beside a finished output (its
 ``.wandell/NAME.json`` sidecar) says so in the summary. Exit status: 0 when
