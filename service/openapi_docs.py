@@ -59,10 +59,7 @@ PARAMS = {**_option_params(),
 
 #: (path, name) -> enumeration where one name means different sets (the
 #: option models' fields say their own, as ``x-choices``).
-ENUMS = {
-    ("/v1/render", "format"): ["tiff", "png", "png16"],
-    ("/v1/render", "output"): ["sRGB", "linear-sRGB"],
-}
+ENUMS: dict = {}
 
 #: The error body's schema is service.errors' ``ErrorBody`` (added to the document there).
 ERROR_REF = "#/components/schemas/ErrorBody"

@@ -17,7 +17,8 @@ from .errors import ServiceError
 __all__ = ["Format", "FORMATS", "MEDIA_TYPES", "IMAGE_FORMATS", "RENDER_FORMATS", "PREVIEW_FORMATS",
            "OUTPUTS", "RENDER_OUTPUTS", "SURFACE_MODELS", "LIGHT_MODELS", "choose_format", "check_output",
            "check_target", "check_camera_name", "check_dim", "check_region_size", "check_spatial", "estimate_options", "parse_json_field", "parse_json_list", "parse_grid",
-           "parse_exposure", "parse_neutral", "EXPOSURE_HELP", "NEUTRAL_HELP"]
+           "parse_exposure", "parse_neutral", "EXPOSURE_HELP", "NEUTRAL_HELP", "MAX_N", "parse_wavelengths",
+           "parse_degrees", "rule_options"]
 
 
 class Format(NamedTuple):
@@ -232,6 +233,60 @@ def parse_grid(text: str | None) -> tuple[int, int] | None:
     if not (1 <= a <= 100 and 1 <= b <= 100):
         raise ServiceError(422, "invalid_parameter", "grid dimensions must be in 1..100")
     return a, b
+
+
+#: Largest sampling size of ``/v1/render`` and ``/v1/sampling``.
+MAX_N = 64
+
+
+def parse_wavelengths(text: str | None, field: str = "wavelengths") -> np.ndarray | None:
+    """``"400,410,...,700"`` -> float array; finite, strictly increasing."""
+    import numpy as np
+
+    if text is None or not text.strip():
+        return None
+    try:
+        wl = np.array([float(t) for t in text.replace(";", ",").split(",") if t.strip()])
+    except ValueError:
+        raise ServiceError(422, "invalid_parameter", f"{field} must be comma-separated numbers in nm") from None
+    if wl.size < 2 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
+        raise ServiceError(422, "invalid_parameter", f"{field} must be at least two finite, strictly increasing "
+                       "values in nm")
+    return wl
+
+
+def parse_degrees(text: str | None):
+    """``"2,2,2"`` -> (2, 2, 2) (Borges' degree sequence for x, y, z)."""
+    if text is None or not text.strip():
+        return None
+    try:
+        deg = tuple(int(t) for t in text.split(","))
+    except ValueError:
+        raise ServiceError(422, "invalid_parameter", f"degrees must look like 2,2,2, got {text!r}") from None
+    if len(deg) != 3 or not all(0 <= d <= 12 for d in deg):
+        raise ServiceError(422, "invalid_parameter", "degrees must be three integers in 0..12 (x, y, z)")
+    return deg
+
+
+def rule_options(strategy: str, n: int | None, channel: str | None, degrees: str | None) -> dict:
+    """Validated strategy, size and options (422 naming what is wrong)."""
+    from recovery.spectral import render_strategies
+
+    names = render_strategies()
+    if strategy not in names + ["auto", "full"]:
+        raise ServiceError(422, "unknown_strategy", f"strategy {strategy!r} unknown; accepted: auto, full, "
+                       f"{', '.join(names)}")
+    if n is not None and not 1 <= n <= MAX_N:
+        raise ServiceError(422, "n_out_of_range", f"n must be in 1..{MAX_N}, got {n}")
+    opts: dict = {}
+    if channel is not None and channel != "":
+        if channel not in ("A", "C1", "C2", "XYZ"):
+            raise ServiceError(422, "invalid_parameter", f"channel must be A, C1, C2 or XYZ, got {channel!r}")
+        opts["channel"] = channel
+    deg = parse_degrees(degrees)
+    if deg is not None:
+        opts["degrees"] = deg
+    return opts
 
 
 EXPOSURE_HELP = ("exposure in EV, or auto (default): auto is LibRaw's auto-brightness (the 99th "

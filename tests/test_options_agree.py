@@ -17,11 +17,13 @@ from service.app import app
 from service.schemas import options_table
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-ENDPOINTS = ("/v1/analyze", "/v1/white-balance", "/v1/preview", "/v1/surfaces", "/v1/batches")
+ENDPOINTS = ("/v1/analyze", "/v1/white-balance", "/v1/preview", "/v1/surfaces", "/v1/batches", "/v1/render")
 #: Where an endpoint narrows (or widens) a field's values on purpose: (path, name) -> values.
 NARROWED = {("/v1/white-balance", "format"): {"tiff", "png", "png16", "jpeg", "jpg", "xmp"},
             ("/v1/preview", "format"): {"jpeg", "jpg", "png"},
-            ("/v1/surfaces", "format"): {"json", "csv"}}
+            ("/v1/surfaces", "format"): {"json", "csv"},
+            ("/v1/render", "format"): {"tiff", "png", "png16"},
+            ("/v1/render", "output"): {"sRGB", "linear-sRGB"}}
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +114,7 @@ def test_method_lists_are_identical_everywhere(spec, monkeypatch):
 
     methods = list(METHODS)
     assert {"learned", "bayes"} <= set(methods)
-    for path in ENDPOINTS:
+    for path in ENDPOINTS[:-1]:       # /v1/render renders given spectra: no estimate
         assert _enum(_form_fields(spec, path)["method"]) == methods, path
     assert _readme_rows()["method"][1] == methods
     for command in ("analyze", "white-balance", "batch"):

@@ -19,7 +19,7 @@ The models are loaded on first use (PEP 562), so importing
 from __future__ import annotations
 
 _MODELS = ("AnalyzeEstimation", "BatchOptions", "Estimation", "Neutral", "Preview", "Regions", "Rendering",
-           "WhiteBalanceRendering")
+           "SpectralRendering", "WhiteBalanceRendering")
 
 __all__ = [*_MODELS, "options_table"]
 

@@ -30,7 +30,7 @@ from ..errors import ServiceError
 from ..options import FORMATS, IMAGE_FORMATS, LIGHT_MODELS, OUTPUTS, SURFACE_MODELS
 
 __all__ = ["Opt", "ESTIMATION", "SPATIAL", "RENDERING", "WHITE_BALANCE", "NEUTRAL", "REGIONS", "PREVIEW",
-           "BATCH", "LIGHTING", "CONCERNS", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "run_check"]
+           "BATCH", "SPECTRAL", "LIGHTING", "CONCERNS", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "run_check"]
 
 #: Lighting modes of a batch.
 LIGHTING = ("per-image", "shared")
@@ -231,6 +231,63 @@ PREVIEW = {
                     examples=(PREVIEW_MAX_SIDE,), check=_max_side),
 }
 
+# --------------------------------------------------------------------------- spectral rendering
+def _wavelengths(value, name, choices):
+    checks.parse_wavelengths(value, name)
+    return value
+
+
+def _strategy(value, name, choices):
+    checks.rule_options(value, None, None, None)
+    return value
+
+
+def _n(value, name, choices):
+    checks.rule_options("auto", value, None, None)
+    return value
+
+
+def _channel(value, name, choices):
+    checks.rule_options("auto", None, value, None)
+    return value
+
+
+def _degrees(value, name, choices):
+    checks.parse_degrees(value)
+    return value
+
+
+def _max_error(value, name, choices):
+    import math
+
+    if not (math.isfinite(value) and 0 < value <= 100):
+        raise ServiceError(422, "invalid_parameter", "max_error must be in (0, 100]")
+    return value
+
+
+#: ``/v1/render``: the wavelength sampling of spectral data and the light,
+#: with the output fields of :data:`RENDERING` and :data:`WHITE_BALANCE`.
+SPECTRAL = {
+    "wavelengths": Opt(str | None, None, "the cube's wavelengths in nm, comma-separated, strictly increasing; "
+                                         "required for .npy", examples=("400,410,420,430,440,450,460,470,480,490,500",),
+                       check=_wavelengths, cli=False),
+    "illuminant": Opt(str | None, None, "light name (D65, A, FL11, D5000, BB3200...); default D65",
+                      examples=("D65", "A"), cli=False),
+    "strategy": Opt(str, "auto", "a sampling rule (GET /v1/sampling lists them), auto or full",
+                    examples=("auto", "full"), check=_strategy, cli=False),
+    "n": Opt(int | None, None, f"number of samples, 1..{checks.MAX_N}", examples=(8,), check=_n, cli=False),
+    "channel": Opt(str | None, None, "gauss-ac1c2: A, C1, C2 or XYZ (Meyer's 4-wavelength rule)",
+                   choices=("A", "C1", "C2", "XYZ"), examples=("XYZ",), check=_channel, cli=False),
+    "degrees": Opt(str | None, None, "quasi-gauss-xyz: Borges' degree sequence for x, y, z, each 0..12",
+                   examples=("2,2,2",), check=_degrees, cli=False),
+    "format": RENDERING["format"],
+    "output": RENDERING["output"],
+    "adapt": Opt(bool, False, "CAT02 to the display white (off: the colour signal as is)", cli=False),
+    "max_error": Opt(float, 1.0, "auto: bound on the mean CIEDE2000 against the full calculation, in (0, 100]",
+                     examples=(1.0,), check=_max_error, cli=False),
+    "response": WHITE_BALANCE["response"],
+}
+
 # --------------------------------------------------------------------------- batches
 #: A batch: estimation, rendering and the lighting mode.
 BATCH = {
@@ -241,7 +298,7 @@ BATCH = {
 #: The concerns in the README's options table, in order: (concern, fields, label suffix).
 CONCERNS = (("estimation", {**ESTIMATION, **SPATIAL}, ""), ("rendering", {**RENDERING, **WHITE_BALANCE}, ""),
             ("regions", NEUTRAL, ""), ("regions", REGIONS, " (surfaces)"), ("preview", PREVIEW, ""),
-            ("batches", BATCH, ""))
+            ("batches", BATCH, ""), ("spectral rendering", SPECTRAL, ""))
 
 
 def _cell(value) -> str:

@@ -27,10 +27,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model,
 from .. import options as checks
 from ..options import FORMATS
 from .fields import (BATCH, ESTIMATION, LIGHTING, NEUTRAL, PREVIEW, PREVIEW_MAX_SIDE, PREVIEW_SIDE_RANGE, REGIONS,
-                     RENDERING, SPATIAL, WHITE_BALANCE, Opt, options_table, run_check)
+                     RENDERING, SPATIAL, SPECTRAL, WHITE_BALANCE, Opt, options_table, run_check)
 
 __all__ = ["OptionModel", "Estimation", "AnalyzeEstimation", "Rendering", "WhiteBalanceRendering", "Neutral",
-           "Regions", "Preview", "BatchOptions", "LIGHTING", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "opt_of",
+           "Regions", "Preview", "BatchOptions", "SpectralRendering", "LIGHTING", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "opt_of",
            "option_fields", "options_table"]
 
 
@@ -111,3 +111,5 @@ Preview = _model("Preview", OptionModel, "What ``/v1/preview`` shows.", PREVIEW)
 BatchOptions = _model("BatchOptions", _Batch, "The options of a batch (``POST /v1/batches``, ``wandell "
                       "batch``): estimation, rendering and the lighting mode; stored with the batch and beside "
                       "each output (``to_json``).", ESTIMATION, RENDERING, BATCH)
+SpectralRendering = _model("SpectralRendering", OptionModel, "``/v1/render``: the wavelength sampling, the light "
+                           "and the output of spectral data.", SPECTRAL)
