@@ -1,26 +1,36 @@
-"""Real photographs with measured lights, leave one camera out: the default
-(learnt) estimator against the classical peers, the light posterior and
-the literal Maloney-Wandell method, in one run.
+"""Real photographs with measured lights: the default (learnt) estimator
+against the classical peers, leave one *benchmark* out (the headline) and
+leave one camera out beside it, in one run.
 
-For each of the 10 development cameras (NUS 8-camera's nine and Cube+'s
-Canon EOS 550D) the learnt estimator is fitted on the other nine
-(:func:`benchmarks.train_illuminant.leave_one_camera_out`, the settings of
-the shipped model) and tested on the tenth, each camera described only by
-its colour matrix (LibRaw's table, as a RAW upload of that model gets). The
-peers need no training and run on every image; the light posterior
-(``bayes``) and the literal method cost more and run on a fixed subsample
-(``--sample`` per camera), where every method is also reported.
+Headline, leave-one-benchmark-out: for each of the three development
+benchmarks (NUS 8-camera, Cube+, INTEL-TAU field) the whole training
+procedure of :mod:`benchmarks.train_illuminant` (its settings chosen by an
+inner leave-one-benchmark-out among the two training benchmarks, its
+uncertainty calibrated on that inner loop's out-of-fold predictions) runs on
+the other two, and the model predicts the left-out benchmark, each camera
+described only by its colour matrix (LibRaw's table, as a RAW upload of that
+model gets). Nothing about the left-out benchmark is used for any choice.
 
-Prints per camera and pooled: mean, median, trimean, best 25 %, worst 25 %,
-95th percentile and time per image; the learnt estimator's median and worst
-25 % as ratios to shades of gray's on the same camera; the coverage of its
-reported 90 % region (calibrated on the other cameras); writes
-``out/real_photos.json`` and a plot of the error distributions
-``out/real_photos_errors.png``.
+Beside it, leave-one-camera-out: each of the 12 cameras predicted by a model
+fitted on the other 11 (with the ridge that the outer loop chose without
+that camera's benchmark). NUS 8-camera's cameras photographed largely the
+same scenes, so this protocol flatters a learnt method.
+
+The peers (gray world, white patch, shades of gray p = 6, gray edge of 1st
+and 2nd order) need no training and run on every image in the same run;
+the light posterior (``bayes``) on a fixed subsample (``--sample`` per
+camera, default 0: it costs ~0.1 s an image).
+
+Prints per left-out benchmark, per camera and pooled: mean, median,
+trimean, best 25 %, worst 25 %, 95th percentile, ms per image; the ratios
+to shades of gray the issue's targets are stated in; the coverage of the
+reported 90 % region on each left-out benchmark; the confidence's
+reliability; the cost of an estimate warm and in a fresh process. Writes
+``out/real_photos.json``.
 
 Usage::
 
-    python -m benchmarks.real_photos [--sample 20] [--out out] [--no-plot]
+    python -m benchmarks.real_photos [--quick] [--sample 0] [--out out] [--no-loco]
 """
 
 from __future__ import annotations
@@ -36,8 +46,8 @@ from recovery import learned as L
 from recovery.estimators import gray_edge, gray_world, shades_of_gray, white_patch
 
 from .realdata import REAL_DIR, angular_error, error_stats, load_real, usable_mask
-from .train_illuminant import (coverage_by_camera, dataset_features, held_out_confidence, leave_one_camera_out,
-                               reliability, single_threaded)
+from .train_illuminant import (dataset_features, leave_one_benchmark_out, leave_one_camera_out, reliability,
+                               single_threaded)
 
 PEERS = {
     "gray-world": lambda im, m: gray_world(im, m),
@@ -47,6 +57,10 @@ PEERS = {
     "gray-edge 2nd p=6": lambda im, m: gray_edge(im, m, 6.0, 1.0, 2),
 }
 SOG = "shades-of-gray p=6"
+LEARNED = "learned (LODO)"
+
+#: the issue's targets, leave-one-benchmark-out
+TARGET_MEAN_RATIO, TARGET_MEDIAN_RATIO, TARGET_POOLED_MEAN, TARGET_POOLED_MEDIAN = 0.8, 0.85, 2.3, 1.7
 
 
 def _run_peer(fn, images, masks):
@@ -61,7 +75,7 @@ def _run_peer(fn, images, masks):
 
 
 def _product(method, rs, idx):
-    """The product's own estimate_illuminant (bayes, maloney-wandell, learned) on images ``idx``."""
+    """The product's own estimate_illuminant on images ``idx``."""
     from recovery import estimate_illuminant
     from recovery.cameras import camera_from_matrix
 
@@ -99,7 +113,8 @@ print(json.dumps(out))
 def first_use(matrices) -> dict:
     """In a fresh process (nothing cached): the first estimate with a camera
     never seen (the model file, the candidate lights), the first with each
-    further new camera, and the steady cost per 64 x 64 estimate."""
+    further new camera, and the steady cost per 64 x 64 estimate (through
+    ``estimate_illuminant``, the product's whole path)."""
     import subprocess
     import sys
 
@@ -112,111 +127,141 @@ def _fmt(s):
     return " ".join(f"{s[k]:6.2f}" for k in ("mean", "median", "trimean", "best25", "worst25", "p95"))
 
 
+HEAD = f"{'':26s} {'mean':>6s} {'median':>6s} {'trim':>6s} {'best25':>6s} {'worst25':>6s} {'p95':>6s} {'ms/img':>7s}"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(REAL_DIR))
-    ap.add_argument("--sample", type=int, default=20, help="images per camera for bayes and maloney-wandell")
+    ap.add_argument("--quick", action="store_true", help="every third image only (development; not the figures)")
+    ap.add_argument("--sample", type=int, default=0, help="images per camera for bayes (default 0: not run)")
+    ap.add_argument("--no-loco", action="store_true", help="skip leave-one-camera-out")
     ap.add_argument("--out", default="out")
-    ap.add_argument("--no-plot", action="store_true")
     a = ap.parse_args(argv)
     t_all = time.perf_counter()
     rs = load_real(a.data)
+    if a.quick:
+        rs = rs.subset(np.arange(0, len(rs.truth), 3))
+    n = len(rs.truth)
     fu = first_use([rs.matrices[c] for c in rs.cameras[:3]])
     print(f"first estimate in a fresh process with a new camera: {fu['first_s'][0]:.3f} s (imports "
           f"{fu['import_s']:.2f} s before it); a second and third new camera: "
           f"{fu['first_s'][1] * 1e3:.0f} / {fu['first_s'][2] * 1e3:.0f} ms; then "
-          f"{np.mean(fu['again_ms']):.1f} ms per 64x64 estimate")
+          f"{np.mean(fu['again_ms']):.1f} ms per 64x64 estimate (estimate_illuminant, warm)")
     masks = np.array([usable_mask(im) for im in rs.images])
-    n = len(rs.truth)
     errs, times = {}, {}
-
-    t0 = time.perf_counter()
-    feats, tuv, Ks = dataset_features(rs)
-    with single_threaded():
-        uv, spread, err = leave_one_camera_out(rs, feats, tuv, Ks, log=lambda s: None)
-    errs["learned (LOCO)"] = err
-    times["learned (LOCO)"] = (time.perf_counter() - t0) / n   # features + 10 fits, per image
-    # the shipped model's cost per estimate on a thumbnail (features + network), as the product runs it
-    model = L.load_model()
-    t0 = time.perf_counter()
-    for i in range(0, n, 10):
-        L.estimate_learned(rs.images[i], masks[i], rs.matrices[rs.camera[i]], model)
-    times["learned (LOCO)"] = (time.perf_counter() - t0) / len(range(0, n, 10))
     for name, fn in PEERS.items():
         est, times[name] = _run_peer(fn, rs.images, masks)
         errs[name] = angular_error(est, rs.truth)
 
-    rng = np.random.default_rng(0)
-    sub = np.sort(np.concatenate([rng.choice(np.flatnonzero(rs.camera == c), min(a.sample, int(np.sum(rs.camera == c))),
-                                             replace=False) for c in rs.cameras]))
-    sub_errs = {k: v[sub] for k, v in errs.items()}
-    for method in ("bayes", "maloney-wandell"):
-        est, times[method] = _product(method, rs, sub)
-        sub_errs[method] = angular_error(est, rs.truth[sub])
+    t0 = time.perf_counter()
+    feats, tuv, Ks = dataset_features(rs)
+    t_feat = (time.perf_counter() - t0) / n
+    with single_threaded():
+        lodo = leave_one_benchmark_out(rs, feats, tuv, Ks, sog=errs[SOG])
+    err = np.zeros(n)
+    inside = {}
+    conf = np.zeros(n)
+    for b, (model, res, te) in lodo.items():
+        err[te] = res["err"]
+        inside[b] = float(res["inside90"].mean())
+        conf[te[res["usable"]]] = res["confidence"]
+    errs[LEARNED] = err
+    # cost of the learnt estimate itself (features + model), on a thumbnail
+    model = next(iter(lodo.values()))[0]
+    t0 = time.perf_counter()
+    sub_t = range(0, n, max(1, n // 300))
+    for i in sub_t:
+        try:
+            L.estimate_learned(rs.images[i], masks[i], rs.matrices[rs.camera[i]], model)
+        except L.InsufficientSurfaceVariation:
+            pass
+    times[LEARNED] = (time.perf_counter() - t0) / len(sub_t)
+    print(f"  (features {1e3 * t_feat:.1f} ms per image)")
 
-    cover = coverage_by_camera(rs, uv, tuv, spread)
-    d2 = ((uv - tuv) ** 2).sum(axis=1)
-    report = {"images": n, "cameras": rs.cameras, "pooled": {}, "per_camera": {}, "subsample": {},
-              "coverage90": cover, "time_per_image_s": times, "first_use": fu}
-    head = f"{'method':22s} {'mean':>6s} {'median':>6s} {'trim':>6s} {'best25':>6s} {'worst25':>6s} {'p95':>6s} {'ms/img':>7s}"
-    print(f"\nAll {n} images, leave one camera out (learned); peers need no training\n{head}")
-    for k, e in errs.items():
-        s = error_stats(e)
+    if not a.no_loco:
+        with single_threaded():
+            errs["learned (LOCO)"] = leave_one_camera_out(
+                rs, feats, tuv, Ks, {b: m.info["selection"]["chosen_ridge"] for b, (m, _, _) in lodo.items()},
+                sog=errs[SOG])
+        times["learned (LOCO)"] = times[LEARNED]
+
+    report = {"images": n, "quick": a.quick, "benchmarks": rs.datasets, "cameras": rs.cameras,
+              "leave_one_benchmark_out": {}, "per_camera": {}, "pooled": {}, "coverage90": inside,
+              "time_per_image_s": times, "first_use": fu}
+    order = [LEARNED, *(["learned (LOCO)"] if "learned (LOCO)" in errs else []), *PEERS]
+    print(f"\n=== Leave one benchmark out (fit on the other two; the learnt row) - the headline ===")
+    targets = {}
+    for b in rs.datasets:
+        m = rs.dataset == b
+        print(f"\n{b} ({int(m.sum())} images, {len(set(rs.camera[m]))} cameras; left out of training)\n{HEAD}")
+        report["leave_one_benchmark_out"][b] = {}
+        for k in order:
+            s = error_stats(errs[k][m])
+            report["leave_one_benchmark_out"][b][k] = s
+            print(f"{k:26s} {_fmt(s)} {1e3 * times[k]:7.2f}")
+        s, g = error_stats(err[m]), error_stats(errs[SOG][m])
+        rm, rd = s["mean"] / g["mean"], s["median"] / g["median"]
+        targets[b] = (rm <= TARGET_MEAN_RATIO, rd <= TARGET_MEDIAN_RATIO)
+        print(f"  learnt / shades of gray: mean {rm:.2f} (target <= {TARGET_MEAN_RATIO}), median {rd:.2f} "
+              f"(target <= {TARGET_MEDIAN_RATIO}); 90 % region holds the light for {inside[b]:.1%} "
+              f"(target 85-95 %)")
+    print(f"\nPooled over the three benchmarks ({n} images)\n{HEAD}")
+    for k in order:
+        s = error_stats(errs[k])
         report["pooled"][k] = s
-        print(f"{k:22s} {_fmt(s)} {1e3 * times[k]:7.2f}")
-    print(f"\nSubsample ({a.sample} per camera, {len(sub)} images): every method\n{head}")
-    for k, e in sub_errs.items():
-        s = error_stats(e)
-        report["subsample"][k] = s
-        print(f"{k:22s} {_fmt(s)} {1e3 * times[k]:7.2f}")
-    print("\nPer camera (learned vs shades of gray p=6; ratio targets: median <= 0.7, worst 25 % <= 0.8)")
-    print(f"{'camera':24s} {'n':>4s} | learned: mean median trim best25 worst25 p95 | sog: mean median worst25 | "
-          f"med-ratio w25-ratio | 90% cover")
+        print(f"{k:26s} {_fmt(s)} {1e3 * times[k]:7.2f}")
+    ps = error_stats(err)
+    print(f"  pooled learnt (LODO): mean {ps['mean']:.2f} (target <= {TARGET_POOLED_MEAN}), median "
+          f"{ps['median']:.2f} (target <= {TARGET_POOLED_MEDIAN})")
+
+    print("\nPer camera, leave one benchmark out (learnt vs shades of gray p=6; target: worst 25 % not above sog's)")
+    print(f"{'camera':24s} {'n':>4s} | learnt: mean median trim best25 worst25 p95 | sog: mean median worst25 | "
+          f"w25-ratio" + (" | LOCO mean median worst25" if "learned (LOCO)" in errs else ""))
+    w25_ok = {}
     for c in rs.cameras:
         te = rs.camera == c
-        s, g = error_stats(errs["learned (LOCO)"][te]), error_stats(errs[SOG][te])
-        report["per_camera"][c] = {"learned": s, "shades_of_gray": g,
-                                   "median_ratio": s["median"] / g["median"], "worst25_ratio": s["worst25"] / g["worst25"],
+        s, g = error_stats(err[te]), error_stats(errs[SOG][te])
+        w25_ok[c] = s["worst25"] <= g["worst25"]
+        report["per_camera"][c] = {"benchmark": str(rs.dataset[te][0]), "learned_lodo": s, "shades_of_gray": g,
+                                   "worst25_ratio": s["worst25"] / g["worst25"],
                                    "others": {k: error_stats(e[te]) for k, e in errs.items()}}
-        print(f"{c:24s} {int(te.sum()):4d} | {_fmt(s)} | {g['mean']:5.2f} {g['median']:5.2f} {g['worst25']:5.2f} | "
-              f"{s['median'] / g['median']:5.2f} {s['worst25'] / g['worst25']:5.2f} | {cover[c]:5.0%}")
-    inside = float(np.mean(d2 <= L.CHI2_90 * L.variance_from_spread(spread, L.fit_uncertainty(spread, d2))))
-    pooled_cover = float(np.mean([cover[c] for c in rs.cameras for _ in range(int(np.sum(rs.camera == c)))]))
-    print(f"\n90 % region coverage, each camera calibrated on the others: pooled {pooled_cover:.1%} "
-          f"(in-sample calibration {inside:.1%})")
-    report["coverage90_pooled"] = pooled_cover
-    rel = reliability(held_out_confidence(rs, uv, tuv, spread, err, Ks), err)
-    report["confidence_reliability"] = rel
-    print("confidence on held-out cameras, predicted / observed P(error < 3 deg) by bin: "
+        line = (f"{c:24s} {int(te.sum()):4d} | {_fmt(s)} | {g['mean']:5.2f} {g['median']:5.2f} {g['worst25']:5.2f} | "
+                f"{s['worst25'] / g['worst25']:5.2f}")
+        if "learned (LOCO)" in errs:
+            lc = error_stats(errs["learned (LOCO)"][te])
+            line += f" | {lc['mean']:5.2f} {lc['median']:5.2f} {lc['worst25']:5.2f}"
+        print(line)
+
+    rel = reliability(conf[err > -1], err)
+    report["confidence_reliability_lodo"] = rel
+    print("\nconfidence on left-out benchmarks, predicted / observed P(error < 3 deg) by bin: "
           + ", ".join(f"{b['bin'][0]:.1f}-{b['bin'][1]:.1f} {b['predicted']:.2f}/{b['observed']:.2f} (n {b['n']})"
                       for b in rel))
+
+    if a.sample:
+        rng = np.random.default_rng(0)
+        sub = np.sort(np.concatenate([rng.choice(np.flatnonzero(rs.camera == c),
+                                                 min(a.sample, int(np.sum(rs.camera == c))), replace=False)
+                                      for c in rs.cameras]))
+        est, t_b = _product("bayes", rs, sub)
+        eb = angular_error(est, rs.truth[sub])
+        print(f"\nSubsample ({a.sample} per camera, {len(sub)} images)\n{HEAD}")
+        for k, e in ((LEARNED, err[sub]), (SOG, errs[SOG][sub]), ("bayes", eb)):
+            print(f"{k:26s} {_fmt(error_stats(e))} {1e3 * (t_b if k == 'bayes' else times[k]):7.2f}")
+
+    print("\nTargets (leave one benchmark out): "
+          + "; ".join(f"{b}: mean {'met' if t[0] else 'MISSED'}, median {'met' if t[1] else 'MISSED'}"
+                      for b, t in targets.items())
+          + f"; pooled mean {'met' if ps['mean'] <= TARGET_POOLED_MEAN else 'MISSED'}, pooled median "
+            f"{'met' if ps['median'] <= TARGET_POOLED_MEDIAN else 'MISSED'}; worst 25 % not above sog on "
+            f"{sum(w25_ok.values())} of {len(w25_ok)} cameras"
+          + f"; coverage 85-95 % on {sum(0.85 <= v <= 0.95 for v in inside.values())} of {len(inside)} benchmarks"
+          + f"; warm {np.mean(fu['again_ms']):.1f} ms (target <= 20), first {fu['first_s'][0]:.2f} s (target <= 0.5)")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "real_photos.json").write_text(json.dumps(report, indent=1))
-    if not a.no_plot:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
-        names = list(errs)
-        ax[0].boxplot([errs[k] for k in names], whis=(5, 95), showfliers=False)
-        ax[0].set_xticks(range(1, len(names) + 1), names, rotation=30, ha="right", fontsize=8)
-        ax[0].set_ylabel("angular error (degrees)")
-        ax[0].set_title(f"{n} real photographs, 10 cameras (whiskers 5-95 %)")
-        for k in names:
-            e = np.sort(errs[k])
-            ax[1].plot(e, np.arange(1, e.size + 1) / e.size, label=k)
-        ax[1].set_xlim(0, 12)
-        ax[1].set_xlabel("angular error (degrees)")
-        ax[1].set_ylabel("fraction of images")
-        ax[1].legend(fontsize=8)
-        ax[1].grid(alpha=0.3)
-        fig.tight_layout()
-        fig.savefig(out / "real_photos_errors.png", dpi=110)
-        print(f"wrote {out / 'real_photos.json'} and {out / 'real_photos_errors.png'}")
-    print(f"total {time.perf_counter() - t_all:.0f} s")
+    print(f"wrote {out / 'real_photos.json'}; total {time.perf_counter() - t_all:.0f} s")
     return 0
 
 

@@ -32,22 +32,40 @@ class RealSet:
     camera: np.ndarray        # (N,) model name
     name: np.ndarray          # (N,) image name
     matrices: dict            # model -> (3, 3) XYZ -> camera (D65)
+    dataset: np.ndarray = None  # (N,) benchmark of each image ("NUS 8-camera", "Cube+", "INTEL-TAU field")
 
     @property
     def cameras(self) -> list[str]:
         return sorted(set(self.camera.tolist()))
 
 
-def load_real(directory=None) -> RealSet:
-    """Both benchmarks (NUS 8-camera and Cube+) as one set."""
+    @property
+    def datasets(self) -> list[str]:
+        return [k for k in BENCHMARKS if k in set(self.dataset.tolist())]
+
+    def subset(self, sel) -> "RealSet":
+        return RealSet(self.images[sel], self.truth[sel], self.camera[sel], self.name[sel], self.matrices,
+                       self.dataset[sel])
+
+
+#: benchmark -> file (the data's README)
+BENCHMARKS = {"NUS 8-camera": "nus8.npz", "Cube+": "cubeplus.npz", "INTEL-TAU field": "tau_field.npz"}
+
+
+def load_real(directory=None, benchmarks=None) -> RealSet:
+    """The development benchmarks (default all three present: NUS 8-camera,
+    Cube+, INTEL-TAU field) as one set, each image labelled with its
+    benchmark."""
     d = Path(directory) if directory else REAL_DIR
-    parts = [np.load(d / f) for f in ("nus8.npz", "cubeplus.npz")]
+    names = [b for b in (benchmarks or BENCHMARKS) if benchmarks or (d / BENCHMARKS[b]).is_file()]
+    parts = [np.load(d / BENCHMARKS[b]) for b in names]
     mats = json.loads((d / "cameras.json").read_text())
     return RealSet(np.concatenate([p["images"] for p in parts]).astype(np.float32) / 65535.0,
-                   np.concatenate([p["illuminant_rgb"] for p in parts]),
-                   np.concatenate([p["camera"] for p in parts]),
-                   np.concatenate([p["name"] for p in parts]),
-                   {k: np.asarray(v["xyz_to_camera_D65"], float) for k, v in mats.items()})
+                   np.concatenate([p["illuminant_rgb"] for p in parts]).astype(float),
+                   np.concatenate([p["camera"] for p in parts]).astype(str),
+                   np.concatenate([p["name"] for p in parts]).astype(str),
+                   {k: np.asarray(v["xyz_to_camera_D65"], float) for k, v in mats.items()},
+                   np.concatenate([np.full(len(p["camera"]), b) for b, p in zip(names, parts)]))
 
 
 #: a channel at or below this fraction of the image maximum is dark (the

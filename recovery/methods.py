@@ -30,10 +30,10 @@ class Method(NamedTuple):
 
 #: Every estimation method, in the order the documentation lists them.
 METHODS = {
-    "auto": Method("learned", "the default: the learnt estimator (classical estimates combined by a network "
-                              "learnt on real photographs, recovery.learned), the light posterior when it "
-                              "cannot describe the camera"),
-    "learned": Method("learned", "the learnt estimator alone (the same as auto)"),
+    "auto": Method("auto", "the default: the learnt estimator (classical estimates combined by a network "
+                           "learnt on real photographs, recovery.learned), or the light posterior for a scene of "
+                           "uniform patches (a chart, a Mondrian) or a camera it cannot describe"),
+    "learned": Method("learned", "the learnt estimator whatever the scene"),
     "bayes": Method("posterior", "the posterior over physically plausible lights (recovery.bayes), one light "
                                  "or a light map"),
     "maloney-wandell": Method("subspace", "the literal subspace method of Wandell (1985), eq. 30 and 35"),

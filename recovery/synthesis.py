@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize, spatial
 
 from models import display as get_display, observer as get_observer, wavelength_step
 from models.displays import Display
@@ -155,6 +154,8 @@ def adjust_light_for_gamut(pixels: np.ndarray, sensors: np.ndarray, wavelengths:
     if frac == 0.0:
         return target, {"adjusted": False, "out_of_gamut_fraction": 0.0, "feasible": True}
     pts = px
+    from scipy import optimize, spatial  # here: imported only when the gamut is adjusted (start-up, issue 19)
+
     if px.shape[1] <= 4:  # qhull's cost grows like n^(C/2): beyond 4 channels use the sample
         try:
             pts = px[spatial.ConvexHull(px).vertices]

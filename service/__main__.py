@@ -1,5 +1,6 @@
-"""``python -m service``: run the API with uvicorn on the embedded defaults
-(127.0.0.1:8000).
+"""``python -m service`` (installed as ``wandell-serve``): run the API with
+uvicorn on the embedded defaults (127.0.0.1:8000), ``--host``/``--port`` or
+``WANDELL_HOST``/``WANDELL_PORT``; ``--help`` prints the usage.
 
 Connections that send nothing are closed: uvicorn times the idle gap after
 a response (``timeout_keep_alive``, ``WANDELL_KEEP_ALIVE_TIMEOUT``) but not a
@@ -48,14 +49,31 @@ class IdleClosingH11Protocol(H11Protocol):
         super().connection_lost(exc)
 
 
-def main() -> None:
+def _parser():
+    import argparse
+
+    ap = argparse.ArgumentParser(
+        prog="wandell-serve",
+        description="Run the Wandell colour recovery service (the REST API, the page at / and the API docs at "
+                    "/docs) with uvicorn. Stop it with Ctrl-C.",
+        epilog="Every setting is an environment variable WANDELL_<NAME> (service/settings.py): for example "
+               "WANDELL_HOST, WANDELL_PORT, WANDELL_MAX_UPLOAD_BYTES, WANDELL_MAX_CONCURRENT_WORK, "
+               "WANDELL_DATA_DIR, WANDELL_KEEP_ALIVE_TIMEOUT. Also run as: python -m service.")
+    ap.add_argument("--host", help="address to listen on (default: WANDELL_HOST, else 127.0.0.1)")
+    ap.add_argument("--port", type=int, help="port to listen on (default: WANDELL_PORT, else 8000)")
+    return ap
+
+
+def main(argv=None) -> None:
+    args = _parser().parse_args(argv)       # --help prints the usage and exits 0: no server
+
     import uvicorn
 
     from .settings import get_settings
 
     s = get_settings()
-    uvicorn.run("service.app:app", host=s.host, port=s.port, timeout_keep_alive=s.keep_alive_timeout,
-                http=IdleClosingH11Protocol)
+    uvicorn.run("service.app:app", host=args.host or s.host, port=s.port if args.port is None else args.port,
+                timeout_keep_alive=s.keep_alive_timeout, http=IdleClosingH11Protocol)
 
 
 if __name__ == "__main__":

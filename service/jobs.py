@@ -205,14 +205,15 @@ def _estimate_from_json(light: dict, camera):
     return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"), diag, [])
 
 
-def _open(task: "ItemTask") -> tuple:
-    """Decode an item's file and choose its camera (:func:`service.pipeline.open_image`)."""
+def _open(task: "ItemTask", prefetch: bool = False) -> tuple:
+    """Decode an item's file and choose its camera (:func:`service.pipeline.open_image`;
+    ``prefetch``: start the demosaic on a thread for the render that follows)."""
     from . import pipeline
 
     with open(task.src, "rb") as f:
         data = f.read()
     decoded, cam, warns, _ = pipeline.open_image(data, task.name or os.path.basename(task.src), task,
-                                                 task.options.camera)
+                                                 task.options.camera, prefetch=prefetch)
     return decoded, cam, warns
 
 
@@ -375,14 +376,20 @@ def process_item(task: ItemTask) -> dict:
                     side = json.load(f)
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
                         "seconds": time.perf_counter() - t0}
-            decoded, cam, warns = _open(task)
-            _check_cancel(task)
+            # the demosaic overlaps the estimate when this item may use several
+            # threads (wandell white-balance); a pool worker (one per core) does not
+            decoded, cam, warns = _open(task, prefetch=task.threads != 1)
             opts = task.options.estimate_kwargs()
-            if task.light is None:
-                run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
-            else:
-                run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
-            _check_cancel(task)
+            try:
+                _check_cancel(task)
+                if task.light is None:
+                    run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
+                else:
+                    run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
+                _check_cancel(task)
+            except BaseException:
+                pipeline.drain_prefetch(decoded)
+                raise
             fmt = FORMATS[task.options.format]
             out, M, info, meta = pipeline.render_corrected(decoded, run, target=task.options.target,
                                                            output=task.options.output, fmt=fmt,
@@ -399,7 +406,8 @@ def process_item(task: ItemTask) -> dict:
                     "options": task.options.as_dict()}
             if task.exactly_once:
                 atomic_write(meta_path(task.out, ".json"), lambda p: write_text(p, json.dumps(_clean(side))))
-            atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta))
+            atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta,
+                                                                           threads=task.threads))
             if task.write_log:
                 with open(task.write_log, "a") as f:
                     f.write(json.dumps({"name": task.name, "out": os.path.basename(task.out),

@@ -71,9 +71,15 @@ def check_output(output: str, accepted=OUTPUTS) -> str:
     return output
 
 
+#: Targets known valid without looking them up: the default (CIE D65 is
+#: always among colour-science's illuminants), so validating the options of
+#: a command that renders nothing (``wandell analyze``) imports no colour-science.
+_KNOWN_TARGETS = ("estimate", "as-seen", "D65")
+
+
 def check_target(target: str) -> str:
     """A light to render under: ``estimate``, ``as-seen`` or an illuminant name."""
-    if target not in ("estimate", "as-seen"):
+    if target not in _KNOWN_TARGETS:
         from models import illuminant
 
         try:

@@ -64,29 +64,79 @@ def decode(data: bytes, filename: str | None, limits):
 
 
 def open_image(data: bytes, filename: str | None, limits, camera: str | None = None,
-               sensitivities: bytes | None = None):
+               sensitivities: bytes | None = None, prefetch: bool = False):
     """Decode and choose the camera (:func:`recovery.cameras.resolve_camera`):
-    ``(decoded, camera, warnings, milliseconds)``."""
+    ``(decoded, camera, warnings, milliseconds)``. With ``prefetch`` (a
+    caller that renders the full image next) the demosaic starts at once on
+    a thread (:func:`prefetch_full_linear`)."""
     from recovery.cameras import resolve_camera
 
     t0 = time.perf_counter()
     decoded = decode(data, filename, limits)
-    cam, warns = resolve_camera(decoded, camera, sensitivities)
+    if prefetch:
+        prefetch_full_linear(decoded)
+    try:
+        cam, warns = resolve_camera(decoded, camera, sensitivities)
+    except BaseException:
+        drain_prefetch(decoded)
+        raise
     return decoded, cam, warns, (time.perf_counter() - t0) * 1e3
+
+
+def prefetch_full_linear(decoded) -> None:
+    """Start the full-resolution linear image (``decoded.full_linear("uint16")``,
+    the demosaic) on a thread while the caller chooses the camera and
+    estimates the light: LibRaw's unpack and OpenCV's demosaic release the
+    GIL, the estimate (and a fresh process's imports) need it, so the two
+    overlap on two cores. :func:`render_full` takes the result (once: it is
+    corrected in place); errors are raised there, as without the thread."""
+    if getattr(decoded, "_full_future", None) is not None:
+        return
+    import threading
+    from concurrent.futures import Future
+
+    fut: Future = Future()
+
+    def run():
+        try:
+            fut.set_result(decoded.full_linear("uint16"))
+        except BaseException as exc:  # noqa: BLE001 - handed to whoever takes the result
+            fut.set_exception(exc)
+
+    decoded._full_future = fut
+    threading.Thread(target=run, name="wandell-demosaic", daemon=True).start()
+
+
+def drain_prefetch(decoded) -> None:
+    """Wait for a prefetched demosaic nobody will use (the estimate failed)
+    and drop it, so no work outlives the request that started it."""
+    fut = decoded.__dict__.pop("_full_future", None) if decoded is not None else None
+    if fut is not None:
+        fut.exception()
+
+
+def _full_linear_u16(decoded) -> np.ndarray:
+    fut = decoded.__dict__.pop("_full_future", None)
+    return fut.result() if fut is not None else decoded.full_linear("uint16")
 
 
 def analyze(data: bytes, filename: str | None, limits, *, camera: str | None = None,
             sensitivities: bytes | None = None, method: str = "auto", options: dict | None = None,
-            neutral: list[int] | None = None):
+            neutral: list[int] | None = None, prefetch: bool = False):
     """Decode, choose the camera, estimate the light: ``(decoded, run)``.
     With ``neutral`` (a point or rectangle the user says is white,
     :func:`service.options.parse_neutral`) the light is that surface's
-    (:func:`with_neutral`), rendered like an estimate."""
-    decoded, cam, warns, ms = open_image(data, filename, limits, camera, sensitivities)
-    run = run_estimate(decoded, cam, warns, method=method, options=options or {})
-    run.timings_ms["decode"] = ms
-    if neutral is not None:
-        run = with_neutral(decoded, run, neutral)
+    (:func:`with_neutral`), rendered like an estimate. ``prefetch``: the
+    caller renders next, demosaic meanwhile (:func:`prefetch_full_linear`)."""
+    decoded, cam, warns, ms = open_image(data, filename, limits, camera, sensitivities, prefetch=prefetch)
+    try:
+        run = run_estimate(decoded, cam, warns, method=method, options=options or {})
+        run.timings_ms["decode"] = ms
+        if neutral is not None:
+            run = with_neutral(decoded, run, neutral)
+    except BaseException:
+        drain_prefetch(decoded)
+        raise
     return decoded, run
 
 
@@ -510,10 +560,14 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
                 exposure: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The corrected full-resolution image: matrix, demosaic, DefaultCrop,
     highlights, exposure, encoding. Returns ``(image, M, info)``."""
-    M, info = correction_matrix(run, target, output, surface_model, decoded=decoded, tone=tone,
-                                exposure=exposure)
+    try:
+        M, info = correction_matrix(run, target, output, surface_model, decoded=decoded, tone=tone,
+                                    exposure=exposure)
+    except BaseException:
+        drain_prefetch(decoded)
+        raise
     t0 = time.perf_counter()
-    rgb16 = default_crop(decoded, decoded.full_linear("uint16"))
+    rgb16 = default_crop(decoded, _full_linear_u16(decoded))
     t1 = time.perf_counter()
     out = apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=threads, neutral=info.get("neutral"),
                                shoulder=info.get("shoulder"), curve=info.get("curve"))
@@ -556,7 +610,7 @@ def write_corrected(decoded, run: EstimateRun, path: str, **kw) -> tuple[np.ndar
     """:func:`render_corrected`, encoded to ``path``: ``(M, info)``."""
     out, M, info, meta = render_corrected(decoded, run, **kw)
     t0 = time.perf_counter()
-    encode_image(out, kw["fmt"].encoder, path, meta=meta)
+    encode_image(out, kw["fmt"].encoder, path, meta=meta, threads=kw.get("threads"))
     run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
     return M, info
 
@@ -734,9 +788,13 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     return out
 
 
-def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None) -> bytes | None:
+def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None,
+                 threads: int | None = None) -> bytes | None:
     """PNG (8-bit or 16-bit), 16-bit TIFF or 8-bit JPEG of an RGB image, as
     bytes, or written to ``path`` (TIFF straight from the array, no copy).
+    PNG and JPEG are encoded in strips on ``threads`` threads
+    (:func:`service.encode.png_encode`, :func:`service.encode.jpeg_encode`;
+    default: one per CPU).
 
     ``meta`` (:func:`output_meta`): ``icc`` (profile bytes), ``facts`` (EXIF
     facts, :func:`service.outputs.output_facts`) and ``text`` (PNG text) are
@@ -763,14 +821,26 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
         buf = io.BytesIO()
         tifffile.imwrite(buf, img, photometric="rgb", **kw)
         return buf.getvalue()
-    import cv2
+    if fmt == "png" and img.ndim == 3 and img.shape[2] == 3 and img.size:
+        from .encode import png_encode
 
-    bgr = np.ascontiguousarray(img[..., ::-1])
-    ok, enc = cv2.imencode(".png" if fmt == "png" else ".jpg", bgr,
-                           [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise ServiceError(422, "encode_failed", f"could not encode {fmt}")
-    data = enc.tobytes()
+        data = png_encode(img, threads)
+    elif fmt == "jpeg" and img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8 and img.size:
+        from .encode import jpeg_encode
+
+        try:
+            data = jpeg_encode(img, 95, threads)
+        except ValueError:
+            raise ServiceError(422, "encode_failed", "could not encode jpeg") from None
+    else:
+        import cv2
+
+        bgr = np.ascontiguousarray(img[..., ::-1])
+        ok, enc = cv2.imencode(".png" if fmt == "png" else ".jpg", bgr,
+                               [cv2.IMWRITE_JPEG_QUALITY, 95] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:
+            raise ServiceError(422, "encode_failed", f"could not encode {fmt}")
+        data = enc.tobytes()
     if icc or facts or meta.get("text"):
         data = outputs.embed(data, fmt, icc, outputs.exif_block(facts) if facts else None, meta.get("text"))
     if path is not None:

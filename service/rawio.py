@@ -1109,18 +1109,34 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
             H, W = cfa.shape
             mos = np.empty((H, W), np.uint16)
             letters = [""] * 4
-            rows = max(1, (1 << 20) // max(1, W))
+            rows = max(1, (1 << 18) // max(1, W))       # 1 MB of float32 per chunk and thread
+            tasks = []
             for dy, dx, idx, ch in sites:
                 letters[dy * 2 + dx] = "RGB"[ch]
                 b = np.float32(blacks[idx])
                 k = np.float32(65535.0 / (white - blacks[idx]))
                 src, dst = cfa[dy::2, dx::2], mos[dy::2, dx::2]
-                for r in range(0, src.shape[0], rows):
-                    a = src[r:r + rows].astype(np.float32)
-                    a -= b
-                    a *= k
-                    np.clip(a, 0, 65535, out=a)
-                    dst[r:r + rows] = a + np.float32(0.5)
+                tasks += [(src, dst, b, k, r) for r in range(0, src.shape[0], rows)]
+
+            def scale(task):
+                src, dst, b, k, r = task
+                a = src[r:r + rows].astype(np.float32)
+                a -= b
+                a *= k
+                np.clip(a, 0, 65535, out=a)
+                a += np.float32(0.5)
+                dst[r:r + rows] = a
+
+            # numpy releases the GIL on these arrays: the row chunks run on every core
+            n_threads = min(4, os.cpu_count() or 1, max(1, cv2.getNumThreads()))   # 1 in a pool worker
+            if n_threads > 1 and len(tasks) > 1:
+                from concurrent.futures import ThreadPoolExecutor
+
+                with ThreadPoolExecutor(n_threads) as pool:
+                    list(pool.map(scale, tasks))
+            else:
+                for t in tasks:
+                    scale(t)
             del cfa
     except rawpy.LibRawError as exc:
         raise ServiceError(422, "corrupt_file",
