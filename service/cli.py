@@ -38,14 +38,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import glob
 import json
 import os
 import re
 import shlex
 import sys
 import threading
-import time
 
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 
 from .errors import ServiceError, service_error
 from .options import FORMATS, check_camera_name
-from .schemas.options import LIGHTING, BatchOptions
+from .schemas.options import LIGHTING, BatchOptions  # noqa: F401 (LIGHTING: named here too)
 
 #: The environment variables that cap the internal thread pools of the
 #: numerical libraries; set to 1 in every pool worker so that N workers use

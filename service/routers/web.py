@@ -26,7 +26,7 @@ from ..jsonsafe import clean
 from ..options import FORMATS, MEDIA_TYPES, PREVIEW_FORMATS
 from ..schemas import Estimation, Neutral, Preview, Rendering
 from ..schemas.forms import form
-from ..schemas.options import PREVIEW_MAX_SIDE, PREVIEW_SIDE_RANGE
+from ..schemas.options import PREVIEW_MAX_SIDE, PREVIEW_SIDE_RANGE  # noqa: F401 (the preview limits, named here too)
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
