@@ -40,9 +40,8 @@ STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "style.css": "text/c
 #: rendering ones matter only for ``wb=corrected``, whose target is checked then.
 _PREVIEW = form(Preview)
 _PREVIEW_ESTIMATION = form(Estimation, include=("camera", "method", "quality"), prefix="corrected only: ")
-_PREVIEW_RENDERING = form(Rendering, exclude=("format",), prefix="corrected only: ", lazy=("target",))
-_PREVIEW_FORMAT = form(Rendering, include=("format",), choices={"format": PREVIEW_FORMATS},
-                       defaults={"format": "jpeg"}, describe={"format": "jpeg or png (8-bit)"})
+_PREVIEW_RENDERING = form(Rendering, prefix="corrected only: ", lazy=("target",), choices={"format": PREVIEW_FORMATS},
+                          defaults={"format": "jpeg"}, describe={"format": "jpeg or png (8-bit)"})
 _NEUTRAL = form(Neutral, prefix="corrected only: ")
 
 #: The page's Content-Security-Policy: its own script and style sheet only (no
@@ -194,14 +193,14 @@ def crop_preview(img: np.ndarray, full_shape, box) -> np.ndarray:
     422: {"description": "bad option or unusable file"}})
 async def preview(request: Request, file: UploadFile = File(..., description="RAW file (anything LibRaw reads) or linear "
                                                            "16-bit TIFF/PNG"),
-                  pv: Preview = Depends(_PREVIEW), fmt_opt: Rendering = Depends(_PREVIEW_FORMAT),
+                  pv: Preview = Depends(_PREVIEW),
                   est: Estimation = Depends(_PREVIEW_ESTIMATION), rend: Rendering = Depends(_PREVIEW_RENDERING),
                   nt: Neutral = Depends(_NEUTRAL), settings: Settings = Depends(get_settings)):
     """A small 8-bit preview for the web page: the original as the camera's
     white balance renders it (``wb=camera``) or the corrected image
     (``wb=corrected``), longest side at most ``max_side``."""
     t0 = time.perf_counter()
-    wb, max_side, fmt = pv.wb, pv.max_side, FORMATS[fmt_opt.format].encoder
+    wb, max_side, fmt = pv.wb, pv.max_side, FORMATS[rend.format].encoder
     if wb == "corrected":
         rend.check("target")
     camera, method, opts = est.camera, est.method, est.estimate_kwargs()

@@ -32,7 +32,7 @@ def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix
     their model default, or ``fixed[name]``); ``choices``: narrower accepted
     values per field (enumerated and checked); ``defaults``: another default
     on this endpoint; ``prefix``: put before every description (``corrected
-    only: ``); ``describe``: another description per field; ``lazy``: fields
+    only: ``); ``describe``: another description per field (no prefix); ``lazy``: fields
     whose check the endpoint runs itself when it matters (:meth:`~service.schemas.options.OptionModel.check`)."""
     choices, defaults, fixed, describe = choices or {}, defaults or {}, fixed or {}, describe or {}
     params = []
@@ -44,7 +44,7 @@ def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix
         extra = {"x-choices": list(accepted)} if accepted else None
         params.append(inspect.Parameter(
             name, inspect.Parameter.KEYWORD_ONLY, annotation=opt.wire_type,
-            default=Form(default, description=prefix + describe.get(name, opt.description),
+            default=Form(default, description=describe[name] if name in describe else prefix + opt.description,
                          examples=list(opt.examples) or None, json_schema_extra=extra)))
 
     async def dependency(**values):
