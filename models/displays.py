@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._colour import sd_to_array
+from ._colour import cached, sd_to_array
 
 __all__ = ["Display", "display", "display_names"]
 
@@ -56,19 +56,30 @@ def display(name: str = "sRGB", wavelengths=None) -> Display:
     >>> display("sRGB").primaries_XYZ.shape
     (3, 3)
     """
-    import colour
-
     from .grid import DEFAULT_WAVELENGTHS
 
     if name in _SPECTRAL:
         wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
-        guns = sd_to_array(colour.MSDS_DISPLAY_PRIMARIES[name], wl)
-        return Display(name=name, guns=np.clip(guns, 0, None), wavelengths=wl)
+        return Display(name=name, guns=_spectral_guns(name, wl), wavelengths=wl)
     if name in _COLORIMETRIC:
-        cs = colour.RGB_COLOURSPACES[_COLORIMETRIC[name]]
-        # Gamma^-1 is the colourspace's own XYZ -> RGB matrix (for sRGB the
-        # IEC 61966-2-1 matrix, which is not the exact inverse of the rounded
-        # RGB -> XYZ one), so synthesis agrees with colour-science's encoder.
-        return Display(name=name, primaries_XYZ=np.linalg.inv(np.asarray(cs.matrix_XYZ_to_RGB, float)),
-                       encoding=cs.name)
+        m, encoding = _colorimetric(name)
+        return Display(name=name, primaries_XYZ=m, encoding=encoding)
     raise KeyError(f"unknown display {name!r}; accepted: {display_names()}")
+
+
+@cached("models.displays._spectral_guns")
+def _spectral_guns(name: str, wl) -> np.ndarray:
+    import colour
+
+    return np.clip(sd_to_array(colour.MSDS_DISPLAY_PRIMARIES[name], np.asarray(wl, float)), 0, None)
+
+
+@cached("models.displays._colorimetric")
+def _colorimetric(name: str) -> tuple[np.ndarray, str]:
+    import colour
+
+    cs = colour.RGB_COLOURSPACES[_COLORIMETRIC[name]]
+    # Gamma^-1 is the colourspace's own XYZ -> RGB matrix (for sRGB the
+    # IEC 61966-2-1 matrix, which is not the exact inverse of the rounded
+    # RGB -> XYZ one), so synthesis agrees with colour-science's encoder.
+    return np.linalg.inv(np.asarray(cs.matrix_XYZ_to_RGB, float)), cs.name

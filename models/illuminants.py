@@ -15,7 +15,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ._colour import sd_to_array
+from ._colour import cached, sd_to_array
 from .grid import DEFAULT_WAVELENGTHS, resample_box
 
 __all__ = [
@@ -50,6 +50,7 @@ def light_to_array(sd, wavelengths=None) -> np.ndarray:
     return sd_to_array(sd, wl)
 
 
+@cached("models.illuminants.illuminant_names")
 def illuminant_names(kind: str = "all") -> list[str]:
     """Names of colour-science's illuminants (``colour.SDS_ILLUMINANTS``).
 
@@ -82,6 +83,7 @@ def _illuminant_cached(name, wl, normalise):
     return _illuminant(name, np.asarray(wl), normalise)
 
 
+@cached("models.illuminants._illuminant")
 def _illuminant(name: str, wavelengths=None, normalise: bool = True) -> np.ndarray:
     """One illuminant's relative spectral power, ``(N,)``.
 
@@ -172,6 +174,7 @@ def illuminants(names=None, wavelengths=None, normalise: bool = True) -> np.ndar
     return np.stack([illuminant(n, wavelengths, normalise) for n in names])
 
 
+@cached("models.illuminants.daylight_basis")
 def daylight_basis(wavelengths=None) -> np.ndarray:
     """The CIE daylight components S0, S1, S2 as columns, ``(N, 3)``.
 
@@ -184,6 +187,7 @@ def daylight_basis(wavelengths=None) -> np.ndarray:
     return np.stack([light_to_array(B[k], wavelengths) for k in ("S0", "S1", "S2")], 1)
 
 
+@cached("models.illuminants.daylight")
 def daylight(cct: float, wavelengths=None) -> np.ndarray:
     """CIE daylight of correlated colour temperature ``cct`` (K), ``(N,)``,
     from colour-science's ``CCT_to_xy_CIE_D`` and ``sd_CIE_illuminant_D_series``."""
@@ -193,6 +197,7 @@ def daylight(cct: float, wavelengths=None) -> np.ndarray:
     return light_to_array(colour.sd_CIE_illuminant_D_series(xy), wavelengths)
 
 
+@cached("models.illuminants.blackbody")
 def blackbody(temperature: float, wavelengths=None) -> np.ndarray:
     """Planckian radiator at ``temperature`` K, ``(N,)`` (colour-science's
     ``planck_law``), unnormalised."""

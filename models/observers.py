@@ -15,7 +15,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ._colour import sd_to_array
+from ._colour import cached, sd_to_array
 
 __all__ = ["OBSERVERS", "observer", "observer_names"]
 
@@ -54,6 +54,7 @@ def _observer_cached(name, wl):
     return out
 
 
+@cached("models.observers._observer")
 def _observer(name: str = "CIE 1931 2 Degree Standard Observer", wavelengths=None) -> np.ndarray:
     """Colour matching functions or cone fundamentals, ``(N, 3)``.
 

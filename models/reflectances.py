@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._colour import sd_to_array
+from ._colour import cached, sd_to_array
 
 __all__ = ["REFLECTANCE_SETS", "reflectance_set", "reflectance_set_names"]
 
@@ -29,6 +29,7 @@ def reflectance_set_names() -> list[str]:
     return list(REFLECTANCE_SETS) + ["all"]
 
 
+@cached("models.reflectances._load")
 def _load(name: str, wavelengths) -> tuple[np.ndarray, list[str]]:
     import colour
 

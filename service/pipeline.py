@@ -38,6 +38,8 @@ from recovery.synthesis import correction_matrix as _recovery_correction_matrix,
     output_space
 from recovery.synthesis import exposure_gain as _recovery_exposure_gain
 
+from models._colour import cached
+
 from .errors import ServiceError
 from .options import FORMATS, MEDIA_TYPES, Format
 
@@ -375,13 +377,13 @@ def light_cct_duv(est: IlluminantEstimate, profile=None,
     Ohno (2013) on the xy of :func:`light_xy`; ``(None, None)`` when the light
     is not physical or far from the Planckian locus (|Duv| > 0.05, 1000 to
     100000 K, as :meth:`recovery.IlluminantEstimate.cct_duv`)."""
-    import colour
+    from models._colour import uv_to_CCT_Ohno2013, xy_to_UCS_uv  # colour-science's, without importing it
 
     xy, _ = light_xy(est, profile, camera)
     if xy is None:
         return None, None
     try:
-        cct, duv = colour.temperature.uv_to_CCT_Ohno2013(colour.xy_to_UCS_uv(xy))
+        cct, duv = uv_to_CCT_Ohno2013(xy_to_UCS_uv(xy))
     except Exception:
         return None, None
     if not (np.isfinite(cct) and np.isfinite(duv)) or abs(duv) > 0.05 or not 1000 <= cct <= 100000:
@@ -626,6 +628,7 @@ def xmp_sidecar(decoded, run: EstimateRun) -> tuple[str, dict, dict]:
     return _xmp(tt["temperature"], tt["tint"], summary), tt, summary
 
 
+@cached("service.pipeline._encoding_lut")
 def _encoding_lut(encoding: str | None, bits: int, curve: str | None = None) -> np.ndarray:
     """16-bit linear code -> encoded ``bits``-bit code, through
     colour-science's ``cctf_encoding`` of the colourspace, after the tone
