@@ -19,6 +19,8 @@ from models import illuminant as get_illuminant
 
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation, ModelDimensionError
+from .methods import METHODS as METHOD_TABLE
+from .methods import QUALITY_PRESETS
 from .metrics import angular_error
 from .estimators import PEERS, maloney_wandell_pixels
 from .lighting import lighting_matrix, lighting_matrix_from_spectrum, lighting_tensor
@@ -248,30 +250,84 @@ def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_ma
 
 
 @dataclass
-class _Run:
-    """What :func:`_estimate_core` has prepared for the estimator it dispatches to."""
+class Evidence:
+    """What the image says, prepared once for every estimator
+    (:func:`_prepare`): the image scaled to a maximum of 1 with non-finite
+    pixels zeroed, the usable pixels, the diagnostics so far and the
+    warnings so far."""
 
-    method: str
-    camera: Camera
     img: np.ndarray
     m: np.ndarray
     diag: dict
     warns: list
-    run_peer: object
-    spatial_mode: str
-    region_size: int | None
-    surface_basis: object
-    light_basis: object
-    surface_dim: object
-    light_dim: object
-    d_s: int
-    d_e: int
-    order_auto: bool
-    overlap: float
-    min_variation: float
-    subspace_tolerance: float
-    on_failure: str
-    fallback: str
+
+
+@dataclass(frozen=True)
+class EstimationOptions:
+    """The options of one estimate as :func:`_estimate_core` resolved them:
+    the method, the spatial mode, the linear models and their dimensions
+    (``d_s``, ``d_e``: D(S) and D(E) as chosen; ``order_auto``: chosen by
+    BIC), the literal method's region and failure settings, the peers'
+    parameters."""
+
+    method: str
+    spatial_mode: str = "auto"
+    region_size: int | None = None
+    surface_basis: object = None
+    light_basis: object = None
+    surface_dim: object = None
+    light_dim: object = None
+    d_s: int = 2
+    d_e: int = 3
+    order_auto: bool = False
+    overlap: float = 0.5
+    min_variation: float = 0.02
+    subspace_tolerance: float = 0.1
+    on_failure: str = "fallback"
+    fallback: str = "shades-of-gray"
+    p: float = 6.0
+    sigma: float = 1.0
+
+
+@dataclass
+class EstimatorInput:
+    """The one argument of every estimator (:data:`ESTIMATOR_KINDS`): the
+    image evidence, the camera and the options. The evidence's and the
+    options' fields read directly (``run.img``, ``run.fallback``);
+    :meth:`run_peer` runs a classical peer as the estimators' declared
+    fallback."""
+
+    evidence: Evidence
+    camera: Camera
+    options: EstimationOptions
+
+    def __getattr__(self, name: str):
+        for part in ("evidence", "options"):
+            obj = self.__dict__.get(part)
+            if obj is not None and name in type(obj).__dataclass_fields__:
+                return getattr(obj, name)
+        raise AttributeError(name)
+
+    def run_peer(self, name: str, why: str | None = None) -> IlluminantEstimate:
+        """The classical peer ``name`` (:data:`recovery.estimators.PEERS`), its
+        spectrum fitted to its RGB; ``why`` it runs instead (a fallback) goes
+        to ``diagnostics["decision"]``."""
+        camera, opt = self.camera, self.options
+        peer_model = resolve_model(None, "light", min(3, camera.channels), camera.wavelengths)
+        kw = ({"p": opt.p} if name == "shades-of-gray" else
+              ({"p": opt.p, "sigma": opt.sigma} if name == "gray-edge" else {}))
+        rgb = PEERS[name](self.img, self.m, **kw)
+        w, spd = _spectrum_from_rgb(rgb, camera, peer_model)
+        d = dict(self.diag)
+        d["light_model"] = peer_model.name + " (spectrum fitted to the rgb estimate)"
+        if why:
+            d["decision"] = f"fallback to {name}: {why}"
+        return _finish(rgb, spd, w, camera, peer_model, name, d, list(self.warns))
+
+
+#: The estimators' argument under its former name (a merge of the learnt
+#: estimator's work keeps its annotations).
+_Run = EstimatorInput
 
 
 def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
@@ -348,32 +404,19 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
     if surface_basis is not None and not isinstance(surface_basis, str) and surface_dim is None:
         d_s = resolve_model(surface_basis, "surface", None, camera.wavelengths).dimension
         d_e = light_dim or (d_e if light_basis is not None and not isinstance(light_basis, str) else min(d_s + 1, C))
-    diag = dict(info)
-    warns: list[str] = []
-
-    def run_peer(name, why=None):
-        peer_model = resolve_model(None, "light", min(3, C), camera.wavelengths)
-        kw = {"p": p} if name == "shades-of-gray" else ({"p": p, "sigma": sigma} if name == "gray-edge" else {})
-        rgb = PEERS[name](img, m, **kw)
-        w, spd = _spectrum_from_rgb(rgb, camera, peer_model)
-        d = dict(diag)
-        d["light_model"] = peer_model.name + " (spectrum fitted to the rgb estimate)"
-        if why:
-            d["decision"] = f"fallback to {name}: {why}"
-        return _finish(rgb, spd, w, camera, peer_model, name, d, list(warns))
-
-    run = _Run(method, camera, img, m, diag, warns, run_peer, spatial_mode, region_size, surface_basis,
-               light_basis, surface_dim, light_dim, d_s, d_e, order_auto, overlap, min_variation,
-               subspace_tolerance, on_failure, fallback)
+    options = EstimationOptions(method, spatial_mode, region_size, surface_basis, light_basis, surface_dim,
+                                light_dim, d_s, d_e, order_auto, overlap, min_variation, subspace_tolerance,
+                                on_failure, fallback, p, sigma)
+    run = EstimatorInput(Evidence(img, m, dict(info), []), camera, options)
     return ESTIMATORS[method](run)
 
 
-def _estimate_peer(run: _Run) -> IlluminantEstimate:
+def _estimate_peer(run: EstimatorInput) -> IlluminantEstimate:
     """A classical peer (:data:`recovery.estimators.PEERS`), its spectrum fitted to its RGB."""
     return run.run_peer(run.method)
 
 
-def _check_pinned_models(run: _Run) -> None:
+def _check_pinned_models(run: EstimatorInput) -> None:
     """A pinned linear model must obey the paper's rules whichever estimator decides."""
     if any(v is not None for v in (run.surface_dim, run.light_dim, run.surface_basis, run.light_basis)):
         S_ = resolve_model(run.surface_basis, "surface", run.d_s, run.camera.wavelengths)
@@ -381,7 +424,7 @@ def _check_pinned_models(run: _Run) -> None:
         check_dimensions(run.camera.channels, S_.dimension, E_.dimension)
 
 
-def _estimate_posterior(run: _Run) -> IlluminantEstimate:
+def _estimate_posterior(run: EstimatorInput) -> IlluminantEstimate:
     """``auto`` and ``bayes``: the light posterior, then one light or a map."""
     camera, img, m, spatial_mode = run.camera, run.img, run.m, run.spatial_mode
     _check_pinned_models(run)
@@ -513,16 +556,13 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
 LOW_CONFIDENCE = 0.5
 
 
-def _estimate_subspace(run: _Run) -> IlluminantEstimate:
+def _estimate_subspace(run: EstimatorInput) -> IlluminantEstimate:
     """``maloney-wandell``: the literal method of the paper (eq. 30, 35), one light or a map."""
-    (camera, img, m, diag, warns, run_peer, spatial_mode, region_size, surface_basis, light_basis,
-     surface_dim, light_dim, d_s, d_e, order_auto, overlap, min_variation, subspace_tolerance, on_failure,
-     fallback) = (run.camera, run.img, run.m, run.diag, run.warns, run.run_peer, run.spatial_mode,
-                  run.region_size, run.surface_basis, run.light_basis, run.surface_dim, run.light_dim, run.d_s,
-                  run.d_e, run.order_auto, run.overlap, run.min_variation, run.subspace_tolerance,
-                  run.on_failure, run.fallback)
+    camera, img, m, diag, warns, o = run.camera, run.img, run.m, run.diag, run.warns, run.options
+    d_s, d_e, surface_basis, light_basis, surface_dim, light_dim, min_variation = (
+        o.d_s, o.d_e, o.surface_basis, o.light_basis, o.surface_dim, o.light_dim, o.min_variation)
     C = camera.channels
-    if order_auto:
+    if o.order_auto:
         from .model_order import select_dimensions
 
         px = img[m]
@@ -551,9 +591,9 @@ def _estimate_subspace(run: _Run) -> IlluminantEstimate:
     diag.update({"D(S)": d_s, "D(E)": d_e, "surface_model": S.name, "light_model": E.name})
     try:
         lm = None
-        if spatial_mode == "map":
-            size = region_size or max(8, min(img.shape[:2]) // 4)
-            lm, ldiag = estimate_light_map(img, m, T, E.basis, d_s, size, overlap, min_variation)
+        if o.spatial_mode == "map":
+            size = o.region_size or max(8, min(img.shape[:2]) // 4)
+            lm, ldiag = estimate_light_map(img, m, T, E.basis, d_s, size, o.overlap, min_variation)
             diag.update(ldiag)
             w = np.average(lm.weights[lm.used], axis=0)
             fit_ratio = float(np.nanmedian(lm.fit_ratio))
@@ -579,9 +619,9 @@ def _estimate_subspace(run: _Run) -> IlluminantEstimate:
         diag["lighting_condition"] = cond
         refl = sig @ S.basis.T
         diag["nonphysical_reflectance_fraction"] = float(np.mean(np.any(refl < -1e-6, axis=1))) if refl.size else 0.0
-        if fit_ratio > subspace_tolerance:
+        if fit_ratio > o.subspace_tolerance:
             warns.append(f"data not confined to a subspace: s_{d_s + 1}/s_{d_s} = {fit_ratio:.3g} "
-                         f"> {subspace_tolerance} (the surfaces need more than D(S)={d_s} dimensions "
+                         f"> {o.subspace_tolerance} (the surfaces need more than D(S)={d_s} dimensions "
                          "for this camera; the light estimate is unreliable)")
         if np.isfinite(null_ratio) and null_ratio > 0.5:
             warns.append(f"light weights poorly determined: Pi null-space ratio {null_ratio:.3g}")
@@ -589,35 +629,30 @@ def _estimate_subspace(run: _Run) -> IlluminantEstimate:
             raise InsufficientSurfaceVariation("estimated light gives a non-positive camera response")
         return _finish(rgb, spd, w, camera, E, "maloney-wandell", diag, warns, lm)
     except InsufficientSurfaceVariation as e:
-        if on_failure == "raise":
+        if o.on_failure == "raise":
             raise
         warns.append(f"maloney-wandell could not run: {e}")
         diag["failure"] = str(e)
-        return run_peer(fallback, str(e))
+        return run.run_peer(o.fallback, str(e))
 
 
-#: Estimator dispatch: method name -> the function that runs it on a prepared
-#: :class:`_Run`. :data:`METHODS` are its keys.
-ESTIMATORS = {
+#: The kinds of estimator (:data:`recovery.methods.METHODS` names the one
+#: each method runs): kind -> the function that runs it, one signature for
+#: all: ``fn(run: EstimatorInput) -> IlluminantEstimate`` (the image
+#: evidence, the camera and the options in; the estimate with its
+#: diagnostics and warnings out).
+ESTIMATOR_KINDS = {
     "auto": _estimate_auto,
     "learned": _estimate_learned,
-    "bayes": _estimate_posterior,
-    "maloney-wandell": _estimate_subspace,
-    **dict.fromkeys(PEERS, _estimate_peer),
+    "posterior": _estimate_posterior,
+    "subspace": _estimate_subspace,
+    "peer": _estimate_peer,
 }
+#: Estimator dispatch: method name -> its function. :data:`METHODS` are its keys.
+ESTIMATORS = {name: ESTIMATOR_KINDS[m.runs] for name, m in METHOD_TABLE.items()}
 METHODS = tuple(ESTIMATORS)
+assert set(PEERS) <= set(METHODS), "every classical peer is a method (recovery.methods.METHODS)"
 
-
-
-#: The ``quality`` presets: points of the measured speed/accuracy trade
-#: (``python -m benchmarks.tradeoff``; figures in the README). Each sets the
-#: analysis resolution (block-averaged pixels) and the wavelength grid.
-QUALITY_PRESETS = {
-    # fast pins one light: the light-map test costs more than its estimate
-    "fast": {"analysis_pixels": 4096, "wavelength_step": 20.0, "spatial": False},
-    "balanced": {"analysis_pixels": 65536, "wavelength_step": 10.0},
-    "accurate": {"analysis_pixels": None, "wavelength_step": 10.0},
-}
 
 #: Pixels the estimate runs on when no ``quality`` is asked for (the image
 #: block-averaged to at most this many, :func:`recovery.resolution.block_average`).

@@ -13,12 +13,14 @@
 ``wandell white-balance FILE OUT``
     One corrected image (``POST /v1/white-balance``).
 
-Options are those of the API: ``--camera``, ``--method``, ``--quality``,
+Options are those of the API, generated from the same declarations
+(:mod:`service.schemas.fields`: descriptions, defaults, accepted values):
+``--camera``, ``--method``, ``--quality``, ``--surface-dim``,
+``--light-dim``, ``--region-size``, ``--surface-model``, ``--light-model``,
 ``--target``, ``--output``, ``--format``, ``--exposure``, ``--lighting``
-(per-image or shared), ``--surface-model``, ``--light-model``; plus
-``--force`` (batch: compute finished outputs again), ``--quiet`` (no
-progress bar or table; failures and warnings still on stderr) and
-``--version``. ``white-balance`` takes the format from OUT's extension
+(per-image or shared); plus ``--force`` (batch: compute finished outputs
+again), ``--quiet`` (no progress bar or table; failures and warnings still
+on stderr) and ``--version``. ``white-balance`` takes the format from OUT's extension
 (.tif/.tiff, .png, .jpg/.jpeg); ``--format`` must agree with it. A batch
 rerun whose options differ from those stored beside a finished output (its
 ``.wandell/NAME.json`` sidecar) says so in the summary. Exit status: 0 when
@@ -36,18 +38,35 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import glob
 import json
 import os
 import re
 import shlex
 import sys
 import threading
-import time
 
-from . import jobs
 from .errors import ServiceError, service_error
+from .schemas.cli import add_options
+from .schemas.fields import BATCH, ESTIMATION, RENDERING
 
+
+def _lazy_module(name: str):
+    """``name`` imported on first attribute access (:class:`importlib.util.LazyLoader`):
+    the batch machinery (and the pydantic options models it loads) costs
+    ``wandell --help`` nothing."""
+    import importlib.util
+
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.find_spec(name)
+    spec.loader = importlib.util.LazyLoader(spec.loader)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+jobs = _lazy_module("service.jobs")
 
 #: Never written raw to a terminal: C0 controls (ESC, BEL, CR, LF, ...), DEL,
 #: C1 controls (CSI U+009B ...), the bidirectional overrides and isolates
@@ -98,29 +117,25 @@ class _ArgumentParser(argparse.ArgumentParser):
             (file or sys.stderr).write(term_safe(message, keep="\n\t"))
 
 
-def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
-    ap.add_argument("--camera", help="measured camera name, 'matrix' or 'generic' (default: from the file)")
-    ap.add_argument("--method", default="auto", help="auto, bayes, maloney-wandell, gray-world, ...")
-    ap.add_argument("--quality", help="fast, balanced or accurate")
-    ap.add_argument("--surface-model", help="pca or fourier")
-    ap.add_argument("--light-model", help="daylight, illuminant-pca or fourier")
+def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
+    """The API's options as flags (from :mod:`service.schemas`: the same
+    descriptions, defaults and accepted values as ``/docs``): estimation for
+    every command, rendering for ``white-balance`` and ``batch``, the
+    lighting mode for ``batch``."""
+    add_options(ap, ESTIMATION, describe={"camera": "measured camera name, 'matrix' or 'generic' (default: from "
+                                                    "the file)"})
     if batch is None:
         return
-    ap.add_argument("--target", default="D65", help="light to render under, or 'estimate'")
-    ap.add_argument("--output", default="sRGB", help="sRGB, linear-sRGB, Display P3 or a display name")
-    ap.add_argument("--format", default=None,
-                    help="tiff (16-bit), png (8-bit), png16, jpeg; white-balance: taken from OUT's extension "
-                         "(.tif, .png, .jpg), and an error if this disagrees; batch: default tiff")
-    ap.add_argument("--exposure", default="auto", metavar="EV|auto",
-                    help="auto (default): LibRaw's auto-brightness (the 99th percentile of the brightest "
-                         "channel is white); a number of EV overrides it (0: the sensor's brightest neutral is "
-                         "white, +1 doubles)")
+    add_options(ap, RENDERING, defaults={"format": None},
+                describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg; white-balance: taken from OUT's "
+                                    "extension (.tif, .png, .jpg), and an error if this disagrees; batch: default "
+                                    "tiff"})
     ap.add_argument("-q", "--quiet", action="store_true",
                     help="no progress bar and no summary table; failures, notes and warnings still go to stderr")
     if batch:
         ap.add_argument("--force", action="store_true",
                         help="compute finished outputs again (default: skip them, resumable)")
-        ap.add_argument("--lighting", default="per-image", help="per-image, or shared: one light for all")
+        add_options(ap, BATCH)
         ap.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
         ap.add_argument("-r", "--recursive", action="store_true",
                         help="also the RAWs of IN_DIR's subfolders, their outputs in the same subfolders of "
@@ -130,11 +145,8 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool) -> None:
 
 
 def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
-    return jobs.batch_options(camera=args.camera, method=args.method, quality=args.quality,
-                              target=getattr(args, "target", None), output=getattr(args, "output", None),
-                              format=getattr(args, "format", None), lighting=lighting,
-                              surface_model=args.surface_model, light_model=args.light_model,
-                              exposure=getattr(args, "exposure", None))
+    given = {n: getattr(args, n, None) for n in {**ESTIMATION, **RENDERING}}
+    return jobs.batch_options(**given, lighting=lighting)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,32 +175,53 @@ def _limits():
 
 
 class Progress:
-    """A one-line text progress bar on stderr (redrawn with ``\\r`` on a
-    terminal, one line per update otherwise)."""
+    """The batch's progress bar on stderr, drawn by tqdm: redrawn in place on
+    a terminal, one line per update otherwise (a log or a pipe gets no
+    carriage returns). The line gives the counts (done, failed, skipped), the
+    rate in images per minute and the time left, both over the images
+    worked on (those skipped as already finished are tqdm's ``initial``, so
+    they make the run look no faster)."""
+
+    #: The line: tqdm's bar, count and time left; the counts and rate are its description.
+    FORMAT = "[{bar:30}] {n_fmt}/{total_fmt}  left {remaining}  {desc}"
 
     def __init__(self, total: int, stream=None, width: int = 30):
         self.total, self.width = total, width
         self.stream = stream or sys.stderr
-        self.t0 = time.monotonic()
-        self.tty = getattr(self.stream, "isatty", lambda: False)()
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._bar = None
+
+    def _start(self, skipped: int):
+        import io
+        import shutil
+
+        from tqdm import tqdm   # here: wandell --help and the other commands do not load it
+
+        # the size given (on a pseudo-terminal of 0 x 0, tqdm would hide its line)
+        size = shutil.get_terminal_size()
+        return tqdm(total=self.total, initial=skipped, file=self.stream if self.tty else io.StringIO(),
+                    bar_format=self.FORMAT.replace("{bar:30}", "{bar:%d}" % self.width), ascii=" #",
+                    mininterval=0, miniters=1, ncols=size.columns if self.tty else None,
+                    nrows=size.lines if self.tty else None, leave=True)
 
     def update(self, done: int, failed: int, skipped: int) -> None:
-        n = done + failed + skipped
-        frac = n / self.total if self.total else 1.0
-        bar = "#" * int(frac * self.width)
-        el = time.monotonic() - self.t0
+        bar = self._bar = self._bar or self._start(skipped)
+        el = bar.format_dict["elapsed"]
         worked = done + failed
         rate = worked / el * 60 if el > 0 and worked else 0.0
-        left = self.total - n
-        eta = f"{left / (rate / 60):.0f} s" if rate else "?"
-        line = (f"[{bar:<{self.width}}] {n}/{self.total}  done {done}  failed {failed}  skipped {skipped}  "
-                f"{rate:.1f} img/min  left {eta}")
-        self.stream.write(("\r" + line) if self.tty else line + "\n")
-        self.stream.flush()
+        bar.set_description_str(f"done {done}  failed {failed}  skipped {skipped}  {rate:.1f} img/min", refresh=False)
+        step = done + failed + skipped - bar.n
+        if step:
+            bar.update(step)       # redraws on a terminal
+        elif self.tty:
+            bar.refresh()
+        if not self.tty:
+            self.stream.write(str(bar) + "\n")
+            self.stream.flush()
 
     def close(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
+        if self._bar is not None:
+            self._bar.close()
 
 
 def _warnings_of(row: dict) -> list[str]:

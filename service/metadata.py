@@ -1,7 +1,7 @@
 """Metadata read from the uploaded file's TIFF structure: the DNG colour
 tags (for :mod:`recovery.dng_color`) and the EXIF facts copied to outputs.
 
-Read lazily from :attr:`service.rawio.DecodedImage._source` (the file's
+Read lazily from :attr:`service.decode.image.DecodedImage._source` (the file's
 bytes), once per decoded image, so decoding itself is unchanged.
 
 References: Adobe, *Digital Negative (DNG) Specification* 1.4.0.0 (tags

@@ -20,41 +20,28 @@ SWAGGER_FILES = {"swagger-ui-bundle.js": "text/javascript; charset=utf-8",
                  "swagger-ui.css": "text/css; charset=utf-8"}
 SWAGGER_PREFIX = "/docs-assets"
 
-_METHODS = ["auto", "bayes", "maloney-wandell", "gray-world", "white-patch", "shades-of-gray", "gray-edge"]
-_OUTPUTS = ["sRGB", "linear-sRGB", "Display P3", "Typical CRT Brainard 1997", "Apple Studio Display"]
 
-#: name -> (description, enum or None, examples); a router's own description wins.
-PARAMS = {
+def _option_params() -> dict:
+    """The request options' entries, from their models (:mod:`service.schemas`)."""
+    from .schemas.fields import CONCERNS
+
+    out = {}
+    for _, fields, _ in CONCERNS:
+        for name, opt in fields.items():
+            out.setdefault(name, (opt.description, list(opt.choices) if opt.choices else None,
+                                  list(opt.examples) or None))
+    return out
+
+
+#: name -> (description, enum or None, examples); a router's own description
+#: wins. The request options come from their models (service.schemas): their
+#: form fields carry description, examples and choices (``x-choices``).
+PARAMS = {**_option_params(),
     "file": ("the image: a camera RAW (DNG, CR2, NEF, ARW, ... anything LibRaw reads) or a linear 16-bit "
              "TIFF/PNG", None, None),
     "sensitivities": ("optional camera sensitivities CSV: wavelength (nm), then one column per channel", None, None),
-    "camera": ("measured camera name (see GET /v1/cameras), 'matrix' (the file's colour matrix) or 'generic'; "
-               "default: from the file", None, ["matrix", "generic", "Nikon 5100 (NPL)"]),
-    "method": ("the estimator: auto (light posterior), bayes, maloney-wandell (the literal subspace method), "
-               "or a classical peer", _METHODS, ["auto", "maloney-wandell"]),
-    "quality": ("speed/accuracy preset", ["fast", "balanced", "accurate"], ["balanced"]),
-    "surface_dim": ("surface model terms D(S): 1..C-1, or auto (BIC)", None, ["2", "auto"]),
-    "light_dim": ("light model terms D(E): 1..D(S)+1, or auto (BIC)", None, ["3", "auto"]),
-    "region_size": ("region side in pixels for a light map (default: a quarter of the shorter side)", None, [64]),
-    "spatial": ("auto (decide from the image), true (a light map) or false (one light)",
-                ["auto", "true", "false"], ["auto"]),
-    "surface_model": ("surface reflectance basis", ["pca", "fourier"], ["pca"]),
-    "light_model": ("light spectrum basis", ["daylight", "illuminant-pca", "fourier"], ["daylight"]),
-    "target": ("light to render under (a CIE illuminant name), or estimate (as seen)", None, ["D65", "estimate"]),
-    "output": ("output space or display", _OUTPUTS, ["sRGB"]),
-    "white": ("estimate (this service's light, or neutral) or as-shot (the camera's own white, same rendering)",
-              ["estimate", "as-shot"], ["estimate"]),
-    "response": ("image, or json for the estimate and correction matrix only", ["image", "json"], ["image"]),
-    "lighting": ("per-image, or shared: one light estimated from all the images", ["per-image", "shared"],
-                 ["per-image"]),
     "folder": ("a folder relative to WANDELL_BATCH_ROOT (instead of files)", None, ["shoot-2026-05"]),
     "files": ("several image files (instead of folder)", None, None),
-    "wb": ("camera: the file's own white balance as LibRaw renders it; corrected: this service's correction",
-           ["camera", "corrected"], ["corrected"]),
-    "max_side": ("longest side of the preview in pixels, 16..4096", None, [1024]),
-    "points": ("JSON [[row, col], ...] in full-resolution pixels", None, ["[[100, 200], [300, 400]]"]),
-    "rects": ("JSON [[r0, c0, r1, c1], ...] (end exclusive)", None, ["[[0, 0, 50, 80]]"]),
-    "grid": ("a coarse grid, rows x columns", None, ["8x6"]),
     "batch_id": ("the batch id answered by POST /v1/batches", None, ["3f9c1d2e"]),
     "item": ("an item's name, or its index in the batch (0-based); 409 when it is one item's name and "
              "another's index", None, [0]),
@@ -68,20 +55,11 @@ PARAMS = {
     "degrees": ("Borges' degree sequence for x, y, z, each 0..12", None, ["2,2,2"]),
     "adapt": ("refine the sampling until max_error is met", None, [False]),
     "max_error": ("the largest colour error accepted when adapt is true (CIELAB units)", None, [1.0]),
-    "exposure": ("exposure in EV, or auto", None, ["auto", "1.5"]),
-    "neutral": ("a surface to use as white: [row, col] or [r0, c0, r1, c1]", None, ["[1200, 2040]"]),
 }
 
-#: (path, name) -> enumeration where one name means different sets.
-ENUMS = {
-    ("/v1/white-balance", "format"): ["tiff", "png", "png16", "jpeg", "jpg", "xmp"],
-    ("/v1/preview", "format"): ["jpeg", "jpg", "png"],
-    ("/v1/surfaces", "format"): ["json", "csv"],
-    ("/v1/batches", "format"): ["tiff", "png", "png16", "jpeg"],
-    ("/v1/render", "format"): ["tiff", "png", "png16"],
-    ("/v1/render", "output"): ["sRGB", "linear-sRGB"],
-    ("/v1/preview", "output"): ["sRGB", "linear-sRGB", "Typical CRT Brainard 1997", "Apple Studio Display"],
-}
+#: (path, name) -> enumeration where one name means different sets (the
+#: option models' fields say their own, as ``x-choices``).
+ENUMS: dict = {}
 
 #: The error body's schema is service.errors' ``ErrorBody`` (added to the document there).
 ERROR_REF = "#/components/schemas/ErrorBody"
@@ -156,7 +134,8 @@ def _fill(schema: dict, path: str, name: str, desc_holder: dict, form: bool = Fa
     item 3). A field's ``default`` stays: it is what the service does
     without the field."""
     desc, enum, examples = PARAMS.get(name, (None, None, None))
-    enum = ENUMS.get((path, name), enum)
+    own = desc_holder.pop("x-choices", None) or schema.pop("x-choices", None)
+    enum = own or ENUMS.get((path, name), enum)
     if not desc_holder.get("description") and desc:
         desc_holder["description"] = desc
     target = schema

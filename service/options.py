@@ -16,8 +16,9 @@ from .errors import ServiceError
 
 __all__ = ["Format", "FORMATS", "MEDIA_TYPES", "IMAGE_FORMATS", "RENDER_FORMATS", "PREVIEW_FORMATS",
            "OUTPUTS", "RENDER_OUTPUTS", "SURFACE_MODELS", "LIGHT_MODELS", "choose_format", "check_output",
-           "check_target", "check_camera_name", "estimate_options", "parse_json_field", "parse_json_list", "parse_grid",
-           "parse_exposure", "parse_neutral", "EXPOSURE_HELP", "NEUTRAL_HELP"]
+           "check_target", "check_camera_name", "check_dim", "check_region_size", "check_spatial", "estimate_options", "parse_json_field", "parse_json_list", "parse_grid",
+           "parse_exposure", "parse_neutral", "EXPOSURE_HELP", "NEUTRAL_HELP", "MAX_N", "parse_wavelengths",
+           "parse_degrees", "rule_options"]
 
 
 class Format(NamedTuple):
@@ -103,50 +104,72 @@ def check_camera_name(camera: str | None) -> str | None:
     return camera
 
 
+def check_dim(value, name: str) -> int | str | None:
+    """``surface_dim``/``light_dim``: ``None``/``""`` (the default), ``auto``
+    (BIC) or an integer in 1..16."""
+    if value is None or value == "":
+        return None
+    if str(value) == "auto":
+        return "auto"
+    try:
+        iv = int(value)
+    except (TypeError, ValueError):
+        raise ServiceError(422, "invalid_parameter", f"{name} must be an integer in 1..16 or 'auto', "
+                           f"not {value!r}") from None
+    if not 1 <= iv <= 16:
+        raise ServiceError(422, "invalid_parameter", f"{name} must be in 1..16 or 'auto'")
+    return iv
+
+
+def check_region_size(region_size: int | None) -> int | None:
+    """A light map's region side: 8..100000 pixels, or ``None``."""
+    if region_size is not None and not 8 <= region_size <= 100000:
+        raise ServiceError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")
+    return region_size
+
+
+def check_spatial(spatial):
+    """``spatial`` as :func:`recovery.estimate_illuminant` takes it (``True``,
+    ``False`` or ``"auto"``), ``None`` when absent."""
+    if spatial is None or spatial == "":
+        return None
+    from recovery.spatial import parse_spatial
+
+    try:
+        mode = parse_spatial(spatial)
+    except ValueError:
+        raise ServiceError(422, "invalid_parameter", f"spatial {spatial!r} unknown; accepted: auto, true "
+                           "(a light map), false (one light)") from None
+    return {"map": True, "uniform": False, "auto": "auto"}[mode]
+
+
 def estimate_options(method: str, surface_dim, light_dim, region_size: int | None,
                      spatial, surface_model: str | None = None, light_model: str | None = None,
                      quality: str | None = None) -> dict:
-    """Validated keyword options for :func:`recovery.estimate_illuminant`."""
-    from recovery import METHODS, QUALITY_PRESETS  # here: importing this module stays light (the CLI)
+    """Validated keyword options for :func:`recovery.estimate_illuminant`
+    (what :class:`service.schemas.Estimation` hands the estimator)."""
+    from recovery.methods import METHOD_NAMES, QUALITY_NAMES  # plain data: importing this module stays light
 
-    if method not in METHODS:
-        raise ServiceError(422, "invalid_parameter", f"method {method!r} unknown; accepted: {list(METHODS)}")
+    if method not in METHOD_NAMES:
+        raise ServiceError(422, "invalid_parameter", f"method {method!r} unknown; accepted: {list(METHOD_NAMES)}")
     opts: dict = {"white_level": 1.0}
     for field, value, accepted, key in (("surface_model", surface_model, SURFACE_MODELS, "surface_basis"),
                                         ("light_model", light_model, LIGHT_MODELS, "light_basis"),
-                                        ("quality", quality, tuple(QUALITY_PRESETS), "quality")):
+                                        ("quality", quality, QUALITY_NAMES, "quality")):
         if value is not None:
             if value not in accepted:
                 raise ServiceError(422, "invalid_parameter",
                                    f"{field} {value!r} unknown; accepted: {list(accepted)}")
             opts[key] = value
     for name, val in (("surface_dim", surface_dim), ("light_dim", light_dim)):
-        if val is None or val == "":
-            continue
-        if str(val) == "auto":
-            opts[name] = "auto"
-            continue
-        try:
-            iv = int(val)
-        except (TypeError, ValueError):
-            raise ServiceError(422, "invalid_parameter", f"{name} must be an integer in 1..16 or 'auto', "
-                               f"not {val!r}") from None
-        if not 1 <= iv <= 16:
-            raise ServiceError(422, "invalid_parameter", f"{name} must be in 1..16 or 'auto'")
-        opts[name] = iv
-    if region_size is not None:
-        if not 8 <= region_size <= 100000:
-            raise ServiceError(422, "invalid_parameter", "region_size must be in 8..100000 pixels")
+        dim = check_dim(val, name)
+        if dim is not None:
+            opts[name] = dim
+    if check_region_size(region_size) is not None:
         opts["region_size"] = region_size
-    if spatial is not None and spatial != "":
-        from recovery.spatial import parse_spatial
-
-        try:
-            mode = parse_spatial(spatial)
-        except ValueError:
-            raise ServiceError(422, "invalid_parameter", f"spatial {spatial!r} unknown; accepted: auto, true "
-                               "(a light map), false (one light)") from None
-        opts["spatial"] = {"map": True, "uniform": False, "auto": "auto"}[mode]
+    mode = check_spatial(spatial)
+    if mode is not None:
+        opts["spatial"] = mode
     return opts
 
 
@@ -216,6 +239,60 @@ def parse_grid(text: str | None) -> tuple[int, int] | None:
     if not (1 <= a <= 100 and 1 <= b <= 100):
         raise ServiceError(422, "invalid_parameter", "grid dimensions must be in 1..100")
     return a, b
+
+
+#: Largest sampling size of ``/v1/render`` and ``/v1/sampling``.
+MAX_N = 64
+
+
+def parse_wavelengths(text: str | None, field: str = "wavelengths") -> np.ndarray | None:
+    """``"400,410,...,700"`` -> float array; finite, strictly increasing."""
+    import numpy as np
+
+    if text is None or not text.strip():
+        return None
+    try:
+        wl = np.array([float(t) for t in text.replace(";", ",").split(",") if t.strip()])
+    except ValueError:
+        raise ServiceError(422, "invalid_parameter", f"{field} must be comma-separated numbers in nm") from None
+    if wl.size < 2 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
+        raise ServiceError(422, "invalid_parameter", f"{field} must be at least two finite, strictly increasing "
+                       "values in nm")
+    return wl
+
+
+def parse_degrees(text: str | None):
+    """``"2,2,2"`` -> (2, 2, 2) (Borges' degree sequence for x, y, z)."""
+    if text is None or not text.strip():
+        return None
+    try:
+        deg = tuple(int(t) for t in text.split(","))
+    except ValueError:
+        raise ServiceError(422, "invalid_parameter", f"degrees must look like 2,2,2, got {text!r}") from None
+    if len(deg) != 3 or not all(0 <= d <= 12 for d in deg):
+        raise ServiceError(422, "invalid_parameter", "degrees must be three integers in 0..12 (x, y, z)")
+    return deg
+
+
+def rule_options(strategy: str, n: int | None, channel: str | None, degrees: str | None) -> dict:
+    """Validated strategy, size and options (422 naming what is wrong)."""
+    from recovery.spectral import render_strategies
+
+    names = render_strategies()
+    if strategy not in names + ["auto", "full"]:
+        raise ServiceError(422, "unknown_strategy", f"strategy {strategy!r} unknown; accepted: auto, full, "
+                       f"{', '.join(names)}")
+    if n is not None and not 1 <= n <= MAX_N:
+        raise ServiceError(422, "n_out_of_range", f"n must be in 1..{MAX_N}, got {n}")
+    opts: dict = {}
+    if channel is not None and channel != "":
+        if channel not in ("A", "C1", "C2", "XYZ"):
+            raise ServiceError(422, "invalid_parameter", f"channel must be A, C1, C2 or XYZ, got {channel!r}")
+        opts["channel"] = channel
+    deg = parse_degrees(degrees)
+    if deg is not None:
+        opts["degrees"] = deg
+    return opts
 
 
 EXPOSURE_HELP = ("exposure in EV, or auto (default): auto is LibRaw's auto-brightness (the 99th "

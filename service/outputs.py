@@ -9,7 +9,8 @@ data (``service/icc/*.icc``, written by ``python -m service.outputs``); a
 test checks the shipped bytes equal a fresh generation and that LittleCMS
 (Pillow's ImageCms) reads them and maps colours as colour-science does.
 
-EXIF (CIPA DC-008) is written as a little-endian TIFF structure: IFD0 with
+EXIF (CIPA DC-008) is written as a little-endian TIFF structure (encoded
+by Pillow's TIFF directory writer, :func:`exif_block`): IFD0 with
 Make, Model, Orientation (always 1: the pixels are already rotated, so the
 orientation is applied once), Software, DateTime, ImageDescription (the
 estimate as JSON), and an EXIF sub-IFD with the exposure facts of the
@@ -229,64 +230,55 @@ def _rational(v, signed=False):
     return f.numerator, f.denominator
 
 
-def _encode_value(typ, v) -> tuple[int, bytes]:
+def _exif_value(typ, v):
+    """A fact as Pillow's TIFF writer takes it for a field of type ``typ``."""
+    from PIL.TiffImagePlugin import IFDRational
+
     if typ == _ASCII:
-        b = ascii_text(v).encode("ascii") + b"\0"      # 7-bit: the full text is in the XMP
-        return len(b), b
+        return ascii_text(v)                          # 7-bit: the full text is in the XMP
     if typ == _SHORT:
-        vals = v if isinstance(v, (tuple, list)) else [v]
-        return len(vals), b"".join(struct.pack("<H", int(x) & 0xFFFF) for x in vals)
+        vals = tuple(int(x) & 0xFFFF for x in (v if isinstance(v, (tuple, list)) else [v]))
+        return vals if len(vals) > 1 else vals[0]
     if typ == _LONG:
-        return 1, struct.pack("<I", int(v))
-    n, d = _rational(v, typ == _SRATIONAL)
-    return 1, struct.pack("<ii" if typ == _SRATIONAL else "<II", n, d)
-
-
-def _ifd(entries: list, start: int) -> tuple[bytes, bytes]:
-    """An IFD at ``start`` (offset in the TIFF structure) and its data area."""
-    entries = sorted(entries)
-    n = len(entries)
-    data_at = start + 2 + 12 * n + 4
-    head, data = [struct.pack("<H", n)], b""
-    for tag, typ, count, payload in entries:
-        if len(payload) <= 4:
-            head.append(struct.pack("<HHI", tag, typ, count) + payload.ljust(4, b"\0"))
-        else:
-            if (data_at + len(data)) % 2:
-                data += b"\0"
-            head.append(struct.pack("<HHII", tag, typ, count, data_at + len(data)))
-            data += payload
-    head.append(struct.pack("<I", 0))
-    return b"".join(head), data
+        return int(v)
+    return IFDRational(*_rational(v, typ == _SRATIONAL))
 
 
 def exif_block(facts: dict) -> bytes:
     """A little-endian TIFF structure (``II*\\0``) with the facts of
-    :data:`_EXIF_LAYOUT` found in ``facts``; unknown keys are ignored."""
-    main, sub = [], []
+    :data:`_EXIF_LAYOUT` found in ``facts``; unknown keys are ignored.
+
+    The IFDs are encoded by Pillow (``TiffImagePlugin.ImageFileDirectory_v2``:
+    entries, counts, values inline or in the data area, word alignment),
+    each field with the type EXIF gives it (Pillow would infer RATIONAL for
+    a positive ExposureBiasValue, which EXIF types SRATIONAL). What is left
+    here is the layout Pillow's own ``Image.Exif`` would infer types for:
+    IFD0, then the EXIF sub-IFD at the offset IFD0's tag 34665 names."""
+    from PIL.TiffImagePlugin import ImageFileDirectory_v2
+
+    head = b"II*\0" + struct.pack("<I", 8)
+    ifds = {False: ImageFileDirectory_v2(ifh=head), True: ImageFileDirectory_v2(ifh=head)}
     for name, v in facts.items():
         if name not in _EXIF_LAYOUT or v is None:
             continue
         tag, typ, in_sub = _EXIF_LAYOUT[name]
         try:
-            count, payload = _encode_value(typ, v)
-        except (TypeError, ValueError, OverflowError):
+            value = _exif_value(typ, v)
+        except (TypeError, ValueError, OverflowError, ZeroDivisionError):
             continue
-        (sub if in_sub else main).append((tag, typ, count, payload))
-    if sub:
-        main.append((34665, _LONG, 1, struct.pack("<I", 0)))        # fixed below
-    ifd0, data0 = _ifd(main, 8)
-    out = b"II*\0" + struct.pack("<I", 8) + ifd0 + data0
-    if sub:
-        if len(out) % 2:
-            out += b"\0"
-        sub_at = len(out)
-        main = [e if e[0] != 34665 else (34665, _LONG, 1, struct.pack("<I", sub_at)) for e in main]
-        ifd0, data0 = _ifd(main, 8)
-        out = b"II*\0" + struct.pack("<I", 8) + ifd0 + data0
-        out += b"\0" * (sub_at - len(out))
-        ifd1, data1 = _ifd(sub, sub_at)
-        out += ifd1 + data1
+        ifd = ifds[in_sub]
+        ifd.tagtype[tag] = typ
+        ifd[tag] = value
+    main, sub = ifds[False], ifds[True]
+    if len(sub):
+        main.tagtype[34665] = _LONG
+        main[34665] = 0                                   # its offset, once IFD0's size is known
+        sub_at = 8 + len(main.tobytes(8))
+        sub_at += sub_at % 2
+        main[34665] = sub_at
+    out = head + main.tobytes(8)
+    if len(sub):
+        out += b"\0" * (sub_at - len(out)) + sub.tobytes(sub_at)
     return out
 
 
@@ -310,11 +302,24 @@ def output_facts(source_exif: dict, estimate: dict | None, software: str = "wand
 # ---------------------------------------------------------------------------
 
 def _png_chunk(ctype: bytes, data: bytes) -> bytes:
+    """One PNG chunk: length, type, data, CRC-32 (PNG spec, 5.3).
+
+    Hand-written on purpose: the image is already encoded (OpenCV or
+    :mod:`service.encode`, chosen for speed), and no maintained library
+    inserts chunks into an encoded PNG; Pillow writes iCCP, eXIf and iTXt
+    only while it encodes the pixels itself (a second, slower encode of a
+    full-resolution image). The framing is this one line."""
     return struct.pack(">I", len(data)) + ctype + data + struct.pack(">I", zlib.crc32(ctype + data) & 0xFFFFFFFF)
 
 
 def embed(encoded: bytes, fmt: str, icc: bytes | None, exif: bytes | None, text: dict | None = None) -> bytes:
-    """Insert the ICC profile, EXIF and text into an encoded PNG or JPEG."""
+    """Insert the ICC profile, EXIF and text into an encoded PNG or JPEG.
+
+    PNG: iCCP, eXIf and iTXt chunks after IHDR (:func:`_png_chunk`). JPEG:
+    APP1 ``Exif``, APP1 XMP and APP2 ``ICC_PROFILE`` segments (split in
+    65,519-byte parts, ICC.1 Annex B.4) after SOI and a JFIF APP0. By hand
+    for the reason :func:`_png_chunk` gives: Pillow and the other writers add
+    these only while encoding the pixels themselves."""
     if fmt == "png":
         assert encoded[:8] == b"\x89PNG\r\n\x1a\n" and encoded[12:16] == b"IHDR"
         ihdr_end = 8 + 12 + struct.unpack(">I", encoded[8:12])[0]

@@ -56,12 +56,12 @@ class EstimateRun:
 
 
 def decode(data: bytes, filename: str | None, limits):
-    """The upload decoded (:func:`service.rawio.decode_upload`) within
+    """The upload decoded (:func:`service.decode.decode_upload`) within
     ``limits`` (anything with ``max_pixels`` and ``estimation_pixels``: the
     settings, a batch item)."""
-    from . import rawio
+    from . import decode
 
-    return rawio.decode_upload(data, filename, max_pixels=limits.max_pixels,
+    return decode.decode_upload(data, filename, max_pixels=limits.max_pixels,
                                estimation_pixels=limits.estimation_pixels)
 
 
@@ -545,7 +545,7 @@ def default_crop(decoded, img: np.ndarray) -> np.ndarray:
     sh, sw = (W, H) if flip & 4 else (H, W)          # the sensor's (unoriented) shape
     if top < 0 or left < 0 or top + h > sh or left + w > sw or (h, w) == (sh, sw):
         return img
-    from .rawio import FLIP_OPS
+    from .decode import FLIP_OPS
 
     rows = np.broadcast_to(np.arange(sh)[:, None], (sh, sw))
     cols = np.broadcast_to(np.arange(sw)[None, :], (sh, sw))

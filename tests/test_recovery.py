@@ -198,3 +198,36 @@ def test_analyze_reflectance_recovers_in_model_surfaces(rng):
     scale = np.sum(got * refl_in) / np.sum(got * got)
     assert np.allclose(got * scale, refl_in, atol=1e-10)
     assert S3.shape == (31, 3)
+
+
+def test_every_method_is_one_registry_entry_with_one_signature(rng):
+    """Issue 18: recovery.methods names every method, its description and the
+    kind of estimator that runs it; ESTIMATORS is built from it, every
+    estimator takes one EstimatorInput (evidence, camera, options), and a
+    method added to the table is dispatched without touching the core."""
+    import inspect
+
+    from recovery import api, methods
+
+    assert tuple(methods.METHODS) == api.METHODS == methods.METHOD_NAMES
+    assert all(m.description and m.runs in api.ESTIMATOR_KINDS for m in methods.METHODS.values())
+    for fn in api.ESTIMATOR_KINDS.values():
+        assert list(inspect.signature(fn).parameters)[0] == "run"
+    cam = Camera.named("Nikon 5100 (NPL)")
+    img = rng.uniform(0.05, 0.9, (16, 16, 3)) * cam.response(models.illuminant("D65"))
+    seen = {}
+
+    def probe(run):
+        seen["run"] = run
+        return api.ESTIMATOR_KINDS["peer"](run)
+
+    old = dict(api.ESTIMATORS)
+    try:
+        api.ESTIMATORS["gray-world"] = probe
+        est = estimate_illuminant(img, cam, "gray-world", spatial=False)
+    finally:
+        api.ESTIMATORS.clear()
+        api.ESTIMATORS.update(old)
+    run = seen["run"]
+    assert isinstance(run.evidence, api.Evidence) and isinstance(run.options, api.EstimationOptions)
+    assert run.camera is cam and run.options.method == "gray-world" and est.method == "gray-world"

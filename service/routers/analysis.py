@@ -10,7 +10,7 @@ import os
 import tempfile
 import time
 
-from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response
 from starlette.background import BackgroundTask
 
@@ -19,8 +19,9 @@ from ..deps import read_upload
 from ..errors import INSUFFICIENT_STORAGE, ServiceError, disk_full
 from ..headers import content_disposition, download_name
 from ..jsonsafe import clean
-from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, check_output, choose_format, estimate_options,
-                       check_target, parse_exposure, parse_grid, parse_json_list, parse_neutral)
+from ..options import FORMATS, MEDIA_TYPES
+from ..schemas import AnalyzeEstimation, Estimation, Neutral, Regions, WhiteBalanceRendering
+from ..schemas.forms import form
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -36,6 +37,17 @@ class LargeChunkFileResponse(FileResponse):
 
     chunk_size = 1024 * 1024
 
+
+#: The form fields of each endpoint, from the option models (service.schemas).
+_ANALYZE = form(AnalyzeEstimation)
+_NEUTRAL = form(Neutral)
+_WB_ESTIMATION = form(Estimation)
+_WB_RENDERING = form(WhiteBalanceRendering, choices={"format": tuple(FORMATS)},
+                     describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg, or xmp: a Camera Raw sidecar "
+                                         "(crs:WhiteBalance=Custom, Temperature, Tint) to apply the estimate to "
+                                         "the original RAW in another editor"})
+_SURFACES_ESTIMATION = form(Estimation, include=("camera", "method", "surface_model"))
+_REGIONS = form(Regions)
 
 _FILE = File(..., description="RAW file (DNG, CR2, NEF, ARW, ... anything LibRaw reads) or linear 16-bit TIFF/PNG")
 _SENS = File(None, description="optional camera sensitivities CSV: wavelength, one column per channel")
@@ -56,16 +68,7 @@ def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral
 
 @router.post("/analyze")
 async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
-                  camera: str | None = Form(None, description="measured camera name, 'matrix' or 'generic'"),
-                  method: str = Form("auto"),
-                  quality: str | None = Form(None, description="fast, balanced or accurate (measured trade-off)"),
-                  surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"),
-                  light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"), region_size: int | None = Form(None),
-                  spatial: str | None = Form(None, description="auto (decide from the image), true (light map) or false (one light)"),
-                  surface_model: str | None = Form(None, description="pca or fourier"),
-                  light_model: str | None = Form(None, description="daylight, illuminant-pca or fourier"),
-                  neutral: str | None = Form(None, description=NEUTRAL_HELP,
-                                             examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
+                  est: AnalyzeEstimation = Depends(_ANALYZE), nt: Neutral = Depends(_NEUTRAL),
                   settings: Settings = Depends(get_settings)):
     """Estimate the scene light: camera RGB, white-balance multipliers,
     relative spectrum, CCT/Duv, the method that ran, diagnostics, timings.
@@ -73,12 +76,10 @@ async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: Upl
     ``neutral-surface``, ``neutral`` says where, how many cells and its
     angle to the estimate)."""
     t0 = time.perf_counter()
-    opts = estimate_options(method, surface_dim, light_dim, region_size, spatial, surface_model, light_model,
-                            quality)
-    where = parse_neutral(neutral)
+    opts, where = est.estimate_kwargs(), nt.neutral
     data, sens = await _inputs(file, sensitivities, settings)
-    decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
-                                   where, request=request)
+    decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, est.camera, est.method, opts,
+                                   settings, where, request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     return JSONResponse(clean(body))
@@ -131,38 +132,16 @@ def temp_output(**kw):
 
 @router.post("/white-balance")
 async def white_balance(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
-                        camera: str | None = Form(None), method: str = Form("auto"),
-                        quality: str | None = Form(None, description="fast, balanced or accurate"),
-                        target: str = Form("D65", description="light to render under, or 'estimate'"),
-                        output: str = Form("sRGB", description="sRGB, linear-sRGB, Display P3 or a display name"),
-                        format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16, jpeg, or xmp: "
-                                           "a Camera Raw sidecar (crs:WhiteBalance=Custom, Temperature, Tint) "
-                                           "to apply the estimate to the original RAW in another editor"),
-                        white: str = Form("estimate", description="estimate (this service's light) or as-shot "
-                                          "(the camera's own white, rendered the same way, to compare)"),
-                        response: str = Form("image", description="image, or json for the estimate only"),
-                        surface_dim: str | None = Form(None, description="1..C-1 or auto (BIC)"), light_dim: str | None = Form(None, description="1..D(S)+1 or auto (BIC)"),
-                        region_size: int | None = Form(None), surface_model: str | None = Form(None),
-                        light_model: str | None = Form(None),
-                        exposure: str = Form("auto", description=EXPOSURE_HELP, examples=["auto", "1.5"]),
-                        neutral: str | None = Form(None, description=NEUTRAL_HELP,
-                                                   examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
-                        settings: Settings = Depends(get_settings)):
+                        est: Estimation = Depends(_WB_ESTIMATION), rend: WhiteBalanceRendering = Depends(_WB_RENDERING),
+                        nt: Neutral = Depends(_NEUTRAL), settings: Settings = Depends(get_settings)):
     """The corrected image at full resolution (one 3x3 matrix per pixel
     from camera RGB to the display), with the estimate in the
     ``X-Illuminant`` header (JSON)."""
     t0 = time.perf_counter()
-    if white not in ("estimate", "as-shot"):
-        raise ServiceError(422, "invalid_parameter", f"white must be estimate or as-shot, not {white!r}")
-    fmt = choose_format(format)
-    if response not in ("image", "json"):
-        raise ServiceError(422, "invalid_parameter", "response must be image or json")
-    check_output(output)
-    check_target(target)
-    opts = estimate_options(method, surface_dim, light_dim, region_size, False, surface_model, light_model,
-                            quality)
-    ev = parse_exposure(exposure)
-    where = parse_neutral(neutral)
+    camera, method, opts = est.camera, est.method, est.estimate_kwargs()
+    target, output, white, response, ev, where = (rend.target, rend.output, rend.white, rend.response,
+                                                  rend.exposure, nt.neutral)
+    fmt = FORMATS[rend.format]
     if where is not None and white != "estimate":
         raise ServiceError(422, "invalid_parameter", "neutral fixes the white from a surface; it cannot be "
                            f"combined with white={white!r}")
@@ -210,29 +189,21 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
 
 @router.post("/surfaces")
 async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
-                   camera: str | None = Form(None), method: str = Form("auto"),
-                   points: str | None = Form(None, description='JSON [[row, col], ...] in full-resolution pixels'),
-                   rects: str | None = Form(None, description="JSON [[r0, c0, r1, c1], ...] (end exclusive)"),
-                   grid: str | None = Form(None, description="coarse grid, e.g. 8x6"),
-                   format: str = Form("json", description="json or csv"),
-                   surface_model: str | None = Form(None, description="pca or fourier (C terms)"),
+                   est: Estimation = Depends(_SURFACES_ESTIMATION), regions: Regions = Depends(_REGIONS),
                    settings: Settings = Depends(get_settings)):
     """Reflectance spectra at points, rectangle means or a coarse grid, with
     per-estimate warnings. At most ``WANDELL_MAX_SURFACE_REGIONS`` points,
     rectangles and grid cells together (413 ``too_many_regions``); a
     rectangle costs the same whatever its area (a summed-area table)."""
-    pts = parse_json_list(points, "points", 2)
-    rcs = parse_json_list(rects, "rects", 4)
-    grd = parse_grid(grid)
+    pts, rcs, grd = regions.points or [], regions.rects or [], regions.grid
+    camera, method, format = est.camera, est.method, regions.format
     if not (pts or rcs or grd):
         raise ServiceError(422, "invalid_parameter", "give at least one of points, rects or grid")
     n_regions = len(pts) + len(rcs) + (grd[0] * grd[1] if grd else 0)
     if n_regions > settings.max_surface_regions:
         raise ServiceError(413, "too_many_regions", f"{n_regions} points, rectangles and grid cells; at most "
                        f"{settings.max_surface_regions} per request (WANDELL_MAX_SURFACE_REGIONS)")
-    if format not in ("json", "csv"):
-        raise ServiceError(422, "invalid_parameter", "format must be json or csv")
-    opts = estimate_options(method, None, None, None, False, surface_model)
+    opts = est.estimate_kwargs()
     data, sens = await _inputs(file, sensitivities, settings)
 
     def work():

@@ -27,10 +27,14 @@ from .. import jobs
 from ..errors import ServiceError
 from ..headers import content_disposition
 from ..jsonsafe import clean
-from ..options import EXPOSURE_HELP
+from ..schemas import BatchOptions
+from ..schemas.forms import form
 from ..settings import Settings, get_settings
 
 router = APIRouter(prefix="/v1", tags=["batches"])
+
+#: The batch options as form fields (service.schemas.BatchOptions, as the CLI's flags).
+_OPTIONS = form(BatchOptions)
 log = logging.getLogger("service")
 
 _runner: jobs.BatchRunner | None = None
@@ -117,17 +121,7 @@ async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) 
 @router.post("/batches", status_code=202)
 async def create_batch(files: list[UploadFile] | None = File(None, description="RAW files (repeat the field)"),
                        folder: str | None = Form(None, description="folder relative to WANDELL_BATCH_ROOT"),
-                       lighting: str = Form("per-image", description="per-image, or shared: one light estimated "
-                                                                     "from all images together"),
-                       camera: str | None = Form(None), method: str = Form("auto"),
-                       quality: str | None = Form(None, description="fast, balanced or accurate"),
-                       target: str = Form("D65", description="light to render under, or 'estimate'"),
-                       output: str = Form("sRGB", description="sRGB, linear-sRGB or a display name"),
-                       format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16, jpeg"),
-                       surface_dim: str | None = Form(None), light_dim: str | None = Form(None),
-                       region_size: int | None = Form(None), surface_model: str | None = Form(None),
-                       light_model: str | None = Form(None),
-                       exposure: str = Form("auto", description=EXPOSURE_HELP, examples=["auto", "1.5"]),
+                       opts: BatchOptions = Depends(_OPTIONS),
                        settings: Settings = Depends(get_settings)):
     """Start a batch: several ``files`` fields, or a ``folder`` under the
     server's batch root, with the white-balance options. Answers ``{"id"}``
@@ -135,10 +129,7 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
     files = [f for f in (files or []) if f is not None and (f.filename or f.size)]
     if bool(files) == bool(folder):
         raise ServiceError(422, "invalid_parameter", "give either files (one or more 'files' fields) or folder")
-    opts = jobs.batch_options(camera=camera, method=method, quality=quality, target=target, output=output,
-                              format=format, lighting=lighting, surface_model=surface_model,
-                              light_model=light_model, surface_dim=surface_dim, light_dim=light_dim,
-                              region_size=region_size, exposure=exposure)
+    opts = jobs.batch_options(**opts.as_dict())   # the batch's own checks too (the camera name)
     sources = jobs.folder_sources(settings.batch_root, folder) if folder else None
     n = len(sources) if sources is not None else len(files)
     if n > settings.max_batch_items:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 
 import models
-from recovery import METHODS
+from recovery.methods import METHODS
 
 from ..settings import Settings, get_settings
 
@@ -17,7 +17,7 @@ def health(settings: Settings = Depends(get_settings)) -> dict:
     """Liveness: the service is up and the numerical core imports;
     ``job_store`` says whether the batch store opened cleanly (``recovered``:
     a damaged one was moved aside at start-up, with where to)."""
-    import recovery  # noqa: F401
+    import recovery.api  # noqa: F401
 
     from .batches import store_health
 
@@ -52,6 +52,7 @@ def linear_models() -> dict:
         "rules": ["D(S) < C (number of camera channels)", "D(E) <= D(S) + 1"],
         "defaults": {"D(S)": "C - 1", "D(E)": "D(S) + 1"},
         "methods": list(METHODS),
+        "method_descriptions": {name: m.description for name, m in METHODS.items()},
         "wavelengths": models.DEFAULT_WAVELENGTHS.tolist(),
         "reflectance_sets": models.reflectance_set_names(),
         "illuminants": models.illuminant_names(),

@@ -13,74 +13,35 @@ import math
 import time
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 
 from ..deps import read_upload
 from ..errors import ServiceError
 from ..headers import content_disposition
 from ..jsonsafe import clean
-from ..options import MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, check_output, choose_format
+from ..options import FORMATS, MAX_N, MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, parse_wavelengths, rule_options
+from ..schemas import SpectralRendering
+from ..schemas.forms import form
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
 router = APIRouter(prefix="/v1")
 
-MAX_N = 64
 #: Fewest wavelengths a spectrum (or light) may have: colour-science
 #: resamples uniform data with Sprague (1880) interpolation, a 6-point rule.
 MIN_WAVELENGTHS = 6
 
 
+#: The form fields of ``/v1/render`` (service.schemas): the sampling, the
+#: light and the output, narrowed to lossless formats and the two sRGB spaces.
+_RENDER = form(SpectralRendering, choices={"format": RENDER_FORMATS, "output": RENDER_OUTPUTS},
+               describe={"format": "tiff (16-bit), png (8-bit), png16",
+                         "output": "sRGB (encoded) or linear-sRGB",
+                         "response": "image, or json for the report alone"})
+
+
 # --- parsing ----------------------------------------------------------------------
-
-
-def parse_wavelengths(text: str | None, field: str = "wavelengths") -> np.ndarray | None:
-    """``"400,410,...,700"`` -> float array; finite, strictly increasing."""
-    if text is None or not text.strip():
-        return None
-    try:
-        wl = np.array([float(t) for t in text.replace(";", ",").split(",") if t.strip()])
-    except ValueError:
-        raise ServiceError(422, "invalid_parameter", f"{field} must be comma-separated numbers in nm") from None
-    if wl.size < 2 or not np.all(np.isfinite(wl)) or np.any(np.diff(wl) <= 0):
-        raise ServiceError(422, "invalid_parameter", f"{field} must be at least two finite, strictly increasing "
-                       "values in nm")
-    return wl
-
-
-def parse_degrees(text: str | None):
-    """``"2,2,2"`` -> (2, 2, 2) (Borges' degree sequence for x, y, z)."""
-    if text is None or not text.strip():
-        return None
-    try:
-        deg = tuple(int(t) for t in text.split(","))
-    except ValueError:
-        raise ServiceError(422, "invalid_parameter", f"degrees must look like 2,2,2, got {text!r}") from None
-    if len(deg) != 3 or not all(0 <= d <= 12 for d in deg):
-        raise ServiceError(422, "invalid_parameter", "degrees must be three integers in 0..12 (x, y, z)")
-    return deg
-
-
-def rule_options(strategy: str, n: int | None, channel: str | None, degrees: str | None) -> dict:
-    """Validated strategy, size and options (422 naming what is wrong)."""
-    from recovery.spectral import render_strategies
-
-    names = render_strategies()
-    if strategy not in names + ["auto", "full"]:
-        raise ServiceError(422, "unknown_strategy", f"strategy {strategy!r} unknown; accepted: auto, full, "
-                       f"{', '.join(names)}")
-    if n is not None and not 1 <= n <= MAX_N:
-        raise ServiceError(422, "n_out_of_range", f"n must be in 1..{MAX_N}, got {n}")
-    opts: dict = {}
-    if channel is not None and channel != "":
-        if channel not in ("A", "C1", "C2", "XYZ"):
-            raise ServiceError(422, "invalid_parameter", f"channel must be A, C1, C2 or XYZ, got {channel!r}")
-        opts["channel"] = channel
-    deg = parse_degrees(degrees)
-    if deg is not None:
-        opts["degrees"] = deg
-    return opts
 
 
 def load_npy(data: bytes, settings: Settings) -> np.ndarray:
@@ -173,18 +134,8 @@ def _is_npy(data: bytes, filename: str | None) -> bool:
 async def render(request: Request, file: UploadFile = File(..., description=".npy reflectance cube H x W x N (or M x N), or CSV: "
                                           "first column wavelength (nm), one spectrum per further column, "
                                           "optional header row"),
-                 wavelengths: str | None = Form(None, description="comma-separated nm; required for .npy"),
-                 illuminant: str | None = Form(None, description="light name (D65, A, FL11, D5000, BB3200...); "
-                                               "default D65"),
                  light_file: UploadFile | None = File(None, description="light spectrum CSV: wavelength, value"),
-                 strategy: str = Form("auto"), n: int | None = Form(None),
-                 channel: str | None = Form(None, description="gauss-ac1c2: A, C1, C2 or XYZ (Meyer's 4-wavelength rule)"),
-                 degrees: str | None = Form(None, description="quasi-gauss-xyz: e.g. 2,2,2"),
-                 format: str = Form("tiff", description="tiff (16-bit), png (8-bit), png16"),
-                 output: str = Form("sRGB", description="sRGB (encoded) or linear-sRGB"),
-                 adapt: bool = Form(False, description="CAT02 to the display white (off: the colour signal as is)"),
-                 max_error: float = Form(1.0, description="auto: bound on the mean CIEDE2000 vs the full calculation"),
-                 response: str = Form("image", description="image, or json for the report alone"),
+                 sp: SpectralRendering = Depends(_RENDER),
                  settings: Settings = Depends(get_settings)):
     """Render spectral data under a light with a chosen wavelength sampling.
 
@@ -196,13 +147,10 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
     against the full calculation.
     """
     t0 = time.perf_counter()
-    fmt = choose_format(format, RENDER_FORMATS)
-    if response not in ("image", "json"):
-        raise ServiceError(422, "invalid_parameter", "response must be image or json")
-    check_output(output, RENDER_OUTPUTS)
-    if not (np.isfinite(max_error) and 0 < max_error <= 100):
-        raise ServiceError(422, "invalid_parameter", "max_error must be in (0, 100]")
-    opts = rule_options(strategy, n, channel, degrees)
+    fmt = FORMATS[sp.format]
+    wavelengths, illuminant, strategy, n, output, adapt, max_error, response = (
+        sp.wavelengths, sp.illuminant, sp.strategy, sp.n, sp.output, sp.adapt, sp.max_error, sp.response)
+    opts = rule_options(strategy, n, sp.channel, sp.degrees)
     wl_form = parse_wavelengths(wavelengths)
     data = await read_upload(file, settings)
     light_data = await read_upload(light_file, settings, "light_file") if light_file is not None else None

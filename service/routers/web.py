@@ -16,15 +16,17 @@ import time
 from importlib import resources
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import HTMLResponse, Response
 
 from .. import pipeline
 from ..deps import read_upload
 from ..errors import ServiceError
 from ..jsonsafe import clean
-from ..options import (EXPOSURE_HELP, MEDIA_TYPES, NEUTRAL_HELP, PREVIEW_FORMATS, check_output, choose_format,
-                       check_target, estimate_options, parse_exposure, parse_neutral)
+from ..options import FORMATS, MEDIA_TYPES, PREVIEW_FORMATS
+from ..schemas import Estimation, Neutral, Preview, Rendering
+from ..schemas.forms import form
+from ..schemas.options import PREVIEW_MAX_SIDE, PREVIEW_SIDE_RANGE  # noqa: F401 (the preview limits, named here too)
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -34,9 +36,13 @@ router = APIRouter()
 #: request ever reaches the file system).
 STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "style.css": "text/css; charset=utf-8"}
 
-#: Longest side of a preview, default and accepted range (pixels).
-PREVIEW_MAX_SIDE = 1024
-PREVIEW_SIDE_RANGE = (16, 4096)
+#: The form fields of ``/v1/preview`` (service.schemas); the estimation and
+#: rendering ones matter only for ``wb=corrected``, whose target is checked then.
+_PREVIEW = form(Preview)
+_PREVIEW_ESTIMATION = form(Estimation, include=("camera", "method", "quality"), prefix="corrected only: ")
+_PREVIEW_RENDERING = form(Rendering, prefix="corrected only: ", lazy=("target",), choices={"format": PREVIEW_FORMATS},
+                          defaults={"format": "jpeg"}, describe={"format": "jpeg or png (8-bit)"})
+_NEUTRAL = form(Neutral, prefix="corrected only: ")
 
 #: The page's Content-Security-Policy: its own script and style sheet only (no
 #: inline script or style, nothing from another host), images also from the
@@ -187,38 +193,18 @@ def crop_preview(img: np.ndarray, full_shape, box) -> np.ndarray:
     422: {"description": "bad option or unusable file"}})
 async def preview(request: Request, file: UploadFile = File(..., description="RAW file (anything LibRaw reads) or linear "
                                                            "16-bit TIFF/PNG"),
-                  wb: str = Form("camera", description="camera: the file's own as-shot white balance as "
-                                 "LibRaw renders it (the original); corrected: this service's correction, "
-                                 "the same matrix as /v1/white-balance"),
-                  max_side: int = Form(PREVIEW_MAX_SIDE, description="longest side of the preview, "
-                                       f"{PREVIEW_SIDE_RANGE[0]}..{PREVIEW_SIDE_RANGE[1]} pixels"),
-                  format: str = Form("jpeg", description="jpeg or png (8-bit)"),
-                  camera: str | None = Form(None, description="corrected only: as /v1/white-balance"),
-                  method: str = Form("auto", description="corrected only"),
-                  quality: str | None = Form(None, description="corrected only: fast, balanced or accurate"),
-                  target: str = Form("D65", description="corrected only: light to render under, or 'estimate'"),
-                  output: str = Form("sRGB", description="corrected only: sRGB, linear-sRGB or a display"),
-                  exposure: str = Form("auto", description="corrected only: " + EXPOSURE_HELP,
-                                       examples=["auto", "1.5"]),
-                  neutral: str | None = Form(None, description="corrected only: " + NEUTRAL_HELP,
-                                             examples=["[1200, 2040]", "[100, 200, 140, 260]"]),
-                  settings: Settings = Depends(get_settings)):
+                  pv: Preview = Depends(_PREVIEW),
+                  est: Estimation = Depends(_PREVIEW_ESTIMATION), rend: Rendering = Depends(_PREVIEW_RENDERING),
+                  nt: Neutral = Depends(_NEUTRAL), settings: Settings = Depends(get_settings)):
     """A small 8-bit preview for the web page: the original as the camera's
     white balance renders it (``wb=camera``) or the corrected image
     (``wb=corrected``), longest side at most ``max_side``."""
     t0 = time.perf_counter()
-    if wb not in ("camera", "corrected"):
-        raise ServiceError(422, "invalid_parameter", f"wb must be camera or corrected, not {wb!r}")
-    lo, hi = PREVIEW_SIDE_RANGE
-    if not lo <= max_side <= hi:
-        raise ServiceError(422, "invalid_parameter", f"max_side must be in {lo}..{hi} pixels, not {max_side}")
-    fmt = choose_format(format, PREVIEW_FORMATS).encoder
-    check_output(output)
+    wb, max_side, fmt = pv.wb, pv.max_side, FORMATS[rend.format].encoder
     if wb == "corrected":
-        check_target(target)
-    opts = estimate_options(method, None, None, None, False, None, None, quality)
-    ev = parse_exposure(exposure)
-    where = parse_neutral(neutral)
+        rend.check("target")
+    camera, method, opts = est.camera, est.method, est.estimate_kwargs()
+    target, output, ev, where = rend.target, rend.output, rend.exposure, nt.neutral
     data = await read_upload(file, settings)
     name = file.filename
 

@@ -1,0 +1,140 @@
+"""Where items run, one interface (``submit``, ``shutdown``): a local process pool
+(:class:`LocalExecutor`, stopped at once on Ctrl-C or cancel) or a Dask cluster
+(:class:`DaskExecutor`); :func:`make_executor` picks one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+import time
+from concurrent.futures import Future
+
+from .items import _pool_worker_init, limit_threads
+
+
+def default_data_dir() -> str:
+    """``$XDG_CACHE_HOME/wandell`` (default ``~/.cache/wandell``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "wandell")
+
+
+def default_workers() -> int:
+    """Workers sized to the machine: one per core available to us."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class LocalExecutor:
+    """A process pool (spawn: no fork of a threaded server), each worker
+    capped at one numerical thread."""
+
+    kind = "local"
+
+    def __init__(self, workers: int):
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.workers = max(1, int(workers))
+        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_pool_worker_init)
+        # start every worker now, with SIGINT ignored from their first
+        # instruction on (an ignored signal stays ignored across exec, and
+        # Python then installs no KeyboardInterrupt handler): a Ctrl-C while
+        # a worker is still importing must not kill it with a traceback
+        with _sigint_ignored():
+            for _ in range(self.workers):
+                self._pool.submit(int)
+
+    def submit(self, fn, *args) -> Future:
+        return self._pool.submit(fn, *args)
+
+    def shutdown(self, wait: bool = True) -> None:
+        self._pool.shutdown(wait=wait, cancel_futures=True)
+
+    def terminate(self, kill: bool = False, grace_s: float = 3.0) -> None:
+        """Stop now: queued items are dropped, running ones are ended
+        (SIGTERM: the worker removes its temporary file and exits; ``kill``
+        or still alive after ``grace_s``: SIGKILL). Their outputs never got
+        their final names, so nothing partial remains. Afterwards the pool's
+        manager thread ends by itself (it sees its workers gone), so neither
+        this call nor the interpreter's exit waits for running work."""
+        procs = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for p in procs:
+            with contextlib.suppress(Exception):
+                p.kill() if kill else p.terminate()
+        t_end = time.monotonic() + grace_s
+        for p in procs:
+            with contextlib.suppress(Exception):
+                p.join(max(0.0, t_end - time.monotonic()))
+                if p.is_alive():
+                    p.kill()
+                    p.join(1.0)
+        manager = getattr(self._pool, "_executor_manager_thread", None)
+        if manager is not None:
+            manager.join(max(1.0, t_end - time.monotonic()))
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored in this block (main thread only; elsewhere a no-op)."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _dask_call(fn, *args):
+    limit_threads()
+    return fn(*args)
+
+
+class DaskExecutor:
+    """Items submitted to a Dask distributed cluster (``scheduler`` address,
+    or a ``distributed.Client`` given). The workers need this project
+    installed and the data directory (or batch root) at the same path."""
+
+    kind = "dask"
+
+    def __init__(self, scheduler=None, client=None, timeout: float = 20.0):
+        from distributed import Client
+
+        self._own = client is None
+        self.client = client if client is not None else Client(scheduler, timeout=f"{timeout}s")
+        self.workers = max(1, sum(w.get("nthreads", 1)
+                                  for w in self.client.scheduler_info().get("workers", {}).values()))
+
+    def submit(self, fn, *args) -> Future:
+        fut: Future = Future()
+        dfut = self.client.submit(_dask_call, fn, *args, pure=False)
+
+        def done(df):
+            try:
+                fut.set_result(df.result())
+            except BaseException as e:  # a lost worker, a cancelled task
+                fut.set_exception(e)
+
+        fut.set_running_or_notify_cancel()
+        dfut.add_done_callback(done)
+        return fut
+
+    def shutdown(self, wait: bool = True) -> None:
+        if self._own:
+            self.client.close()
+
+
+def make_executor(workers: int | None = None, scheduler: str | None = None, timeout: float = 20.0):
+    """Dask when a scheduler address is given, else the local pool."""
+    if scheduler:
+        return DaskExecutor(scheduler, timeout=timeout)
+    return LocalExecutor(workers or default_workers())

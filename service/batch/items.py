@@ -1,0 +1,479 @@
+"""One batch item, run in a pool worker or on a Dask worker: :class:`ItemTask` (plain, picklable
+data), :func:`process_item` (decode, estimate, render, write exactly once under the item's
+lock), the atomic write and the stale temporaries, the shared light's samples and their
+combination (:func:`shared_light`), the worker's thread limits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+
+from ..errors import service_error
+from ..options import FORMATS
+
+
+#: The environment variables that cap the internal thread pools of the
+#: numerical libraries; set to 1 in every pool worker so that N workers use
+#: N cores and do not fight over them.
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+              "VECLIB_MAXIMUM_THREADS", "OPENCV_FOR_THREADS_NUM")
+
+RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".rw2", ".orf",
+                ".pef", ".srw", ".x3f", ".3fr", ".iiq", ".erf", ".kdc", ".dcr", ".mrw", ".mos", ".rwl",
+                ".tif", ".tiff", ".png")
+
+
+def limit_threads() -> None:
+    """Cap the numerical libraries at one thread in this process (pool and
+    Dask workers: one item per core)."""
+    for k in THREAD_ENV:
+        os.environ[k] = "1"
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except Exception:  # pragma: no cover - OpenCV is a dependency
+        pass
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except Exception:
+        pass
+
+
+def _pool_worker_init() -> None:
+    """Pool worker start-up: one numerical thread, and exit when the parent
+    (the server or the CLI) is gone, so a killed server leaves no orphans
+    (an item cut short this way is simply run again after the restart; its
+    output never got its final name).
+
+    Ctrl-C is the parent's to handle: a terminal sends SIGINT to the whole
+    process group, and a worker dying of KeyboardInterrupt mid-item (or
+    while idle) breaks the pool and prints tracebacks. The parent stops the
+    workers with SIGTERM (:meth:`LocalExecutor.terminate`): the worker
+    removes the temporary file it was writing and exits at once."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit_on_term)
+    limit_threads()
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+#: Temporary files this process is writing (:func:`atomic_write`), removed
+#: when a pool worker is terminated.
+_PARTS: set = set()
+
+
+def _exit_on_term(signum, frame) -> None:  # pragma: no cover - runs in a pool worker
+    for p in list(_PARTS):
+        with contextlib.suppress(OSError):
+            os.unlink(p)
+    os._exit(128 + signum)
+
+
+@dataclass(frozen=True)
+class ItemTask:
+    """Everything a worker needs for one item (plain data, picklable)."""
+
+    src: str
+    out: str
+    name: str
+    options: BatchOptions
+    max_pixels: int
+    estimation_pixels: int
+    light: dict | None = None          # shared mode: the batch's light (light_json)
+    write_log: str | None = None
+    threads: int = 1
+    #: False (single-file CLI): no lock, no sidecar, an existing output is replaced
+    exactly_once: bool = True
+    #: True (CLI --force): a finished output is computed again and replaced
+    force: bool = False
+    #: a file whose existence means "the batch was cancelled": the item
+    #: stops at its next step without writing (:meth:`BatchRunner.cancel`)
+    cancel_file: str | None = None
+    #: the item's index in its batch (recorded in the sidecar; None: the CLI)
+    index: int | None = None
+
+
+class ItemCancelled(Exception):
+    """The item's batch was cancelled while it ran (see ``ItemTask.cancel_file``)."""
+
+
+def _check_cancel(task: ItemTask) -> None:
+    if task.cancel_file and os.path.exists(task.cancel_file):
+        raise ItemCancelled(task.name)
+
+
+def _estimate_json(est, camera, profile=None) -> dict:
+    from ..pipeline import illuminant_json
+
+    from recovery.api import LOW_CONFIDENCE
+
+    conf = est.diagnostics.get("confidence")
+    conf = float(conf) if isinstance(conf, (int, float)) else None
+    return dict(illuminant_json(est, profile, camera), method=est.method, camera=camera.name, confidence=conf,
+                low_confidence=conf is not None and conf < LOW_CONFIDENCE)
+
+
+def _estimate_from_json(light: dict, camera):
+    """The shared light as an estimate for ``camera``: the light's own camera
+    RGB when it was estimated for this camera (shared lighting pools one
+    camera), else the camera's response to the light's spectrum (eq. 1:
+    rho_k = sum_n E R_k); its confidence is the shared estimate's."""
+    import numpy as np
+
+    from recovery import IlluminantEstimate
+
+    spd = np.asarray(light["spectrum"], float)
+    wl = np.asarray(light["wavelengths"], float)
+    if wl.shape != camera.wavelengths.shape or not np.allclose(wl, camera.wavelengths):
+        spd = np.interp(camera.wavelengths, wl, spd)
+    rgb = np.asarray(light.get("camera_rgb") or [], float)
+    if light.get("camera") != camera.name or rgb.shape != (camera.channels,):
+        rgb = spd @ camera.sensitivities
+        rgb = rgb / np.linalg.norm(rgb)
+    diag = {"lighting": "shared"}
+    if isinstance(light.get("confidence"), (int, float)):
+        diag["confidence"] = float(light["confidence"])
+    return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"), diag, [])
+
+
+def _open(task: "ItemTask", prefetch: bool = False) -> tuple:
+    """Decode an item's file and choose its camera (:func:`service.pipeline.open_image`;
+    ``prefetch``: start the demosaic on a thread for the render that follows)."""
+    from .. import pipeline
+
+    with open(task.src, "rb") as f:
+        data = f.read()
+    decoded, cam, warns, _ = pipeline.open_image(data, task.name or os.path.basename(task.src), task,
+                                                 task.options.camera, prefetch=prefetch)
+    return decoded, cam, warns
+
+
+def _error_text(exc: BaseException) -> str:
+    err = service_error(exc)
+    if err is not None:
+        return f"{err.code}: {err.detail}"
+    code = getattr(exc, "code", None)
+    detail = getattr(exc, "detail", None) or str(exc)
+    return f"{code or type(exc).__name__}: {detail}"
+
+
+def meta_path(out: str, suffix: str) -> str:
+    """Where an output's sidecar (``.json``: the estimate) and lock file
+    live: a hidden ``.wandell`` folder beside it."""
+    d, base = os.path.split(out)
+    return os.path.join(d, ".wandell", base + suffix)
+
+
+@contextlib.contextmanager
+def _item_lock(out: str):
+    """One writer per output at a time (``flock`` on ``.wandell/NAME.lock``),
+    the lock file removed when the item is done, so a batch leaves none.
+    Removing a locked file is safe with the usual check: a process that
+    got the lock on a file since unlinked (or replaced) opens it again."""
+    import fcntl
+
+    path = meta_path(out, ".lock")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    while True:
+        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:
+            break
+        os.close(fd)  # the holder before us removed it: lock the current one
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # still holding the lock: nobody else owns this name now
+        os.close(fd)  # closing releases the lock
+
+
+def atomic_write(path: str, write) -> None:
+    """``write(tmp)`` a temporary file beside ``path``, fsync it, then
+    rename it to ``path``: the final name only ever holds a complete file."""
+    d, base = os.path.split(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=".part", dir=d or ".")
+    os.close(fd)
+    _PARTS.add(tmp)
+    os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are ordinary files
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    finally:
+        _PARTS.discard(tmp)
+
+
+#: The temporaries :func:`atomic_write` makes: ``.NAME.XXXXXXXX.part``
+#: (``tempfile.mkstemp``: 8 characters of ``a-z0-9_``); nothing else is one.
+_TEMPORARY = re.compile(r"\.(.+)\.[a-z0-9_]{8}\.part", re.S)
+
+
+def is_temporary(entry: str) -> bool:
+    """Whether a file name is one of :func:`atomic_write`'s temporaries."""
+    return _TEMPORARY.fullmatch(entry) is not None
+
+
+def remove_stale_temporaries(out_dir: str, outputs=None, locked: str | None = None) -> list[str]:
+    """Remove the temporaries (``.NAME.XXXXXXXX.part``) that a writer killed
+    mid-write left in ``out_dir`` and its ``.wandell`` folder; returns them.
+
+    Only :func:`atomic_write`'s own pattern is touched, only for outputs
+    named in ``outputs`` (None: any), and each only while holding the item
+    lock of its output (a writer still at work holds it, so its temporary is
+    left alone); ``locked``: the output whose lock the caller holds."""
+    import fcntl
+
+    removed = []
+    for d in (out_dir, os.path.dirname(meta_path(os.path.join(out_dir, "x"), ""))):
+        try:
+            entries = sorted(os.listdir(d))
+        except OSError:
+            continue
+        for entry in entries:
+            m = _TEMPORARY.fullmatch(entry)
+            if m is None:
+                continue
+            final = m[1]
+            if d != out_dir:  # a sidecar's: .<output>.json.XXXXXXXX.part
+                if not final.endswith(".json"):
+                    continue
+                final = final[:-5]
+            if outputs is not None and final not in outputs:
+                continue
+            path, out = os.path.join(d, entry), os.path.join(out_dir, final)
+            if os.path.islink(path) or not os.path.isfile(path):
+                continue
+            fd = None
+            if out != locked:
+                try:
+                    fd = os.open(meta_path(out, ".lock"), os.O_CREAT | os.O_RDWR, 0o644)
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:  # being written now (or no lock possible): not stale
+                    if fd is not None:
+                        os.close(fd)
+                    continue
+            try:
+                os.unlink(path)
+                removed.append(path)
+            except OSError:
+                pass
+            finally:
+                if fd is not None:
+                    os.close(fd)
+    return removed
+
+
+def is_finished(out: str) -> bool:
+    """An output counts as finished only when both the image and its sidecar
+    (renamed into place before the image) exist under their final names."""
+    return os.path.exists(out) and os.path.exists(meta_path(out, ".json"))
+
+
+def process_item(task: ItemTask) -> dict:
+    """Decode -> estimate (or take the shared light) -> correct -> encode ->
+    write atomically, for one file (the white-balance pipeline of
+    :mod:`service.pipeline`: eq. 36 and 23, Wandell 1985, one 3x3 matrix).
+
+    Returns ``{"status": "done", "illuminant": ..., "adopted": bool,
+    "seconds": ...}`` or ``{"status": "failed", "error": text}``, or
+    ``{"status": "cancelled"}`` when the batch was cancelled before the item
+    wrote anything (checked between the steps); never raises for a bad file
+    (a corrupt file fails its item only).
+    """
+    from .. import pipeline
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        _check_cancel(task)
+        with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
+            if task.exactly_once:  # under the lock: a temporary of this output is an earlier run's, killed
+                remove_stale_temporaries(os.path.dirname(task.out), {os.path.basename(task.out)}, task.out)
+            if task.exactly_once and not task.force and is_finished(task.out):  # written by an earlier run: adopt, never write twice
+                with open(meta_path(task.out, ".json")) as f:
+                    side = json.load(f)
+                return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
+                        "seconds": time.perf_counter() - t0}
+            # the demosaic overlaps the estimate when this item may use several
+            # threads (wandell white-balance); a pool worker (one per core) does not
+            decoded, cam, warns = _open(task, prefetch=task.threads != 1)
+            opts = task.options.estimate_kwargs()
+            try:
+                _check_cancel(task)
+                if task.light is None:
+                    run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
+                else:
+                    run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
+                _check_cancel(task)
+            except BaseException:
+                pipeline.drain_prefetch(decoded)
+                raise
+            fmt = FORMATS[task.options.format]
+            out, M, info, meta = pipeline.render_corrected(decoded, run, target=task.options.target,
+                                                           output=task.options.output, fmt=fmt,
+                                                           surface_basis=opts.get("surface_basis"),
+                                                           threads=task.threads, exposure=task.options.exposure)
+            _check_cancel(task)  # the last point before anything is written
+            file_warnings = list(decoded.warnings)
+            profile = pipeline.profile_of(decoded)
+            del decoded
+            illum = _estimate_json(run.estimate, cam, profile)
+            illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
+            side = {"name": task.name, "index": task.index, "illuminant": illum, "correction_matrix": M.tolist(),
+                    "rendering": pipeline.rendering_json(info),
+                    "options": task.options.as_dict()}
+            if task.exactly_once:
+                atomic_write(meta_path(task.out, ".json"), lambda p: write_text(p, json.dumps(_clean(side))))
+            atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta,
+                                                                           threads=task.threads))
+            if task.write_log:
+                with open(task.write_log, "a") as f:
+                    f.write(json.dumps({"name": task.name, "out": os.path.basename(task.out),
+                                        "pid": os.getpid(), "time": time.time()}) + "\n")
+            return {"status": "done", "illuminant": _clean(illum), "adopted": False,
+                    "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
+    except ItemCancelled:
+        return {"status": "cancelled", "seconds": time.perf_counter() - t0}
+    except MemoryError:
+        return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
+    except Exception as exc:
+        return {"status": "failed", "error": _error_text(exc)}
+
+
+def write_text(path: str, text: str) -> None:
+    """Write ``text`` to ``path`` (for :func:`atomic_write`)."""
+    with open(path, "w") as f:
+        f.write(text)
+
+
+def _clean(obj):
+    from ..jsonsafe import clean
+
+    return clean(obj)
+
+
+def estimation_sample(task: ItemTask, pixels: int | None = None) -> dict:
+    """Shared mode, step 1: an image's own estimate, made exactly as in
+    per-image mode (:func:`service.pipeline.run_estimate` with the batch's
+    method and options, on the analysis image of its ``quality``), with its
+    camera and colour profile. ``pixels`` is not used (it was the share of a
+    pooled image, which made the light depend on the number of images)."""
+    from .. import pipeline
+
+    try:
+        decoded, cam, warns = _open(task)
+        run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method,
+                                    options=task.options.estimate_kwargs())
+        profile = pipeline.profile_of(decoded)
+        return {"status": "ok", "estimate": _clean(_estimate_json(run.estimate, cam, profile)),
+                "warnings": list(run.estimate.warnings), "camera": cam, "profile": profile}
+    except MemoryError:
+        return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
+    except Exception as exc:
+        return {"status": "failed", "error": _error_text(exc)}
+
+
+def pool_images(images: list, masks: list):
+    """Stack images (H_i, W_i, C) into one (sum H_i, max W_i, C) image, the
+    padding masked out, so the estimator sees every image's regions."""
+    import numpy as np
+
+    width = max(im.shape[1] for im in images)
+    rows, mrows = [], []
+    for im, mk in zip(images, masks):
+        pad = width - im.shape[1]
+        m = np.ones(im.shape[:2], bool) if mk is None else np.asarray(mk, bool)
+        rows.append(np.pad(np.asarray(im, np.float32), ((0, 0), (0, pad), (0, 0))))
+        mrows.append(np.pad(m, ((0, 0), (0, pad)), constant_values=False))
+    return np.concatenate(rows, 0), np.concatenate(mrows, 0)
+
+
+#: Above this angle (degrees) between an image's own light and the shared
+#: one, the shared light warns that the images may not share one light.
+SHARED_SPREAD_WARN_DEG = 3.0
+
+
+def shared_light(samples: list, options: BatchOptions) -> dict:
+    """Shared mode, step 2: one light for all the images, from their own
+    estimates (:func:`estimation_sample`, one camera): the mean of their
+    lights (camera RGB and spectrum, each scaled to a unit camera response,
+    then back to the mean scale), weighted by their confidence when every
+    one has one, else equally. N identical images therefore give that
+    image's own estimate whatever N (pooling their pixels into one image
+    did not: the light moved with the number and layout of the images).
+
+    Its ``confidence`` is the weighted mean of theirs times
+    ``1 / (1 + (rms / 3 deg)^2)``, ``rms`` the weighted RMS angle of the
+    images' lights to the shared one (the just-visible error of
+    :data:`service.pipeline.VISIBLE_WB_ERROR_DEG`): images that agree keep
+    their confidence, images that disagree lower it, and above 3 degrees a
+    warning says so. Returns the light as JSON (``camera_rgb``,
+    ``spectrum``, ``cct``..., ``confidence``, ``images``: how many were
+    combined, ``image_angles_deg``: each image's light to the shared one)."""
+    import numpy as np
+
+    from recovery import IlluminantEstimate, angular_error
+
+    from ..pipeline import VISIBLE_WB_ERROR_DEG
+
+    cam = samples[0]["camera"]
+    ests = [s["estimate"] for s in samples]
+    rgbs = np.array([e["camera_rgb"] for e in ests], float)
+    spds = np.array([e["spectrum"] for e in ests], float)
+    wl = np.asarray(ests[0]["wavelengths"], float)
+    norms = np.linalg.norm(rgbs, axis=1)
+    confs = [e.get("confidence") for e in ests]
+    have_conf = all(isinstance(c, (int, float)) and c > 0 for c in confs)
+    w = np.array(confs, float) if have_conf else np.ones(len(ests))
+    w = w / w.sum()
+    scale = float(w @ norms)
+    rgb = (w @ (rgbs / norms[:, None])) * scale
+    spd = (w @ (spds / norms[:, None])) * scale
+    angles = np.array([float(angular_error(r, rgb)) for r in rgbs])
+    rms = float(np.sqrt(w @ angles ** 2))
+    warnings = [x for x in dict.fromkeys(x for s in samples for x in s.get("warnings", []))
+                if all(x in s.get("warnings", []) for s in samples)]
+    if angles.max() > SHARED_SPREAD_WARN_DEG:
+        warnings.append(f"the images' own lights are up to {angles.max():.1f} degrees from the shared light "
+                        f"(RMS {rms:.1f}): they may not all be under one light")
+    diag = {"lighting": "shared"}
+    if have_conf:
+        diag["confidence"] = float(w @ np.array(confs, float)) / (1.0 + (rms / VISIBLE_WB_ERROR_DEG) ** 2)
+    methods = {e.get("method") for e in ests}
+    est = IlluminantEstimate(rgb, spd, wl, methods.pop() if len(methods) == 1 else "shared", diag, warnings)
+    light = _estimate_json(est, cam, samples[0].get("profile"))
+    light["images"] = len(samples)
+    light["image_angles_deg"] = angles.tolist()
+    light["warnings"] = warnings
+    return _clean(light)

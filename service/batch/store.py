@@ -1,0 +1,562 @@
+"""The SQLite job store (:class:`JobStore`): batches and items, their transitions in
+transactions, the batch manifest and journal, recovery of a damaged store and adoption of
+what is on disk, safe names for the files of a batch.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import sqlite3
+import threading
+import time
+import uuid
+
+from ..errors import ServiceError
+from ..schemas.options import BatchOptions
+from .items import _clean, atomic_write, is_finished, is_temporary, meta_path, write_text
+
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS batches (
+    id TEXT PRIMARY KEY,
+    created REAL NOT NULL,
+    started REAL,
+    finished REAL,
+    status TEXT NOT NULL CHECK (status IN ('queued', 'running', 'done', 'cancelled')),
+    options TEXT NOT NULL,
+    dir TEXT NOT NULL,
+    light TEXT,
+    light_error TEXT
+);
+CREATE TABLE IF NOT EXISTS items (
+    batch_id TEXT NOT NULL REFERENCES batches(id),
+    idx INTEGER NOT NULL,
+    name TEXT NOT NULL,
+    src TEXT NOT NULL,
+    out TEXT NOT NULL,
+    status TEXT NOT NULL CHECK (status IN ('pending', 'running', 'done', 'failed', 'cancelled')),
+    error TEXT,
+    illuminant TEXT,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    completions INTEGER NOT NULL DEFAULT 0,
+    started REAL,
+    finished REAL,
+    PRIMARY KEY (batch_id, idx)
+);
+CREATE INDEX IF NOT EXISTS items_status ON items(batch_id, status);
+"""
+
+
+#: Longest file name, in UTF-8 bytes, the batch endpoint accepts (the usual
+#: file-system limit, NAME_MAX); longer ones are refused (422).
+MAX_NAME_BYTES = 255
+#: Longest name the service itself gives a file on disk (inputs, outputs):
+#: room for the ``.<name>.XXXXXXXX.part`` temporaries and ``.json``/``.lock``
+#: sidecars next to them within NAME_MAX.
+DISK_NAME_BYTES = 200
+
+
+def clip_name(name: str, limit: int = DISK_NAME_BYTES) -> str:
+    """``name`` cut to at most ``limit`` UTF-8 bytes on a character boundary,
+    keeping its extension (so the format is still recognised)."""
+    if len(name.encode("utf-8")) <= limit:
+        return name
+    stem, ext = os.path.splitext(name)
+    if len(ext.encode("utf-8")) > limit // 4:
+        stem, ext = name, ""
+    return stem.encode("utf-8")[:limit - len(ext.encode("utf-8"))].decode("utf-8", "ignore") + ext
+
+
+def safe_name(name: str) -> str:
+    """A file name with no directory part, no control characters and no
+    unpaired surrogates, at most :data:`MAX_NAME_BYTES` bytes."""
+    base = os.path.basename(str(name).replace("\\", "/")) or "file"
+    base = base.encode("utf-8", "replace").decode("utf-8")
+    base = re.sub(r"[\x00-\x1f/]", "_", base).strip() or "file"
+    return clip_name(base, MAX_NAME_BYTES)
+
+
+#: Beside each batch's ``in/`` and ``out/``: the manifest of its items
+#: (written once, with the batch) and the journal of their state changes,
+#: from which a damaged job store is rebuilt.
+MANIFEST = "batch.json"
+JOURNAL = "states.jsonl"
+
+
+def _read_sidecar(out: str) -> dict | None:
+    """The ``.json`` sidecar of a finished output, or None (not finished, unreadable)."""
+    if not is_finished(out):
+        return None
+    try:
+        with open(meta_path(out, ".json")) as f:
+            side = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return side if isinstance(side, dict) else None
+
+
+#: An item index in a URL: ASCII digits only (``str.isdigit`` also accepts
+#: ``²`` and other digits ``int`` refuses), at most 18 of them (64-bit).
+_INDEX_TEXT = re.compile(r"[0-9]{1,18}")
+
+
+class JobStore:
+    """Batches and items in SQLite (WAL), every state change one atomic
+    ``UPDATE ... WHERE status = <expected>`` inside a transaction."""
+
+    def __init__(self, data_dir: str):
+        self.data_dir = os.path.abspath(data_dir)
+        os.makedirs(os.path.join(self.data_dir, "batches"), exist_ok=True)
+        self.path = os.path.join(self.data_dir, "jobs.sqlite")
+        self._local = threading.local()
+        #: where a damaged store was moved at start-up, and the batches whose
+        #: results were re-registered from disk (None: it opened cleanly)
+        self.recovered: dict | None = None
+        try:
+            self._open_checked()
+        except sqlite3.DatabaseError as e:
+            self._recover(e)
+
+    def _open_checked(self) -> None:
+        db = self._db()
+        check = db.execute("PRAGMA quick_check").fetchone()[0]
+        if check != "ok":
+            raise sqlite3.DatabaseError(f"quick_check: {check}")
+        db.executescript(_SCHEMA)
+
+    def _recover(self, error: Exception) -> None:
+        """A damaged ``jobs.sqlite`` (and its WAL) is moved aside, kept for
+        inspection, and a fresh store started; the results already on disk
+        are registered again (:meth:`adopt_from_disk`), so they stay
+        reachable. Single-file endpoints never depended on the store."""
+        import logging
+
+        db = getattr(self._local, "db", None)
+        if db is not None:
+            with contextlib.suppress(Exception):
+                db.close()
+            self._local.db = None
+        aside = f"{self.path}.damaged-{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:6]}"
+        for suffix in ("", "-wal", "-shm"):
+            if os.path.exists(self.path + suffix):
+                os.replace(self.path + suffix, aside + suffix)
+        logging.getLogger("service.jobs").error("the job store %s was damaged (%s: %s); moved to %s and a fresh "
+                                                "store started", self.path, type(error).__name__, error, aside)
+        self._open_checked()
+        adopted = self.adopt_from_disk()
+        self.recovered = {"damaged_copy": aside, "error": f"{type(error).__name__}: {error}",
+                          "batches_recovered": adopted}
+
+    def adopt_from_disk(self) -> int:
+        """Register every batch directory the store does not know, from what
+        is on disk. A batch's manifest (``batch.json``, written with the
+        batch: each item's index, name, input and output) and its state
+        journal (``states.jsonl``: every item's end, the batch's end, the
+        shared light) give back the same items at the same indices in the
+        same states: done where the output and its sidecar are finished on
+        disk, failed or cancelled as journalled, and items that had not
+        finished pending again (their batch re-queued) while their input is
+        still there. Batches from before the manifest are rebuilt from their
+        inputs' names (:meth:`_legacy_rows`). Returns how many batches."""
+        root = os.path.join(self.data_dir, "batches")
+        n = 0
+        for bid in sorted(os.listdir(root)):
+            bdir = os.path.join(root, bid)
+            if not os.path.isdir(bdir) or self.batch(bid) is not None:
+                continue
+            try:
+                with open(os.path.join(bdir, MANIFEST)) as f:
+                    manifest = json.load(f)
+                options = BatchOptions(**manifest["options"])
+                items = [(int(it["index"]), str(it["name"]), str(it["src"]), str(it["out"]))
+                         for it in manifest["items"]]
+            except (OSError, ValueError, TypeError, KeyError):
+                manifest = None
+            if manifest is None:
+                rows, options = self._legacy_rows(bdir)
+                status, created, light = "done", os.path.getmtime(bdir), (None, None)
+            else:
+                rows, status, light = self._manifest_rows(bdir, items)
+                created = float(manifest.get("created") or os.path.getmtime(bdir))
+            if not rows:
+                continue
+            now = time.time()
+            with self._tx() as db:
+                db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir, light, "
+                           "light_error) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                           (bid, created, None if status == "queued" else now,
+                            None if status == "queued" else now, status, (options or BatchOptions()).to_json(),
+                            bdir, *light))
+                db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, illuminant, "
+                               "completions, finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                               [(bid, *r, int(r[4] == "done"), None if r[4] == "pending" else now)
+                                for r in rows])
+            n += 1
+        return n
+
+    def _manifest_rows(self, bdir: str, items: list) -> tuple[list, str, tuple]:
+        """Rows ``(idx, name, src, out, status, error, illuminant)`` of a
+        batch with a manifest, its status and its (light, light_error)."""
+        states, batch_state, light = {}, None, (None, None)
+        with contextlib.suppress(OSError):
+            with open(os.path.join(bdir, JOURNAL)) as f:
+                for line in f:
+                    try:
+                        rec = json.loads(line)
+                    except ValueError:  # a line torn by a crash
+                        continue
+                    if "idx" in rec:
+                        states[rec["idx"]] = rec
+                    elif "batch" in rec:
+                        batch_state = rec["batch"]
+                    elif "light" in rec:
+                        light = (None if rec["light"] is None else json.dumps(rec["light"]), rec.get("light_error"))
+        rows, waiting = [], False
+        for idx, name, src, out in items:
+            src = src if os.path.isabs(src) else os.path.join(bdir, src)
+            out = os.path.join(bdir, "out", out)
+            rec = states.get(idx) or {}
+            side = _read_sidecar(out)
+            if side is not None:
+                rows.append((idx, name, src, out, "done", None, json.dumps(side.get("illuminant"))))
+            elif rec.get("status") in ("failed", "cancelled"):
+                rows.append((idx, name, src, out, rec["status"], rec.get("error"), None))
+            elif batch_state == "cancelled":
+                rows.append((idx, name, src, out, "cancelled", None, None))
+            elif os.path.isfile(src) and batch_state != "done":
+                rows.append((idx, name, src, out, "pending", None, None))
+                waiting = True
+            else:
+                rows.append((idx, name, src, out, "failed", "store_recovered: the job store was damaged before "
+                             "this item finished and its input is gone; submit it again", None))
+        status = "cancelled" if batch_state == "cancelled" else ("queued" if waiting else "done")
+        return rows, status, light
+
+    def _legacy_rows(self, bdir: str) -> tuple[list, "BatchOptions | None"]:
+        """Rows of a batch written before manifests: the uploaded inputs
+        (``NNNNN-name``: index and name) named again as
+        :meth:`create_batch` named them, so uniquified names (``A (2).dng``)
+        and their outputs match; finished outputs (``.``-names included)
+        done, the other inputs failed; outputs with no input (folder mode,
+        inputs removed) after them."""
+        out_dir, in_dir = os.path.join(bdir, "out"), os.path.join(bdir, "in")
+        done, options = {}, None
+        if os.path.isdir(out_dir):
+            for entry in sorted(os.listdir(out_dir)):
+                out = os.path.join(out_dir, entry)
+                side = None if is_temporary(entry) or not os.path.isfile(out) else _read_sidecar(out)
+                if side is None:
+                    continue
+                with contextlib.suppress(TypeError):
+                    options = options or BatchOptions(**side.get("options", {}))
+                done[entry] = side
+        inputs = []
+        if os.path.isdir(in_dir):
+            for entry in os.listdir(in_dir):
+                m = re.fullmatch(r"([0-9]{5})-(.*)", entry, re.S)
+                if m:
+                    inputs.append((int(m[1]), m[2], os.path.join(in_dir, entry)))
+        ext = (options or BatchOptions()).extension
+        rows, seen, outs = [], set(), set()
+        for idx, orig, src in sorted(inputs):
+            name = unique(safe_name(orig), seen)
+            out = unique(clip_name(f"{os.path.splitext(name)[0]}.{ext}", DISK_NAME_BYTES - 12), outs)
+            side = done.pop(out, None)
+            if side is not None:
+                rows.append((idx, name, src, os.path.join(out_dir, out), "done", None,
+                             json.dumps(side.get("illuminant"))))
+            else:
+                rows.append((idx, name, src, os.path.join(out_dir, out), "failed", "store_recovered: the job "
+                             "store was damaged before this item finished; submit it again", None))
+        nxt = max([r[0] for r in rows], default=-1) + 1
+        for entry, side in done.items():
+            rows.append((nxt, str(side.get("name") or entry), "", os.path.join(out_dir, entry), "done", None,
+                         json.dumps(side.get("illuminant"))))
+            nxt += 1
+        return rows, options
+
+    def _journal(self, batch_id: str, **record) -> None:
+        """Append one state change to the batch's ``states.jsonl`` (what
+        :meth:`adopt_from_disk` rebuilds a damaged store from). Best effort:
+        a full disk loses a line, never the transition."""
+        record["t"] = time.time()
+        with contextlib.suppress(OSError, TypeError, ValueError):
+            line = json.dumps(_clean(record)) + "\n"
+            with open(os.path.join(self.batch_dir(batch_id), JOURNAL), "a") as f:
+                f.write(line)
+
+    def _db(self) -> sqlite3.Connection:
+        db = getattr(self._local, "db", None)
+        if db is None:
+            db = sqlite3.connect(self.path, timeout=30, isolation_level=None)
+            db.row_factory = sqlite3.Row
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=NORMAL")
+            self._local.db = db
+        return db
+
+    @contextlib.contextmanager
+    def _tx(self):
+        db = self._db()
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            yield db
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+    # -- creation ----------------------------------------------------------
+    def batch_dir(self, batch_id: str) -> str:
+        return os.path.join(self.data_dir, "batches", batch_id)
+
+    def new_batch_id(self) -> str:
+        bid = uuid.uuid4().hex[:16]
+        os.makedirs(os.path.join(self.batch_dir(bid), "in"), exist_ok=True)
+        os.makedirs(os.path.join(self.batch_dir(bid), "out"), exist_ok=True)
+        return bid
+
+    def create_batch(self, batch_id: str, options: BatchOptions, sources: list[tuple[str, str]]) -> None:
+        """Register a batch of ``(name, source path)`` items, all pending.
+        Names are made unique (``a.dng``, ``a (2).dng``); output names are
+        ``<stem>.<ext>``, made unique the same way."""
+        seen, outs, rows = set(), set(), []
+        out_dir = os.path.join(self.batch_dir(batch_id), "out")
+        for i, (name, src) in enumerate(sources):
+            nm = unique(safe_name(name), seen)
+            stem = os.path.splitext(nm)[0]
+            # the output's name on disk stays short enough for its temporaries and sidecars
+            out = unique(clip_name(f"{stem}.{options.extension}", DISK_NAME_BYTES - 12), outs)
+            rows.append((batch_id, i, nm, os.path.abspath(src), os.path.join(out_dir, out)))
+        bdir, created = self.batch_dir(batch_id), time.time()
+        manifest = {"id": batch_id, "created": created, "options": options.as_dict(),
+                    "items": [{"index": r[1], "name": r[2], "out": os.path.basename(r[4]),
+                               "src": os.path.relpath(r[3], bdir) if r[3].startswith(bdir + os.sep) else r[3]}
+                              for r in rows]}
+        os.makedirs(bdir, exist_ok=True)
+        atomic_write(os.path.join(bdir, MANIFEST), lambda p: write_text(p, json.dumps(manifest)))
+        with self._tx() as db:
+            db.execute("INSERT INTO batches (id, created, status, options, dir) VALUES (?, ?, 'queued', ?, ?)",
+                       (batch_id, created, options.to_json(), bdir))
+            db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status) "
+                           "VALUES (?, ?, ?, ?, ?, 'pending')", rows)
+
+    # -- reading -------------------------------------------------------------
+    def batch(self, batch_id: str):
+        return self._db().execute("SELECT * FROM batches WHERE id = ?", (batch_id,)).fetchone()
+
+    def items(self, batch_id: str) -> list:
+        return self._db().execute("SELECT * FROM items WHERE batch_id = ? ORDER BY idx", (batch_id,)).fetchall()
+
+    def item_by_index(self, batch_id: str, index):
+        """The item at ``index`` (an int, or its ASCII decimal digits); None
+        for anything else: other Unicode digits (``²``), signs, spaces, or
+        more digits than any index can have (never an error)."""
+        if not isinstance(index, int):
+            if not isinstance(index, str) or not _INDEX_TEXT.fullmatch(index):
+                return None
+            index = int(index)
+        if not 0 <= index < 2 ** 63:
+            return None
+        return self._db().execute("SELECT * FROM items WHERE batch_id = ? AND idx = ?", (batch_id, index)).fetchone()
+
+    def item_by_name(self, batch_id: str, name: str):
+        """The item of this (stored, made-unique) name, or None."""
+        return self._db().execute("SELECT * FROM items WHERE batch_id = ? AND name = ?",
+                                  (batch_id, str(name))).fetchone()
+
+    def item(self, batch_id: str, key: str):
+        """An item by name or by index (the ``items/{key}`` URL, which takes
+        both). A key that names one item and is the index of another is
+        ambiguous: :class:`~service.errors.ServiceError` 409
+        ``ambiguous_item``, never the wrong file (``by-index`` / ``by-name``
+        say which is meant)."""
+        by_name = self.item_by_name(batch_id, key)
+        by_index = self.item_by_index(batch_id, key)
+        if by_name is not None and by_index is not None and by_name["idx"] != by_index["idx"]:
+            raise ServiceError(409, "ambiguous_item",
+                               f"{key!r} is the name of item {by_name['idx']} and the index of item "
+                               f"{by_index['idx']} ({by_index['name']!r}): ask for items/by-index/{key} (item "
+                               f"{by_index['idx']}) or items/by-name/{key} (item {by_name['idx']})")
+        return by_name if by_name is not None else by_index
+
+    def counts(self, batch_id: str) -> dict:
+        c = {s: 0 for s in ("pending", "running", "done", "failed", "cancelled")}
+        for row in self._db().execute("SELECT status, COUNT(*) FROM items WHERE batch_id = ? GROUP BY status",
+                                      (batch_id,)):
+            c[row[0]] = row[1]
+        return c
+
+    def active_batches(self) -> list:
+        return [r["id"] for r in self._db().execute(
+            "SELECT id FROM batches WHERE status IN ('queued', 'running') ORDER BY created")]
+
+    # -- transitions -----------------------------------------------------------
+    def resume(self) -> int:
+        """After a crash: items left ``running`` go back to ``pending``
+        (their worker died with the server; the item lock and the adopt rule
+        of :func:`process_item` keep a still-running orphan from writing
+        twice). Returns how many were re-queued."""
+        with self._tx() as db:
+            n = db.execute("UPDATE items SET status = 'pending' WHERE status = 'running' AND batch_id IN "
+                           "(SELECT id FROM batches WHERE status IN ('queued', 'running'))").rowcount
+            # a batch cancelled while items ran: their workers died with the server
+            db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE status = 'running' AND "
+                       "batch_id IN (SELECT id FROM batches WHERE status = 'cancelled')", (time.time(),))
+        return n
+
+    def start_batch(self, batch_id: str) -> bool:
+        with self._tx() as db:
+            return db.execute("UPDATE batches SET status = 'running', started = COALESCE(started, ?) "
+                              "WHERE id = ? AND status = 'queued'", (time.time(), batch_id)).rowcount == 1
+
+    def claim(self, batch_id: str, limit: int) -> list:
+        """Move up to ``limit`` pending items to running; returns them."""
+        with self._tx() as db:
+            rows = db.execute("SELECT * FROM items WHERE batch_id = ? AND status = 'pending' ORDER BY idx LIMIT ?",
+                              (batch_id, limit)).fetchall()
+            for r in rows:
+                db.execute("UPDATE items SET status = 'running', attempts = attempts + 1, started = ? "
+                           "WHERE batch_id = ? AND idx = ? AND status = 'pending'", (time.time(), batch_id, r["idx"]))
+        return rows
+
+    def finish_item(self, batch_id: str, idx: int, result: dict) -> bool:
+        """``running`` -> ``done`` (with the estimate) or ``failed`` (with the
+        error), in one transaction; False if the item was no longer running
+        (cancelled meanwhile)."""
+        ok = result.get("status") == "done"
+        with self._tx() as db:
+            n = db.execute(
+                "UPDATE items SET status = ?, error = ?, illuminant = ?, finished = ?, "
+                "completions = completions + 1 WHERE batch_id = ? AND idx = ? AND status = 'running'",
+                ("done" if ok else "failed", None if ok else str(result.get("error")),
+                 json.dumps(result.get("illuminant")) if ok else None, time.time(), batch_id, idx)).rowcount
+        if n == 1:
+            self._journal(batch_id, idx=idx, status="done" if ok else "failed",
+                          error=None if ok else str(result.get("error")))
+        return n == 1
+
+    def fail_item(self, batch_id: str, idx: int, error: str) -> None:
+        with self._tx() as db:
+            n = db.execute("UPDATE items SET status = 'failed', error = ?, finished = ? "
+                           "WHERE batch_id = ? AND idx = ? AND status IN ('pending', 'running')",
+                           (error, time.time(), batch_id, idx)).rowcount
+        if n:
+            self._journal(batch_id, idx=idx, status="failed", error=error)
+
+    def cancel_item(self, batch_id: str, idx: int) -> None:
+        """``running`` -> ``cancelled`` for an item dropped before it started."""
+        with self._tx() as db:
+            n = db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
+                           "AND status = 'running'", (time.time(), batch_id, idx)).rowcount
+        if n:
+            self._journal(batch_id, idx=idx, status="cancelled")
+
+    def expired_inputs(self, retention_s: float) -> list[str]:
+        """The upload folders (``<batch>/in``) of batches finished or cancelled
+        more than ``retention_s`` seconds ago with nothing still running and
+        something left to remove. Folder-mode sources are never listed: they
+        are the user's files, outside the data directory."""
+        rows = self._db().execute(
+            "SELECT id FROM batches WHERE status IN ('done', 'cancelled') AND finished IS NOT NULL "
+            "AND finished <= ? AND id NOT IN (SELECT batch_id FROM items WHERE status = 'running')",
+            (time.time() - retention_s,)).fetchall()
+        out = []
+        for r in rows:
+            d = os.path.join(self.batch_dir(r["id"]), "in")
+            if os.path.isdir(d) and os.listdir(d):
+                out.append(d)
+        return out
+
+    def set_light(self, batch_id: str, light: dict | None, error: str | None = None) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE batches SET light = ?, light_error = ? WHERE id = ?",
+                       (None if light is None else json.dumps(light), error, batch_id))
+        self._journal(batch_id, light=light, light_error=error)
+
+    def maybe_finish(self, batch_id: str) -> bool:
+        """``running`` -> ``done`` once no item is pending or running."""
+        with self._tx() as db:
+            left = db.execute("SELECT COUNT(*) FROM items WHERE batch_id = ? AND status IN ('pending', 'running')",
+                              (batch_id,)).fetchone()[0]
+            if left:
+                return False
+            done = db.execute("UPDATE batches SET status = 'done', finished = ? WHERE id = ? AND status = "
+                              "'running'", (time.time(), batch_id)).rowcount == 1
+        if done:
+            self._journal(batch_id, batch="done")
+        return done
+
+    def cancel(self, batch_id: str) -> bool:
+        """Cancel: pending items are cancelled at once; running ones stay
+        ``running`` until their worker answers (``cancelled`` when it
+        stopped, ``done`` and kept when it had finished: see
+        :meth:`BatchRunner.cancel`); the batch is ``cancelled``. False if it
+        had already finished."""
+        with self._tx() as db:
+            n = db.execute("UPDATE batches SET status = 'cancelled', finished = ? WHERE id = ? AND status IN "
+                           "('queued', 'running')", (time.time(), batch_id)).rowcount
+            if n:
+                db.execute("UPDATE items SET status = 'cancelled' WHERE batch_id = ? AND status = 'pending'",
+                           (batch_id,))
+        if n:
+            self._journal(batch_id, batch="cancelled")
+        return n == 1
+
+    def progress(self, batch_id: str) -> dict | None:
+        """The status document of ``GET /v1/batches/{id}``."""
+        b = self.batch(batch_id)
+        if b is None:
+            return None
+        rows = self.items(batch_id)
+        c = self.counts(batch_id)
+        now = time.time()
+        finished = c["done"] + c["failed"]
+        left = c["pending"] + c["running"]
+        elapsed = ((b["finished"] or now) - b["started"]) if b["started"] else 0.0
+        rate = finished / elapsed * 60 if elapsed > 0 and finished else None
+        eta = (left / (rate / 60)) if rate and b["status"] in ("queued", "running") else (0.0 if not left else None)
+        items = []
+        for r in rows:
+            it = {"index": r["idx"], "name": r["name"], "status": r["status"],
+                  "output": os.path.basename(r["out"]) if r["status"] == "done" else None}
+            if r["error"]:
+                it["error"] = r["error"]
+            if r["illuminant"]:
+                ill = json.loads(r["illuminant"])
+                it["illuminant"] = {k: ill.get(k) for k in ("camera_rgb", "wb_multipliers", "cct", "duv",
+                                                            "method", "camera", "warnings", "confidence",
+                                                            "low_confidence")}
+            items.append(it)
+        opts = json.loads(b["options"])
+        # settled: the batch is over and every count final (a cancelled
+        # batch's running items are still stopping until this is true)
+        settled = b["status"] in ("done", "cancelled") and left == 0
+        doc = {"id": batch_id, "status": b["status"], "settled": settled,
+               "lighting": opts.get("lighting"), "options": opts,
+               "counts": {"done": c["done"], "failed": c["failed"], "pending": left, "running": c["running"],
+                          "cancelled": c["cancelled"], "total": len(rows)},
+               "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
+               "rate": rate, "eta_s": eta,  # short names the web page reads
+               "created": b["created"], "items": items}
+        if opts.get("lighting") == "shared" and not b["light"] and b["status"] == "running":
+            doc["phase"] = "estimating the shared light from all images"
+        if b["light"]:
+            doc["shared_light"] = json.loads(b["light"])
+        if b["light_error"]:
+            doc["shared_light_error"] = b["light_error"]
+        return doc
+
+
+def unique(name: str, seen: set) -> str:
+    """``name``, or ``stem (k).ext`` with the smallest free k."""
+    cand, k = name, 2
+    stem, ext = os.path.splitext(name)
+    while cand.lower() in seen:
+        cand = f"{stem} ({k}){ext}"
+        k += 1
+    seen.add(cand.lower())
+    return cand

@@ -1,0 +1,154 @@
+"""The decoded image (:class:`DecodedImage`): the estimation image, its mask, the metadata that
+says which camera took it, and the full-resolution image on demand; the orientation table
+(:data:`FLIP_OPS`) and the saturation rule. The scale of both images is in :mod:`service.decode`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+#: A CFA sample at or above this fraction of ``white - black`` (above its
+#: channel's black) marks its 2x2 cell as saturated.
+SATURATION_FRACTION = 0.98
+
+#: File extensions that promise a RAW or TIFF; an unreadable file so named is
+#: reported as corrupt (422) rather than as an unknown format (415).
+RAW_EXTENSIONS = frozenset({
+    ".dng", ".nef", ".nrw", ".cr2", ".cr3", ".crw", ".arw", ".srf", ".sr2", ".raf", ".orf",
+    ".rw2", ".rwl", ".pef", ".srw", ".x3f", ".3fr", ".fff", ".iiq", ".mos", ".mef", ".mrw",
+    ".erf", ".kdc", ".dcr", ".raw", ".gpr", ".tif", ".tiff",
+})
+
+#: Orientation LibRaw applies for each ``sizes.flip`` code (EXIF Orientation
+#: 1..8 -> flip 0, 1, 3, 2, 4, 6, 7, 5), as numpy operations on (H, W, ...)
+#: arrays; measured against LibRaw's own output in ``tests/test_rawio.py``.
+FLIP_OPS = {
+    0: lambda a: a,
+    1: lambda a: a[:, ::-1],
+    2: lambda a: a[::-1],
+    3: lambda a: a[::-1, ::-1],
+    4: lambda a: np.swapaxes(a, 0, 1),
+    5: lambda a: np.rot90(a, 1),
+    6: lambda a: np.rot90(a, 3),
+    7: lambda a: np.swapaxes(a[::-1, ::-1], 0, 1),
+}
+
+# ---------------------------------------------------------------------------
+# The decoded image
+# ---------------------------------------------------------------------------
+
+@dataclass
+class DecodedImage:
+    """An upload decoded to linear camera RGB, with its camera metadata.
+
+    Attributes
+    ----------
+    kind : {"raw", "tiff", "png"}
+    estimation : (h, w, 3) float32
+        Linear camera RGB, black subtracted, 1.0 = saturation. RAW: half size,
+        each 2x2 CFA cell binned (red, mean of the greens, blue), no
+        demosaic; may dip slightly below 0 in the dark (noise around black is
+        kept, not clipped). TIFF/PNG: the image itself, full size.
+    saturated : (h, w) bool
+        RAW: a CFA sample of the cell at or above
+        :data:`SATURATION_FRACTION` of its channel's range; 16-bit TIFF/PNG:
+        a channel at 65535; float TIFF: a channel at or above 1.0.
+    full_shape : (H, W)
+        Shape of :meth:`full_linear` (the file's orientation applied, as it
+        is to ``estimation``).
+    make, model : str or None
+        TIFF tags 271/272 (RAWs with a TIFF structure: DNG, NEF, CR2, ARW...).
+    color_matrix : (3, 3) float64 or None
+        XYZ -> camera: the DNG's ColorMatrix (the D65-calibrated one when
+        the file has two), else LibRaw's built-in matrix for the camera.
+    as_shot_neutral : (3,) float64 or None
+        Camera RGB of the as-shot white, green = 1 (``1 / camera_whitebalance``).
+    black_level, white_level : float or None
+        Mean of the per-channel black levels, and the white level, in
+        digital numbers (0 and 65535, or 0 and 1.0, for TIFF/PNG).
+    warnings : list of str
+        Things the user should know about the decode.
+    """
+
+    kind: str
+    estimation: np.ndarray
+    saturated: np.ndarray
+    full_shape: tuple
+    make: str | None = None
+    model: str | None = None
+    color_matrix: np.ndarray | None = None
+    as_shot_neutral: np.ndarray | None = None
+    black_level: float | None = None
+    white_level: float | None = None
+    warnings: list = field(default_factory=list)
+    #: RAW: the file's bytes, to demosaic again on demand (never the pixels).
+    _source: bytes | None = field(default=None, repr=False, compare=False)
+    #: RAW: LibRaw postprocessing parameters giving the estimation scale.
+    _postprocess: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def binning(self) -> float:
+        """Full-resolution pixels per estimation pixel along a side (2 for
+        a Bayer RAW, 1 for TIFF/PNG)."""
+        return self.full_shape[0] / max(1, self.estimation.shape[0])
+
+    def full_linear(self, out: str = "uint16", *, demosaic: str | None = None) -> np.ndarray:
+        """The full-resolution linear camera RGB image on the estimation scale.
+
+        RAW: demosaiced by LibRaw from the file's bytes (the handle is closed
+        before returning, so only the result stays in memory) with a linear
+        curve, no auto-brightening, no white balance or colour conversion
+        (``output_color=raw``), the file's orientation, the data maximum not
+        adjusted and per-channel gains such that ``value / 65535`` equals
+        the estimation image's :math:`(d - b_c)/(w - b_c)` (clipped to
+        [0, 65535] by LibRaw). TIFF/PNG: the input, scaled the same way.
+
+        Parameters
+        ----------
+        out : {"uint16", "float32"}
+            ``uint16``: 65535 = saturation. ``float32``: 1.0 = saturation
+            (for float TIFF input, values outside [0, 1] are kept).
+        demosaic : str, optional
+            ``"fast"`` (the default: OpenCV's edge-aware interpolation of
+            the Bayer mosaic) or a ``rawpy.DemosaicAlgorithm`` name
+            (``AHD``, ``LINEAR``, ``DCB``, ``PPG``, ``VNG``...). RAW only.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(H, W, 3)`` of ``full_shape``; a new array on every call.
+
+        Raises
+        ------
+        ServiceError
+            422 ``corrupt_file`` if LibRaw fails on the pixels.
+        """
+        if out not in ("uint16", "float32"):
+            raise ValueError(f"out must be 'uint16' or 'float32', not {out!r}")
+        if self.kind == "raw":
+            from .raw import _raw_full_linear   # here: the RAW decoder imports this module
+
+            rgb = _raw_full_linear(self, demosaic)
+            if out == "uint16":
+                return rgb
+            return _uint16_to_unit_float(rgb)
+        est = self.estimation
+        if out == "float32":
+            return est.copy()
+        res = np.empty(est.shape, np.uint16)
+        for r in range(0, est.shape[0], 256):
+            chunk = est[r:r + 256] * np.float32(65535.0)
+            np.clip(chunk, 0.0, 65535.0, out=chunk)
+            res[r:r + 256] = np.rint(chunk)
+        return res
+
+
+def _uint16_to_unit_float(rgb: np.ndarray) -> np.ndarray:
+    res = np.empty(rgb.shape, np.float32)
+    inv = np.float32(1.0 / 65535.0)
+    for r in range(0, rgb.shape[0], 256):
+        np.multiply(rgb[r:r + 256], inv, out=res[r:r + 256], dtype=np.float32)
+    return res

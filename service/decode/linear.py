@@ -1,0 +1,215 @@
+"""Linear 16-bit TIFF and PNG uploads (camera RGB with black level 0): TIFFs decoded by C
+decoders only (:data:`LINEAR_TIFF_COMPRESSIONS`), PNG chunks read for their bit depth and
+colour type, 8-bit (gamma-encoded) images refused.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+
+import numpy as np
+
+from ..errors import ServiceError
+from .image import DecodedImage
+from .tags import _ascii_tag, _tag
+
+
+_LINEAR_NOTE = ("linear camera RGB assumed (black level 0, no camera metadata); gamma-encoded images "
+                "give wrong estimates")
+_NOT_LINEAR = ("8-bit images are gamma encoded (sRGB-like) and have lost the linear sensor data the "
+               "analysis needs; send the camera RAW, or a linear 16-bit or float image")
+
+
+#: Compressions of a linear TIFF decoded, each by a C decoder (zlib, or
+#: imagecodecs for LZW and PackBits) straight into the image buffer: the
+#: peak memory of a decode is the image plus one strip or tile, whatever
+#: the file's size (tifffile's pure-Python PackBits decoder built a list of
+#: ints per strip: 3 GB for a 5.6 MB file). Anything else is a 415.
+LINEAR_TIFF_COMPRESSIONS = {1: "none", 5: "LZW", 8: "deflate", 32946: "deflate", 32773: "PackBits"}
+#: Of those, the ones tifffile decodes in pure Python without imagecodecs.
+_NEEDS_IMAGECODECS = (5, 32773)
+
+
+def _check_linear_compression(page, label: str) -> None:
+    """415 for a compression outside :data:`LINEAR_TIFF_COMPRESSIONS` (or
+    one that would be decoded in pure Python, if imagecodecs is missing)."""
+    comp = int(getattr(page, "compression", 1) or 1)
+    accepted = ", ".join(sorted(set(LINEAR_TIFF_COMPRESSIONS.values())))
+    ok = comp in LINEAR_TIFF_COMPRESSIONS
+    if ok and comp in _NEEDS_IMAGECODECS:
+        try:
+            import imagecodecs  # noqa: F401
+        except ImportError:
+            ok = False
+    if not ok:
+        raise ServiceError(415, "unsupported_format",
+                          f"{label}: TIFF compression {LINEAR_TIFF_COMPRESSIONS.get(comp, comp)!r} is not "
+                          f"supported for linear images; send it uncompressed, or {accepted} compressed")
+
+
+def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedImage:
+    import tifffile
+
+    label = f"{filename!r}" if filename else "the upload"
+    try:
+        tf = tifffile.TiffFile(io.BytesIO(data))
+    except Exception as exc:
+        raise ServiceError(422, "corrupt_file",
+                          f"{label} has a TIFF header but its structure cannot be read "
+                          f"({type(exc).__name__}: {exc})") from None
+    with tf:
+        if not tf.pages:
+            raise ServiceError(422, "corrupt_file", f"{label} is a TIFF without images")
+        page = tf.pages[0]
+        photometric = int(getattr(page, "photometric", 0) or 0)
+        if _tag(page, 50706) is not None or photometric in (32803, 34892):
+            shape = tuple(page.shape[:2])
+            sane = len(shape) == 2 and all(isinstance(v, (int, np.integer)) and v > 0 for v in shape)
+            if sane and int(shape[0]) * int(shape[1]) > max_pixels:
+                # LibRaw refuses such headers outright; say why in the limit's terms
+                raise ServiceError(413, "too_many_pixels",
+                                  f"{label} declares {shape[1]}x{shape[0]} = {int(shape[0]) * int(shape[1]):,} "
+                                  f"pixels; the limit is {max_pixels:,}")
+            if sane and min(shape) < 22:
+                raise ServiceError(415, "unsupported_format",
+                                  f"{label} is a DNG/CFA image of {shape[1]}x{shape[0]} pixels; LibRaw "
+                                  "refuses images under 22 pixels on a side")
+            raise ServiceError(422, "corrupt_file",
+                              f"{label} is a DNG (or CFA TIFF) that LibRaw cannot decode: damaged, or a "
+                              "variant LibRaw does not support")
+        axes = page.axes
+        shape = page.shape
+        dtype = np.dtype(page.dtype) if page.dtype is not None else None
+        if "Y" not in axes or "X" not in axes or not all(int(v) > 0 for v in shape):
+            raise ServiceError(422, "corrupt_file", f"{label}: TIFF without a readable image (shape {shape}, "
+                              f"axes {axes!r})")
+        h, w = shape[axes.index("Y")], shape[axes.index("X")]
+        channels = shape[axes.index("S")] if "S" in axes else 1
+        if dtype is None:
+            raise ServiceError(415, "unsupported_format", f"{label}: TIFF sample format not supported")
+        if dtype == np.uint8 or (dtype.kind == "u" and int(getattr(page, "bitspersample", 16)) <= 8):
+            raise ServiceError(415, "not_linear", f"{label} is an 8-bit TIFF: {_NOT_LINEAR}")
+        if not (dtype == np.uint16 or dtype.kind == "f"):
+            raise ServiceError(415, "unsupported_format",
+                              f"{label}: TIFF samples are {dtype}; need 16-bit unsigned integers or float32")
+        if channels not in (3, 4) or axes.replace("S", "") != "YX":
+            raise ServiceError(415, "unsupported_format",
+                              f"{label}: TIFF with {channels} channel(s) (axes {axes!r}); need an H x W x 3 "
+                              "linear RGB image")
+        if h * w > max_pixels:
+            raise ServiceError(413, "too_many_pixels",
+                              f"{label} declares {w}x{h} = {h * w:,} pixels; the limit is {max_pixels:,}")
+        size = len(data)
+        for off, cnt in zip(page.dataoffsets or (), page.databytecounts or ()):
+            if off + cnt > size:
+                raise ServiceError(422, "corrupt_file",
+                                  f"{label}: image data at bytes {off}..{off + cnt} lies beyond the end of the "
+                                  f"{size}-byte file (truncated?)")
+        _check_linear_compression(page, label)
+        make, model = _ascii_tag(page, 271), _ascii_tag(page, 272)
+        try:
+            arr = page.asarray()
+        except ValueError as exc:
+            if "imagecodecs" in str(exc):
+                raise ServiceError(415, "unsupported_format",
+                                  f"{label}: TIFF compression {page.compression!r} is not supported; send it "
+                                  "uncompressed, or deflate/LZW compressed") from None
+            raise
+    if "S" in axes and axes.index("S") == 0:
+        arr = np.moveaxis(arr, 0, -1)
+    warnings = [_LINEAR_NOTE]
+    if channels == 4:
+        arr = arr[..., :3]
+        warnings.append("fourth (alpha) channel ignored")
+    return _linear_image("tiff", arr, warnings, make, model)
+
+
+def _png_chunks(data: bytes):
+    """``(type, offset of data, length)`` of every chunk, checking lengths
+    and CRCs; raises ``ServiceError(422)`` on damage."""
+    pos, n = 8, len(data)
+    seen_end = False
+    while pos < n:
+        if pos + 12 > n:
+            raise ServiceError(422, "corrupt_file", "PNG truncated inside a chunk header")
+        length, ctype = struct.unpack(">I4s", data[pos:pos + 8])
+        end = pos + 12 + length
+        if end > n:
+            raise ServiceError(422, "corrupt_file",
+                              f"PNG truncated: chunk {ctype!r} needs {length} bytes, the file ends first")
+        crc = struct.unpack(">I", data[end - 4:end])[0]
+        if zlib.crc32(data[pos + 4:end - 4]) & 0xFFFFFFFF != crc:
+            raise ServiceError(422, "corrupt_file", f"PNG chunk {ctype!r} at byte {pos} fails its CRC (damaged)")
+        yield ctype, pos + 8, length
+        pos = end
+        if ctype == b"IEND":
+            seen_end = True
+            break
+    if not seen_end:
+        raise ServiceError(422, "corrupt_file", "PNG truncated: no IEND chunk")
+
+
+def _decode_png(data: bytes, max_pixels: int) -> DecodedImage:
+    import cv2
+
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise ServiceError(422, "corrupt_file", "PNG without a valid IHDR header")
+    width, height, depth, ctype = struct.unpack(">IIBB", data[16:26])
+    kinds = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
+    if ctype == 3 or depth <= 8:
+        raise ServiceError(415, "not_linear", f"the PNG is {depth}-bit {kinds.get(ctype, '?')}: {_NOT_LINEAR}")
+    if ctype not in (2, 6):
+        raise ServiceError(415, "unsupported_format",
+                          f"the PNG is {kinds.get(ctype, f'colour type {ctype}')}; need 16-bit RGB")
+    if width * height > max_pixels:
+        raise ServiceError(413, "too_many_pixels",
+                          f"the PNG declares {width}x{height} = {width * height:,} pixels; the limit is "
+                          f"{max_pixels:,}")
+    warnings = [_LINEAR_NOTE]
+    for ctype_, off, length in _png_chunks(data):
+        if ctype_ == b"sRGB" or ctype_ == b"iCCP":
+            warnings.append(f"the PNG carries an {ctype_.decode()} chunk (colour-managed, probably "
+                            "gamma-encoded); it is treated as linear camera RGB")
+        elif ctype_ == b"gAMA" and length == 4:
+            gamma = struct.unpack(">I", data[off:off + 4])[0] / 100000.0
+            if abs(gamma - 1.0) > 0.01:
+                warnings.append(f"the PNG declares gamma {gamma:.4g} (encoded, not linear); it is treated "
+                                "as linear camera RGB")
+    arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise ServiceError(422, "corrupt_file", "OpenCV could not decode the PNG (damaged data)")
+    if arr.dtype != np.uint16 or arr.ndim != 3 or arr.shape[2] not in (3, 4):
+        raise ServiceError(415, "unsupported_format",
+                          f"the PNG decoded to {arr.dtype} {arr.shape}; need 16-bit RGB")
+    if arr.shape[2] == 4:
+        warnings.append("fourth (alpha) channel ignored")
+    rgb = arr[..., 2::-1]          # BGR(A) -> RGB
+    return _linear_image("png", rgb, warnings, None, None)
+
+
+def _linear_image(kind: str, arr: np.ndarray, warnings: list, make, model) -> DecodedImage:
+    h, w = arr.shape[:2]
+    est = np.empty((h, w, 3), np.float32)
+    sat = np.empty((h, w), bool)
+    if arr.dtype == np.uint16:
+        white = 65535.0
+        inv = np.float32(1.0 / 65535.0)
+        for r in range(0, h, 256):
+            np.multiply(arr[r:r + 256], inv, out=est[r:r + 256], dtype=np.float32)
+            sat[r:r + 256] = (arr[r:r + 256] == 65535).any(axis=-1)
+    else:
+        white = 1.0
+        for r in range(0, h, 256):
+            est[r:r + 256] = arr[r:r + 256]
+        if not np.all(np.isfinite(est)):
+            bad = int((~np.isfinite(est)).any(axis=-1).sum())
+            raise ServiceError(422, "non_finite", f"the float image has {bad} pixel(s) with NaN or Inf")
+        np.greater_equal(est, 1.0).any(axis=-1, out=sat)
+    frac = float(sat.mean()) if sat.size else 0.0
+    if frac > 0.01:
+        warnings.append(f"{100 * frac:.1f} % of the image is saturated (those pixels are flagged)")
+    return DecodedImage(kind=kind, estimation=est, saturated=sat, full_shape=(int(h), int(w)), make=make,
+                        model=model, color_matrix=None, as_shot_neutral=None, black_level=0.0,
+                        white_level=white, warnings=warnings)

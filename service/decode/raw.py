@@ -1,0 +1,343 @@
+"""Camera RAWs through LibRaw (rawpy): the pixel limit from ``raw.sizes`` before any pixel is
+unpacked, black and white levels, the estimation image by binning each 2x2 CFA cell (no
+demosaic), and the full-resolution demosaic (OpenCV's edge-aware Bayer interpolation, or a
+LibRaw algorithm) on the same scale.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+
+import numpy as np
+
+from ..errors import ServiceError
+from .formats import camera_label
+from .image import DecodedImage, FLIP_OPS, SATURATION_FRACTION, _uint16_to_unit_float
+
+
+def _librawmsg(exc) -> str:
+    msg = exc.args[0] if exc.args else ""
+    return msg.decode("utf-8", "replace") if isinstance(msg, bytes) else str(msg)
+
+
+def _oriented_shape(h: int, w: int, flip: int, pixel_aspect: float = 1.0) -> tuple[int, int]:
+    if pixel_aspect and abs(pixel_aspect - 1.0) > 1e-6:
+        # LibRaw's stretch(): non-square pixels are resampled to square ones
+        if pixel_aspect < 1:
+            h = int(h / pixel_aspect + 0.5)
+        else:
+            w = int(w * pixel_aspect + 0.5)
+    return (w, h) if flip & 4 else (h, w)
+
+
+def _bayer_channels(raw, sizes) -> list[tuple[int, int, int, int]] | None:
+    """``[(dy, dx, colour index, channel 0/1/2), ...]`` for the four sites of
+    the 2x2 cell at the visible origin, or ``None`` if the sensor is not a
+    2x2 R, G, G, B Bayer."""
+    pattern = raw.raw_pattern
+    if pattern is None or pattern.shape != (2, 2):
+        return None
+    desc = raw.color_desc.decode("latin-1")
+    sites = []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            idx = int(pattern[(dy + sizes.top_margin) % 2, (dx + sizes.left_margin) % 2])
+            if idx >= len(desc) or desc[idx] not in "RGB":
+                return None
+            sites.append((dy, dx, idx, "RGB".index(desc[idx])))
+    if sorted(s[3] for s in sites) != [0, 1, 1, 2]:
+        return None
+    return sites
+
+
+def _bin_bayer(img: np.ndarray, sites, blacks, white: float, rows_per_chunk: int | None = None):
+    """Bin 2x2 CFA cells: ``(d - b_c) / (w - b_c)`` per site, greens
+    averaged, and the cell's saturation flag, in row chunks (temporaries
+    stay small whatever the image size)."""
+    H, W = img.shape
+    h2, w2 = H // 2, W // 2
+    est = np.empty((h2, w2, 3), np.float32)
+    sat = np.zeros((h2, w2), bool)
+    rows = rows_per_chunk or max(1, (1 << 19) // max(1, w2))
+    plan = []
+    for dy, dx, idx, ch in sites:
+        b = float(blacks[idx])
+        scale = np.float32(1.0 / (white - b))
+        thr = math.ceil(b + SATURATION_FRACTION * (white - b))
+        plan.append((img[dy:2 * h2:2, dx:2 * w2:2], ch, np.float32(b), scale, thr))
+    for r0 in range(0, h2, rows):
+        r1 = min(h2, r0 + rows)
+        green = None
+        for view, ch, b, scale, thr in plan:
+            v = view[r0:r1]
+            sat[r0:r1] |= v >= thr
+            a = v.astype(np.float32)
+            a -= b
+            a *= scale
+            if ch == 1:
+                if green is None:
+                    green = a
+                else:
+                    green += a
+                    green *= np.float32(0.5)
+            else:
+                est[r0:r1, :, ch] = a
+        est[r0:r1, :, 1] = green
+    return est, sat
+
+
+def _bin_bayer_area(img: np.ndarray, sites, blacks, white: float, f: int):
+    """Bin ``2f x 2f`` CFA blocks: each CFA plane averaged over ``f x f``
+    sites (OpenCV ``INTER_AREA``, the exact block mean for an integer
+    factor, rounded to whole digital numbers), then ``(d - b_c)/(w - b_c)``,
+    greens averaged; a block is saturated if any of its sites is."""
+    import cv2
+
+    H, W = img.shape
+    hh, ww = (H // 2) // f, (W // 2) // f
+    est = np.zeros((hh, ww, 3), np.float32)
+    sat = np.zeros((hh, ww), bool)
+    for dy, dx, idx, ch in sites:
+        b = float(blacks[idx])
+        plane = np.ascontiguousarray(img[dy:2 * hh * f:2, dx:2 * ww * f:2])
+        mean = cv2.resize(plane, (ww, hh), interpolation=cv2.INTER_AREA).astype(np.float32)
+        thr = math.ceil(b + SATURATION_FRACTION * (white - b))
+        hit = cv2.resize(cv2.compare(plane, min(thr, 65535), cv2.CMP_GE), (ww, hh), interpolation=cv2.INTER_AREA)
+        sat |= hit > 0
+        mean -= np.float32(b)
+        mean *= np.float32(1.0 / (white - b))
+        est[..., ch] += mean * np.float32(0.5 if ch == 1 else 1.0)
+    return est, sat
+
+
+def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: int,
+                info: _TiffInfo | None = None, info_error: Exception | None = None,
+                estimation_pixels: int | None = None) -> DecodedImage:
+    import rawpy
+
+    label = f"{filename!r}" if filename else "the upload"
+    warnings: list[str] = []
+    s = raw.sizes                         # header only: no pixel buffer yet
+    declared = max(int(s.raw_height) * int(s.raw_width), int(s.height) * int(s.width))
+    if declared > max_pixels:
+        raise ServiceError(413, "too_many_pixels",
+                          f"{label} declares {s.width}x{s.height} pixels ({declared:,} with margins); "
+                          f"the limit is {max_pixels:,}")
+    if s.height < 2 or s.width < 2:
+        raise ServiceError(422, "corrupt_file", f"{label} declares an image of {s.width}x{s.height} pixels")
+    aspect = float(s.pixel_aspect)
+    if not (math.isfinite(aspect) and aspect > 0):
+        raise ServiceError(422, "corrupt_file", f"{label} declares a pixel aspect ratio of {aspect}")
+    # LibRaw stretches non-square pixels (DNG DefaultScale) to square ones when
+    # demosaicking: the image it makes, not the declared one, must fit the limit
+    out_h, out_w = _oriented_shape(int(s.height), int(s.width), 0, aspect)
+    if out_h * out_w > max_pixels:
+        raise ServiceError(413, "too_many_pixels",
+                          f"{label} declares {s.width}x{s.height} pixels with a pixel aspect ratio of {aspect:.4g} "
+                          f"(DNG DefaultScale): {out_w}x{out_h} = {out_h * out_w:,} pixels once stretched to "
+                          f"square pixels; the limit is {max_pixels:,}")
+
+    make = model = color_matrix = None
+    if fmt in ("TIFF", "BigTIFF"):
+        if info is None:
+            warnings.append(f"TIFF tags unreadable ({type(info_error).__name__}); camera make/model unknown")
+        else:
+            if info.problem:
+                raise ServiceError(422, "corrupt_file", f"{label}: {info.problem}")
+            make, model, color_matrix = info.make, info.model, info.color_matrix
+            if info.grey_guess:
+                warnings.append("a single-channel TIFF without camera tags, read by LibRaw as an RGGB Bayer mosaic "
+                                "(as dcraw -D writes); if it is a monochrome picture the colours are meaningless")
+    else:
+        warnings.append(f"{fmt} file: camera make/model are not read for this format; "
+                        "give camera=... to use measured sensitivities")
+
+    # -- pixels (unpacks; LibRawIOError etc. on truncated data)
+    num_colors = int(raw.num_colors)
+    if num_colors < 3:
+        raise ServiceError(415, "unsupported_format",
+                          f"{label} is a monochrome RAW ({num_colors} colour); colour analysis needs R, G, B")
+    blacks = [float(b) for b in raw.black_level_per_channel]
+    white = float(raw.white_level)
+    if raw.raw_type != rawpy.RawType.Flat and white <= 255 and raw.raw_pattern is None:
+        # e.g. a Nikon Coolscan NEF: 8-bit RGB per pixel, no sensor mosaic, no colour matrix
+        who = camera_label(make, model)
+        raise ServiceError(415, "not_camera_raw",
+                          f"{label} is not a camera RAW: a scanned 8-bit RGB image"
+                          + (f" ({who})" if who else "") + "; it carries no linear sensor data to analyse")
+    if not white > max(blacks):
+        raise ServiceError(422, "corrupt_file",
+                          f"{label}: white level {white:g} is not above the black levels {blacks}")
+    flip = int(s.flip) if int(s.flip) in FLIP_OPS else 0
+    bmin = min(blacks)
+    user_wb = [(white - bmin) / (white - b) for b in blacks]
+    post = dict(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=False, use_auto_wb=False,
+                user_wb=user_wb, output_color=rawpy.ColorSpace.raw, adjust_maximum_thr=0.0, bright=1.0,
+                highlight_mode=rawpy.HighlightMode.Clip, user_flip=flip)
+
+    sites = _bayer_channels(raw, s)
+    if sites is not None:
+        if raw.raw_type != rawpy.RawType.Flat:
+            sites = None
+    if sites is not None:
+        img = raw.raw_image_visible
+        h2, w2 = img.shape[0] // 2, img.shape[1] // 2
+        f = 1
+        if estimation_pixels and h2 * w2 > estimation_pixels:
+            f = int(math.ceil(math.sqrt(h2 * w2 / estimation_pixels)))
+        if f > 1 and h2 // f >= 1 and w2 // f >= 1:
+            est, sat = _bin_bayer_area(img, sites, blacks, white, f)
+        else:
+            est, sat = _bin_bayer(img, sites, blacks, white)
+        del img
+        if s.height % 2 or s.width % 2:
+            warnings.append("odd image size: the last row/column is not in the half-size estimation image")
+        if flip:
+            est = np.ascontiguousarray(FLIP_OPS[flip](est))
+            sat = np.ascontiguousarray(FLIP_OPS[flip](sat))
+    else:
+        desc = raw.color_desc.decode("latin-1")[:num_colors]
+        if sorted(desc[:3]) != ["B", "G", "R"]:
+            raise ServiceError(415, "unsupported_format",
+                              f"{label}: a sensor with colours {desc!r} is not supported (needs R, G, B)")
+        # X-Trans, linear (demosaiced) DNG, Foveon...: LibRaw's half-size output
+        rgb = raw.postprocess(half_size=True, **post)
+        est = _uint16_to_unit_float(rgb[..., :3])
+        sat = (rgb[..., :3] >= math.ceil(SATURATION_FRACTION * 65535)).any(axis=-1)
+        del rgb
+        kind = "demosaiced (linear) DNG" if raw.raw_type != rawpy.RawType.Flat else "not a 2x2 Bayer sensor"
+        warnings.append(f"{kind}: the estimation image is LibRaw's own half-size output (full size for "
+                        "demosaiced data), clipped at 0, saturation judged after interpolation")
+
+    if color_matrix is None:
+        m = np.asarray(raw.rgb_xyz_matrix, dtype=np.float64)[:3]
+        if m.shape == (3, 3) and np.all(np.isfinite(m)) and np.any(m):
+            color_matrix = m
+    neutral = None
+    wb = np.asarray(raw.camera_whitebalance, dtype=np.float64)[:3]
+    if np.all(np.isfinite(wb)) and np.all(wb > 0):
+        neutral = (1.0 / wb) / (1.0 / wb[1])
+    full_shape = _oriented_shape(int(s.height), int(s.width), flip, float(s.pixel_aspect))
+    if abs(float(s.pixel_aspect) - 1.0) > 1e-6:
+        warnings.append(f"non-square pixels (aspect {float(s.pixel_aspect):.4g}): the full-resolution image "
+                        "is resampled by LibRaw, the estimation image is not")
+    frac = float(sat.mean()) if sat.size else 0.0
+    if frac > 0.01:
+        warnings.append(f"{100 * frac:.1f} % of the image is saturated (those cells are flagged)")
+    return DecodedImage(
+        kind="raw", estimation=est, saturated=sat, full_shape=full_shape, make=make, model=model,
+        color_matrix=None if color_matrix is None else np.array(color_matrix, dtype=np.float64),
+        as_shot_neutral=neutral, black_level=float(np.mean(blacks)), white_level=white,
+        warnings=warnings, _source=data, _postprocess=post,
+    )
+
+
+#: OpenCV conversion codes for each 2x2 Bayer cell (measured: a constant
+#: colour mosaicked with each pattern comes back unchanged).
+_OPENCV_BAYER = {"RGGB": "COLOR_BayerBG2RGB_EA", "BGGR": "COLOR_BayerRG2RGB_EA",
+                 "GRBG": "COLOR_BayerGB2RGB_EA", "GBRG": "COLOR_BayerGR2RGB_EA"}
+
+#: Demosaicking choices: ``fast`` (OpenCV's edge-aware bilinear on the
+#: black-subtracted mosaic) or a LibRaw algorithm name.
+DEMOSAIC_DEFAULT = "fast"
+
+
+def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
+    """Full-resolution linear RGB by OpenCV's edge-aware Bayer interpolation.
+
+    Each CFA site is scaled ``(d - b_c) / (w - b_c) * 65535`` (the
+    estimation image's scale) into one uint16 mosaic, then demosaicked and
+    oriented like LibRaw's output. ``None`` when the sensor is not a plain
+    2x2 Bayer with square pixels (then LibRaw demosaics)."""
+    import cv2
+    import rawpy
+
+    try:
+        with rawpy.imread(io.BytesIO(img._source)) as raw:
+            s = raw.sizes
+            sites = _bayer_channels(raw, s)
+            if sites is None or raw.raw_type != rawpy.RawType.Flat or abs(float(s.pixel_aspect) - 1) > 1e-6:
+                return None
+            flip = int(s.flip) if int(s.flip) in FLIP_OPS else 0
+            blacks = [float(b) for b in raw.black_level_per_channel]
+            white = float(raw.white_level)
+            cfa = raw.raw_image_visible
+            H, W = cfa.shape
+            mos = np.empty((H, W), np.uint16)
+            letters = [""] * 4
+            rows = max(1, (1 << 18) // max(1, W))       # 1 MB of float32 per chunk and thread
+            tasks = []
+            for dy, dx, idx, ch in sites:
+                letters[dy * 2 + dx] = "RGB"[ch]
+                b = np.float32(blacks[idx])
+                k = np.float32(65535.0 / (white - blacks[idx]))
+                src, dst = cfa[dy::2, dx::2], mos[dy::2, dx::2]
+                tasks += [(src, dst, b, k, r) for r in range(0, src.shape[0], rows)]
+
+            def scale(task):
+                src, dst, b, k, r = task
+                a = src[r:r + rows].astype(np.float32)
+                a -= b
+                a *= k
+                np.clip(a, 0, 65535, out=a)
+                a += np.float32(0.5)
+                dst[r:r + rows] = a
+
+            # numpy releases the GIL on these arrays: the row chunks run on every core
+            n_threads = min(4, os.cpu_count() or 1, max(1, cv2.getNumThreads()))   # 1 in a pool worker
+            if n_threads > 1 and len(tasks) > 1:
+                from concurrent.futures import ThreadPoolExecutor
+
+                with ThreadPoolExecutor(n_threads) as pool:
+                    list(pool.map(scale, tasks))
+            else:
+                for t in tasks:
+                    scale(t)
+            del cfa
+    except rawpy.LibRawError as exc:
+        raise ServiceError(422, "corrupt_file",
+                          f"LibRaw failed to read the pixels ({type(exc).__name__}: {_librawmsg(exc)})") from None
+    code = _OPENCV_BAYER.get("".join(letters))
+    if code is None:
+        return None
+    rgb = cv2.cvtColor(mos, getattr(cv2, code))
+    del mos
+    if flip:
+        rgb = np.ascontiguousarray(FLIP_OPS[flip](rgb))
+    return rgb
+
+
+def _raw_full_linear(img: DecodedImage, demosaic: str | None) -> np.ndarray:
+    import rawpy
+
+    demosaic = demosaic or DEMOSAIC_DEFAULT
+    if str(demosaic).lower() == "fast":
+        rgb = _opencv_full_linear(img)
+        if rgb is not None:
+            return rgb
+        demosaic = "AHD"
+        img.warnings.append("not a plain Bayer sensor: demosaicked by LibRaw (AHD) instead of the fast path")
+    params = dict(img._postprocess)
+    if demosaic is not None:
+        try:
+            params["demosaic_algorithm"] = rawpy.DemosaicAlgorithm[str(demosaic).upper()]
+        except KeyError:
+            names = [a.name for a in rawpy.DemosaicAlgorithm]
+            raise ValueError(f"unknown demosaic algorithm {demosaic!r}; accepted: {names}") from None
+    try:
+        with rawpy.imread(io.BytesIO(img._source)) as raw:
+            rgb = raw.postprocess(**params)
+    except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError, MemoryError) as exc:
+        raise ServiceError(413, "too_many_pixels", f"not enough memory to demosaic the image ({exc})") from None
+    except rawpy.LibRawError as exc:
+        raise ServiceError(422, "corrupt_file",
+                          f"LibRaw failed to demosaic the file ({type(exc).__name__}: {_librawmsg(exc)})") from None
+    if rgb.shape[2] != 3:
+        rgb = np.ascontiguousarray(rgb[..., :3])
+    if tuple(rgb.shape[:2]) != tuple(img.full_shape):
+        img.warnings.append(f"LibRaw's full-resolution image is {rgb.shape[1]}x{rgb.shape[0]}, not the declared "
+                            f"{img.full_shape[1]}x{img.full_shape[0]}")
+        img.full_shape = tuple(int(v) for v in rgb.shape[:2])
+    return rgb

@@ -1,0 +1,56 @@
+"""REST form fields from the option models (:mod:`service.schemas.options`).
+
+:func:`form` makes a FastAPI dependency whose parameters are one
+``Form(...)`` per model field (name, wire type, default, description,
+examples, accepted values) and whose value is the validated model. It is a
+generated signature rather than ``Annotated[Model, Form()]`` because an
+endpoint takes several models beside its uploads, narrows some choices
+(``/v1/preview``'s 8-bit formats) and keeps the field types its clients
+send (``exposure`` is text, ``region_size`` an integer), and because the
+checks must answer with the service's ``{"error", "detail"}`` 422 before the
+upload is read. The accepted values go to the OpenAPI document as
+``x-choices``; :func:`service.openapi_docs.enrich` turns them into the
+field's ``enum`` on the right branch and moves examples into descriptions.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+from fastapi import Form
+
+from .options import option_fields
+
+__all__ = ["form"]
+
+
+def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix: str = "", fixed=None,
+         describe=None, lazy=()):
+    """A dependency answering a validated ``model`` from the request's form.
+
+    ``include``/``exclude``: which fields are form fields (the others keep
+    their model default, or ``fixed[name]``); ``choices``: narrower accepted
+    values per field (enumerated and checked); ``defaults``: another default
+    on this endpoint; ``prefix``: put before every description (``corrected
+    only: ``); ``describe``: another description per field (no prefix); ``lazy``: fields
+    whose check the endpoint runs itself when it matters (:meth:`~service.schemas.options.OptionModel.check`)."""
+    choices, defaults, fixed, describe = choices or {}, defaults or {}, fixed or {}, describe or {}
+    params = []
+    for name, opt in option_fields(model).items():
+        if (include is not None and name not in include) or name in exclude or name in fixed:
+            continue
+        default = defaults.get(name, opt.given_default)
+        accepted = choices.get(name, opt.choices)
+        extra = {"x-choices": list(accepted)} if accepted else None
+        params.append(inspect.Parameter(
+            name, inspect.Parameter.KEYWORD_ONLY, annotation=opt.wire_type,
+            default=Form(default, description=describe[name] if name in describe else prefix + opt.description,
+                         examples=list(opt.examples) or None, json_schema_extra=extra)))
+
+    async def dependency(**values):
+        given = {k: v for k, v in {**values, **fixed}.items() if v is not None}
+        return model.model_validate(given, context={"choices": choices, "lazy": tuple(lazy)})
+
+    dependency.__signature__ = inspect.Signature(params)
+    dependency.__name__ = f"{model.__name__}_form"
+    return dependency
