@@ -1,0 +1,181 @@
+"""The per-pixel correction of the white-balance pipeline: one 3x3 matrix per
+pixel (Wandell 1985, Fig. 6: for a fixed light, camera RGB to display RGB is
+one matrix), the highlight blend and shoulder (:mod:`recovery.highlights`),
+the tone curve and the display encoding as one lookup table, fused in chunks
+on a thread pool (OpenCV releases the GIL).
+
+Moved out of :mod:`service.pipeline` (issue 18: one concept a module); the
+pipeline re-exports these names, and ``_encoding_lut`` keeps its cache key
+``service.pipeline._encoding_lut`` in ``models/data/colour_cache.npz``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recovery.synthesis import display_curve, highlight_white
+
+from models._colour import cached
+
+
+@cached("service.pipeline._encoding_lut")
+def _encoding_lut(encoding: str | None, bits: int, curve: str | None = None) -> np.ndarray:
+    """16-bit linear code -> encoded ``bits``-bit code, through
+    colour-science's ``cctf_encoding`` of the colourspace, after the tone
+    curve ``curve`` (``"libraw"``: :func:`display_curve`) if given."""
+    import colour
+
+    x = np.arange(65536) / 65535.0
+    if curve == "libraw":
+        x = display_curve(x)
+    elif curve is not None:
+        raise ValueError(f"unknown tone curve {curve!r}")
+    y = x if encoding is None else np.asarray(colour.RGB_COLOURSPACES[encoding].cctf_encoding(x), float)
+    top = 65535.0 if bits == 16 else 255.0
+    return np.rint(np.clip(y, 0, 1) * top).astype(np.uint16 if bits == 16 else np.uint8)
+
+
+#: Pixels per chunk of :func:`apply_matrix_inplace`: a chunk's float32
+#: buffers (about 30 bytes a pixel) stay within a core's share of the cache
+#: while the per-chunk Python overhead stays small against the arithmetic.
+CHUNK_PIXELS = 1 << 16
+
+
+def _highlight_code(start: float) -> int:
+    """The largest uint16 code whose ``code / 65535`` (float32, as
+    :func:`recovery.highlights.balance_highlights` computes it) is not above
+    ``start``: pixels whose every channel is at most this code are only
+    white-balanced."""
+    c = np.arange(65536, dtype=np.float32) * np.float32(1.0 / 65535.0)
+    return int(np.count_nonzero(c <= np.float32(start))) - 1
+
+
+def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None, bits: int,
+                         rows_per_chunk: int | None = None, threads: int | None = None,
+                         neutral=None, shoulder: dict | None = None, curve: str | None = None) -> np.ndarray:
+    """Apply ``M`` to a uint16 (H, W, 3) image whose 65535 is saturation and
+    encode it, chunk by chunk on a few threads.
+
+    OpenCV's ``transform`` applies the 3x3 matrix per pixel and saturates
+    to [0, 65535] (Wandell's first gamut option: clip per pixel); a 65536-
+    entry table then applies the transfer function. The 16-bit linear
+    intermediate costs at most 13 codes of a 16-bit sRGB output in the
+    deepest shadows (the sRGB toe has slope 12.92), nothing in 8-bit output.
+    uint16 output reuses the input buffer (memory stays at one image).
+
+    With ``neutral`` (the light's camera RGB) the pixels are first white-
+    balanced with clipped highlights made neutral
+    (:func:`recovery.highlights.balance_highlights`) and ``M diag(neutral)``
+    applied to the result, so a sensor-clipped pixel never renders with a
+    colour cast. With ``shoulder`` (``{"luminance": (3,), "knee": k}``, set
+    when an exposure lifts the sensor's range above display white) the
+    highlights are compressed by :func:`recovery.highlights.highlight_shoulder`
+    instead of clipping flat. ``curve`` (``"libraw"``) is the tone curve
+    applied before the transfer function (:func:`display_curve`).
+
+    One fused pass per chunk of rows (:data:`CHUNK_PIXELS`), in float32
+    buffers reused by each thread: uint16 -> float32, the white balance and
+    ``/ 65535`` as one diagonal ``cv2.transform``, the clip at 1 as one
+    ``cv2.threshold``, the blend to neutral and the shoulder only on the
+    pixels they change (found with ``cv2.inRange`` on the codes and one
+    luminance ``cv2.transform``), the matrix as ``cv2.transform``, clip and
+    rounding to uint16 as one saturating ``cv2.add`` (``cv2.multiply`` by the
+    shoulder's per-pixel factor when it applies), then the table. The
+    result equals the per-step formulas of :mod:`recovery.highlights` up to
+    float32 rounding (a code or two of the 16-bit linear values, before the
+    table; 8-bit sRGB output is unchanged).
+    """
+    import os
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2
+
+    lut = _encoding_lut(encoding, bits, curve)
+    H, W = rgb16.shape[:2]
+    out = rgb16 if bits == 16 else np.empty(rgb16.shape, np.uint8)
+    if rgb16.size == 0:
+        return out
+    if rows_per_chunk is None:
+        rows_per_chunk = max(1, CHUNK_PIXELS // max(W, 1))
+    rows_per_chunk = max(1, min(int(rows_per_chunk), max(H, 1)))
+    Mt = np.asarray(M, np.float32)
+    zero = (0.0, 0.0, 0.0, 0.0)
+    if neutral is not None:
+        from recovery.highlights import HIGHLIGHT_FULL, HIGHLIGHT_START, blend_to_neutral, shoulder_ratio
+
+        n = np.asarray(neutral, float)
+        n = n / n.max()
+        A64 = np.asarray(M, float) @ np.diag(n)
+        A = (A64 * 65535.0).astype(np.float32)
+        inv = np.float32(1.0 / 65535.0)
+        # code -> white-balanced value in one diagonal transform: (code / 65535) / n
+        D = np.diag(1.0 / (65535.0 * n)).astype(np.float32)
+        top = _highlight_code(HIGHLIGHT_START)
+        # the white-balanced colour the matrix sends to display white (1, 1, 1)
+        # for the DNG rendering; near it for the spectral one)
+        wb_white = highlight_white(A64)
+        if shoulder is not None:
+            lum = np.asarray(shoulder["luminance"], np.float32).reshape(1, 3)
+            knee, s_peak = float(shoulder["knee"]), float(shoulder["peak"])
+            s_on = max(s_peak, 1.0 + 1e-6) > 1.0 + 1e-6 and knee < 1.0
+    local = threading.local()
+
+    def buffers(h):
+        b = getattr(local, "b", None)
+        if b is None:
+            shape = (rows_per_chunk, W, 3)
+            b = local.b = {"u": np.empty(shape, np.uint16)}
+            if neutral is not None:
+                b.update(f=np.empty(shape, np.float32), w=np.empty(shape, np.float32),
+                         m=np.empty(shape[:2], np.uint8))
+                if shoulder is not None:
+                    b.update(y=np.empty(shape[:2], np.float32), s=np.empty(shape[:2], np.float32),
+                             s3=np.empty(shape, np.float32))
+        return {k: v[:h] for k, v in b.items()}
+
+    def work(r):
+        chunk = rgb16[r:r + rows_per_chunk]
+        h = chunk.shape[0]
+        b = buffers(h)
+        u = b["u"]
+        if neutral is None:
+            cv2.transform(np.ascontiguousarray(chunk), Mt, dst=u)
+        else:
+            f, w = b["f"], b["w"]
+            np.copyto(f, chunk, casting="unsafe")
+            cv2.transform(f, D, dst=w)                                  # c / n
+            cv2.threshold(w, 1.0, 1.0, cv2.THRESH_TRUNC, dst=w)        # min(., 1)
+            m = cv2.inRange(chunk, zero[:3], (top, top, top), dst=b["m"])   # 255: nothing near clipping
+            if cv2.countNonZero(m) < m.size:
+                idx = np.flatnonzero(m.reshape(-1) == 0)
+                f2 = f.reshape(-1, 3)
+                ch = f2[idx] * inv
+                peak = np.maximum(np.maximum(ch[:, 0], ch[:, 1]), ch[:, 2])
+                blend_to_neutral(w.reshape(-1, 3), idx, peak, HIGHLIGHT_START, HIGHLIGHT_FULL, wb_white)
+            lin = cv2.transform(w, A, dst=f)                            # f is free again
+            over = None
+            if shoulder is not None and s_on:
+                Y = cv2.transform(lin, lum, dst=b["y"]).reshape(-1)
+                over = np.flatnonzero(Y > knee * 65535.0)
+            if over is not None and over.size:
+                # the shoulder as a per-pixel factor (1 below the knee), applied
+                # while rounding: lin * S clipped to [0, 65535] and rounded
+                S = b["s"].reshape(-1)
+                S.fill(1.0)
+                S[over] = shoulder_ratio(Y[over], knee, s_peak, 65535.0)
+                S3 = cv2.cvtColor(b["s"], cv2.COLOR_GRAY2BGR, dst=b["s3"])
+                cv2.multiply(lin, S3, dst=u, dtype=cv2.CV_16U)
+            else:
+                cv2.add(lin, zero, dst=u, dtype=cv2.CV_16U)             # clip to [0, 65535], round
+        np.take(lut, u, out=out[r:r + rows_per_chunk], mode="wrap")
+
+    n_threads = threads or min(4, os.cpu_count() or 1)
+    chunks = range(0, H, rows_per_chunk)
+    if n_threads == 1 or len(chunks) == 1:
+        for r in chunks:
+            work(r)
+    else:
+        with ThreadPoolExecutor(n_threads) as pool:
+            list(pool.map(work, chunks))
+    return out
