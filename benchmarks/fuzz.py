@@ -66,6 +66,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from testing.tiffs import linear_tiff
+
 __all__ = ["Mutation", "FuzzReport", "seed_dngs", "ifd_entries", "mutations", "memory_bound_mb", "run", "main",
            "dng_mutations", "victim_dngs", "run_real_dng", "ROUND2_KINDS", "round2_cases", "run_round2",
            "round2_table", "packbits_tiff"]
@@ -807,27 +809,10 @@ def _utf8_dng(text: str, tag: int = 315, seed: int = 0) -> bytes:
     return bytes(d)
 
 
-def _linear_tiff(h: int, w: int, comp: int, strip: bytes, rps: int) -> bytes:
-    """A little-endian 16-bit RGB TIFF whose strips of ``rps`` rows all point
-    at the same ``strip`` bytes."""
-    n = -(-h // rps)
-    bps = 8 + 2 + 10 * 12 + 4
-    offs = bps + 8
-    data = offs + (8 * n if n > 1 else 0)
-    tags = [(256, 4, 1, w), (257, 4, 1, h), (258, 3, 3, bps), (259, 3, 1, comp), (262, 3, 1, 2),
-            (273, 4, n, offs if n > 1 else data), (277, 3, 1, 3), (278, 4, 1, rps),
-            (279, 4, n, offs + 4 * n if n > 1 else len(strip)), (284, 3, 1, 1)]
-    ifd = struct.pack("<H", len(tags)) + b"".join(
-        struct.pack("<HHII", t, ty, k, v) if ty == 4 or k > 1 else struct.pack("<HHIHH", t, ty, k, v, 0)
-        for t, ty, k, v in tags) + b"\0\0\0\0"
-    arrays = struct.pack(f"<{2 * n}I", *[data] * n, *[len(strip)] * n) if n > 1 else b""
-    return b"II*\0" + struct.pack("<I", 8) + ifd + struct.pack("<HHH", 16, 16, 16) + b"\0\0" + arrays + strip
-
-
 def packbits_tiff(h: int, w: int) -> bytes:
     """One PackBits strip of zeros (runs of 128 bytes, 2 bytes each): ~190x smaller than its pixels."""
     n = h * w * 6
-    return _linear_tiff(h, w, 32773, b"\x81\x00" * (n // 128) + (bytes([257 - n % 128, 0]) if n % 128 else b""), h)
+    return linear_tiff(h, w, 32773, b"\x81\x00" * (n // 128) + (bytes([257 - n % 128, 0]) if n % 128 else b""), h)
 
 
 def round2_cases(scale: float = 1.0) -> list[Case]:
@@ -881,13 +866,13 @@ def round2_cases(scale: float = 1.0) -> list[Case]:
     add("packbits-bomb", f"PackBits {h}x{w} one strip", "POST", "/v1/analyze",
         files={"file": ("p.tif", packbits_tiff(h, w))})
     add("packbits-bomb", f"deflate {h}x{w}", "POST", "/v1/analyze",
-        files={"file": ("d.tif", _linear_tiff(h, w, 8, zlib.compress(bytes(100 * w * 6), 9), 100))})
+        files={"file": ("d.tif", linear_tiff(h, w, 8, zlib.compress(bytes(100 * w * 6), 9), 100))})
     for comp in (5, 7, 34925, 50000, 32773, 99):      # LZW, JPEG, LZMA, ZSTD, a damaged PackBits, unknown
         strip = b"\x80" * 64 if comp == 32773 else bytes(64 * 96 * 6)
         add("packbits-bomb", f"compression {comp}", "POST", "/v1/analyze",
-            files={"file": ("c.tif", _linear_tiff(64, 96, comp, strip, 64))})
+            files={"file": ("c.tif", linear_tiff(64, 96, comp, strip, 64))})
     add("packbits-bomb", "PackBits declaring 20000 x 20000", "POST", "/v1/analyze",
-        files={"file": ("p.tif", _linear_tiff(20000, 20000, 32773, b"\x81\x00" * 1000, 20000))})
+        files={"file": ("p.tif", linear_tiff(20000, 20000, 32773, b"\x81\x00" * 1000, 20000))})
     n = int(1_000_000 * scale)
     row = ",".join(["0"] * n)
     for label, text in (("2 rows x 1M values", f"400,{row}\n410,{row}\n"),

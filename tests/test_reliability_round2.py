@@ -277,23 +277,7 @@ def test_csv_counts_are_checked_before_any_value_is_parsed(monkeypatch):
 
 # --- item 10: compressed linear TIFFs --------------------------------------------------------------
 
-def _linear_tiff(h, w, comp, strip, rps) -> bytes:
-    """Little-endian 16-bit RGB TIFF; every strip of ``rps`` rows the same
-    ``strip`` bytes (as ``mem_packbits_tiff.py`` writes them)."""
-    import struct
-
-    n = -(-h // rps)
-    bps = 8 + 2 + 10 * 12 + 4
-    offs = bps + 8
-    data = offs + (8 * n if n > 1 else 0)
-    tags = [(256, 4, 1, w), (257, 4, 1, h), (258, 3, 3, bps), (259, 3, 1, comp), (262, 3, 1, 2),
-            (273, 4, n, offs if n > 1 else data), (277, 3, 1, 3), (278, 4, 1, rps),
-            (279, 4, n, offs + 4 * n if n > 1 else len(strip)), (284, 3, 1, 1)]
-    ifd = struct.pack("<H", len(tags)) + b"".join(
-        struct.pack("<HHII", t, ty, k, v) if ty == 4 or k > 1 else struct.pack("<HHIHH", t, ty, k, v, 0)
-        for t, ty, k, v in tags) + b"\0\0\0\0"
-    arrays = struct.pack(f"<{2 * n}I", *[data] * n, *[len(strip)] * n) if n > 1 else b""
-    return b"II*\0" + struct.pack("<I", 8) + ifd + struct.pack("<HHH", 16, 16, 16) + b"\0\0" + arrays + strip
+from testing.tiffs import linear_tiff as _linear_tiff  # noqa: E402 (the shared fixture builder)
 
 
 def _packbits_tiff(h, w) -> bytes:
