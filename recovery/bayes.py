@@ -117,8 +117,6 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy import fft as sfft
-from scipy import ndimage
 
 import models
 
@@ -346,6 +344,7 @@ def bayes_model(camera: Camera, candidates: CandidateLights | None = None, refle
     if d == 2:
         lo = z.reshape(-1, 2).min(0) - 5.0
         hi = z.reshape(-1, 2).max(0) + 5.0
+        from scipy import fft as sfft  # imported when needed (posterior tables only)
         shape = np.array([sfft.next_fast_len(int(n), True) for n in np.ceil((hi - lo) / grid_step).astype(int) + 2])
         M = E.shape[0]
         f = (z - lo) / grid_step
@@ -467,6 +466,7 @@ def _lightness_table(model: BayesModel, shade_range: float, h_y: float, step_z: 
     shape = np.ceil((hi - lo) / step).astype(int) + 1
     idx = np.clip(np.round((np.column_stack([dz, y]) - lo) / step).astype(int), 0, shape - 1)
     tab = np.bincount(np.ravel_multi_index(idx.T, shape), w, minlength=int(np.prod(shape))).reshape(shape)
+    from scipy import ndimage      # imported when needed: 0.1-0.2 s
     tab = ndimage.gaussian_filter(tab, (1.0 / step_z, 1.0 / step_z, h_y / step_y), mode="constant", truncate=4.0)
     nbox = max(1, int(round(np.log(max(shade_range, 1.0)) / step_y)))
     if nbox > 1:  # y_obs = y + log(shade), log(shade) uniform on [-log(shade_range), 0]

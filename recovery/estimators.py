@@ -20,7 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
+
+from . import imfilters
 
 from .errors import InsufficientSurfaceVariation
 from .subspace import light_weights, subspace_normal
@@ -83,17 +84,17 @@ def gray_edge(image: np.ndarray, mask: np.ndarray | None = None, p: float = 6.0,
     mags = np.empty_like(img)
     for k in range(c):
         if order == 1:
-            gx = ndimage.gaussian_filter(img[..., k], sigma, order=(0, 1), mode="nearest")
-            gy = ndimage.gaussian_filter(img[..., k], sigma, order=(1, 0), mode="nearest")
+            gx = imfilters.gaussian_filter(img[..., k], sigma, (0, 1), "nearest")
+            gy = imfilters.gaussian_filter(img[..., k], sigma, (1, 0), "nearest")
             mags[..., k] = np.hypot(gx, gy)
         else:
-            gxx = ndimage.gaussian_filter(img[..., k], sigma, order=(0, 2), mode="nearest")
-            gyy = ndimage.gaussian_filter(img[..., k], sigma, order=(2, 0), mode="nearest")
-            gxy = ndimage.gaussian_filter(img[..., k], sigma, order=(1, 1), mode="nearest")
+            gxx = imfilters.gaussian_filter(img[..., k], sigma, (0, 2), "nearest")
+            gyy = imfilters.gaussian_filter(img[..., k], sigma, (2, 0), "nearest")
+            gxy = imfilters.gaussian_filter(img[..., k], sigma, (1, 1), "nearest")
             mags[..., k] = np.sqrt(gxx ** 2 + gyy ** 2 + 2 * gxy ** 2)
     m = None
     if mask is not None:
-        m = ndimage.binary_erosion(mask, iterations=max(1, int(np.ceil(2 * sigma))), border_value=1)
+        m = imfilters.binary_erosion(mask, max(1, int(np.ceil(2 * sigma))))
         if not m.any():
             m = mask
     px = _masked(mags, m)

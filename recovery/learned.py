@@ -58,8 +58,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
+from . import imfilters
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation
 from .estimators import bright_pixels, gray_edge, gray_world, shades_of_gray, white_patch
@@ -187,7 +187,7 @@ def _gray_pixels(img: np.ndarray, m: np.ndarray, q: float) -> np.ndarray:
     """Mean of the pixels whose local log-contrast is most alike in the
     three channels (gray pixels; Yang et al. 2015, Qian et al. 2019)."""
     lg = np.log(np.clip(img, 1e-4, None))
-    c = np.stack([np.abs(ndimage.laplace(ndimage.gaussian_filter(lg[..., k], 0.5))) for k in range(3)], -1)
+    c = np.stack([np.abs(imfilters.laplace(imfilters.gaussian_filter(lg[..., k], 0.5))) for k in range(3)], -1)
     mm = m & np.all(c > 1e-3, axis=-1)
     if mm.sum() < 10:
         return img[m].mean(axis=0)

@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 
 from .errors import InsufficientSurfaceVariation
 from .estimators import maloney_wandell_pixels
@@ -184,6 +183,8 @@ def estimate_light_map(image: np.ndarray, mask: np.ndarray, tensor: np.ndarray,
 
     # --- fill rejected regions from the nearest used region
     if not used.all():
+        from scipy import ndimage      # imported when needed: 0.1-0.2 s
+
         _, (ir, ic) = ndimage.distance_transform_edt(~used, return_indices=True)
         weights = weights[ir, ic]
     centres_r = rs + (sr - 1) / 2.0

@@ -654,10 +654,21 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+class _VersionAction(argparse.Action):
+    """``--version``, looked up only when asked (``importlib.metadata`` costs
+    about 0.06 s, paid by every command when the string was built up front)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.exit(message=f"wandell {_version()}\n")
+
+
 def main(argv=None) -> int:
     ap = _ArgumentParser(prog="wandell", description="White balance and illuminant estimation of RAW "
                                  "files (Wandell 1985; Maloney & Wandell)")
-    ap.add_argument("--version", action="version", version=f"wandell {_version()}")
+    ap.add_argument("--version", action=_VersionAction, help="show the installed version and exit")
     sub = ap.add_subparsers(dest="command", required=True)
     b = sub.add_parser("batch", help="white-balance every RAW of IN_DIR into OUT_DIR (resumable)")
     b.add_argument("in_dir")

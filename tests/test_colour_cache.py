@@ -75,11 +75,12 @@ def test_ohno2013_is_colour_sciences():
 
 @pytest.mark.skipif(not os.path.exists(RAW), reason="the real CinemaDNG is not here")
 @pytest.mark.parametrize("cmd", [["analyze", RAW], ["white-balance", RAW, "OUT.tif", "--quiet"]])
-def test_cli_imports_neither_colour_science_nor_pydantic_settings(cmd, tmp_path):
+def test_cli_imports_neither_colour_science_nor_pydantic_settings_nor_scipy_ndimage(cmd, tmp_path):
     cmd = [str(tmp_path / c) if c == "OUT.tif" else c for c in cmd]
     code = ("import sys\nfrom service.cli import main\nrc = main(%r)\n"
             "assert 'colour' not in sys.modules, 'colour-science was imported'\n"
-            "assert 'pydantic_settings' not in sys.modules, 'pydantic-settings was imported'\nsys.exit(rc)" % (cmd,))
+            "assert 'pydantic_settings' not in sys.modules, 'pydantic-settings was imported'\n"
+            "assert 'scipy.ndimage' not in sys.modules, 'scipy.ndimage was imported'\nsys.exit(rc)" % (cmd,))
     env = {k: v for k, v in os.environ.items() if not k.upper().startswith("WANDELL_")}
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
