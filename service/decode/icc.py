@@ -29,13 +29,18 @@ Policy (:func:`display_referred_policy`, the ``display_referred`` option):
   RGB): 415 ``display_referred_input``, whatever the option; a damaged one:
   422 ``corrupt_icc_profile``.
 
-The primaries (``rXYZ``...) are read and reported but not applied. A TIFF or PNG's
-RGB is taken as the camera RGB of the camera the request names (``camera=``) or the
-file's Make/Model tags (else the generic camera), with no colour matrix
-(:mod:`recovery.cameras`); the linearised values stay in the profile's RGB, as any
-linear TIFF's values stay in theirs. Converting them through the primaries would
-need a camera space to convert *to*, which a rendered file does not have; the
-profile's space is not a camera's either, which is what the warning says.
+The primaries (``rXYZ``, ``gXYZ``, ``bXYZ``, taken back from D50 through ``chad``)
+are applied the way a DNG's ColorMatrix is: the decoded image's ``color_matrix`` is
+the profile's XYZ -> RGB (:meth:`Encoding.xyz_to_rgb`; sRGB's for a PNG ``sRGB``
+chunk), for a linear profile as for a linearised one. The pixels are not converted:
+the service takes a TIFF/PNG's RGB as the camera RGB of the camera the request names
+(``camera=``) or the file's Make/Model (:mod:`recovery.cameras`), and without a
+measured camera it now derives one from that matrix ("approximate: derived from
+colour matrix") instead of the generic camera. That is what the profile says the RGB
+means; the generic camera read sRGB as a camera's RGB and put the service's own
+render of ``Blackmagic.dng`` (4590 K) at 1710 K even linearised, 2725 K not
+(measured in ``tests/test_display_referred_input.py``). ``camera=...`` still
+overrides it.
 
 References
 ----------
@@ -104,6 +109,29 @@ class Encoding:
     curves: list | None
     linear: bool
     info: dict = field(default_factory=dict)
+
+    def xyz_to_rgb(self) -> np.ndarray | None:
+        """The profile's XYZ -> RGB matrix for its own white (the colorants,
+        PCS XYZ adapted to D50, taken back through ``chad``, else Bradford from
+        the D65 of sRGB-like profiles), ``None`` without colorants."""
+        prim = self.info.get("primaries_pcs_xyz")
+        if prim is None:
+            if self.source in ("PNG sRGB chunk", "PNG cICP chunk") and self.curves is not None:
+                from recovery.dng_color import rgb_to_xyz_matrix   # sRGB / BT.709 primaries, D65
+
+                return np.linalg.inv(rgb_to_xyz_matrix("sRGB"))
+            return None
+        m = np.array(prim, dtype=np.float64).T            # columns: rXYZ, gXYZ, bXYZ
+        chad = self.info.get("chad")
+        if chad is not None:
+            m = np.linalg.solve(np.array(chad, dtype=np.float64), m)
+        else:
+            from recovery.dng_color import D50_XY, PRIMARIES, bradford
+
+            m = bradford(D50_XY, PRIMARIES["sRGB"][1]) @ m
+        if not np.all(np.isfinite(m)) or abs(np.linalg.det(m)) < 1e-9:
+            return None
+        return np.linalg.inv(m)
 
     def describe(self) -> dict:
         """The encoding as plain data for the result's diagnostics."""
@@ -271,6 +299,9 @@ def parse_icc(profile: bytes) -> Encoding:
             prim.append([v / 65536.0 for v in struct.unpack(">3i", t[8:20])])
     if len(prim) == 3:
         info["primaries_pcs_xyz"] = prim
+    t = tags.get(b"chad")
+    if t is not None and t[:4] == b"sf32" and len(t) >= 44:
+        info["chad"] = (np.array(struct.unpack(">9i", t[8:44]), dtype=np.float64) / 65536.0).reshape(3, 3).tolist()
     trcs = [tags.get(s) for s in (b"rTRC", b"gTRC", b"bTRC")]
     if space != "RGB" or any(t is None for t in trcs):
         info["trc"] = None

@@ -234,7 +234,8 @@ def _linear_image(kind: str, arr: np.ndarray, warnings: list, make, model,
     frac = float(sat.mean()) if sat.size else 0.0
     if frac > 0.01:
         warnings.append(f"{100 * frac:.1f} % of the image is saturated (those pixels are flagged)")
+    cm = enc.xyz_to_rgb() if enc is not None else None
     return DecodedImage(kind=kind, estimation=est, saturated=sat, full_shape=(int(h), int(w)), make=make,
-                        model=model, color_matrix=None, as_shot_neutral=None, black_level=0.0,
+                        model=model, color_matrix=cm, as_shot_neutral=None, black_level=0.0,
                         white_level=white, warnings=warnings,
                         encoding=enc.describe() if enc is not None else None)
