@@ -37,9 +37,10 @@ the service takes a TIFF/PNG's RGB as the camera RGB of the camera the request n
 (``camera=``) or the file's Make/Model (:mod:`recovery.cameras`), and without a
 measured camera it now derives one from that matrix ("approximate: derived from
 colour matrix") instead of the generic camera. That is what the profile says the RGB
-means; the generic camera read sRGB as a camera's RGB and put the service's own
-render of ``Blackmagic.dng`` (4590 K) at 1710 K even linearised, 2725 K not
-(measured in ``tests/test_display_referred_input.py``). ``camera=...`` still
+means; the generic camera reads sRGB as a camera's RGB: the service's own sRGB
+render of ``Blackmagic.dng`` (4590 K, CIE xy (0.361, 0.379)) read that way gave
+1710 K linearised and 2136 K not, against 5198 K (xy 0.026 away) linearised with the
+profile's matrix (``tests/test_display_referred_input.py``). ``camera=...`` still
 overrides it.
 
 References
