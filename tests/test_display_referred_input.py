@@ -313,3 +313,15 @@ def test_the_light_of_a_round_trip_through_srgb_is_near_the_originals(client):
     assert d_srgb < 0.04, (d_srgb, srgb["illuminant"]["cct"])
     assert np.linalg.norm(_xy(srgb) - _xy(twin)) < 0.023, (d_srgb, d_twin)
     assert d_old > 3 * d_srgb, (d_old, old["illuminant"]["cct"])
+
+
+def test_white_balance_of_the_srgb_tiff_renders_and_warns(client, renders):
+    """The linearised file renders like any linear TIFF; its camera is the one the
+    profile's matrix implies (no measured camera for it), and the header says both."""
+    r = client.post("/v1/white-balance", files={"file": ("corrected.tif", renders["sRGB"])},
+                    data={"format": "png16"})
+    assert r.status_code == 200, r.text
+    h = json.loads(r.headers["x-illuminant"])
+    assert any(w.startswith("display-referred input") and SRGB_NAME in w for w in h["warnings"])
+    assert "approximate: derived from colour matrix" in h["warnings"]
+    assert h["camera"]["source"] == "matrix-derived"
