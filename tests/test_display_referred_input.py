@@ -325,3 +325,10 @@ def test_white_balance_of_the_srgb_tiff_renders_and_warns(client, renders):
     assert any(w.startswith("display-referred input") and SRGB_NAME in w for w in h["warnings"])
     assert "approximate: derived from colour matrix" in h["warnings"]
     assert h["camera"]["source"] == "matrix-derived"
+
+
+def test_a_float_tiff_with_the_srgb_profile_is_linearised_too():
+    x = np.linspace(0.0, 1.0, 3 * 4096, dtype=np.float32).reshape(64, 64, 3)
+    d = decode_upload(_tiff(x, SRGB_ICC), "f.tif", max_pixels=10 ** 8)
+    assert d.encoding["linear"] is False and d.white_level == 1.0
+    assert np.max(np.abs(d.estimation - srgb_to_linear(x))) <= CODE

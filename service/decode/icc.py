@@ -356,7 +356,7 @@ def png_encoding(chunks: dict) -> Encoding | None:
             raise _bad(f"the PNG iCCP profile inflates to more than {MAX_PROFILE_BYTES} bytes")
         return parse_icc(profile)
     if b"sRGB" in chunks:
-        return Encoding("PNG sRGB chunk", "sRGB (PNG sRGB chunk)", [srgb_to_linear] * 3, False)
+        return Encoding("PNG sRGB chunk", "sRGB", [srgb_to_linear] * 3, False)
     if b"gAMA" in chunks and len(chunks[b"gAMA"]) == 4:
         g = struct.unpack(">I", chunks[b"gAMA"])[0] / 100000.0
         if g <= 0:
@@ -364,7 +364,7 @@ def png_encoding(chunks: dict) -> Encoding | None:
         # gAMA is the encoding exponent: sample = linear ** g, so linear = sample ** (1 / g)
         linear = abs(g - 1.0) <= 0.01
         curve = (lambda x: x) if linear else _gamma(1.0 / g)
-        return Encoding("PNG gAMA chunk", f"gamma {g:.5g} (PNG gAMA chunk)", [curve] * 3, linear,
+        return Encoding("PNG gAMA chunk", f"gamma {g:.5g}", [curve] * 3, linear,
                         {"gamma": g})
     return None
 
@@ -396,10 +396,10 @@ def display_referred_policy(enc: Encoding | None, policy: str, label: str) -> li
                            "curve (gamma-encoded, rendered values), and display_referred=refuse; "
                            f"{_HOW_TO_LINEARISE}, or send display_referred=linearise to decode it through "
                            "its own tone curve")
-    kinds = enc.info.get("trc") or [enc.name]
-    curves = kinds[0] if len(set(kinds)) == 1 else ", ".join(kinds)
-    return [f"display-referred input: linearised through the tone curve of its {enc.source} {enc.name!r} "
-            f"({curves}); "
+    kinds = enc.info.get("trc")
+    curves = "" if not kinds else f" ({kinds[0] if len(set(kinds)) == 1 else ', '.join(kinds)})"
+    return [f"display-referred input: linearised through the tone curve of its {enc.source} {enc.name!r}"
+            f"{curves}; "
             "the light estimated from rendered data (already white-balanced and tone-mapped by whatever "
             "made the file, in the profile's RGB rather than a camera's) is not a camera measurement"]
 
