@@ -54,18 +54,19 @@ class EstimateRun:
     requested_method: str | None = None
 
 
-def decode(data: bytes, filename: str | None, limits):
+def decode(data: bytes, filename: str | None, limits, display_referred: str = "linearise"):
     """The upload decoded (:func:`service.decode.decode_upload`) within
     ``limits`` (anything with ``max_pixels`` and ``estimation_pixels``: the
-    settings, a batch item)."""
+    settings, a batch item); ``display_referred``: linearise or refuse a
+    TIFF/PNG whose colour tags say it is rendered (:mod:`service.decode.icc`)."""
     from . import decode
 
     return decode.decode_upload(data, filename, max_pixels=limits.max_pixels,
-                               estimation_pixels=limits.estimation_pixels)
+                               estimation_pixels=limits.estimation_pixels, display_referred=display_referred)
 
 
 def open_image(data: bytes, filename: str | None, limits, camera: str | None = None,
-               sensitivities: bytes | None = None, prefetch: bool = False):
+               sensitivities: bytes | None = None, prefetch: bool = False, display_referred: str = "linearise"):
     """Decode and choose the camera (:func:`recovery.cameras.resolve_camera`):
     ``(decoded, camera, warnings, milliseconds)``. With ``prefetch`` (a
     caller that renders the full image next) the demosaic starts at once on
@@ -73,7 +74,7 @@ def open_image(data: bytes, filename: str | None, limits, camera: str | None = N
     from recovery.cameras import resolve_camera
 
     t0 = time.perf_counter()
-    decoded = decode(data, filename, limits)
+    decoded = decode(data, filename, limits, display_referred)
     if prefetch:
         prefetch_full_linear(decoded)
     try:
@@ -123,13 +124,14 @@ def _full_linear_u16(decoded) -> np.ndarray:
 
 def analyze(data: bytes, filename: str | None, limits, *, camera: str | None = None,
             sensitivities: bytes | None = None, method: str = "auto", options: dict | None = None,
-            neutral: list[int] | None = None, prefetch: bool = False):
+            neutral: list[int] | None = None, prefetch: bool = False, display_referred: str = "linearise"):
     """Decode, choose the camera, estimate the light: ``(decoded, run)``.
     With ``neutral`` (a point or rectangle the user says is white,
     :func:`service.options.parse_neutral`) the light is that surface's
     (:func:`with_neutral`), rendered like an estimate. ``prefetch``: the
     caller renders next, demosaic meanwhile (:func:`prefetch_full_linear`)."""
-    decoded, cam, warns, ms = open_image(data, filename, limits, camera, sensitivities, prefetch=prefetch)
+    decoded, cam, warns, ms = open_image(data, filename, limits, camera, sensitivities, prefetch=prefetch,
+                                         display_referred=display_referred)
     try:
         run = run_estimate(decoded, cam, warns, method=method, options=options or {})
         run.timings_ms["decode"] = ms
@@ -432,6 +434,8 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
         "image": {"kind": decoded.kind, "width": decoded.full_shape[1], "height": decoded.full_shape[0],
                   "make": decoded.make, "model": decoded.model},
     }
+    if getattr(decoded, "encoding", None) is not None:   # what a TIFF/PNG's ICC profile or PNG chunks say
+        out["image"]["encoding"] = dict(decoded.encoding)
     choice = rendering_choice(run, decoded)
     out["rendering"] = {"rendering": choice["rendering"], "color_source": choice["color_source"]}
     failed = method_failure(est, run.requested_method)

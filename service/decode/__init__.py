@@ -44,7 +44,8 @@ The package, one concept a module: :mod:`~service.decode.upload`
 (what an upload is, from its bytes), :mod:`~service.decode.structure` (TIFF/DNG
 strips and tiles verified before LibRaw reads them), :mod:`~service.decode.tags`
 (TIFF/DNG tags), :mod:`~service.decode.raw` (LibRaw, CFA binning, demosaic),
-:mod:`~service.decode.linear` (linear TIFF and PNG) and
+:mod:`~service.decode.linear` (linear TIFF and PNG), :mod:`~service.decode.icc` (their ICC
+profiles and PNG colour chunks: display-referred input linearised or refused) and
 :mod:`~service.decode.image` (:class:`DecodedImage`). ``service.rawio``, its
 former name, re-exports them.
 """

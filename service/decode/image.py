@@ -71,6 +71,11 @@ class DecodedImage:
         digital numbers (0 and 65535, or 0 and 1.0, for TIFF/PNG).
     warnings : list of str
         Things the user should know about the decode.
+    encoding : dict or None
+        TIFF/PNG with colour tags: what its ICC profile or PNG chunks say
+        (:meth:`service.decode.icc.Encoding.describe`: source, name, linear,
+        the tone curves); ``estimation`` holds the values linearised through
+        them when ``linear`` is false.
     """
 
     kind: str
@@ -84,6 +89,7 @@ class DecodedImage:
     black_level: float | None = None
     white_level: float | None = None
     warnings: list = field(default_factory=list)
+    encoding: dict | None = None
     #: RAW: the file's bytes, to demosaic again on demand (never the pixels).
     _source: bytes | None = field(default=None, repr=False, compare=False)
     #: RAW: LibRaw postprocessing parameters giving the estimation scale.

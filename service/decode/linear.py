@@ -1,6 +1,8 @@
 """Linear 16-bit TIFF and PNG uploads (camera RGB with black level 0): TIFFs decoded by C
 decoders only (:data:`LINEAR_TIFF_COMPRESSIONS`), PNG chunks read for their bit depth and
-colour type, 8-bit (gamma-encoded) images refused.
+colour type, 8-bit (gamma-encoded) images refused. A 16-bit or float image whose ICC profile
+(or PNG ``sRGB``/``gAMA``/``cICP`` chunk) says it is display-referred is linearised through its
+own tone curve, or refused, by the ``display_referred`` policy (:mod:`service.decode.icc`).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import zlib
 import numpy as np
 
 from ..errors import ServiceError
+from .icc import Encoding, display_referred_policy, linearise, png_encoding, tiff_encoding
 from .image import DecodedImage
 from .tags import _ascii_tag, _tag
 
@@ -49,7 +52,8 @@ def _check_linear_compression(page, label: str) -> None:
                           f"supported for linear images; send it uncompressed, or {accepted} compressed")
 
 
-def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedImage:
+def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
+                 display_referred: str = "linearise") -> DecodedImage:
     import tifffile
 
     label = f"{filename!r}" if filename else "the upload"
@@ -109,6 +113,8 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedI
                                   f"{size}-byte file (truncated?)")
         _check_linear_compression(page, label)
         make, model = _ascii_tag(page, 271), _ascii_tag(page, 272)
+        enc = tiff_encoding(page)
+        enc_warnings = display_referred_policy(enc, display_referred, label)   # before the pixels
         try:
             arr = page.asarray()
         except ValueError as exc:
@@ -119,11 +125,22 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int) -> DecodedI
             raise
     if "S" in axes and axes.index("S") == 0:
         arr = np.moveaxis(arr, 0, -1)
-    warnings = [_LINEAR_NOTE]
+    warnings = _encoding_notes(enc, enc_warnings)
     if channels == 4:
         arr = arr[..., :3]
         warnings.append("fourth (alpha) channel ignored")
-    return _linear_image("tiff", arr, warnings, make, model)
+    return _linear_image("tiff", arr, warnings, make, model, enc)
+
+
+def _encoding_notes(enc: Encoding | None, enc_warnings: list) -> list:
+    """The decode's first warnings: linear camera RGB assumed (no colour tags), said by
+    the profile, or linearised from a display-referred encoding."""
+    if enc is None:
+        return [_LINEAR_NOTE]
+    if enc.linear:
+        return [f"linear RGB by its {enc.source} {enc.name!r}, taken as camera RGB (black level 0, no camera "
+                "metadata)"]
+    return list(enc_warnings)
 
 
 def _png_chunks(data: bytes):
@@ -151,7 +168,7 @@ def _png_chunks(data: bytes):
         raise ServiceError(422, "corrupt_file", "PNG truncated: no IEND chunk")
 
 
-def _decode_png(data: bytes, max_pixels: int) -> DecodedImage:
+def _decode_png(data: bytes, max_pixels: int, display_referred: str = "linearise") -> DecodedImage:
     import cv2
 
     if len(data) < 33 or data[12:16] != b"IHDR":
@@ -167,16 +184,12 @@ def _decode_png(data: bytes, max_pixels: int) -> DecodedImage:
         raise ServiceError(413, "too_many_pixels",
                           f"the PNG declares {width}x{height} = {width * height:,} pixels; the limit is "
                           f"{max_pixels:,}")
-    warnings = [_LINEAR_NOTE]
+    colour = {}
     for ctype_, off, length in _png_chunks(data):
-        if ctype_ == b"sRGB" or ctype_ == b"iCCP":
-            warnings.append(f"the PNG carries an {ctype_.decode()} chunk (colour-managed, probably "
-                            "gamma-encoded); it is treated as linear camera RGB")
-        elif ctype_ == b"gAMA" and length == 4:
-            gamma = struct.unpack(">I", data[off:off + 4])[0] / 100000.0
-            if abs(gamma - 1.0) > 0.01:
-                warnings.append(f"the PNG declares gamma {gamma:.4g} (encoded, not linear); it is treated "
-                                "as linear camera RGB")
+        if ctype_ in (b"cICP", b"iCCP", b"sRGB", b"gAMA") and ctype_ not in colour:
+            colour[ctype_] = data[off:off + length]
+    enc = png_encoding(colour)
+    warnings = _encoding_notes(enc, display_referred_policy(enc, display_referred, "the PNG"))
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise ServiceError(422, "corrupt_file", "OpenCV could not decode the PNG (damaged data)")
@@ -186,30 +199,43 @@ def _decode_png(data: bytes, max_pixels: int) -> DecodedImage:
     if arr.shape[2] == 4:
         warnings.append("fourth (alpha) channel ignored")
     rgb = arr[..., 2::-1]          # BGR(A) -> RGB
-    return _linear_image("png", rgb, warnings, None, None)
+    return _linear_image("png", rgb, warnings, None, None, enc)
 
 
-def _linear_image(kind: str, arr: np.ndarray, warnings: list, make, model) -> DecodedImage:
+def _linear_image(kind: str, arr: np.ndarray, warnings: list, make, model,
+                  enc: Encoding | None = None) -> DecodedImage:
+    """The decoded image of linear (or, by ``enc``, linearised) RGB code values;
+    saturation is read from the code values (65535, or 1.0 for floats)."""
     h, w = arr.shape[:2]
     est = np.empty((h, w, 3), np.float32)
     sat = np.empty((h, w), bool)
+    convert = enc is not None and not enc.linear
     if arr.dtype == np.uint16:
         white = 65535.0
         inv = np.float32(1.0 / 65535.0)
         for r in range(0, h, 256):
-            np.multiply(arr[r:r + 256], inv, out=est[r:r + 256], dtype=np.float32)
+            if not convert:
+                np.multiply(arr[r:r + 256], inv, out=est[r:r + 256], dtype=np.float32)
             sat[r:r + 256] = (arr[r:r + 256] == 65535).any(axis=-1)
     else:
         white = 1.0
+        if not np.all(np.isfinite(arr)):
+            bad = int((~np.isfinite(arr)).any(axis=-1).sum())
+            raise ServiceError(422, "non_finite", f"the float image has {bad} pixel(s) with NaN or Inf")
         for r in range(0, h, 256):
-            est[r:r + 256] = arr[r:r + 256]
-        if not np.all(np.isfinite(est)):
+            np.greater_equal(arr[r:r + 256], 1.0).any(axis=-1, out=sat[r:r + 256])
+            if not convert:
+                est[r:r + 256] = arr[r:r + 256]
+        if not convert and not np.all(np.isfinite(est)):      # float64 beyond float32's range
             bad = int((~np.isfinite(est)).any(axis=-1).sum())
             raise ServiceError(422, "non_finite", f"the float image has {bad} pixel(s) with NaN or Inf")
-        np.greater_equal(est, 1.0).any(axis=-1, out=sat)
+    if convert:
+        linearise(arr, enc, est)
     frac = float(sat.mean()) if sat.size else 0.0
     if frac > 0.01:
         warnings.append(f"{100 * frac:.1f} % of the image is saturated (those pixels are flagged)")
+    cm = enc.xyz_to_rgb() if enc is not None else None
     return DecodedImage(kind=kind, estimation=est, saturated=sat, full_shape=(int(h), int(w)), make=make,
-                        model=model, color_matrix=None, as_shot_neutral=None, black_level=0.0,
-                        white_level=white, warnings=warnings)
+                        model=model, color_matrix=cm, as_shot_neutral=None, black_level=0.0,
+                        white_level=white, warnings=warnings,
+                        encoding=enc.describe() if enc is not None else None)

@@ -17,7 +17,7 @@ from .tags import _tiff_info
 
 
 def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
-                  estimation_pixels: int | None = None) -> DecodedImage:
+                  estimation_pixels: int | None = None, display_referred: str = "linearise") -> DecodedImage:
     """Decode an uploaded RAW, 16-bit/float TIFF or 16-bit PNG.
 
     The format is recognised from the content (the file name only decides
@@ -39,6 +39,11 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
         For a Bayer RAW, bin ``2f x 2f`` CFA blocks (OpenCV area averaging
         of each CFA plane) with the smallest ``f`` that gives at most this
         many estimation pixels; default: half size (``f = 1``).
+    display_referred : {"linearise", "refuse"}
+        A TIFF/PNG whose ICC profile (or PNG ``sRGB``/``gAMA``/``cICP``
+        chunk) says its values are display-referred: decoded through its own
+        tone curve, with a warning naming the profile, or refused
+        (:mod:`service.decode.icc`).
 
     Returns
     -------
@@ -50,7 +55,9 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
         422 ``empty_file``; 415 ``unsupported_format`` (JPEG, GIF, ...,
         anything LibRaw cannot read, grey or non-RGB images, unsupported
         sample types); 415 ``not_linear`` (8-bit TIFF/PNG, which are gamma
-        encoded); 413 ``too_many_pixels``; 422 ``corrupt_file`` (truncated or
+        encoded); 415 ``display_referred_input`` (a display-referred TIFF/PNG
+        with ``display_referred="refuse"``, or one whose profile has no tone
+        curves to linearise with); 422 ``corrupt_icc_profile``; 413 ``too_many_pixels``; 422 ``corrupt_file`` (truncated or
         damaged); 422 ``non_finite`` (NaN/Inf in a float TIFF). Nothing else
         escapes: an unexpected failure while decoding is a 422
         ``corrupt_file``.
@@ -64,14 +71,14 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
     label = f"{filename!r}" if filename else "the upload"
     try:
         if fmt == "PNG":
-            return _decode_png(data, max_pixels)
+            return _decode_png(data, max_pixels, display_referred)
         if fmt in _NOT_RAW:
             named = (f" named {_extension(filename)}, but its content has no TIFF or RAW signature LibRaw "
                      "recognises" if _extension(filename) in RAW_EXTENSIONS else "")
             raise ServiceError(415, "unsupported_format",
                               f"{label} is a {fmt} file (detected from its content){named}; send a camera RAW (DNG, NEF, CR2, ARW, ...) or a "
                               "linear 16-bit/float TIFF or 16-bit PNG")
-        return _decode_raw_or_tiff(data, fmt, filename, max_pixels, estimation_pixels)
+        return _decode_raw_or_tiff(data, fmt, filename, max_pixels, estimation_pixels, display_referred)
     except ServiceError:
         raise
     except MemoryError:
@@ -83,7 +90,7 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
 
 
 def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels: int,
-                        estimation_pixels: int | None = None) -> DecodedImage:
+                        estimation_pixels: int | None = None, display_referred: str = "linearise") -> DecodedImage:
     import rawpy
 
     label = f"{filename!r}" if filename else "the upload"
@@ -91,7 +98,7 @@ def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels:
         raw = rawpy.imread(io.BytesIO(data))
     except rawpy.LibRawFileUnsupportedError:
         if fmt in ("TIFF", "BigTIFF"):
-            return _decode_tiff(data, filename, max_pixels)
+            return _decode_tiff(data, filename, max_pixels, display_referred)
         if data[:2] in (b"II", b"MM") or _extension(filename) in RAW_EXTENSIONS:
             what = "a TIFF-like header" if data[:2] in (b"II", b"MM") else f"a {_extension(filename)} name"
             raise ServiceError(422, "corrupt_file",
@@ -125,7 +132,7 @@ def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels:
                 # LibRaw reads any 16-bit TIFF without camera tags as a mosaic,
                 # even one of 2 or 4 samples per pixel: not a RAW
                 raw.close()
-                return _decode_tiff(data, filename, max_pixels)
+                return _decode_tiff(data, filename, max_pixels, display_referred)
         return _decode_raw(raw, data, fmt, filename, max_pixels, info, info_error, estimation_pixels)
     except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError) as exc:
         raise ServiceError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None

@@ -20,7 +20,7 @@ from ..errors import INSUFFICIENT_STORAGE, ServiceError, disk_full
 from ..headers import content_disposition, download_name
 from ..jsonsafe import clean
 from ..options import FORMATS, MEDIA_TYPES
-from ..schemas import AnalyzeEstimation, Estimation, Neutral, Regions, WhiteBalanceRendering
+from ..schemas import AnalyzeEstimation, Estimation, Input, Neutral, Regions, WhiteBalanceRendering
 from ..schemas.forms import form
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
@@ -48,6 +48,7 @@ _WB_RENDERING = form(WhiteBalanceRendering, choices={"format": tuple(FORMATS)},
                                          "the original RAW in another editor"})
 _SURFACES_ESTIMATION = form(Estimation, include=("camera", "method", "surface_model"))
 _REGIONS = form(Regions)
+_INPUT = form(Input)
 
 _FILE = File(..., description="RAW file (DNG, CR2, NEF, ARW, ... anything LibRaw reads) or linear 16-bit TIFF/PNG")
 _SENS = File(None, description="optional camera sensitivities CSV: wavelength, one column per channel")
@@ -59,17 +60,18 @@ async def _inputs(file, sensitivities, settings):
     return data, sens
 
 
-def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral=None):
+def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral=None,
+                   display_referred="linearise"):
     """Decode, choose the camera, estimate, or take the user's neutral
     surface as the light (:func:`service.pipeline.analyze`)."""
     return pipeline.analyze(data, filename, settings, camera=camera, sensitivities=sens, method=method,
-                            options=opts, neutral=neutral)
+                            options=opts, neutral=neutral, display_referred=display_referred)
 
 
 @router.post("/analyze")
 async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                   est: AnalyzeEstimation = Depends(_ANALYZE), nt: Neutral = Depends(_NEUTRAL),
-                  settings: Settings = Depends(get_settings)):
+                  inp: Input = Depends(_INPUT), settings: Settings = Depends(get_settings)):
     """Estimate the scene light: camera RGB, white-balance multipliers,
     relative spectrum, CCT/Duv, the method that ran, diagnostics, timings.
     With ``neutral`` the light is the one of that surface instead (method
@@ -79,7 +81,7 @@ async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: Upl
     opts, where = est.estimate_kwargs(), nt.neutral
     data, sens = await _inputs(file, sensitivities, settings)
     decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, est.camera, est.method, opts,
-                                   settings, where, request=request)
+                                   settings, where, inp.display_referred, request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     return JSONResponse(clean(body))
@@ -97,8 +99,8 @@ def _with_white(decoded, run, white: str):
 
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,
-                        white="estimate", exposure=None, neutral=None):
-    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral)
+                        white="estimate", exposure=None, neutral=None, display_referred="linearise"):
+    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral, display_referred)
     del data
     run = _with_white(decoded, run, white)
     with temp_output(prefix="wb-", suffix="." + fmt.encoder) as path:
@@ -133,7 +135,8 @@ def temp_output(**kw):
 @router.post("/white-balance")
 async def white_balance(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                         est: Estimation = Depends(_WB_ESTIMATION), rend: WhiteBalanceRendering = Depends(_WB_RENDERING),
-                        nt: Neutral = Depends(_NEUTRAL), settings: Settings = Depends(get_settings)):
+                        nt: Neutral = Depends(_NEUTRAL), inp: Input = Depends(_INPUT),
+                        settings: Settings = Depends(get_settings)):
     """The corrected image at full resolution (one 3x3 matrix per pixel
     from camera RGB to the display), with the estimate in the
     ``X-Illuminant`` header (JSON)."""
@@ -149,7 +152,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     await file.close()
     if fmt.encoder == "xmp":
         decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
-                                       where, request=request)
+                                       where, inp.display_referred, request=request)
         run = _with_white(decoded, run, white)
         text, _, summary = pipeline.xmp_sidecar(decoded, run)
         stem = os.path.splitext(download_name(file.filename, "image"))[0] or "image"
@@ -158,7 +161,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                                  "X-Illuminant": json.dumps(clean(summary), separators=(",", ":"))})
     if response == "json":
         decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
-                                       where, request=request)
+                                       where, inp.display_referred, request=request)
         run = _with_white(decoded, run, white)
         M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded,
                                              exposure=ev)
@@ -168,7 +171,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
         return JSONResponse(clean(body))
     decoded, run, M, path, info = await run_heavy(_white_balance_sync, data, file.filename, sens, camera,
                                                   method, opts, target, output, fmt, settings, white, ev,
-                                                  where, request=request)
+                                                  where, inp.display_referred, request=request)
     body = pipeline.analysis_json(run, decoded)
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     header = {k: body[k] for k in ("method", "camera", "warnings", "timings_ms")}
@@ -190,7 +193,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
 @router.post("/surfaces")
 async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                    est: Estimation = Depends(_SURFACES_ESTIMATION), regions: Regions = Depends(_REGIONS),
-                   settings: Settings = Depends(get_settings)):
+                   inp: Input = Depends(_INPUT), settings: Settings = Depends(get_settings)):
     """Reflectance spectra at points, rectangle means or a coarse grid, with
     per-estimate warnings. At most ``WANDELL_MAX_SURFACE_REGIONS`` points,
     rectangles and grid cells together (413 ``too_many_regions``); a
@@ -207,7 +210,8 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     data, sens = await _inputs(file, sensitivities, settings)
 
     def work():
-        decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings)
+        decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings,
+                                      display_referred=inp.display_referred)
         res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts)
         res["illuminant"] = pipeline.illuminant_json(run.estimate, pipeline.profile_of(decoded), run.camera)
         res["method"] = run.estimate.method

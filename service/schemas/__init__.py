@@ -18,7 +18,7 @@ The models are loaded on first use (PEP 562), so importing
 
 from __future__ import annotations
 
-_MODELS = ("AnalyzeEstimation", "BatchOptions", "Estimation", "Neutral", "Preview", "Regions", "Rendering",
+_MODELS = ("AnalyzeEstimation", "BatchOptions", "Estimation", "Input", "Neutral", "Preview", "Regions", "Rendering",
            "SpectralRendering", "WhiteBalanceRendering")
 
 __all__ = [*_MODELS, "options_table"]

@@ -29,7 +29,7 @@ from .. import options as checks
 from ..errors import ServiceError
 from ..options import FORMATS, IMAGE_FORMATS, LIGHT_MODELS, OUTPUTS, SURFACE_MODELS
 
-__all__ = ["Opt", "ESTIMATION", "SPATIAL", "RENDERING", "WHITE_BALANCE", "NEUTRAL", "REGIONS", "PREVIEW",
+__all__ = ["Opt", "INPUT", "ESTIMATION", "SPATIAL", "RENDERING", "WHITE_BALANCE", "NEUTRAL", "REGIONS", "PREVIEW",
            "BATCH", "SPECTRAL", "LIGHTING", "CONCERNS", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "run_check"]
 
 #: Lighting modes of a batch.
@@ -147,6 +147,21 @@ def _max_side(value, name, choices):
         raise ServiceError(422, "invalid_parameter", f"max_side must be in {lo}..{hi} pixels, not {value}")
     return value
 
+
+# --------------------------------------------------------------------------- input
+#: What is done with an upload whose colour tags say it is display-referred
+#: (:mod:`service.decode.icc`): ``/v1/analyze``, ``/v1/white-balance`` and
+#: ``/v1/surfaces``; the preview, batches and the CLI always linearise (and say so).
+INPUT = {
+    "display_referred": Opt(str, "linearise", "a TIFF/PNG whose ICC profile (or PNG sRGB/gAMA chunk) says it is "
+                                              "display-referred (gamma-encoded, rendered): linearise (through "
+                                              "its own tone curve, with a warning naming the profile) or refuse "
+                                              "(415 display_referred_input)",
+                            choices=("linearise", "refuse"), examples=("linearise",),
+                            check=_must_be("{name} must be linearise or refuse, not {value!r}"), cli=False,
+                            summary="a display-referred TIFF/PNG (by its ICC profile or PNG chunks): "
+                                    "linearise through its own tone curve, or refuse"),
+}
 
 # --------------------------------------------------------------------------- estimation
 #: How the light is estimated (:func:`recovery.estimate_illuminant`): every
@@ -296,7 +311,7 @@ BATCH = {
 }
 
 #: The concerns in the README's options table, in order: (concern, fields, label suffix).
-CONCERNS = (("estimation", {**ESTIMATION, **SPATIAL}, ""), ("rendering", {**RENDERING, **WHITE_BALANCE}, ""),
+CONCERNS = (("input", INPUT, ""), ("estimation", {**ESTIMATION, **SPATIAL}, ""), ("rendering", {**RENDERING, **WHITE_BALANCE}, ""),
             ("regions", NEUTRAL, ""), ("regions", REGIONS, " (surfaces)"), ("preview", PREVIEW, ""),
             ("batches", BATCH, ""), ("spectral rendering", SPECTRAL, ""))
 

@@ -26,10 +26,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model,
 
 from .. import options as checks
 from ..options import FORMATS
-from .fields import (BATCH, ESTIMATION, LIGHTING, NEUTRAL, PREVIEW, PREVIEW_MAX_SIDE, PREVIEW_SIDE_RANGE, REGIONS,
+from .fields import (BATCH, ESTIMATION, INPUT, LIGHTING, NEUTRAL, PREVIEW, PREVIEW_MAX_SIDE, PREVIEW_SIDE_RANGE, REGIONS,
                      RENDERING, SPATIAL, SPECTRAL, WHITE_BALANCE, Opt, options_table, run_check)
 
-__all__ = ["OptionModel", "Estimation", "AnalyzeEstimation", "Rendering", "WhiteBalanceRendering", "Neutral",
+__all__ = ["OptionModel", "Input", "Estimation", "AnalyzeEstimation", "Rendering", "WhiteBalanceRendering", "Neutral",
            "Regions", "Preview", "BatchOptions", "SpectralRendering", "LIGHTING", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "opt_of",
            "option_fields", "options_table"]
 
@@ -97,6 +97,7 @@ class _Batch(_Estimating):
         return cls.model_construct(**json.loads(text))
 
 
+Input = _model("Input", OptionModel, "What is done with a display-referred upload (service.decode.icc).", INPUT)
 Estimation = _model("Estimation", _Estimating, "How the light is estimated (every endpoint that estimates, batches, "
                     "the CLI).", ESTIMATION)
 AnalyzeEstimation = _model("AnalyzeEstimation", Estimation, "``/v1/analyze``: the estimation options and one "
