@@ -41,11 +41,21 @@ __all__ = ["icc_profile", "shipped_icc", "ICC_FOR_OUTPUT", "exif_block", "embed"
 
 D50_XYZ = (0.9642, 1.0, 0.8249)      # the ICC PCS white (s15Fixed16 rounding of D50)
 
-#: output name -> (ICC file, description, primaries, transfer)
+#: output name -> (ICC file, description, primaries, transfer). Primaries
+#: ``display:NAME`` are a spectral display of :mod:`models.displays`: its
+#: guns' CIE 1931 XYZ (:func:`recovery.synthesis.output_space` on the
+#: default 400..700 nm grid, white Y = 1), its white their sum. Those
+#: outputs hold linear gun intensities (no encoding, no tone curve:
+#: :func:`recovery.synthesis.correction_matrix`), so their TRC is the
+#: identity (gamma 1.0), whatever gamma a real CRT's drive values have.
 ICC_SPACES = {
     "sRGB": ("sRGB.icc", "sRGB IEC61966-2.1 (wandell)", "sRGB", "srgb"),
     "linear-sRGB": ("linear-sRGB.icc", "Linear sRGB (wandell)", "sRGB", "linear"),
     "Display P3": ("DisplayP3.icc", "Display P3 (wandell)", "Display P3", "srgb"),
+    "Typical CRT Brainard 1997": ("TypicalCRT-Brainard1997.icc", "Typical CRT Brainard 1997, linear (wandell)",
+                                  "display:Typical CRT Brainard 1997", "linear"),
+    "Apple Studio Display": ("AppleStudioDisplay.icc", "Apple Studio Display, linear (wandell)",
+                             "display:Apple Studio Display", "linear"),
 }
 ICC_FOR_OUTPUT = {k: v[0] for k, v in ICC_SPACES.items()}
 
@@ -77,17 +87,35 @@ def _text(text: str) -> bytes:
     return b"text" + b"\0" * 4 + text.encode("ascii") + b"\0"
 
 
+def display_rgb_to_xyz(prim: str) -> tuple[np.ndarray, tuple[float, float]]:
+    """RGB -> CIE 1931 XYZ (columns, white Y = 1) and the white's xy of an
+    :data:`ICC_SPACES` primaries entry: an RGB space of
+    :data:`recovery.dng_color.PRIMARIES`, or ``display:NAME``, a spectral
+    display (its guns through the CIE 1931 observer on the default grid)."""
+    from recovery.dng_color import PRIMARIES, rgb_to_xyz_matrix
+
+    if prim.startswith("display:"):
+        from models.grid import DEFAULT_WAVELENGTHS
+        from recovery.synthesis import output_space
+
+        G = np.asarray(output_space(prim[len("display:"):], DEFAULT_WAVELENGTHS).Gamma, float)
+        w = G.sum(axis=1)
+        return G, (float(w[0] / w.sum()), float(w[1] / w.sum()))
+    return rgb_to_xyz_matrix(prim), PRIMARIES[prim][1]
+
+
 def icc_profile(output: str) -> bytes:
     """A v2.1 RGB display profile (matrix/TRC) for ``output`` (a key of
     :data:`ICC_SPACES`): colorants are the space's RGB -> XYZ columns adapted
     from its white to D50 by Bradford (as the ICC requires), media white D50,
     ``chad`` the adaptation, TRC the sRGB curve (1024 entries) or identity.
     Byte-for-byte deterministic (fixed date, no profile ID)."""
-    from recovery.dng_color import D50_XY, PRIMARIES, bradford, rgb_to_xyz_matrix
+    from recovery.dng_color import D50_XY, bradford
 
     _, desc, prim, trc = ICC_SPACES[output]
-    chad = bradford(PRIMARIES[prim][1], D50_XY)
-    M = chad @ rgb_to_xyz_matrix(prim)
+    rgb_xyz, white = display_rgb_to_xyz(prim)
+    chad = bradford(white, D50_XY)
+    M = chad @ rgb_xyz
     curv = _curv(trc)
     sf32 = b"sf32" + b"\0" * 4 + b"".join(_s15(v) for v in chad.ravel())
     tags = [(b"desc", _desc(desc)), (b"cprt", _text("No copyright, use freely")),

@@ -212,3 +212,75 @@ def test_as_shot_download_beside_the_corrected_one(client):
     # the estimate is within a degree of the as-shot white: the two pictures agree closely
     diff = np.abs(shots["estimate"].mean((0, 1)) - shots["as-shot"].mean((0, 1)))
     assert diff.max() < 12, diff
+
+
+def _icc_tags(prof: bytes) -> dict:
+    import struct
+
+    n = struct.unpack(">I", prof[128:132])[0]
+    out = {}
+    for i in range(n):
+        sig, off, size = struct.unpack(">4sII", prof[132 + 12 * i:144 + 12 * i])
+        out[sig.decode()] = prof[off:off + size]
+    return out
+
+
+def _s15_xyz(tag: bytes) -> np.ndarray:
+    import struct
+
+    assert tag[:4] == b"XYZ "
+    return np.array(struct.unpack(">3i", tag[8:20])) / 65536.0
+
+
+@pytest.mark.parametrize("name", ["Typical CRT Brainard 1997", "Apple Studio Display"])
+def test_spectral_display_profiles_are_their_guns_through_cie_1931(name):
+    """The display's ICC profile: colorants = its guns' CIE 1931 XYZ
+    (computed here from colour-science's spectra and observer on the 400..700
+    nm / 10 nm grid, white Y = 1), adapted from the display white to D50 by
+    Bradford, within s15Fixed16 rounding; the TRC the identity (the output
+    holds linear gun intensities: no encoding); LittleCMS reads it."""
+    colour = pytest.importorskip("colour")
+
+    wl = np.arange(400.0, 701.0, 10.0)
+    shape = colour.SpectralShape(400, 700, 10)
+    guns = colour.MSDS_DISPLAY_PRIMARIES[name].copy().align(shape)
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
+    assert np.allclose(guns.wavelengths, wl) and np.allclose(cmfs.wavelengths, wl)
+    G = np.clip(guns.values, 0, None).T @ cmfs.values * 10.0      # (3 guns, XYZ)
+    G = G.T / G.sum(axis=0)[1]                                     # columns, white Y = 1
+    w = G.sum(axis=1)
+    cat = colour.adaptation.matrix_chromatic_adaptation_VonKries(w, colour.xy_to_XYZ([0.3457, 0.3585]),
+                                                                  transform="Bradford")
+    want = cat @ G
+    prof = outputs.shipped_icc(name)
+    assert prof == outputs.icc_profile(name)
+    tags = _icc_tags(prof)
+    got = np.stack([_s15_xyz(tags[t]) for t in ("rXYZ", "gXYZ", "bXYZ")], axis=1)
+    assert np.abs(got - want).max() <= 2 / 65536, np.abs(got - want).max()
+    # white -> D50 (xy 0.3457, 0.3585, as the shipped sRGB/P3 profiles; the PCS header's 4-digit XYZ within 3e-4)
+    assert np.allclose(got.sum(axis=1), outputs.D50_XYZ, atol=3e-4)
+    assert tags["rTRC"] == tags["gTRC"] == tags["bTRC"] == b"curv" + b"\0" * 8     # count 0: gamma 1.0
+    # LittleCMS: full red of the display -> its D50-adapted XYZ column
+    p = ImageCms.ImageCmsProfile(io.BytesIO(prof))
+    assert name.split(",")[0] in ImageCms.getProfileDescription(p)
+    lab = ImageCms.createProfile("LAB")
+    t = ImageCms.buildTransform(p, lab, "RGB", "LAB", renderingIntent=1)
+    white = ImageCms.applyTransform(Image.new("RGB", (1, 1), (255, 255, 255)), t).getpixel((0, 0))
+    assert white[0] >= 254 and abs(white[1] - 128) <= 1 and abs(white[2] - 128) <= 1     # media-relative white
+
+
+def test_display_outputs_carry_their_profile(client):
+    """A white-balanced image for the Typical CRT carries that display's
+    profile (its values are linear gun intensities: the pipeline encodes
+    nothing for a spectral display)."""
+    from recovery.synthesis import output_space
+
+    name = "Typical CRT Brainard 1997"
+    assert output_space(name, np.arange(400.0, 701.0, 10.0)).encoding is None
+    p = real_file("Blackmagic.dng")
+    r = client.post("/v1/white-balance", files={"file": (p.name, p.read_bytes())},
+                    data={"format": "png", "output": name})
+    assert r.status_code == 200, r.text
+    with Image.open(io.BytesIO(r.content)) as im:
+        assert im.info["icc_profile"] == outputs.shipped_icc(name)
+        assert 270 not in im.getexif()
