@@ -710,7 +710,7 @@ def output_meta(decoded, output: str, estimate: dict | None) -> dict:
 
     facts = outputs.output_facts(metadata.source_exif(decoded), estimate)
     text = {"wandell:estimate": json.dumps(estimate, separators=(",", ":"))} if estimate is not None else None
-    if facts.get("XMP"):       # the estimate and non-ASCII text facts (PNG iTXt / JPEG APP1; TIFF takes them from facts)
+    if facts.get("XMP"):       # the estimate, non-ASCII facts (PNG iTXt / JPEG APP1; TIFF takes them from facts)
         text = dict(text or {}, **{outputs.XMP_KEY: facts["XMP"]})
     return {"icc": outputs.shipped_icc(output), "facts": facts, "text": text}
 

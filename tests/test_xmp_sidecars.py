@@ -122,8 +122,11 @@ def test_batch_xmp_read_only_card_and_darktable_names(shoot, monkeypatch):
 
     raw, out = shoot
     real_access = os.access
-    monkeypatch.setattr(cli.os, "access", lambda p, m, *a, **k: False if m & os.W_OK and os.path.abspath(p) == str(raw)
-                        else real_access(p, m, *a, **k))
+
+    def access(p, m, *a, **k):
+        return False if m & os.W_OK and os.path.abspath(p) == str(raw) else real_access(p, m, *a, **k)
+
+    monkeypatch.setattr(cli.os, "access", access)
     opts = jobs.batch_options(format="jpeg")
     with ThreadPoolExecutor(1) as ex:
         rows = cli.run_batch(str(raw), str(out), opts, executor=ex, quiet=True,

@@ -30,7 +30,8 @@ from ..errors import ServiceError
 from ..options import FORMATS, IMAGE_FORMATS, LIGHT_MODELS, OUTPUTS, SURFACE_MODELS
 
 __all__ = ["Opt", "ESTIMATION", "SPATIAL", "RENDERING", "WHITE_BALANCE", "NEUTRAL", "REGIONS", "PREVIEW",
-           "BATCH", "SIDECAR", "XMP_NAMES", "SPECTRAL", "LIGHTING", "CONCERNS", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "run_check"]
+           "BATCH", "SIDECAR", "XMP_NAMES", "SPECTRAL", "LIGHTING", "CONCERNS", "PREVIEW_MAX_SIDE",
+           "PREVIEW_SIDE_RANGE", "run_check"]
 
 #: Lighting modes of a batch.
 LIGHTING = ("per-image", "shared")
