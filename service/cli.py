@@ -18,7 +18,9 @@ Options are those of the API, generated from the same declarations
 ``--camera``, ``--method``, ``--quality``, ``--surface-dim``,
 ``--light-dim``, ``--region-size``, ``--surface-model``, ``--light-model``,
 ``--target``, ``--output``, ``--format``, ``--exposure``, ``--lighting``
-(per-image or shared); plus ``--force`` (batch: compute finished outputs
+(per-image or shared), ``--xmp [PATH]``, ``--xmp-name stem|full`` and
+``--xmp-overwrite`` (Camera Raw sidecars beside the RAWs, :func:`sidecar_path`,
+:func:`_sidecar_job`); plus ``--force`` (batch: compute finished outputs
 again), ``--quiet`` (no progress bar or table; failures and warnings still
 on stderr) and ``--version``. ``white-balance`` takes the format from OUT's extension
 (.tif/.tiff, .png, .jpg/.jpeg); ``--format`` must agree with it. A batch
