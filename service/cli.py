@@ -18,7 +18,9 @@ Options are those of the API, generated from the same declarations
 ``--camera``, ``--method``, ``--quality``, ``--surface-dim``,
 ``--light-dim``, ``--region-size``, ``--surface-model``, ``--light-model``,
 ``--target``, ``--output``, ``--format``, ``--exposure``, ``--lighting``
-(per-image or shared); plus ``--force`` (batch: compute finished outputs
+(per-image or shared), ``--xmp [PATH]``, ``--xmp-name stem|full`` and
+``--xmp-overwrite`` (Camera Raw sidecars beside the RAWs, :func:`sidecar_path`,
+:func:`_sidecar_job`); plus ``--force`` (batch: compute finished outputs
 again), ``--quiet`` (no progress bar or table; failures and warnings still
 on stderr) and ``--version``. ``white-balance`` takes the format from OUT's extension
 (.tif/.tiff, .png, .jpg/.jpeg); ``--format`` must agree with it. A batch
@@ -47,7 +49,7 @@ import threading
 
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
-from .schemas.fields import BATCH, ESTIMATION, RENDERING
+from .schemas.fields import BATCH, ESTIMATION, RENDERING, SIDECAR
 
 
 def _lazy_module(name: str):
@@ -142,6 +144,12 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
                              "OUT_DIR (default: subfolders are listed as not processed)")
         ap.add_argument("--dask-scheduler", default=os.environ.get("WANDELL_DASK_SCHEDULER", ""),
                         help="run on this Dask cluster (tcp://host:8786) instead of the local pool")
+    add_options(ap, SIDECAR, describe={"xmp": (
+        "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) for every RAW, beside it "
+        "(IMG_0001.dng -> IMG_0001.xmp; into OUT_DIR when the RAW's folder is not writable); PATH: a folder "
+        "to write them into instead" if batch else
+        "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) beside the RAW (IMG_0001.dng "
+        "-> IMG_0001.xmp; beside OUT when the RAW's folder is not writable); PATH: write it there instead")})
 
 
 def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
@@ -311,11 +319,17 @@ def scan_inputs(in_dir: str, recursive: bool = False, out_dir: str | None = None
                     ignored.append((relp + os.sep, "folder"))
             elif os.path.isfile(path) and name.lower().endswith(jobs.RAW_SUFFIXES):
                 files.append(path)
+            elif name.lower().endswith(SIDECAR_SUFFIXES):
+                continue                    # editors' sidecars of the RAWs (ours among them): not "not processed"
             else:
                 ignored.append((relp, "not RAW"))
 
     walk("")
     return files, ignored
+
+
+#: Sidecars of RAWs (XMP, RawTherapee's .pp3): not listed as files a batch did not process.
+SIDECAR_SUFFIXES = (".xmp", ".pp3")
 
 
 def _ignored_text(ignored: list, limit: int = 10) -> str:
@@ -387,7 +401,7 @@ def _stop_now(executor) -> None:
 
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
               dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
-              quiet: bool = False, recursive: bool = False) -> list[dict]:
+              quiet: bool = False, recursive: bool = False, xmp: dict | None = None) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
     ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
@@ -399,7 +413,14 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     ``stopped``); the same command run again resumes.
 
     With ``recursive`` the subfolders' files too, named by their path
-    under ``in_dir``, their outputs in the same subfolders of ``out_dir``."""
+    under ``in_dir``, their outputs in the same subfolders of ``out_dir``.
+
+    ``xmp`` (``{"folder", "name", "overwrite"}``, ``wandell batch --xmp``):
+    then a Camera Raw sidecar for every finished item (done or skipped), on
+    the same executor (:func:`_sidecar_job`): beside the RAW, or in
+    ``folder`` (the relative tree kept), into ``out_dir`` when the RAW's
+    folder is not writable; rows get ``xmp`` (the path written) and a
+    ``note`` when it went elsewhere, was kept or could not be made."""
     import io
 
     stream = io.StringIO() if quiet else (stream or sys.stderr)
@@ -458,6 +479,8 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
             rows[t.name].pop("adopted", None)
             count["done" if res["status"] == "done" else "failed"] += 1
             bar.update(**count)
+        if xmp is not None:
+            _batch_sidecars(tasks, rows, options, out_dir, executor, xmp)
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -481,6 +504,45 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
                         r.update(status="done", illuminant=json.load(f).get("illuminant"))
         raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
+
+
+def _batch_sidecars(tasks, rows, options, out_dir: str, executor, xmp: dict) -> None:
+    """The sidecars of a batch's finished items (:func:`run_batch`'s ``xmp``)."""
+    futs = []
+    for t in tasks:
+        r = rows[t.name]
+        if r["status"] not in ("done", "skipped") or not r.get("illuminant"):
+            continue
+        rel_dir = os.path.dirname(t.name)
+        target = (sidecar_path(os.path.join(xmp["folder"], t.name), xmp["name"]) if xmp.get("folder")
+                  else sidecar_path(t.src, xmp["name"]))
+        fallback = None if xmp.get("folder") else os.path.join(out_dir, rel_dir)
+        if xmp.get("folder"):
+            os.makedirs(os.path.dirname(target), exist_ok=True)      # --xmp DIR: the relative tree kept
+        args = (t.src, r["illuminant"], options, target, fallback, bool(xmp.get("overwrite")))
+        if executor is None:            # every item already finished: no pool was started
+            from concurrent.futures import Future
+
+            f: Future = Future()
+            try:
+                f.set_result(_sidecar_job(*args))
+            except Exception as e:  # noqa: BLE001 - reported below as a worker's would be
+                f.set_exception(e)
+            futs.append((t, f))
+        else:
+            futs.append((t, executor.submit(_sidecar_job, *args)))
+    for t, f in futs:
+        try:
+            res = f.result()
+        except Exception as e:  # noqa: BLE001 - a worker lost: the image is done, say why the sidecar is not
+            res = {"xmp": None, "note": f"no XMP sidecar: {type(e).__name__}: {e}"}
+        r = rows[t.name]
+        if res.get("xmp"):
+            r["xmp"] = res["xmp"]
+        if res.get("kept"):
+            r["xmp_kept"] = res["kept"]
+        if res.get("note"):
+            r["note"] = "; ".join(n for n in (r.get("note"), res["note"]) if n)
 
 
 def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = False) -> dict | None:
@@ -527,8 +589,10 @@ def _cmd_batch(args) -> int:
                            + (" or its subfolders" if args.recursive else "")
                            + ("; " + _ignored_text(ignored).strip().replace("\n", "; ") if ignored else ""))
     try:
+        xmp = None if args.xmp is None else {"folder": args.xmp or None, "name": args.xmp_name,
+                                             "overwrite": args.xmp_overwrite}
         rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
-                         quiet=args.quiet, recursive=args.recursive)
+                         quiet=args.quiet, recursive=args.recursive, xmp=xmp)
     except BatchInterrupted as e:
         if threading.current_thread() is threading.main_thread():
             import signal
@@ -543,6 +607,13 @@ def _cmd_batch(args) -> int:
                          f"(finished outputs are skipped):\n  {cmd}\n")
         return 130
     _summary(rows, sys.stdout, args.quiet)
+    if args.xmp is not None and not args.quiet:
+        written = [r["xmp"] for r in rows if r.get("xmp")]
+        beside = sum(os.path.dirname(p) == os.path.dirname(os.path.abspath(os.path.join(args.in_dir, r["name"])))
+                     for r, p in ((r, r["xmp"]) for r in rows if r.get("xmp")))
+        kept = sum(bool(r.get("xmp_kept")) for r in rows)
+        print(f"XMP sidecars: {len(written)} written ({beside} beside their RAW), {kept} kept as they were"
+              + (" (--xmp-overwrite replaces them)" if kept else ""))
     if ignored:
         (sys.stderr if args.quiet else sys.stdout).write(_ignored_text(ignored))
     return 1 if any(r["status"] == "failed" for r in rows) else 0
@@ -598,21 +669,34 @@ def _cmd_white_balance(args) -> int:
     res = jobs.process_item(task)
     res["name"] = task.name
     if res["status"] == "done" and args.xmp is not None:
-        path = args.xmp or os.path.join(os.path.dirname(os.path.abspath(args.out)),
-                                        os.path.splitext(os.path.basename(args.file))[0] + ".xmp")
-        try:
-            tt = _write_xmp(args.file, res["illuminant"], opts, path)
-            res["xmp"] = path
-            if not args.quiet:
-                print(f"XMP sidecar: {term_safe(path)} (Temperature {tt['temperature']:.0f} K, Tint {tt['tint']:+.0f})")
-        except Exception as e:  # noqa: BLE001 - the image is written; say why the sidecar is not
+        target = args.xmp or sidecar_path(args.file, args.xmp_name)
+        fallback = None if args.xmp else os.path.dirname(os.path.abspath(args.out))
+        sc = _sidecar_job(args.file, res["illuminant"], opts, target, fallback, args.xmp_overwrite)
+        if sc.get("error"):
             res["status"] = "failed"
-            res["error"] = f"xmp: {getattr(e, 'detail', e)}"
+            res["error"] = f"xmp: {sc['error']}"
+        else:
+            if sc.get("xmp"):
+                res["xmp"] = sc["xmp"]
+                if not args.quiet:
+                    print(f"XMP sidecar: {term_safe(sc['xmp'])} (Temperature {sc['temperature']:.0f} K, "
+                          f"Tint {sc['tint']:+.0f})")
+            if sc.get("note"):
+                res["note"] = sc["note"]
     _summary([res], sys.stdout, args.quiet)
     return 0 if res["status"] == "done" else 1
 
 
-def _write_xmp(src: str, illuminant: dict, opts, path: str) -> dict:
+def sidecar_path(raw: str, name: str = "stem") -> str:
+    """Where editors look for a RAW's XMP sidecar: beside it, named
+    ``IMG_0001.xmp`` (``stem``: Adobe's convention, Lightroom and Camera Raw)
+    or ``IMG_0001.dng.xmp`` (``full``: darktable's and digiKam's)."""
+    base = os.path.basename(raw)
+    return os.path.join(os.path.dirname(os.path.abspath(raw)),
+                        (os.path.splitext(base)[0] if name == "stem" else base) + ".xmp")
+
+
+def _sidecar_text(src: str, illuminant: dict, opts) -> tuple[str, dict]:
     """The Camera Raw sidecar of a finished item (its estimated light's
     camera RGB through the file's colour matrices, pipeline.xmp_sidecar)."""
     from . import pipeline
@@ -621,9 +705,71 @@ def _write_xmp(src: str, illuminant: dict, opts, path: str) -> dict:
         decoded, cam, warns, _ = pipeline.open_image(f.read(), os.path.basename(src), _settings(), opts.camera)
     run = pipeline.EstimateRun(jobs._estimate_from_json(illuminant, cam), cam, warns)  # the item's own light
     text, tt, _ = pipeline.xmp_sidecar(decoded, run)
-    with open(path, "w", encoding="utf-8") as f:
-        f.write(text)
-    return tt
+    return text, tt
+
+
+def _write_sidecar(path: str, text: str, overwrite: bool) -> None:
+    """``text`` to ``path``: a new file only (``FileExistsError`` if one is
+    there: never a sidecar an editor wrote) unless ``overwrite``, then
+    replaced whole (a temporary renamed into place)."""
+    if not overwrite:
+        with open(path, "x", encoding="utf-8") as f:
+            f.write(text)
+        return
+    jobs.atomic_write(path, lambda p: jobs.write_text(p, text))
+
+
+#: errno values that mean "this folder cannot be written" (permission, read-only file system).
+_NOT_WRITABLE = (1, 13, 30)
+
+
+def _sidecar_job(src: str, illuminant: dict, opts, target: str, fallback: str | None, overwrite: bool) -> dict:
+    """Write one RAW's sidecar to ``target``; when its folder cannot be
+    written, to ``fallback`` (a folder) if given. An existing sidecar is
+    kept unless ``overwrite``. Returns ``xmp`` (the path written, or
+    ``None``), ``kept`` (an existing one left alone), ``note`` (in words,
+    when it went elsewhere or was kept), ``error`` (why there is none),
+    ``temperature``/``tint``. Runs in a batch's workers."""
+    def exists(p):
+        return os.path.lexists(p) and not overwrite
+
+    out: dict = {"xmp": None}
+    if exists(target):
+        return {**out, "kept": target, "note": f"XMP sidecar {target} exists: kept as it is (--xmp-overwrite "
+                                               "replaces it)"}
+    try:
+        text, tt = _sidecar_text(src, illuminant, opts)
+    except Exception as e:  # noqa: BLE001 - the image is written; say why the sidecar is not
+        return {**out, "error": str(getattr(e, "detail", e)), "note": f"no XMP sidecar: {getattr(e, 'detail', e)}"}
+    out.update(temperature=tt["temperature"], tint=tt["tint"])
+    folder = os.path.dirname(os.path.abspath(target))
+    try:
+        if not os.access(folder, os.W_OK):
+            raise PermissionError(13, "permission denied", folder)
+        _write_sidecar(target, text, overwrite)
+        return {**out, "xmp": target}
+    except FileExistsError:
+        return {**out, "kept": target, "note": f"XMP sidecar {target} exists: kept as it is (--xmp-overwrite "
+                                               "replaces it)"}
+    except OSError as e:
+        if fallback is None or e.errno not in _NOT_WRITABLE:
+            return {**out, "error": f"cannot write {target}: {e.strerror or e}",
+                    "note": f"no XMP sidecar: cannot write {target}: {e.strerror or e}"}
+        reason = e.strerror or str(e)
+    alt = os.path.join(fallback, os.path.basename(target))
+    why = f"the RAW's folder {folder} is not writable ({reason})"
+    if exists(alt):
+        return {**out, "kept": alt, "note": f"{why}, and {alt} exists: kept as it is (--xmp-overwrite replaces it)"}
+    try:
+        os.makedirs(fallback, exist_ok=True)
+        _write_sidecar(alt, text, overwrite)
+    except FileExistsError:
+        return {**out, "kept": alt, "note": f"{why}, and {alt} exists: kept as it is (--xmp-overwrite replaces it)"}
+    except OSError as e:
+        return {**out, "error": f"{why}, nor {fallback} ({e.strerror or e})",
+                "note": f"no XMP sidecar: {why}, nor {fallback} ({e.strerror or e})"}
+    return {**out, "xmp": alt, "note": f"{why}: XMP sidecar written to {alt} instead; editors look for it beside "
+                                       "the RAW, so move it there"}
 
 
 def _cmd_analyze(args) -> int:
@@ -681,9 +827,6 @@ def main(argv=None) -> int:
     w.add_argument("file")
     w.add_argument("out")
     _add_options(w, False)
-    w.add_argument("--xmp", nargs="?", const="", default=None, metavar="PATH",
-                   help="also write a Camera Raw XMP sidecar with the estimate as Temperature/Tint (default path: "
-                        "beside OUT, named after the RAW, so editors apply it to the RAW of that name)")
     out, err = sys.stdout, sys.stderr
     sys.stdout, sys.stderr = _SafeStream(out), _SafeStream(err)  # also what libraries and warnings print
     try:

@@ -151,7 +151,7 @@ EXIF_TAGS = {
     "Make": 271, "Model": 272, "DateTime": 306, "Artist": 315, "Copyright": 33432,
     "ExposureTime": 33434, "FNumber": 33437, "ISOSpeedRatings": 34855, "DateTimeOriginal": 36867,
     "ExposureBiasValue": 37380, "FocalLength": 37386, "LensModel": 42036, "LensMake": 42035,
-    "BodySerialNumber": 42033,
+    "BodySerialNumber": 42033, "ImageDescription": 270,
 }
 
 

@@ -12,15 +12,19 @@ test checks the shipped bytes equal a fresh generation and that LittleCMS
 EXIF (CIPA DC-008) is written as a little-endian TIFF structure (encoded
 by Pillow's TIFF directory writer, :func:`exif_block`): IFD0 with
 Make, Model, Orientation (always 1: the pixels are already rotated, so the
-orientation is applied once), Software, DateTime, ImageDescription (the
-estimate as JSON), and an EXIF sub-IFD with the exposure facts of the
-source. JPEG gets it as APP1 ``Exif``, PNG as ``eXIf`` (PNG 1.5 extension),
+orientation is applied once), Software, DateTime, the source's own
+ImageDescription if it had one (never the estimate: photo managers show
+ImageDescription as the caption), and an EXIF sub-IFD with the exposure
+facts of the source. JPEG gets it as APP1 ``Exif``, PNG as ``eXIf`` (PNG 1.5 extension),
 TIFF as tags of its own IFD0. EXIF and TIFF text fields are 7-bit ASCII:
 text that is not (a photographer named José, a camera model in another
 script) is written there transliterated (:func:`ascii_text`) and whole, in
 UTF-8, in an XMP packet (:func:`xmp_facts`: JPEG APP1
 ``http://ns.adobe.com/xap/1.0/``, PNG iTXt ``XML:com.adobe.xmp``, TIFF tag
-700), so no metadata ever fails an image.
+700), so no metadata ever fails an image. The same packet carries the
+estimate under the ``wandell:`` namespace (:data:`WANDELL_NS`: method,
+camera RGB, multipliers, xy, CCT, Duv, confidence, and the whole summary as
+JSON in ``wandell:Estimate``).
 """
 
 from __future__ import annotations
@@ -33,15 +37,25 @@ from importlib import resources
 import numpy as np
 
 __all__ = ["icc_profile", "shipped_icc", "ICC_FOR_OUTPUT", "exif_block", "embed", "xmp_sidecar", "ascii_text",
-           "xmp_facts", "XMP_KEY"]
+           "xmp_facts", "XMP_KEY", "WANDELL_NS", "read_wandell_xmp"]
 
 D50_XYZ = (0.9642, 1.0, 0.8249)      # the ICC PCS white (s15Fixed16 rounding of D50)
 
-#: output name -> (ICC file, description, primaries, transfer)
+#: output name -> (ICC file, description, primaries, transfer). Primaries
+#: ``display:NAME`` are a spectral display of :mod:`models.displays`: its
+#: guns' CIE 1931 XYZ (:func:`recovery.synthesis.output_space` on the
+#: default 400..700 nm grid, white Y = 1), its white their sum. Those
+#: outputs hold linear gun intensities (no encoding, no tone curve:
+#: :func:`recovery.synthesis.correction_matrix`), so their TRC is the
+#: identity (gamma 1.0), whatever gamma a real CRT's drive values have.
 ICC_SPACES = {
     "sRGB": ("sRGB.icc", "sRGB IEC61966-2.1 (wandell)", "sRGB", "srgb"),
     "linear-sRGB": ("linear-sRGB.icc", "Linear sRGB (wandell)", "sRGB", "linear"),
     "Display P3": ("DisplayP3.icc", "Display P3 (wandell)", "Display P3", "srgb"),
+    "Typical CRT Brainard 1997": ("TypicalCRT-Brainard1997.icc", "Typical CRT Brainard 1997, linear (wandell)",
+                                  "display:Typical CRT Brainard 1997", "linear"),
+    "Apple Studio Display": ("AppleStudioDisplay.icc", "Apple Studio Display, linear (wandell)",
+                             "display:Apple Studio Display", "linear"),
 }
 ICC_FOR_OUTPUT = {k: v[0] for k, v in ICC_SPACES.items()}
 
@@ -73,17 +87,35 @@ def _text(text: str) -> bytes:
     return b"text" + b"\0" * 4 + text.encode("ascii") + b"\0"
 
 
+def display_rgb_to_xyz(prim: str) -> tuple[np.ndarray, tuple[float, float]]:
+    """RGB -> CIE 1931 XYZ (columns, white Y = 1) and the white's xy of an
+    :data:`ICC_SPACES` primaries entry: an RGB space of
+    :data:`recovery.dng_color.PRIMARIES`, or ``display:NAME``, a spectral
+    display (its guns through the CIE 1931 observer on the default grid)."""
+    from recovery.dng_color import PRIMARIES, rgb_to_xyz_matrix
+
+    if prim.startswith("display:"):
+        from models.grid import DEFAULT_WAVELENGTHS
+        from recovery.synthesis import output_space
+
+        G = np.asarray(output_space(prim[len("display:"):], DEFAULT_WAVELENGTHS).Gamma, float)
+        w = G.sum(axis=1)
+        return G, (float(w[0] / w.sum()), float(w[1] / w.sum()))
+    return rgb_to_xyz_matrix(prim), PRIMARIES[prim][1]
+
+
 def icc_profile(output: str) -> bytes:
     """A v2.1 RGB display profile (matrix/TRC) for ``output`` (a key of
     :data:`ICC_SPACES`): colorants are the space's RGB -> XYZ columns adapted
     from its white to D50 by Bradford (as the ICC requires), media white D50,
     ``chad`` the adaptation, TRC the sRGB curve (1024 entries) or identity.
     Byte-for-byte deterministic (fixed date, no profile ID)."""
-    from recovery.dng_color import D50_XY, PRIMARIES, bradford, rgb_to_xyz_matrix
+    from recovery.dng_color import D50_XY, bradford
 
     _, desc, prim, trc = ICC_SPACES[output]
-    chad = bradford(PRIMARIES[prim][1], D50_XY)
-    M = chad @ rgb_to_xyz_matrix(prim)
+    rgb_xyz, white = display_rgb_to_xyz(prim)
+    chad = bradford(white, D50_XY)
+    M = chad @ rgb_xyz
     curv = _curv(trc)
     sf32 = b"sf32" + b"\0" * 4 + b"".join(_s15(v) for v in chad.ravel())
     tags = [(b"desc", _desc(desc)), (b"cprt", _text("No copyright, use freely")),
@@ -118,8 +150,8 @@ def icc_profile(output: str) -> bytes:
 
 
 def shipped_icc(output: str) -> bytes | None:
-    """The shipped profile for an output space (``None`` for outputs without
-    one, e.g. the spectral display models)."""
+    """The shipped profile for an output space or display (``None`` for an
+    output without one)."""
     name = ICC_FOR_OUTPUT.get(output)
     if name is None:
         return None
@@ -182,19 +214,98 @@ _XMP_FACTS = {
     "Make": ("tiff", "Make", "text"), "Model": ("tiff", "Model", "text"),
     "LensMake": ("exifEX", "LensMake", "text"), "LensModel": ("exifEX", "LensModel", "text"),
     "BodySerialNumber": ("exifEX", "BodySerialNumber", "text"),
+    "ImageDescription": ("dc", "description", "lang"),
 }
 _XMP_NS = {"dc": "http://purl.org/dc/elements/1.1/", "tiff": "http://ns.adobe.com/tiff/1.0/",
            "exifEX": "http://cipa.jp/exif/1.0/"}
+#: The namespace of the estimate in XMP (embedded packets and sidecars).
+WANDELL_NS = "https://github.com/wandell-recovery/ns/1.0/"
+#: Summary key -> (``wandell:`` property, kind): ``real``, ``text`` or ``seq`` (an rdf:Seq of reals).
+_WANDELL_FIELDS = {
+    "method": ("Method", "text"), "camera": ("Camera", "text"), "camera_rgb": ("CameraRGB", "seq"),
+    "wb_multipliers": ("WBMultipliers", "seq"), "xy": ("LightXY", "seq"), "cct": ("CCT", "real"),
+    "duv": ("Duv", "real"), "confidence": ("Confidence", "real"), "temperature": ("Temperature", "real"),
+    "tint": ("Tint", "real"), "white": ("White", "text"), "target": ("Target", "text"),
+    "output": ("Output", "text"),
+}
+
+
+def _wandell_props(estimate: dict, indent: str = "   ") -> list[str]:
+    """The estimate as ``wandell:`` XMP properties (elements): the fields
+    of :data:`_WANDELL_FIELDS` it has, the rendering's name, and the whole
+    summary as JSON in ``wandell:Estimate``."""
+    import math
+    from xml.sax.saxutils import escape
+
+    def real(v):
+        return repr(float(v)) if isinstance(v, (int, float)) and math.isfinite(v) else None
+
+    out = []
+    for key, (prop, kind) in _WANDELL_FIELDS.items():
+        v = estimate.get(key)
+        if v is None:
+            continue
+        if kind == "text":
+            out.append(f"{indent}<wandell:{prop}>{escape(str(v))}</wandell:{prop}>")
+        elif kind == "real" and real(v) is not None:
+            out.append(f"{indent}<wandell:{prop}>{real(v)}</wandell:{prop}>")
+        elif kind == "seq" and isinstance(v, (list, tuple)) and all(real(x) is not None for x in v):
+            items = "".join(f"<rdf:li>{real(x)}</rdf:li>" for x in v)
+            out.append(f"{indent}<wandell:{prop}><rdf:Seq>{items}</rdf:Seq></wandell:{prop}>")
+    rendering = estimate.get("rendering")
+    if isinstance(rendering, dict) and rendering.get("rendering"):
+        out.append(f"{indent}<wandell:Rendering>{escape(str(rendering['rendering']))}</wandell:Rendering>")
+    from .jsonsafe import clean
+
+    text = json.dumps(clean(estimate), separators=(",", ":"))
+    out.append(f"{indent}<wandell:Estimate>{escape(text)}</wandell:Estimate>")
+    return out
+
+
+def read_wandell_xmp(packet: str | bytes) -> dict:
+    """The ``wandell:`` properties of an XMP packet (what :func:`xmp_facts`
+    and :func:`xmp_sidecar` write) as ``{property: value}``: reals as
+    floats, sequences as lists, ``Estimate`` as the parsed JSON."""
+    import xml.etree.ElementTree as ET
+
+    if isinstance(packet, bytes):
+        packet = packet.decode("utf-8")
+    body = packet.split("?>", 1)[1].rsplit("<?xpacket", 1)[0] if packet.lstrip().startswith("<?xpacket") else packet
+    root = ET.fromstring(body.strip())
+    ns = "{" + WANDELL_NS + "}"
+    kinds = {prop: kind for prop, kind in _WANDELL_FIELDS.values()}
+    out: dict = {}
+    for d in root.iter("{http://www.w3.org/1999/02/22-rdf-syntax-ns#}Description"):
+        for k, v in d.attrib.items():
+            if k.startswith(ns):
+                out[k[len(ns):]] = v
+        for el in d:
+            if not el.tag.startswith(ns):
+                continue
+            name = el.tag[len(ns):]
+            kind = kinds.get(name, "text")
+            if kind == "seq":
+                out[name] = [float(li.text) for li in el.iter("{http://www.w3.org/1999/02/22-rdf-syntax-ns#}li")]
+            elif kind == "real":
+                out[name] = float(el.text)
+            else:
+                out[name] = el.text or ""
+    if "Estimate" in out:
+        out["Estimate"] = json.loads(out["Estimate"])
+    return out
+
+
 #: PNG iTXt keyword (and, with the ``http://ns.adobe.com/xap/1.0/`` APP1
 #: header, the JPEG carrier) of an XMP packet.
 XMP_KEY = "XML:com.adobe.xmp"
 
 
-def xmp_facts(facts: dict) -> str | None:
+def xmp_facts(facts: dict, estimate: dict | None = None) -> str | None:
     """An XMP packet with the text facts that are not ASCII (so cannot go
-    into EXIF/TIFF ASCII fields whole), in UTF-8 as XMP requires; ``None``
-    when every text fact is ASCII. The ASCII fields carry
-    :func:`ascii_text` of the same values."""
+    into EXIF/TIFF ASCII fields whole), in UTF-8 as XMP requires, and the
+    estimate (``wandell:`` properties, :func:`_wandell_props`); ``None``
+    when every text fact is ASCII and there is no estimate. The ASCII
+    fields carry :func:`ascii_text` of the same values."""
     from xml.sax.saxutils import escape
 
     props = []
@@ -210,9 +321,11 @@ def xmp_facts(facts: dict) -> str | None:
                          f"</{ns}:{prop}>")
         else:
             props.append(f"   <{ns}:{prop}>{escape(v)}</{ns}:{prop}>")
+    if estimate is not None:
+        props += _wandell_props(estimate)
     if not props:
         return None
-    xmlns = "".join(f'\n   xmlns:{k}="{u}"' for k, u in _XMP_NS.items())
+    xmlns = "".join(f'\n   xmlns:{k}="{u}"' for k, u in {**_XMP_NS, "wandell": WANDELL_NS}.items())
     body = "\n".join(props)
     return (f'<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
             f'<x:xmpmeta xmlns:x="adobe:ns:meta/" x:xmptk="wandell-recovery">\n'
@@ -283,15 +396,18 @@ def exif_block(facts: dict) -> bytes:
 
 
 def output_facts(source_exif: dict, estimate: dict | None, software: str = "wandell-recovery") -> dict:
-    """The EXIF facts of an output: the source's, orientation 1 (the pixels
-    are already rotated), this software, and the estimate as JSON in
-    ImageDescription."""
-    facts = {k: v for k, v in source_exif.items() if k not in ("Orientation", "ImageDescription", "Software")}
+    """The EXIF facts of an output: the source's (its own ImageDescription
+    kept, if it had one), orientation 1 (the pixels are already rotated),
+    this software, and ``XMP``: the packet with the estimate
+    (:func:`xmp_facts`). The estimate is never put in ImageDescription,
+    which photo managers (Lightroom, digiKam, Apple Photos...) show as the
+    picture's caption."""
+    facts = {k: v for k, v in source_exif.items() if k not in ("Orientation", "Software")}
+    if not str(facts.get("ImageDescription") or "").strip():
+        facts.pop("ImageDescription", None)
     facts["Orientation"] = 1
     facts["Software"] = software
-    if estimate is not None:
-        facts["ImageDescription"] = "wandell estimate " + json.dumps(estimate, separators=(",", ":"))
-    xmp = xmp_facts(facts)
+    xmp = xmp_facts(facts, estimate)
     if xmp is not None:
         facts["XMP"] = xmp
     return facts
@@ -387,25 +503,26 @@ def tiff_extratags(facts: dict) -> list:
 def xmp_sidecar(temperature: float, tint: float, estimate: dict | None = None) -> str:
     """An XMP sidecar with Camera Raw settings: ``crs:WhiteBalance="Custom"``,
     ``crs:Temperature`` (K, Camera Raw's 2000..50000 range) and ``crs:Tint``
-    (-150..150), which Lightroom/Camera Raw apply to the RAW of the same
-    name; the estimate itself under a ``wandell:`` namespace."""
+    (-150..150), which Lightroom/Camera Raw apply to a proprietary RAW of
+    the same name (for a DNG they read the settings inside the DNG: README,
+    "XMP sidecars and DNGs"); the estimate itself under the ``wandell:``
+    namespace (:func:`_wandell_props`)."""
     t = int(round(min(max(float(temperature), 2000.0), 50000.0)))
     ti = int(round(min(max(float(tint), -150.0), 150.0)))
-    extra = ""
+    body = ""
     if estimate is not None:
-        from xml.sax.saxutils import quoteattr
-
-        extra = f"\n   wandell:Estimate={quoteattr(json.dumps(estimate, separators=(',', ':')))}"
+        body = "\n".join(_wandell_props(estimate)) + "\n"
     return f"""<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>
 <x:xmpmeta xmlns:x="adobe:ns:meta/" x:xmptk="wandell-recovery">
  <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">
   <rdf:Description rdf:about=""
    xmlns:crs="http://ns.adobe.com/camera-raw-settings/1.0/"
-   xmlns:wandell="https://github.com/wandell-recovery/ns/1.0/"
+   xmlns:wandell="{WANDELL_NS}"
    crs:WhiteBalance="Custom"
    crs:Temperature="{t}"
    crs:Tint="{ti:+d}"
-   crs:HasSettings="True"{extra}/>
+   crs:HasSettings="True">
+{body}  </rdf:Description>
  </rdf:RDF>
 </x:xmpmeta>
 <?xpacket end="w"?>

@@ -585,12 +585,20 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
 
 def estimate_summary(run: EstimateRun, info: dict | None = None, profile=None, **extra) -> dict:
     """The estimate in short (the ``X-Illuminant`` of an XMP download, the
-    JSON an output file carries, the XMP sidecar's): method, camera RGB,
-    multipliers, CCT/Duv, camera name, and the rendering when ``info``."""
+    ``wandell:`` XMP an output file carries, the XMP sidecar's): method,
+    camera RGB, multipliers, CCT/Duv and the xy they come from, the
+    confidence when the method reports one, camera name, and the rendering
+    when ``info``."""
     est = run.estimate
     cct, duv = light_cct_duv(est, profile, run.camera)
     out = {"method": est.method, "camera_rgb": est.rgb.tolist(), "wb_multipliers": est.wb_multipliers.tolist(),
            "cct": cct, "duv": duv, "camera": run.camera.name}
+    if cct is not None:                 # the xy the CCT/Duv come from (light_xy)
+        xy, _ = light_xy(est, profile, run.camera)
+        out["xy"] = [float(xy[0]), float(xy[1])]
+    conf = est.diagnostics.get("confidence")
+    if isinstance(conf, (int, float)) and np.isfinite(conf):
+        out["confidence"] = float(conf)
     if info:
         out["rendering"] = info.get("rendering")
     out.update(extra)
@@ -657,9 +665,9 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
             kw["iccprofile"] = icc
         if facts:
             kw["extratags"] = outputs.tiff_extratags(facts)
-            if facts.get("ImageDescription"):
-                kw["description"] = facts["ImageDescription"]
-                kw["metadata"] = None
+            kw["metadata"] = None          # no tifffile shape JSON in ImageDescription (photo tools show it)
+            if facts.get("ImageDescription"):   # the source's own caption only; the estimate is in the XMP
+                kw["description"] = outputs.ascii_text(facts["ImageDescription"])
             kw["software"] = facts.get("Software", "wandell-recovery")
         if path is not None:
             tifffile.imwrite(path, img, photometric="rgb", **kw)
@@ -698,13 +706,15 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
 
 def output_meta(decoded, output: str, estimate: dict | None) -> dict:
     """What an output file carries: the ICC profile of ``output`` (sRGB,
-    linear sRGB, Display P3; none for the spectral display models), the
-    source's EXIF facts, orientation 1, and the estimate."""
+    linear sRGB, Display P3, and the spectral displays' own, linear), the
+    source's EXIF facts (its own ImageDescription, never the estimate),
+    orientation 1, and the estimate in the XMP packet (``wandell:``
+    namespace, :func:`service.outputs.xmp_facts`) and as a PNG text chunk."""
     from . import metadata, outputs
 
     facts = outputs.output_facts(metadata.source_exif(decoded), estimate)
     text = {"wandell:estimate": json.dumps(estimate, separators=(",", ":"))} if estimate is not None else None
-    if facts.get("XMP"):       # non-ASCII text facts, whole (PNG iTXt / JPEG APP1; TIFF takes them from facts)
+    if facts.get("XMP"):       # the estimate, non-ASCII facts (PNG iTXt / JPEG APP1; TIFF takes them from facts)
         text = dict(text or {}, **{outputs.XMP_KEY: facts["XMP"]})
     return {"icc": outputs.shipped_icc(output), "facts": facts, "text": text}
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 import types
 import typing
 
+from .fields import _UNSET
+
 
 __all__ = ["add_options", "choices_help"]
 
@@ -45,11 +47,18 @@ def add_options(parser, fields: dict, *, include=None, exclude=(), defaults=None
             text += f" ({choices_help(opt.choices)})"
         if default is not None:
             text += f"; default: {default}"
+        if opt.type is bool:
+            parser.add_argument("--" + name.replace("_", "-"), action="store_true",
+                                help=describe.get(name, opt.description).replace("%", "%%"))
+            names.append(name)
+            continue
         kw = {"default": default, "help": text.replace("%", "%%")}
         if _is_int(opt.wire_type):
             kw["type"] = int
         if opt.metavar:
             kw["metavar"] = opt.metavar
+        if opt.const is not _UNSET:
+            kw.update(nargs="?", const=opt.const)
         parser.add_argument("--" + name.replace("_", "-"), **kw)
         names.append(name)
     return names

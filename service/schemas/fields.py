@@ -30,7 +30,8 @@ from ..errors import ServiceError
 from ..options import FORMATS, IMAGE_FORMATS, LIGHT_MODELS, OUTPUTS, SURFACE_MODELS
 
 __all__ = ["Opt", "INPUT", "ESTIMATION", "SPATIAL", "RENDERING", "WHITE_BALANCE", "NEUTRAL", "REGIONS", "PREVIEW",
-           "BATCH", "SPECTRAL", "LIGHTING", "CONCERNS", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "run_check"]
+           "BATCH", "SIDECAR", "XMP_NAMES", "SPECTRAL", "LIGHTING", "CONCERNS", "PREVIEW_MAX_SIDE",
+           "PREVIEW_SIDE_RANGE", "run_check"]
 
 #: Lighting modes of a batch.
 LIGHTING = ("per-image", "shared")
@@ -51,7 +52,9 @@ class Opt:
     :class:`~service.errors.ServiceError`; without one, a value outside
     ``choices`` is refused by name; ``cli``: the option is a CLI flag;
     ``metavar``: its placeholder there; ``summary``: the README table's text
-    when the description's first clause is not short."""
+    when the description's first clause is not short; ``const``: the flag's
+    value when given without one (an optional value, argparse
+    ``nargs="?"``). A ``bool`` option is a switch (``store_true``)."""
 
     type: Any
     default: Any
@@ -64,6 +67,7 @@ class Opt:
     cli: bool = True
     metavar: str | None = None
     summary: str | None = None
+    const: Any = _UNSET
 
     @property
     def wire_type(self):
@@ -310,10 +314,26 @@ BATCH = {
                     choices=LIGHTING, examples=("per-image",)),
 }
 
+# --------------------------------------------------------------------------- XMP sidecars (command line)
+#: How a sidecar is named beside its RAW: ``stem`` IMG_0001.xmp (Lightroom,
+#: Camera Raw, Capture One), ``full`` IMG_0001.dng.xmp (darktable, digiKam).
+XMP_NAMES = ("stem", "full")
+#: ``wandell white-balance`` and ``wandell batch``: Camera Raw XMP sidecars
+#: beside the RAWs (no model: the server never writes beside an upload).
+SIDECAR = {
+    "xmp": Opt(str | None, None, "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) beside "
+                                 "the RAW, where editors look for it; PATH: write it there instead",
+               const="", metavar="PATH", summary="also write a Camera Raw XMP sidecar beside each RAW"),
+    "xmp_name": Opt(str, "stem", "sidecar name: stem (IMG_0001.xmp, what Lightroom/Camera Raw read) or full "
+                                 "(IMG_0001.dng.xmp, what darktable and digiKam read)",
+                    choices=XMP_NAMES, examples=("stem",)),
+    "xmp_overwrite": Opt(bool, False, "replace a sidecar that exists already (default: keep it, and say so)"),
+}
+
 #: The concerns in the README's options table, in order: (concern, fields, label suffix).
 CONCERNS = (("input", INPUT, ""), ("estimation", {**ESTIMATION, **SPATIAL}, ""), ("rendering", {**RENDERING, **WHITE_BALANCE}, ""),
             ("regions", NEUTRAL, ""), ("regions", REGIONS, " (surfaces)"), ("preview", PREVIEW, ""),
-            ("batches", BATCH, ""), ("spectral rendering", SPECTRAL, ""))
+            ("batches", BATCH, ""), ("spectral rendering", SPECTRAL, ""), ("sidecars (CLI)", SIDECAR, ""))
 
 
 def _cell(value) -> str:
