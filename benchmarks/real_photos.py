@@ -155,10 +155,10 @@ def main(argv=None) -> int:
         errs[name] = angular_error(est, rs.truth)
 
     t0 = time.perf_counter()
-    feats, tuv, Ks = dataset_features(rs)
+    feats, tuv, Ks, gam = dataset_features(rs)
     t_feat = (time.perf_counter() - t0) / n
     with single_threaded():
-        lodo = leave_one_benchmark_out(rs, feats, tuv, Ks, sog=errs[SOG])
+        lodo = leave_one_benchmark_out(rs, feats, tuv, Ks, sog=errs[SOG], gam=gam)
     err = np.zeros(n)
     inside = {}
     conf = np.zeros(n)
@@ -183,7 +183,7 @@ def main(argv=None) -> int:
         with single_threaded():
             errs["learned (LOCO)"] = leave_one_camera_out(
                 rs, feats, tuv, Ks, {b: m.info["selection"]["chosen_ridge"] for b, (m, _, _) in lodo.items()},
-                sog=errs[SOG])
+                sog=errs[SOG], gam=gam)
         times["learned (LOCO)"] = times[LEARNED]
 
     report = {"images": n, "quick": a.quick, "benchmarks": rs.datasets, "cameras": rs.cameras,

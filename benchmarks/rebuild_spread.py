@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     from benchmarks.train_illuminant import dataset_features, usable
 
     idx = [i for i in range(0, len(rs.truth), a.every)]
-    feats, _, _ = dataset_features(rs.subset(np.array(idx)))
+    feats, _, _, _ = dataset_features(rs.subset(np.array(idx)))
     idx = [i for i, ok in zip(idx, usable(feats)) if ok]          # images the learnt estimator can run on
     res = {k: estimates(str(v), rs, idx) for k, v in paths.items()}
     res["shipped"] = estimates(None, rs, idx)

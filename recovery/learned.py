@@ -24,15 +24,20 @@ where what is learnt on some cameras holds for others:
    trained from fixed seeds) maps those estimates, taken relative to the
    bright-pixel estimate, to the light's log-chroma: a learnt, nonlinear
    "corrected moments" (Finlayson 2013) over many moments;
-5. the uncertainty is a Gaussian in log-chroma whose size grows with the
-   disagreement of the classical estimates and the ensemble, with a
-   calibration learnt on held-out cameras so that the reported 90 % region
-   holds the true light about 90 % of the time.
+5. the model is applied only within the evidence it was trained on: when
+   the colour matrix sends more of the image out of the canonical gamut
+   than it did for 99 % of the training images (a D65 matrix under tungsten
+   light, :func:`canonical_analysis`), the reference estimate stands and
+   the diagnostics say ``outside_training_range``;
+6. the uncertainty is a Gaussian in log-chroma whose size grows with the
+   disagreement of the classical estimates, with a calibration learnt on
+   held-out benchmarks so that the reported 90 % region holds the true
+   light about 90 % of the time.
 
 Everything learnt ships in ``recovery/data/learned_illuminant.npz``, built
 deterministically by ``python -m benchmarks.train_illuminant`` from the
-development photographs (NUS 8-camera and Cube+), with a record of what it
-was trained on.
+development photographs (NUS 8-camera, Cube+ and INTEL-TAU field), with a
+record of what it was trained on.
 
 References
 ----------
@@ -66,7 +71,7 @@ from .estimators import bright_pixels, gray_edge, gray_world, shades_of_gray, wh
 
 __all__ = ["LearnedModel", "LearnedResult", "FEATURE_NAMES", "load_model", "camera_color_matrix",
            "canonical_transform", "estimation_image", "features", "estimate_learned", "fit_robust_ridge",
-           "model_inputs", "locus_coordinates", "rgb_to_uv", "uv_to_rgb", "DEFAULT_MODEL_PATH", "CHI2_90"]
+           "model_inputs", "canonical_analysis", "locus_coordinates", "rgb_to_uv", "uv_to_rgb", "DEFAULT_MODEL_PATH", "CHI2_90"]
 
 DEFAULT_MODEL_PATH = Path(__file__).with_name("data") / "learned_illuminant.npz"
 
@@ -246,12 +251,31 @@ def canonical_cells(image, mask, color_matrix, canonical):
     """The analysis image of :func:`estimation_image`, in the canonical
     space; cells that leave the canonical gamut (a channel <= 0) are left
     out."""
+    can, ok, K, _ = canonical_analysis(image, mask, color_matrix, canonical)
+    return can, ok, K
+
+
+def canonical_analysis(image, mask, color_matrix, canonical):
+    """:func:`canonical_cells` and the *out-of-gamut fraction*: the share of
+    the usable cells that the colour matrix sends out of the canonical
+    gamut (a canonical channel <= 1e-4 of the brightest).
+
+    A real colour, seen under a real light, has positive cone responses, so
+    a large fraction means the matrix does not describe the camera under
+    this light: typically a D65 matrix (LibRaw's table keeps only Adobe's
+    ColorMatrix2) applied under tungsten light, where the camera's blue is
+    small and a few per cent of matrix error drive the canonical blue below
+    zero. The learnt model is not applied beyond the fractions it was
+    trained on (:attr:`LearnedModel.gamut_limit`).
+    """
     cells, ok = estimation_image(image, mask)
     K = canonical_transform(color_matrix, canonical)
     can = cells @ K.T
     top = float(can[ok].max()) if ok.any() else 0.0
-    ok = ok & np.all(can > 1e-4 * max(top, 1e-300), axis=-1)
-    return can, ok, K
+    n = int(ok.sum())
+    ok_can = ok & np.all(can > 1e-4 * max(top, 1e-300), axis=-1)
+    frac = float(1.0 - ok_can.sum() / n) if n else 0.0
+    return can, ok_can, K, frac
 
 
 #: Neighbouring cells closer than this in every channel's log (3 %, three
@@ -307,6 +331,12 @@ class LearnedModel:
         spread (see :func:`_spread`); calibrated on held-out benchmarks
     confidence_coef : (2,) ``P(error < 3 deg) = 1 / (1 + exp(-(c0 + c1 log radius90_deg)))``,
         fitted by logistic regression on held-out benchmarks
+    gamut_limit : (1,) the largest out-of-gamut fraction
+        (:func:`canonical_analysis`) the model is applied at: the 99th
+        percentile of its training images' (``inf``: no limit, a model
+        saved before there was one). Beyond it the colour matrix does not
+        describe the camera under this light, the evidence is outside what
+        the model learnt from, and the reference estimate stands.
     info : dict, what it was trained on and how
     """
 
@@ -319,10 +349,11 @@ class LearnedModel:
     locus_mired: np.ndarray
     sigma: np.ndarray
     confidence_coef: np.ndarray = field(default_factory=lambda: np.array([np.nan, np.nan]))
+    gamut_limit: np.ndarray = field(default_factory=lambda: np.array([np.inf]))
     info: dict = field(default_factory=dict, compare=False)
 
     _ARRAYS = ("canonical", "mean", "scale", "expansion", "coef", "locus_uv", "locus_mired", "sigma",
-               "confidence_coef")
+               "confidence_coef", "gamut_limit")
 
     def save(self, path) -> None:
         np.savez_compressed(path, info=json.dumps(self.info, sort_keys=True),
@@ -332,10 +363,19 @@ class LearnedModel:
         """(..., F, 2) classical estimates -> (..., D) model inputs."""
         return model_inputs(feats, self.locus_uv, self.locus_mired, bool(self.expansion[2]))
 
-    def predict(self, x: np.ndarray) -> np.ndarray:
-        """(N, D) inputs -> (N, 2) light log-chroma offsets from the reference estimate."""
+    def predict(self, x: np.ndarray, gamut_fraction=None) -> np.ndarray:
+        """(N, D) inputs -> (N, 2) light log-chroma offsets from the
+        reference estimate; zero (the reference stands) for an image whose
+        out-of-gamut fraction (N,) exceeds :attr:`gamut_limit`."""
         pw, pb = random_expansion(len(self.mean), int(self.expansion[0]), int(self.expansion[1]))
-        return expand(np.atleast_2d(x), self.mean, self.scale, pw, pb) @ self.coef
+        off = expand(np.atleast_2d(x), self.mean, self.scale, pw, pb) @ self.coef
+        if gamut_fraction is not None:
+            off = np.where(self.outside(gamut_fraction)[:, None], 0.0, off)
+        return off
+
+    def outside(self, gamut_fraction) -> np.ndarray:
+        """(N,) bool: beyond the out-of-gamut fractions the model was trained on."""
+        return np.atleast_1d(np.asarray(gamut_fraction, float)) > float(np.asarray(self.gamut_limit).ravel()[0])
 
 
 @lru_cache(maxsize=4)
@@ -347,7 +387,9 @@ def load_model(path: str | None = None) -> LearnedModel:
     with np.load(p, allow_pickle=False) as z:
         if "coef" not in z.files:
             raise InputError(f"{p} is a model of an older format (rebuild it: python -m benchmarks.train_illuminant)")
-        return LearnedModel(*(z[k] for k in LearnedModel._ARRAYS), info=json.loads(str(z["info"])))
+        defaults = {"gamut_limit": np.array([np.inf])}
+        return LearnedModel(*(z[k] if k in z.files else defaults[k] for k in LearnedModel._ARRAYS),
+                            info=json.loads(str(z["info"])))
 
 
 def locus_coordinates(uv: np.ndarray, locus_uv: np.ndarray, locus_mired: np.ndarray) -> np.ndarray:
@@ -441,9 +483,10 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     img = np.asarray(image, float)
     if img.ndim != 3 or img.shape[-1] != 3:
         raise InputError(f"the learnt estimator needs an (H, W, 3) image, got {img.shape}")
-    can, ok, K = canonical_cells(img, mask, color_matrix, model.canonical)
+    can, ok, K, gamut = canonical_analysis(img, mask, color_matrix, model.canonical)
     f = features(can, ok)
-    uv = model.predict(model.inputs(f))[0] + f[REFERENCE]
+    outside = bool(model.outside(gamut)[0])
+    uv = model.predict(model.inputs(f), np.array([gamut]))[0] + f[REFERENCE]
     spread = float(_spread(f, uv))
     var = float(variance_from_spread(spread, model.sigma))
     cov = np.eye(2) * var
@@ -455,6 +498,7 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     conf = confidence(radius, model.confidence_coef)
     return LearnedResult(cam, uv, cov, float(radius), conf, int(ok.sum()),
                          {"evidence_spread": spread, "uniform_patch_fraction": uniform_patch_fraction(can @ np.linalg.inv(K).T, ok),
+                          "out_of_gamut_fraction": gamut, "outside_training_range": outside,
                           "estimates": {n: [float(a), float(b)] for n, (a, b) in zip(FEATURE_NAMES, f)}})
 
 

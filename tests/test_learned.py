@@ -214,8 +214,8 @@ def real():
     from benchmarks.train_illuminant import dataset_features
 
     rs = load_real(REAL)
-    feats, tuv, Ks = dataset_features(rs)
-    return rs, feats, tuv, Ks
+    feats, tuv, Ks, gam = dataset_features(rs)
+    return rs, feats, tuv, Ks, gam
 
 
 @pytest.fixture(scope="module")
@@ -235,10 +235,10 @@ def lodo(real, sog_errors):
     benchmarks only."""
     from benchmarks.train_illuminant import SETTINGS, leave_one_benchmark_out, single_threaded
 
-    rs, feats, tuv, Ks = real
+    rs, feats, tuv, Ks, gam = real
     settings = {**SETTINGS, "ridge_grid": [L.load_model().info["selection"]["chosen_ridge"]]}
     with single_threaded():
-        return leave_one_benchmark_out(rs, feats, tuv, Ks, settings, log=lambda s: None, sog=sog_errors)
+        return leave_one_benchmark_out(rs, feats, tuv, Ks, settings, log=lambda s: None, sog=sog_errors, gam=gam)
 
 
 def test_leave_one_benchmark_out_beats_shades_of_gray(real, lodo, sog_errors):
@@ -256,6 +256,46 @@ def test_leave_one_benchmark_out_beats_shades_of_gray(real, lodo, sog_errors):
         assert res["err"].mean() < sog_errors[te].mean(), (b, res["err"].mean(), sog_errors[te].mean())
     a, g = error_stats(err), error_stats(sog_errors)
     assert a["mean"] < g["mean"] and a["median"] < g["median"], (a, g)
+
+
+def test_the_model_is_not_applied_beyond_the_out_of_gamut_fractions_it_was_trained_on(real, lodo):
+    """A D65 colour matrix under tungsten light (Cube+'s Canon 550D indoors)
+    sends many cells out of the canonical gamut, so the model's evidence is
+    outside what it learnt from. Each left-out model's limit is the 99th
+    percentile of its *training* images' fractions; beyond it the reference
+    (bright pixels) stands and the diagnostics say so. On the development
+    data this moves 69 of Cube+'s 1,707 images, 2 of NUS's and none of
+    INTEL-TAU's; pooled over them the reference is better than the model
+    (measured 4.1 -> 1.3 degrees; on NUS's two the model was the better,
+    1.3 against 2.4, so the claim is on the pool, not each benchmark)."""
+    from benchmarks.realdata import usable_mask
+    from benchmarks.train_illuminant import SETTINGS, camera_errors, usable
+
+    rs, feats, tuv, Ks, gam = real
+    good = usable(feats)
+    e_model, e_ref = [], []
+    for b, (model, res, te) in lodo.items():
+        tr = (rs.dataset != b) & good
+        assert float(model.gamut_limit[0]) == pytest.approx(np.percentile(gam[tr], SETTINGS["gamut_quantile"]))
+        out = model.outside(gam[te]) & good[te]
+        assert out.sum() <= 0.1 * len(te), b
+        i = te[out]
+        if i.size:
+            applied = feats[i, L.REFERENCE] + model.predict(model.inputs(feats[i]))
+            e_model += list(camera_errors(applied, rs.truth[i], rs.camera[i], Ks))
+            e_ref += list(camera_errors(feats[i, L.REFERENCE], rs.truth[i], rs.camera[i], Ks))
+            np.testing.assert_allclose(res["uv"][out], feats[i, L.REFERENCE], atol=1e-12)
+    assert len(e_ref) >= 20 and np.mean(e_ref) < np.mean(e_model), (len(e_ref), np.mean(e_ref), np.mean(e_model))
+    # the product path says so, and gives the reference there
+    model = L.load_model()
+    i = int(np.flatnonzero(good & model.outside(gam))[0])
+    r = L.estimate_learned(rs.images[i], usable_mask(rs.images[i]), rs.matrices[rs.camera[i]], model)
+    assert r.diagnostics["outside_training_range"] and r.diagnostics["out_of_gamut_fraction"] > model.gamut_limit[0]
+    np.testing.assert_allclose(r.uv, feats[i, L.REFERENCE], atol=1e-12)
+    j = int(np.flatnonzero(good & ~model.outside(gam))[0])
+    r = L.estimate_learned(rs.images[j], usable_mask(rs.images[j]), rs.matrices[rs.camera[j]], model)
+    assert not r.diagnostics["outside_training_range"]
+    assert r.diagnostics["out_of_gamut_fraction"] == pytest.approx(gam[j], abs=1e-12)
 
 
 def test_reported_90_percent_region_holds_the_light_85_to_95_percent_of_each_left_out_benchmark(lodo):
@@ -353,9 +393,9 @@ def test_rebuilding_the_model_gives_the_shipped_one(real):
     from benchmarks.realdata import usable_mask
     from benchmarks.train_illuminant import shipped_model, single_threaded
 
-    rs, feats, tuv, Ks = real
+    rs, feats, tuv, Ks, gam = real
     with single_threaded():
-        new = shipped_model(rs, feats, tuv, Ks, log=lambda s: None)
+        new = shipped_model(rs, feats, tuv, Ks, log=lambda s: None, gam=gam)
     old = L.load_model()
     assert new.info["selection"] == old.info["selection"]
     for i in range(0, len(rs.truth), 251):
