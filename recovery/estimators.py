@@ -92,6 +92,10 @@ def gray_edge(image: np.ndarray, mask: np.ndarray | None = None, p: float = 6.0,
             gyy = imfilters.gaussian_filter(img[..., k], sigma, (2, 0), "nearest")
             gxy = imfilters.gaussian_filter(img[..., k], sigma, (1, 1), "nearest")
             mags[..., k] = np.sqrt(gxx ** 2 + gyy ** 2 + 2 * gxy ** 2)
+    # the image is scaled to a maximum of 1, so the rounding of the filter sums
+    # is under 1e-14 (a flat image gives OpenCV ~1e-18 where scipy's order of
+    # summation gave 0): a smaller magnitude is no edge
+    mags[mags < 1e-12] = 0.0
     m = None
     if mask is not None:
         m = imfilters.binary_erosion(mask, max(1, int(np.ceil(2 * sigma))))
