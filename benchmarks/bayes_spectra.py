@@ -19,14 +19,16 @@ spectral sensitivities, and how often fluorescent is reported.
 
 Usage::
 
-    python -m benchmarks.bayes_spectra [--per-camera 30] [--seed 0] [--synthetic 8]
+    python -m benchmarks.bayes_spectra [--per-camera 30] [--seed 0] [--synthetic 12] [--out out]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 
@@ -80,7 +82,8 @@ def table(rows, title):
     print(f"\n{title}")
     print(f"{'split':24s} {'n':>4s}  reported family (%)                         mean posterior mass (%)")
     print(f"{'':24s} {'':4s}  {'dayl':>5s} {'planck':>6s} {'fluor':>5s} {'other':>5s}   "
-          f"{'dayl':>5s} {'planck':>6s} {'fluor':>5s} {'LED':>5s} {'rest':>5s}  spiky>50%")
+          f"{'dayl':>5s} {'planck':>6s} {'fluor':>5s} {'LED':>5s} {'rest':>5s}  spiky>50%  | by mass: smooth "
+          f"fluor | evidence: log ratio, 10 colours (nats) p50 p90")
     for name, sel in rows:
         if not sel:
             continue
@@ -94,7 +97,11 @@ def table(rows, title):
         print(f"{name:24s} {n:4d}  {100 * fam['daylight'] / n:5.0f} {100 * fam['planckian'] / n:6.0f} "
               f"{100 * fam['fluorescent'] / n:5.0f} {100 * other / n:5.0f}   {100 * mm['daylight']:5.0f} "
               f"{100 * mm['planckian']:6.0f} {100 * mm['fluorescent']:5.0f} {100 * mm['LED']:5.0f} "
-              f"{100 * rest:5.0f}  {100 * spiky:6.0f}")
+              f"{100 * rest:5.0f}  {100 * spiky:6.0f}     | "
+              f"{100 * np.mean([r['by_mass'] in ('daylight', 'planckian') for r in sel]):13.0f} "
+              f"{100 * np.mean([r['by_mass'] == 'fluorescent' for r in sel]):5.0f} | "
+              + " ".join(f"{v:5.1f}" for key in ("ratio", "colours") for v in np.nanpercentile(
+                  [np.nan if r[key] is None else r[key] for r in sel] + [np.nan], [50, 90])))
     rules = Counter(r["rule"].split(":")[0].split(";")[0][:60] for _, sel in rows[:1] for r in sel)
     for k, v in rules.most_common(4):
         print(f"   rule x{v}: {k}")
@@ -121,7 +128,9 @@ def real(per_camera: int, seed: int):
             continue
         d, mass = r
         out.append({"i": int(i), "camera": c, "duv": true_duv(rs.truth[i], rs.matrices[c]),
-                    "family": d["spectrum_family"], "rule": d["spectrum_rule"], "mass": mass})
+                    "family": d["spectrum_family"], "rule": d["spectrum_rule"], "mass": mass,
+                    "by_mass": d.get("spectrum_family_by_mass", d["spectrum_family"]),
+                    "ratio": d.get("spectrum_kind_log_ratio"), "colours": d.get("spectrum_kind_colours_nats")})
     near = [r for r in out if abs(r["duv"]) < 0.01]
     far = [r for r in out if abs(r["duv"]) >= 0.01]
     table([("all", out), ("|Duv| < 0.01 (near)", near), ("|Duv| >= 0.01 (off)", far)],
@@ -132,7 +141,7 @@ def real(per_camera: int, seed: int):
     return out
 
 
-LAMPS = ("FL2", "FL11", "FL4", "FL7", "FL3.3", "FL10")
+LAMPS = ("FL2", "FL11", "FL4", "FL10", "FL3.3", "FL7", "FL1", "FL8")
 SMOOTH = ("D65", "D50", "A", "D75")
 
 
@@ -155,7 +164,9 @@ def synthetic(n: int, seed: int = 0):
 
                 rgb, spd, d = estimate_bayes(sc.image, None, cam, keep_likelihood=True)
                 rows.append({"light": light, "camera": cam_name, "family": d["spectrum_family"],
-                             "rule": d["spectrum_rule"], "mass": kind_masses(cands, posterior_from(d))})
+                             "rule": d["spectrum_rule"], "mass": kind_masses(cands, posterior_from(d)),
+                             "by_mass": d.get("spectrum_family_by_mass", d["spectrum_family"]),
+                             "ratio": d.get("spectrum_kind_log_ratio"), "colours": d.get("spectrum_kind_colours_nats")})
     table([(f"under {lt}", [r for r in rows if r["light"] == lt]) for lt in LAMPS + SMOOTH],
           f"Synthetic Mondrians (24 surfaces, {n} scenes per light and camera)")
     return rows
@@ -165,12 +176,18 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--per-camera", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--synthetic", type=int, default=4, help="scenes per lamp and camera (0: none)")
+    ap.add_argument("--synthetic", type=int, default=12, help="scenes per light and camera (0: none)")
+    ap.add_argument("--out", default="out")
     a = ap.parse_args(argv)
+    rows = {}
     if a.per_camera > 0:
-        real(a.per_camera, a.seed)
+        rows["real"] = real(a.per_camera, a.seed)
     if a.synthetic > 0:
-        synthetic(a.synthetic, a.seed)
+        rows["synthetic"] = synthetic(a.synthetic, a.seed)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bayes_spectra.json").write_text(json.dumps(rows, indent=0, default=float))
+    print(f"wrote {out / 'bayes_spectra.json'}")
     return 0
 
 
