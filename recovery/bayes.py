@@ -592,9 +592,9 @@ def _locus(kind: str, wl: tuple):
 #: colours give 2.9 nats at the median and 4.9 at the 90th percentile; on
 #: 24-surface Mondrians under CIE FL2, FL4, FL10, FL11 seen through measured
 #: sensitivities 8.6-18.7 at the median, under D50-D75 and A 1.1-1.3. At 5
-#: nats: 7 % of those photographs and 7 % of the daylight and tungsten
-#: Mondrians get a spiky spectrum, 91 % of the fluorescent ones do
-#: (``python -m benchmarks.bayes_spectra``).
+#: nats: 8 % of those photographs and 7 % of the daylight and tungsten
+#: Mondrians get a spiky spectrum, 88 % of the fluorescent ones a fluorescent
+#: one (96 scenes each; ``python -m benchmarks.bayes_spectra``).
 KIND_EVIDENCE_COLOURS = 10
 KIND_EVIDENCE_NATS = 5.0
 
