@@ -154,15 +154,17 @@ def _estimate_from_json(light: dict, camera):
     return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"), diag, [])
 
 
-def _open(task: "ItemTask", prefetch: bool = False) -> tuple:
+def _open(task: "ItemTask", prefetch: bool = False, render: bool = False) -> tuple:
     """Decode an item's file and choose its camera (:func:`service.pipeline.open_image`;
-    ``prefetch``: start the demosaic on a thread for the render that follows)."""
+    ``prefetch``: start the demosaic on a thread for the render that follows;
+    ``render``: the render follows, later (the RAW's mosaic is kept for it))."""
     from .. import pipeline
 
     with open(task.src, "rb") as f:
         data = f.read()
     decoded, cam, warns, _ = pipeline.open_image(data, task.name or os.path.basename(task.src), task,
-                                                 task.options.camera, prefetch=prefetch)
+                                                 task.options.camera, prefetch=prefetch,
+                                                 keep_mosaic=prefetch or render)
     return decoded, cam, warns
 
 
@@ -327,7 +329,7 @@ def process_item(task: ItemTask) -> dict:
                         "seconds": time.perf_counter() - t0}
             # the demosaic overlaps the estimate when this item may use several
             # threads (wandell white-balance); a pool worker (one per core) does not
-            decoded, cam, warns = _open(task, prefetch=task.threads != 1)
+            decoded, cam, warns = _open(task, prefetch=task.threads != 1, render=True)
             opts = task.options.estimate_kwargs()
             try:
                 _check_cancel(task)
