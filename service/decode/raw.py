@@ -289,27 +289,34 @@ def _demosaic(cfa: np.ndarray, sites, blacks, white: float, flip: int) -> np.nda
 
 
 def _scaled_mosaic(cfa: np.ndarray, sites, blacks, white: float) -> np.ndarray:
-    """The CFA sites scaled to the estimation scale, one uint16 mosaic."""
+    """The CFA sites scaled to the estimation scale, one uint16 mosaic:
+    ``(d - b_c) * k_c`` clipped to [0, 65535], plus one half, truncated, in
+    float32. Whole rows at a time, each site's ``b_c`` and ``k_c`` from a
+    table of the 2 x 2 cell repeated along the row: the same float32
+    operations on every sample as one site at a time, on contiguous memory
+    (issue 19: half the time of the strided per-site passes)."""
     import cv2
 
     H, W = cfa.shape
     mos = np.empty((H, W), np.uint16)
-    rows = max(1, (1 << 18) // max(1, W))       # 1 MB of float32 per chunk and thread
-    tasks = []
-    for dy, dx, idx, ch in sites:
-        b = np.float32(blacks[idx])
-        k = np.float32(65535.0 / (white - blacks[idx]))
-        src, dst = cfa[dy::2, dx::2], mos[dy::2, dx::2]
-        tasks += [(src, dst, b, k, r) for r in range(0, src.shape[0], rows)]
+    rows = 2 * max(1, (1 << 17) // max(1, W))   # 1 MB of float32 per chunk and thread; even: the cell's rows
+    B = np.zeros((2, W), np.float32)
+    K = np.zeros((2, W), np.float32)
+    for dy, dx, idx, ch in sites:        # the four sites of the cell (_bayer_channels)
+        B[dy, dx::2] = np.float32(blacks[idx])
+        K[dy, dx::2] = np.float32(65535.0 / (white - blacks[idx]))
+    B, K = np.tile(B, (rows // 2, 1)), np.tile(K, (rows // 2, 1))
+    tasks = range(0, H, rows)
 
-    def scale(task):
-        src, dst, b, k, r = task
-        a = src[r:r + rows].astype(np.float32)
-        a -= b
-        a *= k
+    def scale(r):
+        src = cfa[r:r + rows]
+        h = src.shape[0]
+        a = src.astype(np.float32)
+        a -= B[:h]
+        a *= K[:h]
         np.clip(a, 0, 65535, out=a)
         a += np.float32(0.5)
-        dst[r:r + rows] = a
+        mos[r:r + h] = a
 
     # numpy releases the GIL on these arrays: the row chunks run on every core
     n_threads = min(4, os.cpu_count() or 1, max(1, cv2.getNumThreads()))   # 1 in a pool worker
