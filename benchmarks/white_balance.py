@@ -25,6 +25,16 @@ on a machine whose speed drifts:
   95 for JPEG, as the service writes), and ``wandell analyze`` of the real
   CinemaDNG (``--real``, the shared ``Blackmagic.dng``) when it is there.
 
+``--before TREE`` (another checkout, e.g. ``git worktree add /tmp/before
+HEAD~3``) measures that tree's server and CLI too, in the same run,
+interleaved with this tree's: rows marked ``before``, and the ratios
+after/before.
+
+Whole commands run with Python's bytecode written (``PYTHONDONTWRITEBYTECODE``
+removed from their environment), as an installed ``wandell`` runs: pip
+compiles it at install; without it every run of the CLI compiles the
+project's 60-odd modules again (about 50 ms of ``wandell analyze``).
+
 Peak memory of a request is the server's resident-set high-water mark
 (``VmHWM``, reset through ``/proc/<pid>/clear_refs``) above its resident size
 just before the step, against the decoded 16-bit image (H x W x 3 x 2
@@ -100,11 +110,12 @@ for line in sys.stdin:
 
 class Launcher:
     """A small process that times whole commands: wall seconds and peak
-    resident MB (``ru_maxrss``) of each."""
+    resident MB (``ru_maxrss``) of each, bytecode written (module docstring)."""
 
     def __init__(self):
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
         self.proc = subprocess.Popen([sys.executable, "-S", "-c", _LAUNCHER], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
+                                     stdout=subprocess.PIPE, text=True, env=env)
 
     def run(self, argv: list[str]) -> tuple[float, float]:
         self.proc.stdin.write(json.dumps(argv) + "\n")
@@ -149,11 +160,55 @@ def write_bench_dng(tmp: str, args: argparse.Namespace) -> str:
     return path
 
 
+def _round_order(keys: list, i: int) -> list:
+    """The steps of round ``i``: in odd rounds each ``before X`` runs ahead of
+    its ``X``. Whichever writes a 144 MB TIFF first in a round pays for
+    memory the system had just taken back (in this VM 1.3-1.5 s of TIFF
+    writing against 0.04-0.1 s for the one after it): alternating shares that
+    between the two trees instead of charging it to one."""
+    if i % 2 == 0:
+        return keys
+    out = list(keys)
+    for k in keys:
+        b = f"before {k}"
+        if b in out:
+            a, c = out.index(k), out.index(b)
+            out[a], out[c] = out[c], out[a]
+    return out
+
+
+def _start_tree_server(tree: str):
+    """The service of another checkout under uvicorn (``--before``): its
+    modules first on the path, the current folder left off (``-P``)."""
+    import httpx
+
+    from .load import _free_port
+
+    port = _free_port()
+    env = {**os.environ, "PYTHONPATH": tree}
+    proc = subprocess.Popen([sys.executable, "-P", "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
+                             "--port", str(port), "--log-level", "warning"], env=env, cwd=tree)
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the --before server exited with status {proc.returncode}")
+        try:
+            if httpx.get(base + "/health", timeout=2).status_code == 200:
+                return proc, base
+        except httpx.TransportError:
+            time.sleep(0.2)
+    proc.terminate()
+    raise RuntimeError("the --before server did not answer /health within 120 s")
+
+
 def main(argv=None) -> None:
     args = bench_arguments(__doc__, argv, repeat=5,
                            cli_repeat=dict(type=int, default=5, help="runs of each whole command"),
                            formats=dict(default="tiff,png,jpeg", help="white-balance formats over HTTP"),
-                           real=dict(default=REAL_DNG, help="the real CinemaDNG for wandell analyze"))
+                           real=dict(default=REAL_DNG, help="the real CinemaDNG for wandell analyze"),
+                           before=dict(default=None, help="another checkout measured in the same run "
+                                                           "(its server and CLI, interleaved)"))
 
     import httpx
 
@@ -161,6 +216,9 @@ def main(argv=None) -> None:
 
     formats = [f for f in args.formats.split(",") if f]
     cli = [sys.executable, "-m", "service.cli"]     # what the installed `wandell` runs, from this tree
+    before = os.path.abspath(args.before) if args.before else None
+    # the other tree's modules first: -P leaves the current folder (this tree) off sys.path
+    cli_before = ["env", f"PYTHONPATH={before}", sys.executable, "-P", "-m", "service.cli"] if before else None
     print(f"load average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f} "
           f"on {os.cpu_count()} CPUs")
     launcher = Launcher()
@@ -171,13 +229,16 @@ def main(argv=None) -> None:
         worker = subprocess.Popen([sys.executable, "-c", _RAWPY_WORKER, path], stdin=subprocess.PIPE,
                                   stdout=subprocess.PIPE, text=True)
         server, base = start_server()
+        bserver = bbase = None
+        if before:
+            bserver, bbase = _start_tree_server(before)
         try:
             assert worker.stdout.readline().strip() == "ready"
             client = httpx.Client(timeout=600)
 
-            def post(endpoint, fields):
+            def post(endpoint, fields, url=None):
                 with open(path, "rb") as fh:
-                    r = client.post(base + endpoint, files={"file": ("bench.dng", fh, "image/x-adobe-dng")},
+                    r = client.post((url or base) + endpoint, files={"file": ("bench.dng", fh, "image/x-adobe-dng")},
                                     data=fields)
                 assert r.status_code == 200, r.text[:500]
                 return r
@@ -194,7 +255,7 @@ def main(argv=None) -> None:
                 worker.stdin.flush()
                 return float(worker.stdout.readline())
 
-            def post_curl(endpoint, fields):
+            def post_curl(endpoint, fields, url=None):
                 """The request as curl makes it (the answer to /dev/null):
                 a Python client's own reading of a 144 MB answer costs more
                 than the server's sending it. ``{"headers", "bytes"}``."""
@@ -202,7 +263,7 @@ def main(argv=None) -> None:
                         "-H", "Expect:", "-F", f"file=@{path};type=image/x-adobe-dng;filename=bench.dng"]
                 for k, v in fields.items():
                     argv += ["-F", f"{k}={v}"]
-                r = subprocess.run(argv + [base + endpoint], capture_output=True, text=True, check=True)
+                r = subprocess.run(argv + [(url or base) + endpoint], capture_output=True, text=True, check=True)
                 head, _, tail = r.stdout.rpartition("\n")
                 code, size = tail.split()
                 assert code == "200", r.stdout[:500]
@@ -214,23 +275,30 @@ def main(argv=None) -> None:
                 return {"headers": headers, "bytes": int(size)}
 
             wb = post_curl if shutil.which("curl") else (
-                lambda e, f: (lambda r: {"headers": dict(r.headers), "bytes": len(r.content)})(post(e, f)))
+                lambda e, f, u=None: (lambda r: {"headers": dict(r.headers), "bytes": len(r.content)})(post(e, f, u)))
             print("white-balance requests by", "curl" if shutil.which("curl") else "httpx (curl not found)")
             steps = {"rawpy": (worker.pid, rawpy_once)}
             for fmt in formats:
                 steps[fmt] = (server.pid, lambda fmt=fmt: wb("/v1/white-balance", {"format": fmt}))
+                if before:
+                    steps[f"before {fmt}"] = (bserver.pid, lambda fmt=fmt: wb("/v1/white-balance", {"format": fmt},
+                                                                               bbase))
             steps["analyze"] = (server.pid, lambda: post("/v1/analyze", {}))
+            wb_keys = [k for k in steps if k not in ("rawpy", "analyze")]
             for fmt in formats:                        # warm-up: imports, data, caches
                 post("/v1/white-balance", {"format": fmt})
+                if before:
+                    post("/v1/white-balance", {"format": fmt}, bbase)
             res = {k: {"t": [], "m": [], "out": []} for k in steps}
-            for _ in range(args.repeat):               # interleaved: one of each in turn
-                for k, (pid, fn) in steps.items():
+            for i in range(args.repeat):               # interleaved: one of each in turn
+                for k in _round_order(list(steps), i):
+                    pid, fn = steps[k]
                     t, m, out = measure(pid, fn)
                     res[k]["t"].append(t)
                     res[k]["m"].append(m)
-                    assert k != "tiff" or out["bytes"] > decoded_mb * 2**20
+                    assert k.split()[-1] != "tiff" or out["bytes"] > decoded_mb * 2**20
                     res[k]["out"].append(out)
-            for fmt in formats:
+            for fmt in wb_keys:
                 inner = [json.loads(r["headers"]["x-illuminant"])["timings_ms"] for r in res[fmt]["out"]]
                 res[fmt]["steps"] = {k: _median([t.get(k, 0.0) for t in inner]) for k in inner[0]}
                 res[fmt]["bytes"] = res[fmt]["out"][-1]["bytes"]
@@ -238,9 +306,13 @@ def main(argv=None) -> None:
             inner = [r.json()["timings_ms"] for r in res["analyze"]["out"]]
             t_est = _median([(t["decode"] + t["estimate"]) / 1e3 for t in inner])
         finally:
-            server.terminate()
+            for s in (server, bserver):
+                if s is not None:
+                    s.terminate()
             worker.kill()
-            server.wait()
+            for s in (server, bserver):
+                if s is not None:
+                    s.wait()
 
         # whole commands, started fresh, interleaved
         ext = {"tiff": "tif", "png": "png", "jpeg": "jpg"}
@@ -248,18 +320,24 @@ def main(argv=None) -> None:
         for fmt in formats:
             out = os.path.join(tmp, f"cli.{ext[fmt]}")
             cmds[f"wandell white-balance .{ext[fmt]}"] = cli + ["white-balance", "-q", path, out]
+            if before:
+                cmds[f"before wandell white-balance .{ext[fmt]}"] = cli_before + [
+                    "white-balance", "-q", path, os.path.join(tmp, f"before.{ext[fmt]}")]
             cmds[f"rawpy script .{ext[fmt]}"] = [sys.executable, "-c", _RAWPY_SCRIPT, path,
                                                  os.path.join(tmp, f"script.{ext[fmt]}")]
         real = os.path.abspath(args.real) if args.real and os.path.isfile(args.real) else None
         if real:
             cmds["wandell analyze (real CinemaDNG)"] = cli + ["analyze", real]
+            if before:
+                cmds["before wandell analyze (real CinemaDNG)"] = cli_before + ["analyze", real]
         if args.cli_repeat < 1:
             cmds = {}
         for argv_ in cmds.values():                    # warm-up: page cache, bytecode
             launcher.run(argv_)
         whole = {k: {"t": [], "m": []} for k in cmds}
-        for _ in range(args.cli_repeat):
-            for k, argv_ in cmds.items():
+        for i in range(args.cli_repeat):
+            for k in _round_order(list(cmds), i):
+                argv_ = cmds[k]
                 t, m = launcher.run(argv_)
                 whole[k]["t"].append(t)
                 whole[k]["m"].append(m)
@@ -270,7 +348,8 @@ def main(argv=None) -> None:
           f"{'x image':>8s}")
     rows = [("rawpy postprocess() default", "rawpy")]
     names = {"tiff": "16-bit TIFF", "png": "8-bit PNG", "png16": "16-bit PNG", "jpeg": "JPEG"}
-    rows += [(f"POST /v1/white-balance ({names.get(f, f)})", f) for f in formats]
+    rows += [(f"{'before ' if k.startswith('before') else ''}POST /v1/white-balance ({names.get(k.split()[-1], k)})", k)
+             for k in wb_keys]
     rows += [("POST /v1/analyze over HTTP", "analyze")]
     for name, k in rows:
         t, mem = _median(res[k]["t"]), max(res[k]["m"])
@@ -283,11 +362,11 @@ def main(argv=None) -> None:
           "rawpy, JPEG <= 0.50 x rawpy; peak no higher than before")
     print("\nwhere a white-balance request's time goes (median ms; http = the request's wall time minus the "
           "server's total: upload and answer on the wire):")
-    for fmt in formats:
+    for fmt in wb_keys:
         st = dict(res[fmt]["steps"])
         st.pop("total", None)
         parts = "  ".join(f"{k} {v:.0f}" for k, v in st.items())
-        print(f"  {fmt:6s} {parts}  http {res[fmt]['http'] * 1e3:.0f}  ({res[fmt]['bytes'] / 1e6:.1f} MB answer)")
+        print(f"  {fmt:13s} {parts}  http {res[fmt]['http'] * 1e3:.0f}  ({res[fmt]['bytes'] / 1e6:.1f} MB answer)")
 
     print(f"\n{'whole command (fresh process)':44s} {'median s':>9s} {'min':>6s} {'max':>6s} {'peak MB':>8s}")
     for k, v in whole.items():
@@ -295,7 +374,21 @@ def main(argv=None) -> None:
     print("\nCLI against the rawpy script (median of the pairwise ratios; target <= 1.00):")
     for fmt in formats if whole else ():
         a, b = whole[f"wandell white-balance .{ext[fmt]}"]["t"], whole[f"rawpy script .{ext[fmt]}"]["t"]
-        print(f"  .{ext[fmt]:4s} {_median([x / y for x, y in zip(a, b)]):.2f}")
+        line = f"  .{ext[fmt]:4s} {_median([x / y for x, y in zip(a, b)]):.2f}"
+        if before:
+            c = whole[f"before wandell white-balance .{ext[fmt]}"]["t"]
+            line += f"   before: {_median([x / y for x, y in zip(c, b)]):.2f}"
+        print(line)
+    if before:
+        print("\nthis tree against --before, same run (median of the pairwise ratios of the wall times):")
+        for fmt in wb_keys:
+            if not fmt.startswith("before"):
+                r = _median([x / y for x, y in zip(res[fmt]["t"], res[f"before {fmt}"]["t"])])
+                print(f"  POST /v1/white-balance {fmt:6s} {r:.2f}")
+        for k in whole:
+            if f"before {k}" in whole:
+                r = _median([x / y for x, y in zip(whole[k]["t"], whole[f"before {k}"]["t"])])
+                print(f"  {k:40s} {r:.2f}")
     if real:
         print(f"\nwandell analyze of the real CinemaDNG: {_median(whole['wandell analyze (real CinemaDNG)']['t']):.2f} s "
               "(target <= 0.80 s)")

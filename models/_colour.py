@@ -224,19 +224,19 @@ def _modules():
     import importlib
 
     return tuple(importlib.import_module(f"models.{m}")
-                 for m in ("displays", "illuminants", "observers", "reflectances"))
+                 for m in ("displays", "illuminants", "observers", "reflectances", "cameras"))
 
 
 def _record_defaults() -> None:
     """Call what the CLI and the service call on every image, so that
     :data:`_recording` holds those results."""
-    displays, illuminants, observers, reflectances = _modules()
+    displays, illuminants, observers, reflectances, cameras = _modules()
 
     illuminants.illuminants()
     for k in ("fluorescent", "non-fluorescent"):
         illuminants.illuminant_names(k)
     illuminants.daylight_basis()
-    for o in ("CIE 1931 2 Degree Standard Observer",):
+    for o in ("CIE 1931 2 Degree Standard Observer", "XYZ"):   # XYZ: a measured camera's rendering
         observers.observer(o)
     reflectances.reflectance_set("all")
     for d in ("sRGB",):
@@ -244,6 +244,13 @@ def _record_defaults() -> None:
     from recovery.illuminant_prior import default_candidates
 
     default_candidates()
+    for name in cameras.camera_names():      # the measured cameras a RAW's make/model selects
+        cameras.camera_sensitivities(name, DEFAULT_WAVELENGTHS)
+    from recovery.bayes import _locus
+
+    _locus.cache_clear()                     # both loci of the plausible spectrum (Planckian: 480 blackbodies)
+    for kind in ("daylight", "planckian"):
+        _locus(kind, tuple(DEFAULT_WAVELENGTHS.tolist()))
     from service import pipeline
 
     for bits in (8, 16):
@@ -261,7 +268,7 @@ def build(path: Path = CACHE_FILE, extra=None) -> dict:
     """Recompute every entry from colour-science and write ``path``;
     ``extra``: a callable run while recording (more calls to cache)."""
     global _recording, _cache, _npz
-    _, illuminants, observers, _ = _modules()
+    _, illuminants, observers, _, _ = _modules()
 
     _recording, _cache, _npz = {}, {}, None
     illuminants._illuminant_cached.cache_clear()

@@ -77,7 +77,8 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     buffers reused by each thread: uint16 -> float32, the white balance and
     ``/ 65535`` as one diagonal ``cv2.transform``, the clip at 1 as one
     ``cv2.threshold``, the blend to neutral and the shoulder only on the
-    pixels they change (found with ``cv2.inRange`` on the codes and one
+    pixels they change (found with ``cv2.inRange`` on the codes, in the
+    chunks whose largest code is above the highlight start, and one
     luminance ``cv2.transform``), the matrix as ``cv2.transform``, clip and
     rounding to uint16 as one saturating ``cv2.add`` (``cv2.multiply`` by the
     shoulder's per-pixel factor when it applies), then the table. The
@@ -146,8 +147,10 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
             np.copyto(f, chunk, casting="unsafe")
             cv2.transform(f, D, dst=w)                                  # c / n
             cv2.threshold(w, 1.0, 1.0, cv2.THRESH_TRUNC, dst=w)        # min(., 1)
-            m = cv2.inRange(chunk, zero[:3], (top, top, top), dst=b["m"])   # 255: nothing near clipping
-            if cv2.countNonZero(m) < m.size:
+            # a chunk whose largest code is at most top has no highlight (most
+            # chunks of a photograph): one max instead of inRange's mask (1/5 of its time)
+            m = None if int(chunk.max()) <= top else cv2.inRange(chunk, zero[:3], (top, top, top), dst=b["m"])
+            if m is not None and cv2.countNonZero(m) < m.size:     # m: 255 where nothing is near clipping
                 idx = np.flatnonzero(m.reshape(-1) == 0)
                 f2 = f.reshape(-1, 3)
                 ch = f2[idx] * inv

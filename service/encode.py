@@ -4,13 +4,14 @@
 :func:`png_encode` writes a PNG (8- or 16-bit RGB) whose compressed stream
 is made in horizontal strips on a thread pool, as pigz does for gzip: each
 strip's rows are filtered (PNG filter type 1, *Sub*, computed with numpy)
-and deflated by its own zlib compressor (:data:`PNG_STRATEGY`), ended with a sync flush (an empty
-stored block, so the next strip starts on a byte boundary) and the last one
-with the final block. The concatenation is one valid deflate stream (no
+and deflated by its own compressor (zlib-ng when installed, else zlib;
+:data:`PNG_STRATEGY`), ended with a sync flush (an empty stored block, so
+the next strip starts on a byte boundary) and the last one with the final
+block. The concatenation is one valid deflate stream (no
 strip refers back into another), wrapped in the zlib header and the Adler-32
 of all the filtered bytes, combined from the strips' own (zlib's
-``adler32_combine``). Each strip is one IDAT chunk. numpy, ``zlib.compress``
-and ``zlib.crc32`` release the GIL, so the strips run in parallel.
+``adler32_combine``). Each strip is one IDAT chunk. numpy, the compressor
+and the checksums release the GIL, so the strips run in parallel.
 
 The pixels decoded from the file are exactly the input (PNG is lossless);
 only the bytes differ from a one-thread encoder's. One strip per thread
@@ -27,16 +28,28 @@ import zlib
 
 import numpy as np
 
+try:        # zlib-ng: the same deflate format, its Huffman-only and RLE coders about 2x zlib's speed
+    from zlib_ng import zlib_ng as _deflate
+except ImportError:     # pragma: no cover - a dependency; stdlib zlib gives the same pixels, slower
+    _deflate = zlib
+
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _ADLER_BASE = 65521
-#: zlib level and strategy of the strips. Run-length matches only
-#: (``Z_RLE``) on Sub-filtered rows: on photographs the long-distance matches
-#: that level 1's search finds are rare (sensor noise), so it is both faster
-#: and smaller than OpenCV's level 1 (the real CinemaDNG's 8-bit sRGB output:
-#: 10.7 MB in 0.21 CPU s against 12.0 MB in 0.50 s), and unlike Huffman-only
-#: coding it still collapses flat areas (runs of zero differences).
+#: zlib level and strategy of the strips. Huffman coding only
+#: (``Z_HUFFMAN_ONLY``) on Sub-filtered rows of a photograph: sensor noise
+#: leaves few repeated strings, and the ones Run-length matches (``Z_RLE``)
+#: find cost more than they save (the real CinemaDNG's 8-bit sRGB output:
+#: 10.64 MB against RLE's 10.72 MB and OpenCV level 1's 12.9 MB; the
+#: 24-megapixel bench DNG's 22.26 MB against 22.79 MB) while taking 0.8x
+#: RLE's time with stdlib zlib and 0.65x with zlib-ng (issue 19: the PNG
+#: encode was 0.66 s of a 1.7 s request). A strip that is mostly zero
+#: differences (flat graphics, not a photograph: :data:`PNG_FLAT_ZEROS`)
+#: keeps ``Z_RLE``, which collapses the runs Huffman coding cannot go below
+#: one bit a byte for.
 PNG_LEVEL = 1
-PNG_STRATEGY = zlib.Z_RLE
+PNG_STRATEGY = zlib.Z_HUFFMAN_ONLY
+#: a strip whose share of zero filtered bytes is above this is coded with ``Z_RLE``
+PNG_FLAT_ZEROS = 0.5
 #: strips per thread (load balance against the window restart per strip)
 STRIPS_PER_THREAD = 4
 #: threads when the caller gives none (a pool of the CPU count, capped)
@@ -46,7 +59,7 @@ MIN_STRIP_BYTES = 1 << 20
 
 
 def _chunk(ctype: bytes, data: bytes) -> bytes:
-    crc = zlib.crc32(data, zlib.crc32(ctype)) & 0xFFFFFFFF
+    crc = _deflate.crc32(data, _deflate.crc32(ctype)) & 0xFFFFFFFF
     return struct.pack(">I", len(data)) + ctype + data + struct.pack(">I", crc)
 
 
@@ -97,12 +110,15 @@ def png_encode(img: np.ndarray, threads: int | None = None, level: int = PNG_LEV
             rows = rows.astype(">u2")           # PNG samples are big-endian
             rows = rows.view(np.uint8).reshape(r1 - r0, W, 6)
         buf = _filtered_rows(rows, bpp)
-        c = zlib.compressobj(level, zlib.DEFLATED, -15, 8, strategy)
+        st = strategy
+        if st == zlib.Z_HUFFMAN_ONLY and buf.size and np.count_nonzero(buf) < (1 - PNG_FLAT_ZEROS) * buf.size:
+            st = zlib.Z_RLE
+        c = _deflate.compressobj(level, zlib.DEFLATED, -15, 8, st)
         last = i == n_strips - 1
         data = c.compress(buf) + c.flush(zlib.Z_FINISH if last else zlib.Z_SYNC_FLUSH)
         if i == 0:
             data = b"\x78\x01" + data            # zlib header: deflate, 32 KiB window
-        return _chunk(b"IDAT", data), zlib.adler32(buf), buf.size
+        return _chunk(b"IDAT", data), _deflate.adler32(buf), buf.size
 
     if n_threads == 1 or n_strips == 1:
         parts = [strip(i) for i in range(n_strips)]

@@ -54,27 +54,33 @@ class EstimateRun:
     requested_method: str | None = None
 
 
-def decode(data: bytes, filename: str | None, limits, display_referred: str = "linearise"):
+def decode(data: bytes, filename: str | None, limits, display_referred: str = "linearise",
+           keep_mosaic: bool = False):
     """The upload decoded (:func:`service.decode.decode_upload`) within
     ``limits`` (anything with ``max_pixels`` and ``estimation_pixels``: the
     settings, a batch item); ``display_referred``: linearise or refuse a
-    TIFF/PNG whose colour tags say it is rendered (:mod:`service.decode.icc`)."""
+    TIFF/PNG whose colour tags say it is rendered (:mod:`service.decode.icc`);
+    ``keep_mosaic``: the caller renders the full image next (a RAW's mosaic
+    is kept for it instead of being unpacked again)."""
     from . import decode
 
     return decode.decode_upload(data, filename, max_pixels=limits.max_pixels,
-                               estimation_pixels=limits.estimation_pixels, display_referred=display_referred)
+                               estimation_pixels=limits.estimation_pixels, display_referred=display_referred,
+                               keep_mosaic=keep_mosaic)
 
 
 def open_image(data: bytes, filename: str | None, limits, camera: str | None = None,
-               sensitivities: bytes | None = None, prefetch: bool = False, display_referred: str = "linearise"):
+               sensitivities: bytes | None = None, prefetch: bool = False, display_referred: str = "linearise",
+               keep_mosaic: bool | None = None):
     """Decode and choose the camera (:func:`recovery.cameras.resolve_camera`):
     ``(decoded, camera, warnings, milliseconds)``. With ``prefetch`` (a
     caller that renders the full image next) the demosaic starts at once on
-    a thread (:func:`prefetch_full_linear`)."""
+    a thread (:func:`prefetch_full_linear`). ``keep_mosaic`` (default:
+    ``prefetch``): the full image is rendered later (:func:`decode`)."""
     from recovery.cameras import resolve_camera
 
     t0 = time.perf_counter()
-    decoded = decode(data, filename, limits, display_referred)
+    decoded = decode(data, filename, limits, display_referred, prefetch if keep_mosaic is None else keep_mosaic)
     if prefetch:
         prefetch_full_linear(decoded)
     try:
@@ -124,14 +130,16 @@ def _full_linear_u16(decoded) -> np.ndarray:
 
 def analyze(data: bytes, filename: str | None, limits, *, camera: str | None = None,
             sensitivities: bytes | None = None, method: str = "auto", options: dict | None = None,
-            neutral: list[int] | None = None, prefetch: bool = False, display_referred: str = "linearise"):
+            neutral: list[int] | None = None, prefetch: bool = False, display_referred: str = "linearise",
+            keep_mosaic: bool | None = None):
     """Decode, choose the camera, estimate the light: ``(decoded, run)``.
     With ``neutral`` (a point or rectangle the user says is white,
     :func:`service.options.parse_neutral`) the light is that surface's
     (:func:`with_neutral`), rendered like an estimate. ``prefetch``: the
-    caller renders next, demosaic meanwhile (:func:`prefetch_full_linear`)."""
+    caller renders next, demosaic meanwhile (:func:`prefetch_full_linear`);
+    ``keep_mosaic``: it renders later (:func:`open_image`)."""
     decoded, cam, warns, ms = open_image(data, filename, limits, camera, sensitivities, prefetch=prefetch,
-                                         display_referred=display_referred)
+                                         display_referred=display_referred, keep_mosaic=keep_mosaic)
     try:
         run = run_estimate(decoded, cam, warns, method=method, options=options or {})
         run.timings_ms["decode"] = ms

@@ -92,6 +92,11 @@ class DecodedImage:
     encoding: dict | None = None
     #: RAW: the file's bytes, to demosaic again on demand (never the pixels).
     _source: bytes | None = field(default=None, repr=False, compare=False)
+    #: RAW (plain Bayer, square pixels), when the caller renders next
+    #: (``keep_mosaic``): the sensor mosaic as the first decode unpacked it,
+    #: with what scaling it needs, so the full-resolution image does not
+    #: open and unpack the file a second time; taken (and dropped) by it.
+    _mosaic: dict | None = field(default=None, repr=False, compare=False)
     #: RAW: LibRaw postprocessing parameters giving the estimation scale.
     _postprocess: dict = field(default_factory=dict, repr=False, compare=False)
 

@@ -17,7 +17,8 @@ from .tags import _tiff_info
 
 
 def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
-                  estimation_pixels: int | None = None, display_referred: str = "linearise") -> DecodedImage:
+                  estimation_pixels: int | None = None, display_referred: str = "linearise",
+                  keep_mosaic: bool = False) -> DecodedImage:
     """Decode an uploaded RAW, 16-bit/float TIFF or 16-bit PNG.
 
     The format is recognised from the content (the file name only decides
@@ -78,7 +79,8 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
             raise ServiceError(415, "unsupported_format",
                               f"{label} is a {fmt} file (detected from its content){named}; send a camera RAW (DNG, NEF, CR2, ARW, ...) or a "
                               "linear 16-bit/float TIFF or 16-bit PNG")
-        return _decode_raw_or_tiff(data, fmt, filename, max_pixels, estimation_pixels, display_referred)
+        return _decode_raw_or_tiff(data, fmt, filename, max_pixels, estimation_pixels, display_referred,
+                                   keep_mosaic)
     except ServiceError:
         raise
     except MemoryError:
@@ -90,7 +92,8 @@ def decode_upload(data: bytes, filename: str | None, *, max_pixels: int,
 
 
 def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels: int,
-                        estimation_pixels: int | None = None, display_referred: str = "linearise") -> DecodedImage:
+                        estimation_pixels: int | None = None, display_referred: str = "linearise",
+                        keep_mosaic: bool = False) -> DecodedImage:
     import rawpy
 
     label = f"{filename!r}" if filename else "the upload"
@@ -133,7 +136,8 @@ def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels:
                 # even one of 2 or 4 samples per pixel: not a RAW
                 raw.close()
                 return _decode_tiff(data, filename, max_pixels, display_referred)
-        return _decode_raw(raw, data, fmt, filename, max_pixels, info, info_error, estimation_pixels)
+        return _decode_raw(raw, data, fmt, filename, max_pixels, info, info_error, estimation_pixels,
+                           keep_mosaic)
     except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError) as exc:
         raise ServiceError(413, "too_many_pixels", f"{label}: LibRaw refused the size ({exc})") from None
     except rawpy.LibRawError as exc:

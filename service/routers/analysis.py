@@ -61,11 +61,12 @@ async def _inputs(file, sensitivities, settings):
 
 
 def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral=None,
-                   display_referred="linearise"):
+                   display_referred="linearise", render=False):
     """Decode, choose the camera, estimate, or take the user's neutral
-    surface as the light (:func:`service.pipeline.analyze`)."""
+    surface as the light (:func:`service.pipeline.analyze`); ``render``:
+    the corrected image follows (the RAW's mosaic is kept for it)."""
     return pipeline.analyze(data, filename, settings, camera=camera, sensitivities=sens, method=method,
-                            options=opts, neutral=neutral, display_referred=display_referred)
+                            options=opts, neutral=neutral, display_referred=display_referred, keep_mosaic=render)
 
 
 @router.post("/analyze")
@@ -100,7 +101,8 @@ def _with_white(decoded, run, white: str):
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,
                         white="estimate", exposure=None, neutral=None, display_referred="linearise"):
-    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral, display_referred)
+    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral, display_referred,
+                                  render=True)
     del data
     run = _with_white(decoded, run, white)
     with temp_output(prefix="wb-", suffix="." + fmt.encoder) as path:
