@@ -13,7 +13,7 @@ import math
 import time
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 
 from ..deps import read_upload
@@ -21,8 +21,8 @@ from ..errors import ServiceError
 from ..headers import content_disposition
 from ..jsonsafe import clean
 from ..options import FORMATS, MAX_N, MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, parse_wavelengths, rule_options
-from ..schemas import SpectralRendering
-from ..schemas.forms import form
+from ..schemas import Sampling, SpectralRendering
+from ..schemas.forms import form, query
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -39,6 +39,13 @@ _RENDER = form(SpectralRendering, choices={"format": RENDER_FORMATS, "output": R
                describe={"format": "tiff (16-bit), png (8-bit), png16",
                          "output": "sRGB (encoded) or linear-sRGB",
                          "response": "image, or json for the report alone"})
+#: The query parameters of ``GET /v1/sampling``: the same declarations, the
+#: rule's name required.
+_SAMPLING = query(Sampling, defaults={"strategy": ...},
+                  describe={"strategy": "a sampling strategy name (not auto or full: those are render modes)",
+                            "n": f"size 1..{MAX_N} (implied by degrees for quasi-gauss-xyz)",
+                            "illuminant": "light the rule is made for (wiener-points: default D65; composite: "
+                                          "its spikes)"})
 
 
 # --- parsing ----------------------------------------------------------------------
@@ -236,12 +243,7 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
 
 
 @router.get("/sampling")
-def sampling(strategy: str = Query(..., description="a sampling strategy name"),
-             n: int | None = Query(None, description=f"size 1..{MAX_N} (implied by degrees for quasi-gauss-xyz)"),
-             channel: str | None = Query(None, description="gauss-ac1c2: A, C1, C2 or XYZ"),
-             degrees: str | None = Query(None, description="quasi-gauss-xyz: e.g. 2,2,2"),
-             illuminant: str | None = Query(None, description="light the rule is made for (wiener-points: "
-                                            "default D65; composite: its spikes)")):
+def sampling(q: Sampling = Depends(_SAMPLING)):
     """Nodes and weights of a sampling rule on the analysis grid (400-700 nm,
     10 nm), ``defined`` false with a ``reason`` when the order does not exist
     (e.g. Gaussian nodes outside the interval, Meyer 1988, Table 1a).
@@ -254,6 +256,7 @@ def sampling(strategy: str = Query(..., description="a sampling strategy name"),
     import models
     from recovery.spectral import LIGHT_AWARE, cached_rule
 
+    strategy, n, channel, degrees, illuminant = q.strategy, q.n, q.channel, q.degrees, q.illuminant
     if strategy in ("auto", "full"):
         raise ServiceError(422, "unknown_strategy", f"{strategy!r} is a render mode, not a sampling rule")
     opts = rule_options(strategy, n, channel, degrees)

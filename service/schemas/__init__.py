@@ -4,7 +4,7 @@
 default, description, accepted values, examples, check), grouped by concern
 (estimation, rendering and output, regions, the preview, batches);
 :mod:`service.schemas.options` builds one pydantic model per concern from
-them. The REST form fields (:mod:`service.schemas.forms`), the batch options
+them. The REST form fields and query parameters (:mod:`service.schemas.forms`), the batch options
 (:class:`service.jobs.BatchOptions` is
 :class:`~service.schemas.options.BatchOptions`), the CLI flags
 (:mod:`service.schemas.cli`, from the declarations: ``wandell --help``
@@ -19,7 +19,7 @@ The models are loaded on first use (PEP 562), so importing
 from __future__ import annotations
 
 _MODELS = ("AnalyzeEstimation", "BatchOptions", "Estimation", "Input", "Neutral", "Preview", "Regions", "Rendering",
-           "SpectralRendering", "WhiteBalanceRendering")
+           "Sampling", "SpectralRendering", "WhiteBalanceRendering")
 
 __all__ = [*_MODELS, "options_table"]
 

@@ -1,7 +1,9 @@
-"""REST form fields from the option models (:mod:`service.schemas.options`).
+"""REST form fields and query parameters from the option models
+(:mod:`service.schemas.options`).
 
 :func:`form` makes a FastAPI dependency whose parameters are one
-``Form(...)`` per model field (name, wire type, default, description,
+``Form(...)`` per model field (:func:`query`: one ``Query(...)``, for the
+``GET`` endpoints) (name, wire type, default, description,
 examples, accepted values) and whose value is the validated model. It is a
 generated signature rather than ``Annotated[Model, Form()]`` because an
 endpoint takes several models beside its uploads, narrows some choices
@@ -17,11 +19,11 @@ from __future__ import annotations
 
 import inspect
 
-from fastapi import Form
+from fastapi import Form, Query
 
 from .options import option_fields
 
-__all__ = ["form"]
+__all__ = ["form", "query"]
 
 
 def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix: str = "", fixed=None,
@@ -34,6 +36,18 @@ def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix
     on this endpoint; ``prefix``: put before every description (``corrected
     only: ``); ``describe``: another description per field (no prefix); ``lazy``: fields
     whose check the endpoint runs itself when it matters (:meth:`~service.schemas.options.OptionModel.check`)."""
+    return _dependency(Form, "form", model, include, exclude, choices, defaults, prefix, fixed, describe, lazy)
+
+
+def query(model, *, include=None, exclude=(), choices=None, defaults=None, prefix: str = "", fixed=None,
+          describe=None, lazy=()):
+    """A dependency answering a validated ``model`` from the request's query
+    string: :func:`form`'s arguments, one ``Query(...)`` per field (a
+    default of ``...`` makes a parameter required)."""
+    return _dependency(Query, "query", model, include, exclude, choices, defaults, prefix, fixed, describe, lazy)
+
+
+def _dependency(param, kind, model, include, exclude, choices, defaults, prefix, fixed, describe, lazy):
     choices, defaults, fixed, describe = choices or {}, defaults or {}, fixed or {}, describe or {}
     params = []
     for name, opt in option_fields(model).items():
@@ -44,7 +58,7 @@ def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix
         extra = {"x-choices": list(accepted)} if accepted else None
         params.append(inspect.Parameter(
             name, inspect.Parameter.KEYWORD_ONLY, annotation=opt.wire_type,
-            default=Form(default, description=describe[name] if name in describe else prefix + opt.description,
+            default=param(default, description=describe[name] if name in describe else prefix + opt.description,
                          examples=list(opt.examples) or None, json_schema_extra=extra)))
 
     async def dependency(**values):
@@ -52,5 +66,5 @@ def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix
         return model.model_validate(given, context={"choices": choices, "lazy": tuple(lazy)})
 
     dependency.__signature__ = inspect.Signature(params)
-    dependency.__name__ = f"{model.__name__}_form"
+    dependency.__name__ = f"{model.__name__}_{kind}"
     return dependency

@@ -30,7 +30,7 @@ from .fields import (BATCH, ESTIMATION, INPUT, LIGHTING, NEUTRAL, PREVIEW, PREVI
                      RENDERING, SPATIAL, SPECTRAL, WHITE_BALANCE, Opt, options_table, run_check)
 
 __all__ = ["OptionModel", "Input", "Estimation", "AnalyzeEstimation", "Rendering", "WhiteBalanceRendering", "Neutral",
-           "Regions", "Preview", "BatchOptions", "SpectralRendering", "LIGHTING", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "opt_of",
+           "Regions", "Preview", "BatchOptions", "Sampling", "SpectralRendering", "LIGHTING", "PREVIEW_MAX_SIDE", "PREVIEW_SIDE_RANGE", "opt_of",
            "option_fields", "options_table"]
 
 
@@ -114,3 +114,6 @@ BatchOptions = _model("BatchOptions", _Batch, "The options of a batch (``POST /v
                       "each output (``to_json``).", ESTIMATION, RENDERING, BATCH)
 SpectralRendering = _model("SpectralRendering", OptionModel, "``/v1/render``: the wavelength sampling, the light "
                            "and the output of spectral data.", SPECTRAL)
+Sampling = _model("Sampling", OptionModel, "``GET /v1/sampling``: a sampling rule, its order and the light it is "
+                  "made for (the fields of :data:`SPECTRAL` that name a rule).",
+                  {k: SPECTRAL[k] for k in ("strategy", "n", "channel", "degrees", "illuminant")})
