@@ -122,3 +122,22 @@ def test_method_lists_are_identical_everywhere(spec, monkeypatch):
         assert re.search(r"\(one of: ([^)]*)\)", line).group(1).split(", ") == methods
     with TestClient(app) as c:
         assert c.get("/v1/models").json()["methods"] == methods
+
+
+def test_sampling_query_parameters_are_the_declared_ones(spec):
+    """``GET /v1/sampling``'s query parameters are the fields of the
+    ``Sampling`` model (SPECTRAL's rule fields), with their declared types;
+    the rule's name is required, and a missing one is the service's 422."""
+    from service.schemas import Sampling
+    from service.schemas.options import option_fields
+
+    params = {p["name"]: p for p in spec["paths"]["/v1/sampling"]["get"]["parameters"]}
+    fields = option_fields(Sampling)
+    assert set(params) == set(fields) == {"strategy", "n", "channel", "degrees", "illuminant"}
+    assert all(p["in"] == "query" for p in params.values())
+    assert params["strategy"]["required"] and not any(params[k].get("required") for k in fields if k != "strategy")
+    client = TestClient(app, base_url="http://127.0.0.1:8000")
+    r = client.get("/v1/sampling")
+    assert r.status_code == 422 and r.json()["error"] == "invalid_parameter" and "strategy" in r.json()["detail"]
+    r = client.get("/v1/sampling", params={"strategy": "gauss-ac1c2", "channel": "Q"})
+    assert r.status_code == 422 and "channel" in r.json()["detail"]
