@@ -141,3 +141,22 @@ def test_sampling_query_parameters_are_the_declared_ones(spec):
     assert r.status_code == 422 and r.json()["error"] == "invalid_parameter" and "strategy" in r.json()["detail"]
     r = client.get("/v1/sampling", params={"strategy": "gauss-ac1c2", "channel": "Q"})
     assert r.status_code == 422 and "channel" in r.json()["detail"]
+
+
+def test_the_pages_method_words_come_from_the_registry_and_match_the_shipped_model():
+    """The page says "The light was estimated by WORDS" with the registry's
+    words (``GET /v1/models`` ``method_words``; app.js keeps no copy), and
+    what they say of the learnt model's training data is the shipped model's
+    own record."""
+    from recovery import learned as L
+    from recovery.methods import METHODS
+
+    client = TestClient(app, base_url="http://127.0.0.1:8000")
+    words = client.get("/v1/models").json()["method_words"]
+    assert words == {k: m.words for k, m in METHODS.items()} and all(words.values())
+    info = L.load_model().info
+    assert f"{sum(info['benchmarks'].values()):,} real photographs of {len(info['cameras'])} cameras" in words["learned"]
+    with open(os.path.join(ROOT, "service", "static", "app.js"), encoding="utf-8") as f:
+        js = f.read()
+    assert "let METHOD_WORDS = {};" in js and "models.method_words" in js
+    assert not re.search(r'"learned":\s*"the learnt', js)         # no second copy of the words

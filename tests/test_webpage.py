@@ -215,6 +215,10 @@ def test_upload_shows_both_images_the_light_and_the_diagnostics(page, server, tm
 
     summary = page.inner_text("#diag-summary")
     assert summary.startswith("The light was estimated by ")
+    from recovery.methods import METHODS                 # the registry's words, served by /v1/models
+
+    used = est.get("method") or est["diagnostics"].get("method")
+    assert summary.startswith(f"The light was estimated by {METHODS[used].words}."), (used, summary)
     if est["diagnostics"].get("confidence") is not None:
         assert f"({round(100 * est['diagnostics']['confidence'])} %)" in summary
     assert "Camera: Nikon 5100 (NPL), with measured spectral sensitivities." in page.inner_text("#diag-details")

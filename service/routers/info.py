@@ -53,6 +53,7 @@ def linear_models() -> dict:
         "defaults": {"D(S)": "C - 1", "D(E)": "D(S) + 1"},
         "methods": list(METHODS),
         "method_descriptions": {name: m.description for name, m in METHODS.items()},
+        "method_words": {name: m.words for name, m in METHODS.items()},
         "wavelengths": models.DEFAULT_WAVELENGTHS.tolist(),
         "reflectance_sets": models.reflectance_set_names(),
         "illuminants": models.illuminant_names(),

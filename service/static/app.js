@@ -8,17 +8,9 @@
 const $ = (id) => document.getElementById(id);
 const SVG = "http://www.w3.org/2000/svg";  // the SVG namespace name, not a fetched URL
 
-const METHOD_WORDS = {
-  "learned": "the learnt estimator (classical estimates combined by a network trained on real photographs " +
-    "of 10 cameras, through this camera's colour matrix)",
-  "bayes": "the light posterior (the scene's surface colours weighed against a set of candidate lights)",
-  "maloney-wandell": "the Maloney–Wandell subspace method (under one light the surfaces' camera responses lie in a " +
-    "plane whose normal fixes the light; Wandell 1985, eq. 30–35)",
-  "gray-world": "grey world (the mean of the scene is assumed grey)",
-  "white-patch": "white patch (the brightest surface is assumed white)",
-  "shades-of-gray": "shades of grey (a Minkowski mean of the scene is assumed grey)",
-  "gray-edge": "grey edge (the mean image derivative is assumed grey)",
-};
+// What the page says of each method ("The light was estimated by ..."): the estimator
+// registry's own words (recovery/methods.py), from GET /v1/models when the page loads.
+let METHOD_WORDS = {};
 
 const SOURCE_WORDS = {
   "measured": "measured spectral sensitivities",
@@ -142,6 +134,7 @@ async function loadOptions() {
   try {
     const [models, cameras] = await Promise.all([
       fetch("/v1/models").then((r) => r.json()), fetch("/v1/cameras").then((r) => r.json())]);
+    METHOD_WORDS = models.method_words || {};
     const method = $("opt-method");
     for (const m of models.methods || []) {
       if (m !== "auto") method.add(new Option(m, m));
