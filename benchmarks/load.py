@@ -239,27 +239,31 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(port: int | None = None, env: dict | None = None):
+def start_server(port: int | None = None, env: dict | None = None, tree: str | None = None):
     """The service under uvicorn on 127.0.0.1 (as the README starts it):
-    ``(process, base URL)`` once ``/health`` answers."""
+    ``(process, base URL)`` once ``/health`` answers. ``tree``: another
+    checkout's service instead (its folder first on the path and the
+    working directory, the current folder left off the path, ``-P``)."""
     import httpx
 
     port = port or _free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
-                             "--port", str(port), "--log-level", "warning"],
-                            env={**os.environ, **(env or {})})
+    env = {**os.environ, **(env or {}), **({"PYTHONPATH": tree} if tree else {})}
+    proc = subprocess.Popen([sys.executable, *(["-P"] if tree else []), "-m", "uvicorn", "service.app:app",
+                             "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
+                            env=env, cwd=tree)
+    what = f"the server of {tree}" if tree else "the server"
     base = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError(f"the server exited with status {proc.returncode}")
+            raise RuntimeError(f"{what} exited with status {proc.returncode}")
         try:
             if httpx.get(base + "/health", timeout=2).status_code == 200:
                 return proc, base
         except httpx.TransportError:
             time.sleep(0.2)
     proc.terminate()
-    raise RuntimeError("the server did not answer /health within 120 s")
+    raise RuntimeError(f"{what} did not answer /health within 120 s")
 
 
 def _loopback(url: str) -> bool:

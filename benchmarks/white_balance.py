@@ -178,28 +178,10 @@ def _round_order(keys: list, i: int) -> list:
 
 
 def _start_tree_server(tree: str):
-    """The service of another checkout under uvicorn (``--before``): its
-    modules first on the path, the current folder left off (``-P``)."""
-    import httpx
+    """The service of another checkout under uvicorn (``--before``)."""
+    from .load import start_server
 
-    from .load import _free_port
-
-    port = _free_port()
-    env = {**os.environ, "PYTHONPATH": tree}
-    proc = subprocess.Popen([sys.executable, "-P", "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
-                             "--port", str(port), "--log-level", "warning"], env=env, cwd=tree)
-    base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"the --before server exited with status {proc.returncode}")
-        try:
-            if httpx.get(base + "/health", timeout=2).status_code == 200:
-                return proc, base
-        except httpx.TransportError:
-            time.sleep(0.2)
-    proc.terminate()
-    raise RuntimeError("the --before server did not answer /health within 120 s")
+    return start_server(tree=tree)
 
 
 def main(argv=None) -> None:
