@@ -182,7 +182,7 @@ def augment(feats, tuv, rng, settings=SETTINGS):
 
 
 def fit_model(feats, tuv, dataset, camera, ridge, loc, settings=SETTINGS, sigma=None, conf=None, info=None,
-              gam=None):
+              gam=None, outside=None):
     """Fit on the given images (all usable) and their augmented copies; the
     model's gamut limit is the ``gamut_quantile`` percentile of their
     out-of-gamut fractions ``gam`` (none without them)."""
@@ -207,6 +207,7 @@ def fit_model(feats, tuv, dataset, camera, ridge, loc, settings=SETTINGS, sigma=
                           np.zeros(3) if sigma is None else sigma,
                           np.array([np.nan, np.nan]) if conf is None else conf,
                           np.array([np.inf if gam is None else float(np.percentile(gam, settings["gamut_quantile"]))]),
+                          np.array([np.nan, np.nan]) if outside is None else np.asarray(outside, float),
                           {**(info or {}), "fit": fit_info})
 
 
@@ -282,13 +283,36 @@ def select_and_calibrate(rs, feats, tuv, Ks, idx, loc, settings=SETTINGS, log=pr
     return ridge, sigma, conf, {"inner_mean_error_by_ridge": record, "chosen_ridge": ridge}
 
 
+def outside_calibration(rs, feats, tuv, Ks, idx, gam, settings=SETTINGS, min_images: int = 10):
+    """``[variance, P(error < 3 deg), radius90_deg]`` of the reference
+    estimate on the images of ``idx`` beyond the gamut limit a model fitted
+    on them gets (:attr:`recovery.learned.LearnedModel.outside_calibration`),
+    and their number; NaN with fewer than ``min_images``."""
+    none = np.array([np.nan, np.nan, np.nan])
+    if gam is None:
+        return none, 0
+    g = gam[idx]
+    beyond = idx[g > np.percentile(g, settings["gamut_quantile"])]
+    if beyond.size < min_images:
+        return none, int(beyond.size)
+    ref = feats[beyond, L.REFERENCE]
+    d2 = ((ref - tuv[beyond]) ** 2).sum(axis=1)
+    err = camera_errors(ref, rs.truth[beyond], rs.camera[beyond], Ks)
+    ok = err < 3.0
+    return np.array([float(np.quantile(d2, 0.9)) / L.CHI2_90, (ok.sum() + 1.0) / (ok.size + 2.0),
+                     float(np.quantile(err, 0.9))]), int(beyond.size)
+
+
 def build(rs, feats, tuv, Ks, idx, settings=SETTINGS, log=print, info=None, gam=None):
     """The whole procedure on images ``idx``: choose and calibrate by inner
-    leave-one-benchmark-out, then fit on all of ``idx``."""
+    leave-one-benchmark-out, then fit on all of ``idx``; the reference's
+    uncertainty beyond the gamut limit from the images of ``idx`` beyond it."""
     loc = locus()
     ridge, sigma, conf, rec = select_and_calibrate(rs, feats, tuv, Ks, idx, loc, settings, log, gam)
+    outside, n_out = outside_calibration(rs, feats, tuv, Ks, idx, gam, settings)
+    rec = {**rec, "outside_calibration_images": n_out}
     return fit_model(feats[idx], tuv[idx], rs.dataset[idx], rs.camera[idx], ridge, loc, settings, sigma, conf,
-                     {**(info or {}), "selection": rec}, gam=_at(gam, idx))
+                     {**(info or {}), "selection": rec}, gam=_at(gam, idx), outside=outside)
 
 
 def apply(model, rs, feats, tuv, Ks, idx, sog=None, gam=None) -> dict:
@@ -310,12 +334,15 @@ def apply(model, rs, feats, tuv, Ks, idx, sog=None, gam=None) -> dict:
         else:
             err[~ok] = sog[idx[~ok]]
     spread = L._spread(feats[idx[ok]], uv[ok])
-    var = L.variance_from_spread(spread, model.sigma)
+    out = model.outside(gam[idx[ok]]) if gam is not None else np.zeros(int(ok.sum()), bool)
+    var, conf_out, rad_out = model.uncertainty(spread, out)
     d2 = ((uv[ok] - tuv[idx[ok]]) ** 2).sum(axis=1)
-    rad = radii(uv[ok], spread, rs.camera[idx[ok]], Ks, model.sigma)
+    rad = np.array([L.radius90(u, float(v), Ks[c]) for u, v, c in zip(uv[ok], var, rs.camera[idx[ok]])])
     conf = np.array([L.confidence(r, model.confidence_coef) for r in rad])
+    if conf_out is not None:
+        conf, rad = np.where(out, conf_out, conf), np.where(out, rad_out, rad)
     return {"uv": uv, "err": err, "usable": ok, "inside90": d2 <= L.CHI2_90 * var, "confidence": conf,
-            "err_usable": err[ok]}
+            "radius90_deg": rad, "err_usable": err[ok]}
 
 
 def leave_one_benchmark_out(rs, feats, tuv, Ks, settings=SETTINGS, log=print, sog=None, gam=None):

@@ -538,6 +538,16 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
               "evidence_spread": res.diagnostics["evidence_spread"], "uniform_patch_fraction": patches,
               "color_matrix_source": ("file / LibRaw" if getattr(camera, "color_matrix", None) is not None
                                       else "fitted to the camera's sensitivities")})
+    d["out_of_gamut_fraction"] = float(res.diagnostics["out_of_gamut_fraction"])
+    d["outside_training_range"] = bool(res.diagnostics["outside_training_range"])
+    if d["outside_training_range"]:
+        limit = float(np.asarray(model.gamut_limit).ravel()[0])
+        d["decision"] += (f"; but the colour matrix sends {d['out_of_gamut_fraction']:.0%} of the image out of the "
+                          f"canonical gamut (the model was trained up to {limit:.0%}: typically a D65 matrix under "
+                          "tungsten light), so the bright-pixel estimate stands")
+        if np.all(np.isfinite(model.outside_calibration)):
+            d["confidence_rule"] = ("P(error < 3 deg) of the bright-pixel estimate on the training photographs "
+                                    "beyond the same out-of-gamut limit, and its 90th-percentile error as the region")
     warns = list(run.warns)
     if res.confidence < LOW_CONFIDENCE:
         warns.append(f"low confidence in the light estimate ({res.confidence:.0%}): its 90 % region has a "

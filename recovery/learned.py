@@ -337,6 +337,19 @@ class LearnedModel:
         saved before there was one). Beyond it the colour matrix does not
         describe the camera under this light, the evidence is outside what
         the model learnt from, and the reference estimate stands.
+    outside_calibration : (3,) ``[variance, P(error < 3 deg), radius90_deg]``
+        of the reference estimate where it stands (beyond :attr:`gamut_limit`),
+        over the training images beyond the limit: the 90th percentile of
+        its squared log-chroma error divided by :data:`CHI2_90` (so the
+        Gaussian's 90 % region holds the light for 90 % of them), the
+        fraction of them it got within 3 degrees (Laplace's rule,
+        ``(k + 1) / (n + 2)``), and the 90th percentile of its angular
+        error in camera RGB (the reported radius: under a D65 matrix in
+        tungsten light the canonical blue is small, so a log-chroma region
+        is far wider in angle than the errors are). The reference has no learnt parameters, so
+        its errors on the training images are held-out errors. NaN (a model
+        saved before there was one, or fewer than 10 such images): the
+        model's own uncertainty law is used there too.
     info : dict, what it was trained on and how
     """
 
@@ -350,10 +363,13 @@ class LearnedModel:
     sigma: np.ndarray
     confidence_coef: np.ndarray = field(default_factory=lambda: np.array([np.nan, np.nan]))
     gamut_limit: np.ndarray = field(default_factory=lambda: np.array([np.inf]))
+    outside_calibration: np.ndarray = field(default_factory=lambda: np.array([np.nan, np.nan, np.nan]))
     info: dict = field(default_factory=dict, compare=False)
 
     _ARRAYS = ("canonical", "mean", "scale", "expansion", "coef", "locus_uv", "locus_mired", "sigma",
-               "confidence_coef", "gamut_limit")
+               "confidence_coef", "gamut_limit", "outside_calibration")
+    #: what a model saved before a field existed gets for it
+    _DEFAULTS = {"gamut_limit": (np.inf,), "outside_calibration": (np.nan, np.nan, np.nan)}
 
     def save(self, path) -> None:
         np.savez_compressed(path, info=json.dumps(self.info, sort_keys=True),
@@ -377,6 +393,20 @@ class LearnedModel:
         """(N,) bool: beyond the out-of-gamut fractions the model was trained on."""
         return np.atleast_1d(np.asarray(gamut_fraction, float)) > float(np.asarray(self.gamut_limit).ravel()[0])
 
+    def uncertainty(self, spread, outside) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(N,) log-chroma variances for evidence spreads (N,), and (N,)
+        confidences and 90 % radii (degrees) where the reference stands
+        (``outside``) and the model has a calibration for it (NaN elsewhere;
+        None without one): the uncertainty law of
+        :func:`variance_from_spread`, or :attr:`outside_calibration` beyond
+        the gamut limit."""
+        var = np.asarray(variance_from_spread(np.atleast_1d(spread), self.sigma), float)
+        oc = np.asarray(self.outside_calibration, float).ravel()
+        if oc.size != 3 or not np.all(np.isfinite(oc)):
+            return var, None, None
+        out = np.atleast_1d(np.asarray(outside, bool))
+        return np.where(out, oc[0], var), np.where(out, oc[1], np.nan), np.where(out, oc[2], np.nan)
+
 
 @lru_cache(maxsize=4)
 def load_model(path: str | None = None) -> LearnedModel:
@@ -387,8 +417,8 @@ def load_model(path: str | None = None) -> LearnedModel:
     with np.load(p, allow_pickle=False) as z:
         if "coef" not in z.files:
             raise InputError(f"{p} is a model of an older format (rebuild it: python -m benchmarks.train_illuminant)")
-        defaults = {"gamut_limit": np.array([np.inf])}
-        return LearnedModel(*(z[k] if k in z.files else defaults[k] for k in LearnedModel._ARRAYS),
+        defaults = LearnedModel._DEFAULTS
+        return LearnedModel(*(z[k] if k in z.files else np.array(defaults[k]) for k in LearnedModel._ARRAYS),
                             info=json.loads(str(z["info"])))
 
 
@@ -488,14 +518,18 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     outside = bool(model.outside(gamut)[0])
     uv = model.predict(model.inputs(f), np.array([gamut]))[0] + f[REFERENCE]
     spread = float(_spread(f, uv))
-    var = float(variance_from_spread(spread, model.sigma))
+    var, conf_outside, radius_outside = model.uncertainty(spread, outside)
+    var = float(var[0])
     cov = np.eye(2) * var
     cam = np.linalg.solve(K, uv_to_rgb(uv))
     if not np.all(cam > 0):
         cam = np.clip(cam, 1e-6, None)
     cam = cam / cam.sum()
-    radius = radius90(uv, var, K)
-    conf = confidence(radius, model.confidence_coef)
+    if conf_outside is not None and outside:      # the reference's own record beyond the limit
+        radius, conf = float(radius_outside[0]), float(conf_outside[0])
+    else:
+        radius = radius90(uv, var, K)
+        conf = confidence(radius, model.confidence_coef)
     return LearnedResult(cam, uv, cov, float(radius), conf, int(ok.sum()),
                          {"evidence_spread": spread, "uniform_patch_fraction": uniform_patch_fraction(can @ np.linalg.inv(K).T, ok),
                           "out_of_gamut_fraction": gamut, "outside_training_range": outside,
