@@ -18,6 +18,14 @@ Variants:
   "dominant colour" of Cheng et al. 2015), added;
 * ``+spatial``: gray world, bright pixels and shades of gray of the top and
   bottom halves and the centre of the frame, added;
+* ``locus-band``: the shipped estimate moved into the band of the
+  training lights (the 1st-99th percentiles of their place along and off
+  the Planckian locus, :func:`recovery.learned.locus_coordinates`): a light
+  prior kept apart from the scene model;
+* ``cutmix``: a third copy of every training photograph made of two
+  training photographs, the second relit to the first's light (the
+  diagonal model in the canonical space) and pasted over 30-70 % of the
+  frame, so scenes mix across benchmarks;
 * ``gbm`` (when scikit-learn is installed): gradient-boosted trees
   (absolute-error loss) on the same inputs instead of the random-feature
   ridge, and ``gbm+ridge``, the average of the two.
@@ -25,7 +33,8 @@ Variants:
 Prints, per left-out benchmark, mean / median and their ratios to shades of
 gray (p = 6) on it, the pooled mean / median, and the mean / median on
 Cube+'s photographs under lights warmer than 4000 K (where the learnt model
-loses to its own bright-pixel reference). About 3 minutes on two cores.
+loses to its own bright-pixel reference). About 6 minutes on two cores
+(``--only`` for fewer).
 
 Usage::
 
@@ -102,13 +111,18 @@ def extra_estimates(can: np.ndarray, ok: np.ndarray) -> dict[str, np.ndarray]:
 
 def evidence(rs):
     """The shipped estimates, each family of extra ones, the labels, the
-    canonical transforms and the out-of-gamut fractions of every image."""
+    canonical transforms and the out-of-gamut fractions of every image, and
+    the canonical analysis images (float32) with their usable cells."""
     feats, tuv, Ks, gam = T.dataset_features(rs)
     extra = {}
+    cells = np.zeros((len(feats), L.GRID, L.GRID, 3), np.float32)
+    oks = np.zeros((len(feats), L.GRID, L.GRID), bool)
     for i, (img, cam) in enumerate(zip(rs.images, rs.camera)):
         if not np.all(np.isfinite(feats[i])):
             continue
         can, ok, _, _ = L.canonical_analysis(img, usable_mask(img), rs.matrices[cam], L.BRADFORD)
+        if can.shape[:2] == cells.shape[1:3]:
+            cells[i], oks[i] = can, ok
         for k, v in extra_estimates(can, ok).items():
             if k not in extra:
                 extra[k] = np.full((len(feats), len(v), 2), np.nan)
@@ -116,6 +130,7 @@ def evidence(rs):
     for k, v in extra.items():      # an estimate that could not be made stands in as the reference
         bad = ~np.isfinite(v)
         extra[k] = np.where(bad, np.broadcast_to(feats[:, L.REFERENCE:L.REFERENCE + 1, :], v.shape), v)
+    extra["cells"], extra["oks"] = cells, oks
     return feats, extra, tuv, Ks, gam
 
 
@@ -154,6 +169,68 @@ def _ridge_lodo(F, ref, rs, tuv, Ks, gam, good):
     return uv
 
 
+def locus_band(uv, train_uv, q: float = 99.0) -> np.ndarray:
+    """``uv`` moved into the band the training lights ``train_uv`` span
+    along and off the Planckian locus (their ``100 - q`` to ``q``
+    percentiles of :func:`recovery.learned.locus_coordinates`)."""
+    loc_uv, loc_mired = T.locus()
+    lt = L.locus_coordinates(train_uv, loc_uv, loc_mired)
+    lo, hi = np.percentile(lt, [100 - q, q], axis=0)
+    lc = L.locus_coordinates(uv, loc_uv, loc_mired)
+    tang = np.gradient(loc_uv, axis=0)
+    tang = tang / np.linalg.norm(tang, axis=1, keepdims=True)
+    out = np.array(uv, float)
+    for i, (a, p) in enumerate(lc):
+        a2, p2 = np.clip(a, lo[0], hi[0]), np.clip(p, lo[1], hi[1])
+        if a2 != a or p2 != p:
+            j = int(np.argmin(np.abs(loc_mired / 100.0 - a2)))
+            out[i] = loc_uv[j] + p2 * np.array([tang[j, 1], -tang[j, 0]])
+    return out
+
+
+def _cutmix_lodo(feats, extra, rs, tuv, gam, good, seed: int = 1):
+    """The shipped fit with a third, mixed copy of every training image."""
+    cells, oks = extra["cells"], extra["oks"]
+    rgb = L.uv_to_rgb(tuv)
+    uv = np.full((len(tuv), 2), np.nan)
+    loc = T.locus()
+    for b in rs.datasets:
+        tr = np.flatnonzero((rs.dataset != b) & good)
+        te = np.flatnonzero((rs.dataset == b) & good)
+        rng = np.random.default_rng(seed)
+        w0 = T.balance_weights(rs.dataset[tr], rs.camera[tr])
+        fm, ym, wm = [], [], []
+        for k, i in enumerate(tr):
+            j = tr[rng.integers(len(tr))]
+            c, o = cells[i].astype(float), oks[i].copy()
+            cj = cells[j].astype(float) * (rgb[i] / rgb[j])
+            s = int(rng.uniform(0.3, 0.7) * L.GRID)
+            sl = np.s_[:, s:] if rng.random() < 0.5 else np.s_[s:]
+            c[sl], o[sl] = cj[sl], oks[j][sl]
+            try:
+                fm.append(L.features(c, o))
+            except L.InsufficientSurfaceVariation:
+                continue
+            ym.append(tuv[i])
+            wm.append(w0[k])
+        fa, ta = T.augment(feats[tr], tuv[tr], np.random.default_rng(T.SETTINGS["augment_seed"]))
+        allf = np.concatenate([feats[tr], fa, np.array(fm)])
+        allt = np.concatenate([tuv[tr], ta, np.array(ym)])
+        w = np.concatenate([w0, w0, np.array(wm)])
+        x = L.model_inputs(allf, *loc)
+        coefs = []
+        for r in GRID_RIDGES:
+            mean, scale, c, _ = L.fit_robust_ridge(x, allt - allf[:, L.REFERENCE], w, hidden=T.SETTINGS["hidden"],
+                                                   ridge=r, delta=T.SETTINGS["delta"], seed=T.SETTINGS["seed"],
+                                                   tol=T.SETTINGS["tol"])
+            coefs.append(c)
+        pw, pb = L.random_expansion(x.shape[1], T.SETTINGS["hidden"], T.SETTINGS["seed"])
+        off = L.expand(L.model_inputs(feats[te], *loc), mean, scale, pw, pb) @ np.mean(coefs, axis=0)
+        off[gam[te] > np.percentile(gam[tr], T.SETTINGS["gamut_quantile"])] = 0.0
+        uv[te] = feats[te][:, L.REFERENCE] + off
+    return uv
+
+
 def _gbm_lodo(F, rs, tuv, gam, good):
     """Gradient-boosted trees (scikit-learn) on the shipped inputs, both
     log-chroma offsets, the same augmentation and gamut limit."""
@@ -181,7 +258,7 @@ def _gbm_lodo(F, rs, tuv, gam, good):
 
 
 VARIANTS = ("shipped", "no-gray-edge", "no-gray-pixels", "gray-edge-s2-s3", "+pca", "+dominant", "+spatial",
-            "gbm", "gbm+ridge")
+            "locus-band", "cutmix", "gbm", "gbm+ridge")
 
 
 def main(argv=None) -> int:
@@ -213,6 +290,15 @@ def main(argv=None) -> int:
                     if "shipped" not in cache:
                         cache["shipped"] = _ridge_lodo(*_select(feats, extra, "shipped"), rs, tuv, Ks, gam, good)
                     uv = 0.5 * (uv + cache["shipped"])
+            elif v == "locus-band":
+                if "shipped" not in cache:
+                    cache["shipped"] = _ridge_lodo(*_select(feats, extra, "shipped"), rs, tuv, Ks, gam, good)
+                uv = np.array(cache["shipped"])
+                for b in rs.datasets:
+                    te = (rs.dataset == b) & good
+                    uv[te] = locus_band(uv[te], tuv[(rs.dataset != b) & good])
+            elif v == "cutmix":
+                uv = _cutmix_lodo(feats, extra, rs, tuv, gam, good)
             else:
                 uv = cache.setdefault(v, _ridge_lodo(*_select(feats, extra, v), rs, tuv, Ks, gam, good))
             err = np.array(sog)         # shades of gray where an image has too few usable cells, as the product
