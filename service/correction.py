@@ -69,7 +69,8 @@ def _plain_chunk(chunk: np.ndarray, hi: tuple, mask: np.ndarray) -> bool:
 
 def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None, bits: int,
                          rows_per_chunk: int | None = None, threads: int | None = None,
-                         neutral=None, shoulder: dict | None = None, curve: str | None = None) -> np.ndarray:
+                         neutral=None, shoulder: dict | None = None, curve: str | None = None,
+                         reuse_input: bool = False) -> np.ndarray:
     """Apply ``M`` to a uint16 (H, W, 3) image whose 65535 is saturation and
     encode it, chunk by chunk on a few threads.
 
@@ -111,6 +112,14 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
     as without ``neutral`` (issue 19: 197 -> 165 ms of a 24-megapixel image
     on one core; the same pixels within one code of the 16-bit linear
     values, ``tests/test_correction.py``). Not with a shoulder.
+
+    ``reuse_input`` (the caller drops ``rgb16`` after this): 8-bit output
+    goes into the first half of ``rgb16``'s own memory when it is
+    contiguous, instead of a new 72 MB for 24 megapixels (issue 19: new
+    memory is what this VM is slow to hand out, up to 1 s for such an
+    array, and the peak is one image lower). Chunk ``j``'s output bytes
+    are the input of the chunks around ``j / 2``: it waits until they have
+    read theirs.
     """
     import os
     import threading
@@ -120,7 +129,13 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
 
     lut = _encoding_lut(encoding, bits, curve)
     H, W = rgb16.shape[:2]
-    out = rgb16 if bits == 16 else np.empty(rgb16.shape, np.uint8)
+    shared = bits == 8 and reuse_input and rgb16.flags.c_contiguous and rgb16.dtype == np.uint16
+    if bits == 16:
+        out = rgb16
+    elif shared:
+        out = rgb16.reshape(-1).view(np.uint8)[:rgb16.size].reshape(rgb16.shape)
+    else:
+        out = np.empty(rgb16.shape, np.uint8)
     if rgb16.size == 0:
         return out
     if rows_per_chunk is None:
@@ -210,14 +225,30 @@ def apply_matrix_inplace(rgb16: np.ndarray, M: np.ndarray, encoding: str | None,
                 cv2.multiply(lin, S3, dst=u, dtype=cv2.CV_16U)
             else:
                 cv2.add(lin, zero, dst=u, dtype=cv2.CV_16U)             # clip to [0, 65535], round
+        if shared:
+            read[r // rows_per_chunk].set()
+            for i in range(r // 2 // rows_per_chunk, min(n_chunks, -(-(r + h) // 2 // rows_per_chunk) + 1)):
+                lo = i * rows_per_chunk
+                if i != r // rows_per_chunk and 2 * lo < r + h and 2 * min(lo + rows_per_chunk, H) > r:
+                    read[i].wait()              # its input is where this output goes
         np.take(lut, u, out=out[r:r + rows_per_chunk], mode="wrap")
 
     n_threads = threads or min(4, os.cpu_count() or 1)
     chunks = range(0, H, rows_per_chunk)
+    n_chunks = len(chunks)
+    read = [threading.Event() for _ in chunks] if shared else None
+
+    def task(r):
+        try:
+            work(r)
+        finally:
+            if shared:      # also when it failed: no chunk waits for ever
+                read[r // rows_per_chunk].set()
+
     if n_threads == 1 or len(chunks) == 1:
         for r in chunks:
-            work(r)
+            task(r)
     else:
         with ThreadPoolExecutor(n_threads) as pool:
-            list(pool.map(work, chunks))
+            list(pool.map(task, chunks))
     return out

@@ -583,7 +583,7 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
     rgb16 = default_crop(decoded, _full_linear_u16(decoded))
     t1 = time.perf_counter()
     out = apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=threads, neutral=info.get("neutral"),
-                               shoulder=info.get("shoulder"), curve=info.get("curve"))
+                               shoulder=info.get("shoulder"), curve=info.get("curve"), reuse_input=True)
     t2 = time.perf_counter()
     if timings is not None:
         timings.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3)

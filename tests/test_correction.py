@@ -68,3 +68,25 @@ def test_a_shoulder_keeps_the_step_by_step_path(monkeypatch):
     correction.apply_matrix_inplace(img, M, "sRGB", 8, rows_per_chunk=8, threads=1, neutral=NEUTRAL,
                                     shoulder={"luminance": (0.2126, 0.7152, 0.0722), "knee": 0.75, "peak": 2.0})
     assert not called
+
+
+@pytest.mark.parametrize("threads,rows", [(1, 8), (2, 1), (2, 7), (4, 3)])
+def test_8bit_output_in_the_input_memory_is_the_same_image(threads, rows):
+    # reuse_input: the 8-bit output written into the first half of the 16-bit
+    # input's memory, each chunk waiting for the chunks it overwrites to have
+    # been read: the same pixels as into a new array, whatever the threads
+    img = _image(np.random.default_rng(6), h=203, w=61)
+    ref = correction.apply_matrix_inplace(img.copy(), M, "sRGB", 8, rows_per_chunk=rows, threads=threads,
+                                          neutral=NEUTRAL, curve="libraw")
+    for _ in range(3):
+        x = img.copy()
+        out = correction.apply_matrix_inplace(x, M, "sRGB", 8, rows_per_chunk=rows, threads=threads,
+                                              neutral=NEUTRAL, curve="libraw", reuse_input=True)
+        assert np.shares_memory(out, x) and out.dtype == np.uint8
+        assert np.array_equal(out, ref)
+    crop = img.copy()[3:200, 2:60]           # not contiguous: a new array
+    ref = correction.apply_matrix_inplace(np.ascontiguousarray(crop), M, "sRGB", 8, rows_per_chunk=rows,
+                                          threads=threads, neutral=NEUTRAL, curve="libraw")
+    out = correction.apply_matrix_inplace(crop, M, "sRGB", 8, rows_per_chunk=rows, threads=threads,
+                                          neutral=NEUTRAL, curve="libraw", reuse_input=True)
+    assert not np.shares_memory(out, crop) and np.array_equal(out, ref)

@@ -283,22 +283,27 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
 def _demosaic(cfa: np.ndarray, sites, blacks, white: float, flip: int) -> np.ndarray | None:
     """:func:`_opencv_full_linear` of a mosaic already unpacked (the caller's
     reference to ``cfa`` is the last: it is dropped before the demosaic)."""
-    mos = _scaled_mosaic(cfa, sites, blacks, white)
+    mos = _scaled_mosaic(cfa, sites, blacks, white, out=cfa)   # the decode's own copy: scaled in place
     del cfa
     return _demosaic_scaled(mos, sites, flip)
 
 
-def _scaled_mosaic(cfa: np.ndarray, sites, blacks, white: float) -> np.ndarray:
+def _scaled_mosaic(cfa: np.ndarray, sites, blacks, white: float, out: np.ndarray | None = None) -> np.ndarray:
     """The CFA sites scaled to the estimation scale, one uint16 mosaic:
     ``(d - b_c) * k_c`` clipped to [0, 65535], plus one half, truncated, in
     float32. Whole rows at a time, each site's ``b_c`` and ``k_c`` from a
     table of the 2 x 2 cell repeated along the row: the same float32
     operations on every sample as one site at a time, on contiguous memory
-    (issue 19: half the time of the strided per-site passes)."""
+    (issue 19: half the time of the strided per-site passes). ``out``: where
+    to write it (``cfa`` itself when the caller owns it, uint16: each chunk
+    of rows is read whole before it is written, so in place is safe, and
+    no second mosaic is allocated)."""
     import cv2
 
     H, W = cfa.shape
-    mos = np.empty((H, W), np.uint16)
+    if out is not None and (out.shape != (H, W) or out.dtype != np.uint16):
+        out = None
+    mos = np.empty((H, W), np.uint16) if out is None else out
     rows = 2 * max(1, (1 << 17) // max(1, W))   # 1 MB of float32 per chunk and thread; even: the cell's rows
     B = np.zeros((2, W), np.float32)
     K = np.zeros((2, W), np.float32)
