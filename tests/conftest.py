@@ -22,7 +22,12 @@ os.environ.setdefault("WANDELL_ALLOWED_HOSTS", "testserver,t,test")
 # The command line keeps the light posterior's models on disk (issue 19,
 # recovery.bayes.disk_cache_dir): the tests' CLI runs write theirs to a
 # folder of this session, not the user's cache.
-os.environ.setdefault("WANDELL_MODEL_CACHE_DIR", tempfile.mkdtemp(prefix="wandell-test-cache-"))
+if "WANDELL_MODEL_CACHE_DIR" not in os.environ:
+    import atexit
+    import shutil
+
+    os.environ["WANDELL_MODEL_CACHE_DIR"] = _model_cache = tempfile.mkdtemp(prefix="wandell-test-cache-")
+    atexit.register(shutil.rmtree, _model_cache, True)
 
 from models import DEFAULT_WAVELENGTHS
 
