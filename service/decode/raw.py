@@ -184,19 +184,41 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
     mosaic = None
     if sites is not None:
         img = raw.raw_image_visible
+        scaler = None
         if keep_mosaic and abs(aspect - 1.0) <= 1e-6:
-            # the caller renders next: a copy of the mosaic (about 2 bytes a
-            # pixel, 10-20 ms) instead of a second open and unpack (70-80 ms
-            # on 24 MP, issue 19); the full-resolution image drops it
-            mosaic = {"cfa": np.array(img), "sites": sites, "blacks": blacks, "white": white, "flip": flip}
-        h2, w2 = img.shape[0] // 2, img.shape[1] // 2
-        f = 1
-        if estimation_pixels and h2 * w2 > estimation_pixels:
-            f = int(math.ceil(math.sqrt(h2 * w2 / estimation_pixels)))
-        if f > 1 and h2 // f >= 1 and w2 // f >= 1:
-            est, sat = _bin_bayer_area(img, sites, blacks, white, f)
-        else:
-            est, sat = _bin_bayer(img, sites, blacks, white)
+            # the caller renders next: the mosaic kept, already scaled for the
+            # demosaic (about 2 bytes a pixel), instead of a second open and
+            # unpack (70-80 ms on 24 MP, issue 19); the full-resolution image
+            # drops it. Scaled on a thread straight from LibRaw's buffer while
+            # this one bins the estimation image (no copy of the raw mosaic,
+            # and the scaling is off the demosaic's path); joined before the
+            # buffer goes (the caller closes the file)
+            import threading
+
+            box: dict = {}
+
+            def scale():
+                try:
+                    box["mos"] = _scaled_mosaic(img, sites, blacks, white)
+                except Exception:  # noqa: BLE001 - MemoryError and the like: the render unpacks again
+                    pass
+
+            scaler = threading.Thread(target=scale, name="wandell-scale", daemon=True)
+            scaler.start()
+        try:
+            h2, w2 = img.shape[0] // 2, img.shape[1] // 2
+            f = 1
+            if estimation_pixels and h2 * w2 > estimation_pixels:
+                f = int(math.ceil(math.sqrt(h2 * w2 / estimation_pixels)))
+            if f > 1 and h2 // f >= 1 and w2 // f >= 1:
+                est, sat = _bin_bayer_area(img, sites, blacks, white, f)
+            else:
+                est, sat = _bin_bayer(img, sites, blacks, white)
+        finally:
+            if scaler is not None:
+                scaler.join()
+        if scaler is not None and box.get("mos") is not None:
+            mosaic = {"scaled": box["mos"], "sites": sites, "flip": flip}
         del img
         if s.height % 2 or s.width % 2:
             warnings.append("odd image size: the last row/column is not in the half-size estimation image")
@@ -263,7 +285,7 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
 
     kept, img._mosaic = img._mosaic, None
     if kept is not None:
-        return _demosaic(kept.pop("cfa"), kept["sites"], kept["blacks"], kept["white"], kept["flip"])
+        return _demosaic_scaled(kept.pop("scaled"), kept["sites"], kept["flip"])
     try:
         with rawpy.imread(io.BytesIO(img._source)) as raw:
             s = raw.sizes
@@ -280,30 +302,17 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
     return _demosaic_scaled(mos, sites, flip)
 
 
-def _demosaic(cfa: np.ndarray, sites, blacks, white: float, flip: int) -> np.ndarray | None:
-    """:func:`_opencv_full_linear` of a mosaic already unpacked (the caller's
-    reference to ``cfa`` is the last: it is dropped before the demosaic)."""
-    mos = _scaled_mosaic(cfa, sites, blacks, white, out=cfa)   # the decode's own copy: scaled in place
-    del cfa
-    return _demosaic_scaled(mos, sites, flip)
-
-
-def _scaled_mosaic(cfa: np.ndarray, sites, blacks, white: float, out: np.ndarray | None = None) -> np.ndarray:
+def _scaled_mosaic(cfa: np.ndarray, sites, blacks, white: float) -> np.ndarray:
     """The CFA sites scaled to the estimation scale, one uint16 mosaic:
     ``(d - b_c) * k_c`` clipped to [0, 65535], plus one half, truncated, in
     float32. Whole rows at a time, each site's ``b_c`` and ``k_c`` from a
     table of the 2 x 2 cell repeated along the row: the same float32
     operations on every sample as one site at a time, on contiguous memory
-    (issue 19: half the time of the strided per-site passes). ``out``: where
-    to write it (``cfa`` itself when the caller owns it, uint16: each chunk
-    of rows is read whole before it is written, so in place is safe, and
-    no second mosaic is allocated)."""
+    (issue 19: half the time of the strided per-site passes)."""
     import cv2
 
     H, W = cfa.shape
-    if out is not None and (out.shape != (H, W) or out.dtype != np.uint16):
-        out = None
-    mos = np.empty((H, W), np.uint16) if out is None else out
+    mos = np.empty((H, W), np.uint16)
     rows = 2 * max(1, (1 << 17) // max(1, W))   # 1 MB of float32 per chunk and thread; even: the cell's rows
     B = np.zeros((2, W), np.float32)
     K = np.zeros((2, W), np.float32)
