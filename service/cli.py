@@ -165,12 +165,17 @@ class _DefaultLimits:
     estimation_pixels: int = 1_000_000
 
 
+#: ``WANDELL_*`` variables that are not service settings (recovery.bayes's model disk cache)
+_NOT_SETTINGS = frozenset({"WANDELL_MODEL_CACHE", "WANDELL_MODEL_CACHE_DIR"})
+
+
 def _settings():
     """The service settings (``WANDELL_*``): the pixel limits of decoding.
     With no ``WANDELL_*`` variable in the environment (any case, as
     pydantic-settings reads them) they are the embedded defaults, given
-    without importing pydantic-settings (0.2 s of start-up, issue 19)."""
-    if not any(k.upper().startswith("WANDELL_") for k in os.environ):
+    without importing pydantic-settings (0.2 s of start-up, issue 19). The
+    model disk cache's variables (:func:`_model_disk_cache`) are not settings."""
+    if not any(k.upper().startswith("WANDELL_") and k.upper() not in _NOT_SETTINGS for k in os.environ):
         return _DefaultLimits()
     from .settings import get_settings
 
