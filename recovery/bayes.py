@@ -112,6 +112,8 @@ gray, the fallback).
 from __future__ import annotations
 
 import hashlib
+import json
+import os
 import time
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -127,7 +129,7 @@ from .illuminant_prior import CandidateLights, default_candidates
 from .metrics import angular_error
 
 __all__ = ["estimate_bayes", "BayesModel", "bayes_model", "helmert", "kind_evidence", "modulated_spectrum",
-           "plausible_spectrum", "DEFAULTS"]
+           "plausible_spectrum", "DEFAULTS", "enable_disk_cache", "disk_cache_dir"]
 
 #: Default settings of the model (see :func:`bayes_model`) and of the
 #: image summary (see :func:`estimate_bayes`).
@@ -219,6 +221,8 @@ class BayesModel:
     build_ms: float
     lightness: dict | None = None
     cache: dict = field(default_factory=dict, repr=False)
+    #: the file it was read from (:func:`enable_disk_cache`), ``None`` when built here
+    loaded_from: str | None = None
 
     @property
     def light_chroma(self) -> np.ndarray:
@@ -308,6 +312,24 @@ def bayes_model(camera: Camera, candidates: CandidateLights | None = None, refle
     hit = _MODEL_CACHE.get(key)
     if hit is not None:
         return hit
+    disk = _disk_path(key, camera, refl)
+    model = _disk_load(disk, settings) if disk else None
+    if model is None:
+        model = _build(camera, cands, refl, settings)
+        if disk:
+            _disk_save(disk, model)
+    if len(_MODEL_CACHE) >= _MODEL_CACHE_MAX:
+        _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))
+    _MODEL_CACHE[key] = model
+    return model
+
+
+def _build(camera: Camera, cands: CandidateLights, refl: np.ndarray, settings: dict) -> BayesModel:
+    """The model's statistics computed (:func:`bayes_model`)."""
+    wl = camera.wavelengths
+    bandwidth, noise, mixtures = settings["bandwidth"], settings["noise"], settings["mixtures"]
+    mixture_weight, outlier, grid_step = settings["mixture_weight"], settings["outlier"], settings["grid_step"]
+    seed, adaptive = settings["seed"], settings["adaptive"]
     refl = np.clip(refl, 1e-4, None)
     t0 = time.perf_counter()
     C = camera.channels
@@ -399,10 +421,138 @@ def bayes_model(camera: Camera, candidates: CandidateLights | None = None, refle
     if log_table is not None:     # the default lightness table, so that the first estimate is not slow
         _lightness_table(model, DEFAULTS["shade_range"], DEFAULTS["lightness_bandwidth"])
         model.build_ms = (time.perf_counter() - t0) * 1000.0
-    if len(_MODEL_CACHE) >= _MODEL_CACHE_MAX:
-        _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))
-    _MODEL_CACHE[key] = model
     return model
+
+
+# --------------------------------------------------------------------------- the model on disk
+# Issue 19: a fresh process (the command line, a batch worker) spent 0.5-4 s
+# and about 200 MB building the model of a camera it had built the day
+# before. With the disk cache on (enable_disk_cache: the CLI and the batch
+# workers turn it on) a model is written once, after its build, as the very
+# arrays the build made (an uncompressed .npz), and read back in later
+# processes: the same bits, so the same estimates. The file's name is a
+# digest of everything the arrays depend on: the in-memory key (camera,
+# wavelengths, candidate lights by content, settings), the reflectances by
+# content (a named set's key is only its name), this module's source (the
+# code that builds the model), and numpy's and scipy's versions (FFT and
+# filtering). At most DISK_CACHE_MAX files are kept (the least recently used
+# removed); a file that cannot be read is rebuilt and replaced, one that
+# cannot be written is skipped (the estimate never depends on the cache).
+
+#: model files kept in the cache folder (each about 30 MB for a 3-channel camera)
+DISK_CACHE_MAX = 8
+_DISK_FORMAT = 1
+_disk_state = {"on": None, "code": None}
+#: the environment variable that turns the disk cache on in a process and
+#: the processes it starts (the command line sets it: batch workers inherit it)
+DISK_CACHE_ENV = "WANDELL_MODEL_CACHE"
+
+
+def disk_cache_dir() -> str | None:
+    """The folder of the model files: ``$WANDELL_MODEL_CACHE_DIR`` (empty,
+    ``off`` or ``none``: no disk cache), else ``$XDG_CACHE_HOME/wandell/models``,
+    else ``~/.cache/wandell/models``; ``None`` while the cache is off
+    (:func:`enable_disk_cache`, else ``$WANDELL_MODEL_CACHE`` other than 1:
+    the command line sets it to 1 unless it is set; 0 turns the cache off)."""
+    on = _disk_state["on"]
+    if on is None:
+        on = os.environ.get(DISK_CACHE_ENV, "").strip().lower() in ("1", "on", "yes", "true")
+    if not on:
+        return None
+    env = os.environ.get("WANDELL_MODEL_CACHE_DIR")
+    if env is not None:
+        return None if env.strip().lower() in ("", "off", "none", "0") else env
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "wandell", "models")
+
+
+def enable_disk_cache(on: bool | None = True) -> None:
+    """Keep built models on disk (:func:`disk_cache_dir`) for later
+    processes, or not (``None``: as ``$WANDELL_MODEL_CACHE`` says). Off by
+    default (a library call builds in memory only); the command line turns
+    it on for itself and its batch workers."""
+    _disk_state["on"] = None if on is None else bool(on)
+
+
+def _code_digest() -> str:
+    if _disk_state["code"] is None:
+        import scipy
+
+        with open(__file__, "rb") as f:
+            src = f.read()
+        _disk_state["code"] = _digest(hashlib.sha1(src).hexdigest(), np.__version__, scipy.__version__,
+                                      str(_DISK_FORMAT))
+    return _disk_state["code"]
+
+
+def _disk_path(key: str, camera: Camera, refl: np.ndarray) -> str | None:
+    folder = disk_cache_dir()
+    if folder is None:
+        return None
+    try:
+        name = _digest(key, refl, camera.dlambda, _code_digest())
+    except OSError:
+        return None
+    return os.path.join(folder, f"bayes-{name}.npz")
+
+
+_ARRAYS = ("H", "A", "light_rgb", "light_z", "z_train", "y_train", "w_train", "table_lo", "log_table")
+
+
+def _disk_save(path: str, model: BayesModel) -> None:
+    """``model`` to ``path`` (a temporary renamed into place; errors ignored)."""
+    arrays = {k: getattr(model, k) for k in _ARRAYS if getattr(model, k) is not None}
+    light = [k for k in model.cache if k[0] == "lightness"]
+    meta = {"format": _DISK_FORMAT, "settings": model.settings, "table_step": model.table_step,
+            "log_floor": model.log_floor, "build_ms": model.build_ms, "lightness": [list(k) for k in light]}
+    for i, k in enumerate(light):
+        for part, v in model.cache[k].items():
+            arrays[f"lightness{i}_{part}"] = v
+    tmp = f"{path}.{os.getpid()}.tmp"
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(tmp, "wb") as f:
+            np.savez(f, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+        os.replace(tmp, path)
+        files = sorted((e for e in os.scandir(os.path.dirname(path))
+                        if e.name.startswith("bayes-") and e.name.endswith(".npz")),
+                       key=lambda e: e.stat().st_mtime, reverse=True)
+        for e in files[DISK_CACHE_MAX:]:
+            os.unlink(e.path)
+    except OSError:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+
+
+def _disk_load(path: str, settings: dict) -> BayesModel | None:
+    """The model in ``path``, or ``None`` when there is none or it cannot be
+    read (then it is rebuilt and written again)."""
+    t0 = time.perf_counter()
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+            if meta.get("format") != _DISK_FORMAT or meta.get("settings") != settings:
+                return None
+            a = {k: (z[k] if k in z.files else None) for k in _ARRAYS}
+            cache = {}
+            for i, k in enumerate(meta["lightness"]):
+                cache[tuple(k)] = {part: z[f"lightness{i}_{part}"] for part in ("lo", "step", "shape", "log")}
+    except FileNotFoundError:
+        return None
+    except Exception:  # noqa: BLE001 - truncated or foreign file: rebuilt
+        return None
+    M, d = a["light_z"].shape
+    if a["z_train"].shape[::2] != (M, d) or (a["log_table"] is not None and a["log_table"].shape[0] != M):
+        return None
+    try:
+        os.utime(path)          # least recently used goes first (_disk_save)
+    except OSError:
+        pass
+    return BayesModel(a["H"], a["A"], a["light_rgb"], a["light_z"], a["z_train"], a["y_train"], a["w_train"],
+                      a["table_lo"], float(meta["table_step"]), a["log_table"], float(meta["log_floor"]),
+                      dict(meta["settings"]), (time.perf_counter() - t0) * 1000.0, cache=cache, loaded_from=path)
 
 
 # --------------------------------------------------------------------------- likelihoods

@@ -98,6 +98,28 @@ def parse_spatial(value) -> str:
                      f"not {value!r}")
 
 
+def chi2_logsf(x: float, dof: int) -> float:
+    """``scipy.stats.chi2.logsf(x, dof)``, bit for bit, from
+    ``scipy.special`` alone: scipy.stats took 0.4-1 s to import in every
+    fresh process that reached it (the command line's light posterior,
+    issue 19). The same formulas as scipy's generic ``logsf``: 0 at and
+    below 0, ``log(sf)`` above the median, ``log1p(-cdf)`` up to it
+    (``tests/test_spatial.py`` compares the two)."""
+    from scipy import special
+
+    x = float(x)
+    if x != x:
+        return float("nan")
+    if x <= 0.0:
+        return 0.0
+    if x == float("inf"):
+        return float("-inf")
+    with np.errstate(divide="ignore"):
+        if x > 2 * special.gammaincinv(dof / 2, 0.5):
+            return float(np.log(special.chdtrc(dof, x)))
+        return float(np.log1p(-special.chdtr(dof, x)))
+
+
 def chromaticity_trend(image: np.ndarray, mask: np.ndarray | None = None, *, dark_fraction: float = 0.02,
                        kappa: float = 4.0, reference_rgb=None, min_pairs: int = 64) -> dict:
     """The light's chromaticity gradient from within-surface differences.
@@ -178,9 +200,7 @@ def chromaticity_trend(image: np.ndarray, mask: np.ndarray | None = None, *, dar
         delta = grads[0] * (h - 1) + sgn * grads[1] * (w - 1)
         other = ref * np.exp(Hm.T @ delta)
         eff = max(eff, float(angular_error(ref, other)))
-    from scipy import stats  # here: scipy.stats costs 0.4 s of import, the CLI's start-up (issue 19)
-
-    logp = float(stats.chi2.logsf(chi2, dof) / np.log(10))
+    logp = float(chi2_logsf(chi2, dof) / np.log(10))
     out.update(defined=True, gradient_row=[float(x) for x in grads[0]], gradient_col=[float(x) for x in grads[1]],
                se_row=[float(x) if np.isfinite(x) else None for x in ses[0]],
                se_col=[float(x) if np.isfinite(x) else None for x in ses[1]],

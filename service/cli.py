@@ -165,12 +165,17 @@ class _DefaultLimits:
     estimation_pixels: int = 1_000_000
 
 
+#: ``WANDELL_*`` variables that are not service settings (recovery.bayes's model disk cache)
+_NOT_SETTINGS = frozenset({"WANDELL_MODEL_CACHE", "WANDELL_MODEL_CACHE_DIR"})
+
+
 def _settings():
     """The service settings (``WANDELL_*``): the pixel limits of decoding.
     With no ``WANDELL_*`` variable in the environment (any case, as
     pydantic-settings reads them) they are the embedded defaults, given
-    without importing pydantic-settings (0.2 s of start-up, issue 19)."""
-    if not any(k.upper().startswith("WANDELL_") for k in os.environ):
+    without importing pydantic-settings (0.2 s of start-up, issue 19). The
+    model disk cache's variables (:func:`_model_disk_cache`) are not settings."""
+    if not any(k.upper().startswith("WANDELL_") and k.upper() not in _NOT_SETTINGS for k in os.environ):
         return _DefaultLimits()
     from .settings import get_settings
 
@@ -812,6 +817,15 @@ class _VersionAction(argparse.Action):
         parser.exit()
 
 
+def _model_disk_cache() -> None:
+    """Models read from disk instead of rebuilt in every command (issue 19:
+    the light posterior's model took 0.5-4 s and 200 MB of a fresh
+    process; :func:`recovery.bayes.disk_cache_dir`, ``WANDELL_MODEL_CACHE_DIR``).
+    Through the environment, so that batch workers inherit it and a command
+    that never needs the model does not import it."""
+    os.environ.setdefault("WANDELL_MODEL_CACHE", "1")
+
+
 def main(argv=None) -> int:
     ap = _ArgumentParser(prog="wandell", description="White balance and illuminant estimation of RAW "
                                  "files (Wandell 1985; Maloney & Wandell)")
@@ -832,6 +846,7 @@ def main(argv=None) -> int:
     sys.stdout, sys.stderr = _SafeStream(out), _SafeStream(err)  # also what libraries and warnings print
     try:
         args = ap.parse_args(argv)
+        _model_disk_cache()
         args.argv = sys.argv[1:] if argv is None else list(argv)
         if args.command == "batch":
             return _cmd_batch(args)

@@ -196,7 +196,8 @@ def jpeg_encode(img: np.ndarray, quality: int = JPEG_QUALITY, threads: int | Non
     params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)]
 
     def one(rows: np.ndarray) -> bytes:
-        ok, enc = cv2.imencode(".jpg", np.ascontiguousarray(rows[..., ::-1]), params)
+        # RGB -> BGR by OpenCV (SIMD: a fifth of numpy's reversed copy, issue 19)
+        ok, enc = cv2.imencode(".jpg", cv2.cvtColor(rows, cv2.COLOR_RGB2BGR), params)
         if not ok:
             raise ValueError("OpenCV could not encode the JPEG")
         return enc.tobytes()

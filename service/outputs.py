@@ -446,7 +446,8 @@ def embed(encoded: bytes, fmt: str, icc: bytes | None, exif: bytes | None, text:
             extra += _png_chunk(b"eXIf", exif)
         for k, v in (text or {}).items():
             extra += _png_chunk(b"iTXt", k.encode("latin-1") + b"\0\0\0\0\0" + v.encode("utf-8"))
-        return encoded[:ihdr_end] + extra + encoded[ihdr_end:]
+        mv = memoryview(encoded)        # joined from views: no copy of the 22 MB tail before the result's
+        return b"".join([mv[:ihdr_end], extra, mv[ihdr_end:]])
     if fmt == "jpeg":
         assert encoded[:2] == b"\xff\xd8"
         segs = b""
@@ -468,7 +469,8 @@ def embed(encoded: bytes, fmt: str, icc: bytes | None, exif: bytes | None, text:
         pos = 2
         if encoded[2:4] == b"\xff\xe0":
             pos = 4 + struct.unpack(">H", encoded[4:6])[0]
-        return encoded[:pos] + segs + encoded[pos:]
+        mv = memoryview(encoded)
+        return b"".join([mv[:pos], segs, mv[pos:]])
     raise ValueError(f"embed: unsupported format {fmt!r}")
 
 

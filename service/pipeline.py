@@ -583,7 +583,7 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
     rgb16 = default_crop(decoded, _full_linear_u16(decoded))
     t1 = time.perf_counter()
     out = apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=threads, neutral=info.get("neutral"),
-                               shoulder=info.get("shoulder"), curve=info.get("curve"))
+                               shoulder=info.get("shoulder"), curve=info.get("curve"), reuse_input=True)
     t2 = time.perf_counter()
     if timings is not None:
         timings.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3)
@@ -668,15 +668,7 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
     if fmt == "tiff":
         import tifffile
 
-        kw = {}
-        if icc:
-            kw["iccprofile"] = icc
-        if facts:
-            kw["extratags"] = outputs.tiff_extratags(facts)
-            kw["metadata"] = None          # no tifffile shape JSON in ImageDescription (photo tools show it)
-            if facts.get("ImageDescription"):   # the source's own caption only; the estimate is in the XMP
-                kw["description"] = outputs.ascii_text(facts["ImageDescription"])
-            kw["software"] = facts.get("Software", "wandell-recovery")
+        kw = _tiff_kwargs(meta)
         if path is not None:
             tifffile.imwrite(path, img, photometric="rgb", **kw)
             return None
@@ -710,6 +702,76 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
             f.write(data)
         return None
     return data
+
+
+def _tiff_kwargs(meta: dict) -> dict:
+    """tifffile's keywords for an output TIFF carrying ``meta`` (:func:`encode_image`)."""
+    from . import outputs
+
+    icc, facts = meta.get("icc"), meta.get("facts")
+    kw = {}
+    if icc:
+        kw["iccprofile"] = icc
+    if facts:
+        kw["extratags"] = outputs.tiff_extratags(facts)
+        kw["metadata"] = None          # no tifffile shape JSON in ImageDescription (photo tools show it)
+        if facts.get("ImageDescription"):   # the source's own caption only; the estimate is in the XMP
+            kw["description"] = outputs.ascii_text(facts["ImageDescription"])
+        kw["software"] = facts.get("Software", "wandell-recovery")
+    return kw
+
+
+class _SparseFile:
+    """A seekable file that keeps what is written and only the size of what
+    is skipped (tifffile's ``write_empty``: a seek and one zero byte)."""
+
+    def __init__(self):
+        self.pos = self.size = 0
+        self.parts: list[tuple[int, bytes]] = []
+
+    def write(self, b) -> int:
+        b = bytes(b)
+        self.parts.append((self.pos, b))
+        self.pos += len(b)
+        self.size = max(self.size, self.pos)
+        return len(b)
+
+    def seek(self, off: int, whence: int = 0) -> int:
+        self.pos = off if whence == 0 else self.pos + off if whence == 1 else self.size + off
+        return self.pos
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        pass
+
+    def seekable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
+
+
+def tiff_head(img: np.ndarray, meta: dict | None = None) -> bytes | None:
+    """The bytes of the TIFF :func:`encode_image` writes for ``img``, up to
+    where its pixels start: the file is these bytes then ``img``'s bytes in
+    C order (uncompressed, one strip, pixels last), so an answer can send
+    the image from memory instead of a 144 MB file written and read back
+    (issue 19). Made by tifffile with the pixels left empty; ``None`` when
+    its layout is not header-then-pixels (then write the file)."""
+    import tifffile
+
+    f = _SparseFile()
+    tifffile.imwrite(f, shape=img.shape, dtype=img.dtype, photometric="rgb", **_tiff_kwargs(meta or {}))
+    start = f.size - img.nbytes
+    head = bytearray(start)
+    for off, b in f.parts:
+        if off + len(b) <= start:
+            head[off:off + len(b)] = b
+        elif not (off == f.size - 1 and b == b"\x00"):      # anything but the pixels' one zero byte
+            return None
+    return bytes(head)
 
 
 def output_meta(decoded, output: str, estimate: dict | None) -> dict:

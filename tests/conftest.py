@@ -19,6 +19,15 @@ import pytest
 # names WANDELL_ALLOWED_HOSTS adds in a deployment. Tests of the Host check
 # itself set the variable through env_settings.
 os.environ.setdefault("WANDELL_ALLOWED_HOSTS", "testserver,t,test")
+# The command line keeps the light posterior's models on disk (issue 19,
+# recovery.bayes.disk_cache_dir): the tests' CLI runs write theirs to a
+# folder of this session, not the user's cache.
+if "WANDELL_MODEL_CACHE_DIR" not in os.environ:
+    import atexit
+    import shutil
+
+    os.environ["WANDELL_MODEL_CACHE_DIR"] = _model_cache = tempfile.mkdtemp(prefix="wandell-test-cache-")
+    atexit.register(shutil.rmtree, _model_cache, True)
 
 from models import DEFAULT_WAVELENGTHS
 

@@ -228,6 +228,84 @@ def test_model_is_cached(nikon):
     assert a is b
 
 
+@pytest.fixture
+def disk_cache(tmp_path, monkeypatch):
+    """The model disk cache on, in a folder of its own, the in-memory cache
+    emptied before and after (issue 19)."""
+    from recovery import bayes
+
+    monkeypatch.setenv("WANDELL_MODEL_CACHE_DIR", str(tmp_path))
+    saved = dict(bayes._MODEL_CACHE)
+    bayes._MODEL_CACHE.clear()
+    bayes.enable_disk_cache(True)
+    yield tmp_path
+    bayes.enable_disk_cache(None)
+    bayes._MODEL_CACHE.clear()
+    bayes._MODEL_CACHE.update(saved)
+
+
+def _same_model(a, b):
+    from recovery import bayes
+
+    for k in bayes._ARRAYS:
+        x, y = getattr(a, k), getattr(b, k)
+        assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), k
+    assert (a.table_step, a.log_floor, a.settings) == (b.table_step, b.log_floor, b.settings)
+    assert a.cache.keys() == b.cache.keys()
+    for key in a.cache:
+        for part in a.cache[key]:
+            assert np.array_equal(a.cache[key][part], b.cache[key][part]), (key, part)
+
+
+def test_model_from_disk_is_the_built_model(disk_cache, nikon, library):
+    # a fresh process reads the model a build wrote: the same arrays bit for
+    # bit, so the same estimate, every number of it but the timings
+    from recovery import bayes
+
+    built = bayes_model(nikon)
+    assert built.loaded_from is None
+    (key,) = bayes._MODEL_CACHE
+    files = list(disk_cache.glob("bayes-*.npz"))
+    assert len(files) == 1
+    bayes._MODEL_CACHE.clear()                 # as a new process
+    loaded = bayes_model(nikon)
+    assert loaded is not built and loaded.loaded_from == str(files[0])
+    _same_model(built, loaded)
+    img = _scene(nikon, models.illuminant("A", WL), library[::3])
+    timing = ("ms", "ms_after_model", "model_build_ms")
+    outs = []
+    for m in (built, loaded):
+        bayes._MODEL_CACHE.clear()
+        bayes._MODEL_CACHE[key] = m
+        rgb, spectrum, diag = estimate_bayes(img, None, nikon)
+        outs.append((rgb, spectrum, {k: v for k, v in diag.items() if k not in timing}))
+    assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
+    assert repr(outs[0][2]) == repr(outs[1][2])
+
+
+def test_model_disk_cache_survives_bad_files(disk_cache, nikon, monkeypatch):
+    # a truncated file is rebuilt and replaced; an unwritable folder only
+    # means no file (the estimate never depends on the cache)
+    from recovery import bayes
+
+    built = bayes_model(nikon)
+    (path,) = disk_cache.glob("bayes-*.npz")
+    path.write_bytes(path.read_bytes()[:1000])
+    bayes._MODEL_CACHE.clear()
+    again = bayes_model(nikon)
+    assert again.loaded_from is None
+    _same_model(built, again)
+    bayes._MODEL_CACHE.clear()
+    assert bayes_model(nikon).loaded_from == str(path)
+    bayes._MODEL_CACHE.clear()
+    blocked = disk_cache / "file"
+    blocked.write_text("not a folder")
+    monkeypatch.setenv("WANDELL_MODEL_CACHE_DIR", str(blocked / "sub"))
+    assert bayes_model(nikon).loaded_from is None
+    monkeypatch.setenv("WANDELL_MODEL_CACHE_DIR", "off")
+    assert bayes.disk_cache_dir() is None
+
+
 def test_off_set_lights_option(nikon, library):
     # lights between and around the candidates (diagonal model), opt-in
     spd = models.illuminant("D65", WL)

@@ -46,7 +46,7 @@ def tmpdir_only(tmp_path, monkeypatch):
 @pytest.mark.parametrize("error", [OSError(errno.ENOSPC, "No space left on device"),
                                    OSError(errno.EDQUOT, "Disk quota exceeded"),
                                    OSError("Not enough free space to write 53084160 bytes after offset 272")])
-@pytest.mark.parametrize("fmt", ["tiff", "png"])
+@pytest.mark.parametrize("fmt", ["png", "jpeg"])
 def test_white_balance_output_on_a_full_tmpdir_is_507(client, tmpdir_only, monkeypatch, error, fmt):
     from service import pipeline
 
@@ -59,6 +59,31 @@ def test_white_balance_output_on_a_full_tmpdir_is_507(client, tmpdir_only, monke
     r = client.post("/v1/white-balance", data={"format": fmt}, files={"file": ("a.dng", _dng())})
     assert r.status_code == 507, r.text
     assert r.json()["error"] == "insufficient_storage" and "TMPDIR" in r.json()["detail"]
+    assert os.listdir(tmpdir_only) == []
+
+
+def test_a_tiff_answer_needs_no_tmpdir(client, tmpdir_only, monkeypatch):
+    """A 16-bit TIFF answer is its header and the corrected pixels sent from
+    memory (issue 19): no output file, so a full TMPDIR does not stop it, and
+    the bytes are the TIFF the encoder writes."""
+    import numpy as np
+    import tifffile
+
+    from service import pipeline
+
+    def full(*a, **kw):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pipeline, "write_corrected", full)
+    monkeypatch.setattr(tempfile, "mkstemp", full)
+    r = client.post("/v1/white-balance", data={"format": "tiff"}, files={"file": ("a.dng", _dng())})
+    assert r.status_code == 200, r.text
+    assert int(r.headers["content-length"]) == len(r.content)
+    img = tifffile.imread(io.BytesIO(r.content))
+    assert img.dtype == np.uint16 and img.shape[2] == 3
+    with tifffile.TiffFile(io.BytesIO(r.content)) as t:
+        tags = {tag.name for tag in t.pages[0].tags}
+    assert "InterColorProfile" in tags and "Software" in tags
     assert os.listdir(tmpdir_only) == []
 
 
@@ -78,8 +103,9 @@ def test_upload_spooling_on_a_full_tmpdir_is_507(client, monkeypatch):
 
 def test_a_real_small_tmpfs(tmp_path, monkeypatch):
     """``python -m service`` with TMPDIR on an 8 MB tmpfs (needs root for
-    mount): a 1500 x 2000 DNG's 18 MB TIFF does not fit (507, TMPDIR left
-    empty); a 12 MB upload cannot even be spooled (507); /health still 200."""
+    mount): a 1500 x 2000 DNG's 18 MB 16-bit PNG does not fit (507, TMPDIR
+    left empty; its 18 MB TIFF is sent from memory and needs none of it); a
+    12 MB upload cannot even be spooled (507); /health still 200."""
     import httpx
 
     small = tmp_path / "small"
@@ -95,8 +121,12 @@ def test_a_real_small_tmpfs(tmp_path, monkeypatch):
         dng = _dng(1500, 2000)
         monkeypatch.setenv("TMPDIR", str(small / "tmp"))
         with running_server({"data_dir": tmp_path / "data"}) as (base, _, _log):
-            r = httpx.post(base + "/v1/white-balance", files={"file": ("big.dng", dng)}, timeout=120)
+            r = httpx.post(base + "/v1/white-balance", files={"file": ("big.dng", dng)}, data={"format": "png16"},
+                           timeout=120)
             assert r.status_code == 507 and r.json()["error"] == "insufficient_storage", r.text
+            assert os.listdir(small / "tmp") == []
+            r = httpx.post(base + "/v1/white-balance", files={"file": ("big.dng", dng)}, timeout=120)
+            assert r.status_code == 200 and len(r.content) > 18_000_000, r.text[:300]
             assert os.listdir(small / "tmp") == []
             r = httpx.post(base + "/v1/analyze", files={"file": ("huge.dng", b"\0" * (12 << 20))}, timeout=120)
             assert r.status_code == 507 and r.json()["error"] == "insufficient_storage", r.text

@@ -105,3 +105,27 @@ def test_small_jpeg_is_one_piece_and_embeds():
     assert b"\xff\xdd" not in jpg
     out = outputs.embed(jpg, "jpeg", outputs.shipped_icc("sRGB"), outputs.exif_block({"Make": "X"}))
     assert Image.open(io.BytesIO(out)).info.get("icc_profile") == outputs.shipped_icc("sRGB")
+
+
+def test_tiff_answer_from_memory_is_the_encoded_file():
+    """A TIFF answer is tiff_head's bytes then the pixels from memory
+    (issue 19): byte for byte the file encode_image writes, for a crop (a
+    view that is not contiguous) as for a whole image."""
+    import asyncio
+
+    from service import pipeline
+    from service.routers.analysis import _from_memory
+
+    rng = np.random.default_rng(5)
+    full = rng.integers(0, 65536, size=(700, 520, 3), dtype=np.uint16)
+    meta = {"icc": b"\0" * 3144, "facts": {"Make": "Nikon", "Model": "D5100", "ImageDescription": "a caption",
+                                           "Software": "wandell-recovery", "XMP": "<x:xmpmeta/>"}}
+    for img in (full, full[13:690, 7:511]):
+        head = pipeline.tiff_head(img, meta)
+        assert head is not None
+        whole = pipeline.encode_image(np.ascontiguousarray(img), "tiff", meta=meta)
+
+        async def collect():
+            return b"".join([bytes(c) async for c in _from_memory(head, img)])
+
+        assert asyncio.run(collect()) == whole

@@ -204,3 +204,19 @@ def test_large_image_map_is_in_the_callers_pixels(nikon):
     assert angular_error(a, nikon.response(full.spectra_at(rows, cols))).max() < 0.5
     t = truth[np.clip(np.round(rows).astype(int), 0, 575), np.clip(np.round(cols).astype(int), 0, 575)]
     assert angular_error(a, t).max() < angular_error(np.broadcast_to(est.rgb, t.shape), t).max()
+
+
+@pytest.mark.parametrize("dof", [2, 4, 6, 8])
+def test_chi2_logsf_is_scipy_stats_bit_for_bit(dof):
+    # the trend test's p-value without importing scipy.stats (issue 19: 0.4-1 s
+    # of a fresh command): the same number, so the same choice of light model
+    from scipy import stats
+
+    from recovery.spatial import chi2_logsf
+
+    rng = np.random.default_rng(dof)
+    xs = np.concatenate([[0.0, -1.0, 1e-300, 1e-12, 0.5, 1.0, 4.0, 10.0, 1e3, 1e5, 1e300, np.inf, np.nan],
+                         rng.exponential(50.0, 3000), rng.exponential(2.0, 3000)])
+    for x in xs:
+        a, b = float(stats.chi2.logsf(x, dof)), chi2_logsf(x, dof)
+        assert a == b or (np.isnan(a) and np.isnan(b)), (x, a, b)

@@ -184,19 +184,41 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
     mosaic = None
     if sites is not None:
         img = raw.raw_image_visible
+        scaler = None
         if keep_mosaic and abs(aspect - 1.0) <= 1e-6:
-            # the caller renders next: a copy of the mosaic (about 2 bytes a
-            # pixel, 10-20 ms) instead of a second open and unpack (70-80 ms
-            # on 24 MP, issue 19); the full-resolution image drops it
-            mosaic = {"cfa": np.array(img), "sites": sites, "blacks": blacks, "white": white, "flip": flip}
-        h2, w2 = img.shape[0] // 2, img.shape[1] // 2
-        f = 1
-        if estimation_pixels and h2 * w2 > estimation_pixels:
-            f = int(math.ceil(math.sqrt(h2 * w2 / estimation_pixels)))
-        if f > 1 and h2 // f >= 1 and w2 // f >= 1:
-            est, sat = _bin_bayer_area(img, sites, blacks, white, f)
-        else:
-            est, sat = _bin_bayer(img, sites, blacks, white)
+            # the caller renders next: the mosaic kept, already scaled for the
+            # demosaic (about 2 bytes a pixel), instead of a second open and
+            # unpack (70-80 ms on 24 MP, issue 19); the full-resolution image
+            # drops it. Scaled on a thread straight from LibRaw's buffer while
+            # this one bins the estimation image (no copy of the raw mosaic,
+            # and the scaling is off the demosaic's path); joined before the
+            # buffer goes (the caller closes the file)
+            import threading
+
+            box: dict = {}
+
+            def scale():
+                try:
+                    box["mos"] = _scaled_mosaic(img, sites, blacks, white)
+                except Exception:  # noqa: BLE001 - MemoryError and the like: the render unpacks again
+                    pass
+
+            scaler = threading.Thread(target=scale, name="wandell-scale", daemon=True)
+            scaler.start()
+        try:
+            h2, w2 = img.shape[0] // 2, img.shape[1] // 2
+            f = 1
+            if estimation_pixels and h2 * w2 > estimation_pixels:
+                f = int(math.ceil(math.sqrt(h2 * w2 / estimation_pixels)))
+            if f > 1 and h2 // f >= 1 and w2 // f >= 1:
+                est, sat = _bin_bayer_area(img, sites, blacks, white, f)
+            else:
+                est, sat = _bin_bayer(img, sites, blacks, white)
+        finally:
+            if scaler is not None:
+                scaler.join()
+        if scaler is not None and box.get("mos") is not None:
+            mosaic = {"scaled": box["mos"], "sites": sites, "flip": flip}
         del img
         if s.height % 2 or s.width % 2:
             warnings.append("odd image size: the last row/column is not in the half-size estimation image")
@@ -263,7 +285,7 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
 
     kept, img._mosaic = img._mosaic, None
     if kept is not None:
-        return _demosaic(kept.pop("cfa"), kept["sites"], kept["blacks"], kept["white"], kept["flip"])
+        return _demosaic_scaled(kept.pop("scaled"), kept["sites"], kept["flip"])
     try:
         with rawpy.imread(io.BytesIO(img._source)) as raw:
             s = raw.sizes
@@ -277,14 +299,6 @@ def _opencv_full_linear(img: DecodedImage) -> np.ndarray | None:
     except rawpy.LibRawError as exc:
         raise ServiceError(422, "corrupt_file",
                           f"LibRaw failed to read the pixels ({type(exc).__name__}: {_librawmsg(exc)})") from None
-    return _demosaic_scaled(mos, sites, flip)
-
-
-def _demosaic(cfa: np.ndarray, sites, blacks, white: float, flip: int) -> np.ndarray | None:
-    """:func:`_opencv_full_linear` of a mosaic already unpacked (the caller's
-    reference to ``cfa`` is the last: it is dropped before the demosaic)."""
-    mos = _scaled_mosaic(cfa, sites, blacks, white)
-    del cfa
     return _demosaic_scaled(mos, sites, flip)
 
 

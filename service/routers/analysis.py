@@ -11,7 +11,7 @@ import tempfile
 import time
 
 from fastapi import APIRouter, Depends, File, Request, UploadFile
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from starlette.background import BackgroundTask
 
 from .. import pipeline
@@ -105,11 +105,40 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
                                   render=True)
     del data
     run = _with_white(decoded, run, white)
+    kw = dict(target=target, output=output, fmt=fmt, surface_basis=opts.get("surface_basis"), white=white,
+              exposure=exposure)
+    if fmt.encoder == "tiff":
+        # a 16-bit TIFF is its header and then the pixels as they are: sent
+        # from memory, not a 144 MB file written and read back (issue 19)
+        out, M, info, meta = pipeline.render_corrected(decoded, run, **kw)
+        t0 = time.perf_counter()
+        head = pipeline.tiff_head(out, meta)
+        if head is not None:
+            run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
+            return decoded, run, M, (head, out), info
+        with temp_output(prefix="wb-", suffix=".tiff") as path:
+            pipeline.encode_image(out, "tiff", path, meta=meta)
+        run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
+        return decoded, run, M, path, info
     with temp_output(prefix="wb-", suffix="." + fmt.encoder) as path:
-        M, info = pipeline.write_corrected(decoded, run, path, target=target, output=output, fmt=fmt,
-                                           surface_basis=opts.get("surface_basis"), white=white,
-                                           exposure=exposure)
+        M, info = pipeline.write_corrected(decoded, run, path, **kw)
     return decoded, run, M, path, info
+
+
+#: bytes of the pixels per message of a TIFF answer sent from memory (as
+#: LargeChunkFileResponse's chunks)
+MEMORY_CHUNK = 1024 * 1024
+
+
+async def _from_memory(head: bytes, img):
+    """``head`` then ``img``'s bytes in C order, in about 1 MiB pieces (views
+    when ``img`` is contiguous, a copy of the piece's rows when it is a crop)."""
+    import numpy as np
+
+    yield head
+    rows = max(1, MEMORY_CHUNK // max(1, img[:1].nbytes))
+    for r in range(0, img.shape[0], rows):
+        yield np.ascontiguousarray(img[r:r + rows]).data.cast("B")
 
 
 @contextlib.contextmanager
@@ -186,6 +215,10 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
                "Content-Disposition": content_disposition(
                    f'{"as-shot" if white == "as-shot" else "corrected"}.{fmt.extension}', "inline")}
+    if isinstance(path, tuple):            # a TIFF: its header, then the corrected image from memory
+        head, img = path
+        headers["Content-Length"] = str(len(head) + img.nbytes)
+        return StreamingResponse(_from_memory(head, img), media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
     # streamed from a temporary file (deleted after sending): the encoded
     # image never sits in memory next to the decoded one
     return LargeChunkFileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers,
