@@ -87,6 +87,33 @@ def test_a_tiff_answer_needs_no_tmpdir(client, tmpdir_only, monkeypatch):
     assert os.listdir(tmpdir_only) == []
 
 
+def test_tiff_answers_held_in_memory_are_bounded_by_the_work_slots(client, tmpdir_only, monkeypatch):
+    """A TIFF answer sent from memory holds its corrected image until the
+    client has read it, after its work slot is free; at most as many are
+    held as there are work slots, and beyond that the answer is a file in
+    TMPDIR (removed after sending) with the same bytes. Every answer gives
+    its place back once sent."""
+    from service.routers import analysis
+
+    held = analysis.held_answers
+    assert held.n == 0
+    first = client.post("/v1/white-balance", data={"format": "tiff"}, files={"file": ("a.dng", _dng())})
+    assert first.status_code == 200 and held.n == 0
+    made = []
+    real = analysis.temp_output
+
+    def counting(**kw):
+        made.append(kw)
+        return real(**kw)
+
+    monkeypatch.setattr(analysis, "temp_output", counting)
+    monkeypatch.setattr(held, "limit", lambda: 0)      # every place taken
+    second = client.post("/v1/white-balance", data={"format": "tiff"}, files={"file": ("a.dng", _dng())})
+    assert second.status_code == 200 and made and made[0]["suffix"] == ".tiff"
+    assert second.content == first.content
+    assert held.n == 0 and os.listdir(tmpdir_only) == []
+
+
 def test_upload_spooling_on_a_full_tmpdir_is_507(client, monkeypatch):
     """Starlette spools each upload part to TMPDIR; ENOSPC there was
     FastAPI's 400 "There was an error parsing the body"."""

@@ -8,7 +8,9 @@ import io
 import json
 import os
 import tempfile
+import threading
 import time
+import weakref
 
 from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
@@ -107,15 +109,24 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
     run = _with_white(decoded, run, white)
     kw = dict(target=target, output=output, fmt=fmt, surface_basis=opts.get("surface_basis"), white=white,
               exposure=exposure)
-    if fmt.encoder == "tiff":
+    if fmt.encoder == "tiff" and held_answers.take():
         # a 16-bit TIFF is its header and then the pixels as they are: sent
-        # from memory, not a 144 MB file written and read back (issue 19)
-        out, M, info, meta = pipeline.render_corrected(decoded, run, **kw)
-        t0 = time.perf_counter()
-        head = pipeline.tiff_head(out, meta)
+        # from memory, not a 144 MB file written and read back (issue 19);
+        # at most as many such answers held at once as there are work slots
+        # (a slow reader keeps its image after its slot is free), beyond
+        # that the answer is a file in TMPDIR as PNG and JPEG answers are
+        try:
+            out, M, info, meta = pipeline.render_corrected(decoded, run, **kw)
+            t0 = time.perf_counter()
+            head = pipeline.tiff_head(out, meta)
+        except BaseException:
+            held_answers.give()
+            raise
         if head is not None:
             run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
+            weakref.finalize(out, held_answers.give)     # given back when the answer has let go of it
             return decoded, run, M, (head, out), info
+        held_answers.give()
         with temp_output(prefix="wb-", suffix=".tiff") as path:
             pipeline.encode_image(out, "tiff", path, meta=meta)
         run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
@@ -123,6 +134,36 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
     with temp_output(prefix="wb-", suffix="." + fmt.encoder) as path:
         M, info = pipeline.write_corrected(decoded, run, path, **kw)
     return decoded, run, M, path, info
+
+
+class _HeldAnswers:
+    """How many TIFF answers are held in memory (their corrected images,
+    6 bytes a pixel, until the client has read them): at most
+    ``max_concurrent_work`` (the number of work slots) at once, so what
+    slow readers hold is bounded by what the work itself may hold."""
+
+    def __init__(self):
+        self.n = 0
+        self._lock = threading.Lock()
+
+    def limit(self) -> int:
+        from ..workers import default_concurrency
+
+        return get_settings().max_concurrent_work or default_concurrency()
+
+    def take(self) -> bool:
+        with self._lock:
+            if self.n >= self.limit():
+                return False
+            self.n += 1
+            return True
+
+    def give(self) -> None:
+        with self._lock:
+            self.n = max(0, self.n - 1)
+
+
+held_answers = _HeldAnswers()
 
 
 #: bytes of the pixels per message of a TIFF answer sent from memory (as
