@@ -213,21 +213,9 @@ def _cutmix_lodo(feats, extra, rs, tuv, gam, good, seed: int = 1):
                 continue
             ym.append(tuv[i])
             wm.append(w0[k])
-        fa, ta = T.augment(feats[tr], tuv[tr], np.random.default_rng(T.SETTINGS["augment_seed"]))
-        allf = np.concatenate([feats[tr], fa, np.array(fm)])
-        allt = np.concatenate([tuv[tr], ta, np.array(ym)])
-        w = np.concatenate([w0, w0, np.array(wm)])
-        x = L.model_inputs(allf, *loc)
-        coefs = []
-        for r in GRID_RIDGES:
-            mean, scale, c, _ = L.fit_robust_ridge(x, allt - allf[:, L.REFERENCE], w, hidden=T.SETTINGS["hidden"],
-                                                   ridge=r, delta=T.SETTINGS["delta"], seed=T.SETTINGS["seed"],
-                                                   tol=T.SETTINGS["tol"])
-            coefs.append(c)
-        pw, pb = L.random_expansion(x.shape[1], T.SETTINGS["hidden"], T.SETTINGS["seed"])
-        off = L.expand(L.model_inputs(feats[te], *loc), mean, scale, pw, pb) @ np.mean(coefs, axis=0)
-        off[gam[te] > np.percentile(gam[tr], T.SETTINGS["gamut_quantile"])] = 0.0
-        uv[te] = feats[te][:, L.REFERENCE] + off
+        m = T.fit_model(feats[tr], tuv[tr], rs.dataset[tr], rs.camera[tr], GRID_RIDGES, loc, gam=gam[tr],
+                        extra=(np.array(fm), np.array(ym), np.array(wm)))
+        uv[te] = T.predict(m, feats[te], gam[te])
     return uv
 
 

@@ -182,14 +182,18 @@ def augment(feats, tuv, rng, settings=SETTINGS):
 
 
 def fit_model(feats, tuv, dataset, camera, ridge, loc, settings=SETTINGS, sigma=None, conf=None, info=None,
-              gam=None, outside=None):
-    """Fit on the given images (all usable) and their augmented copies; the
-    model's gamut limit is the ``gamut_quantile`` percentile of their
-    out-of-gamut fractions ``gam`` (none without them)."""
+              gam=None, outside=None, extra=None):
+    """Fit on the given images (all usable) and their augmented copies (and
+    ``extra``: further ``(estimates, labels, weights)`` to fit on, the
+    weights on the scale of :func:`balance_weights`'); the model's gamut
+    limit is the ``gamut_quantile`` percentile of their out-of-gamut
+    fractions ``gam`` (none without them)."""
     rng = np.random.default_rng(settings["augment_seed"])
     fa, ta = augment(feats, tuv, rng, settings)
     allf, allt = np.concatenate([feats, fa]), np.concatenate([tuv, ta])
     w = np.tile(balance_weights(dataset, camera), 2)
+    if extra is not None:
+        allf, allt, w = (np.concatenate([a, np.asarray(b, float)]) for a, b in zip((allf, allt, w), extra))
     x = L.model_inputs(allf, *loc, absolute=settings["absolute_inputs"])
     ridges = [float(r) for r in ridge] if isinstance(ridge, (list, tuple)) else [float(ridge)]
     coefs, infos = [], []
@@ -222,10 +226,10 @@ def camera_errors(uv, truth, cams, Ks) -> np.ndarray:
     return angular_error(est, truth)
 
 
-def radii(uv, spread, cams, Ks, sigma) -> np.ndarray:
-    """The 90 % radius (degrees, camera RGB) each image would be reported with under ``sigma``."""
-    return np.array([L.radius90(u, float(L.variance_from_spread(s, sigma)), Ks[c])
-                     for u, s, c in zip(uv, spread, cams)])
+def radii(uv, var, cams, Ks) -> np.ndarray:
+    """The 90 % radius (degrees, camera RGB) each image is reported with for
+    its log-chroma variance ``var``."""
+    return np.array([L.radius90(u, float(v), Ks[c]) for u, v, c in zip(uv, var, cams)])
 
 
 def ridge_text(ridge) -> str:
@@ -279,7 +283,7 @@ def select_and_calibrate(rs, feats, tuv, Ks, idx, loc, settings=SETTINGS, log=pr
     spread = L._spread(feats[idx], uv)
     d2 = ((uv - tuv[idx]) ** 2).sum(axis=1)
     sigma = L.fit_uncertainty(spread, d2)
-    conf = L.fit_confidence(radii(uv, spread, rs.camera[idx], Ks, sigma), err < 3.0)
+    conf = L.fit_confidence(radii(uv, L.variance_from_spread(spread, sigma), rs.camera[idx], Ks), err < 3.0)
     return ridge, sigma, conf, {"inner_mean_error_by_ridge": record, "chosen_ridge": ridge}
 
 
@@ -337,7 +341,7 @@ def apply(model, rs, feats, tuv, Ks, idx, sog=None, gam=None) -> dict:
     out = model.outside(gam[idx[ok]]) if gam is not None else np.zeros(int(ok.sum()), bool)
     var, conf_out, rad_out = model.uncertainty(spread, out)
     d2 = ((uv[ok] - tuv[idx[ok]]) ** 2).sum(axis=1)
-    rad = np.array([L.radius90(u, float(v), Ks[c]) for u, v, c in zip(uv[ok], var, rs.camera[idx[ok]])])
+    rad = radii(uv[ok], var, rs.camera[idx[ok]], Ks)
     conf = np.array([L.confidence(r, model.confidence_coef) for r in rad])
     if conf_out is not None:
         conf, rad = np.where(out, conf_out, conf), np.where(out, rad_out, rad)

@@ -545,7 +545,7 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
         d["decision"] += (f"; but the colour matrix sends {d['out_of_gamut_fraction']:.0%} of the image out of the "
                           f"canonical gamut (the model was trained up to {limit:.0%}: typically a D65 matrix under "
                           "tungsten light), so the bright-pixel estimate stands")
-        if np.all(np.isfinite(model.outside_calibration)):
+        if model.calibrated_outside:
             d["confidence_rule"] = ("P(error < 3 deg) of the bright-pixel estimate on the training photographs "
                                     "beyond the same out-of-gamut limit, and its 90th-percentile error as the region")
     warns = list(run.warns)

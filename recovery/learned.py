@@ -393,6 +393,12 @@ class LearnedModel:
         """(N,) bool: beyond the out-of-gamut fractions the model was trained on."""
         return np.atleast_1d(np.asarray(gamut_fraction, float)) > float(np.asarray(self.gamut_limit).ravel()[0])
 
+    @property
+    def calibrated_outside(self) -> bool:
+        """Whether :attr:`outside_calibration` holds a calibration."""
+        oc = np.asarray(self.outside_calibration, float).ravel()
+        return oc.size == 3 and bool(np.all(np.isfinite(oc)))
+
     def uncertainty(self, spread, outside) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """(N,) log-chroma variances for evidence spreads (N,), and (N,)
         confidences and 90 % radii (degrees) where the reference stands
@@ -401,9 +407,9 @@ class LearnedModel:
         :func:`variance_from_spread`, or :attr:`outside_calibration` beyond
         the gamut limit."""
         var = np.asarray(variance_from_spread(np.atleast_1d(spread), self.sigma), float)
-        oc = np.asarray(self.outside_calibration, float).ravel()
-        if oc.size != 3 or not np.all(np.isfinite(oc)):
+        if not self.calibrated_outside:
             return var, None, None
+        oc = np.asarray(self.outside_calibration, float).ravel()
         out = np.atleast_1d(np.asarray(outside, bool))
         return np.where(out, oc[0], var), np.where(out, oc[1], np.nan), np.where(out, oc[2], np.nan)
 

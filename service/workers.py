@@ -38,7 +38,7 @@ import anyio.to_thread
 from .errors import ServiceError
 from .settings import get_settings
 
-__all__ = ["run_heavy", "default_concurrency", "trim_memory"]
+__all__ = ["run_heavy", "default_concurrency", "work_slots", "trim_memory"]
 
 log = logging.getLogger("service")
 
@@ -54,8 +54,13 @@ def default_concurrency() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def work_slots() -> int:
+    """Heavy jobs allowed at once: ``max_concurrent_work``, or one per CPU when it is 0."""
+    return get_settings().max_concurrent_work or default_concurrency()
+
+
 def _limiter() -> anyio.CapacityLimiter:
-    n = get_settings().max_concurrent_work or default_concurrency()
+    n = work_slots()
     loop = asyncio.get_running_loop()
     lim = _LIMITERS.get(loop)
     if lim is None:

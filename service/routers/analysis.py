@@ -25,7 +25,7 @@ from ..options import FORMATS, MEDIA_TYPES
 from ..schemas import AnalyzeEstimation, Estimation, Input, Neutral, Regions, WhiteBalanceRendering
 from ..schemas.forms import form
 from ..settings import Settings, get_settings
-from ..workers import run_heavy
+from ..workers import run_heavy, work_slots
 
 router = APIRouter(prefix="/v1")
 
@@ -147,9 +147,7 @@ class _HeldAnswers:
         self._lock = threading.Lock()
 
     def limit(self) -> int:
-        from ..workers import default_concurrency
-
-        return get_settings().max_concurrent_work or default_concurrency()
+        return work_slots()
 
     def take(self) -> bool:
         with self._lock:
