@@ -22,6 +22,7 @@ costs a fraction of a percent of the size at these strip heights.
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 import zlib
@@ -93,23 +94,47 @@ def png_encode(img: np.ndarray, threads: int | None = None, level: int = PNG_LEV
     :data:`MAX_THREADS`)."""
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"png_encode: an (H, W, 3) uint8 or uint16 image, not {img.shape} {img.dtype}")
-    H, W = img.shape[:2]
+    return png_encode_rows(img.shape[0], img.shape[1], img.dtype, lambda r0, r1: img[r0:r1], threads, level,
+                           strategy)
+
+
+def strip_bounds(H: int, n_strips: int, multiple: int = 1) -> list[int]:
+    """``n_strips + 1`` (or fewer) row bounds from 0 to ``H``, each inner one
+    a multiple of ``multiple``, the strips as even as that allows."""
+    multiple = max(1, int(multiple))
+    units = -(-H // multiple)
+    n = max(1, min(int(n_strips), units))
+    cuts = sorted({min(H, int(round(units * k / n)) * multiple) for k in range(n + 1)})
+    return cuts
+
+
+def png_encode_rows(H: int, W: int, dtype, rows, threads: int | None = None, level: int = PNG_LEVEL,
+                    strategy: int = PNG_STRATEGY, row_multiple: int = 1) -> bytes:
+    """:func:`png_encode` of an image given by its rows: ``rows(r0, r1)``
+    returns rows ``r0:r1`` (``(r1 - r0, W, 3)`` of ``dtype``), called once
+    for each strip on the strip's thread, so the image need never exist
+    whole (:mod:`service.strips`). Every strip bound but the last is a
+    multiple of ``row_multiple``."""
+    dtype = np.dtype(dtype)
+    if dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"png_encode: uint8 or uint16 rows, not {dtype}")
     if H < 1 or W < 1:
         raise ValueError("png_encode: empty image")
-    bits = 8 if img.dtype == np.uint8 else 16
+    bits = 8 if dtype == np.uint8 else 16
     bpp = 3 * bits // 8
     row_bytes = 1 + W * bpp
     n_threads = max(1, threads or min(MAX_THREADS, os.cpu_count() or 1))
     n_strips = max(1, min(H, n_threads * STRIPS_PER_THREAD, (H * row_bytes) // MIN_STRIP_BYTES or 1))
-    bounds = np.linspace(0, H, n_strips + 1).round().astype(int)
+    bounds = strip_bounds(H, n_strips, row_multiple)
+    n_strips = len(bounds) - 1
 
     def strip(i: int):
         r0, r1 = int(bounds[i]), int(bounds[i + 1])
-        rows = img[r0:r1]
+        px = rows(r0, r1)
         if bits == 16:
-            rows = rows.astype(">u2")           # PNG samples are big-endian
-            rows = rows.view(np.uint8).reshape(r1 - r0, W, 6)
-        buf = _filtered_rows(rows, bpp)
+            px = px.astype(">u2")           # PNG samples are big-endian
+            px = px.view(np.uint8).reshape(r1 - r0, W, 6)
+        buf = _filtered_rows(px, bpp)
         st = strategy
         if st == zlib.Z_HUFFMAN_ONLY and buf.size and np.count_nonzero(buf) < (1 - PNG_FLAT_ZEROS) * buf.size:
             st = zlib.Z_RLE
@@ -190,39 +215,52 @@ def jpeg_encode(img: np.ndarray, quality: int = JPEG_QUALITY, threads: int | Non
     EOI. Decoders give the pixels of a one-piece encode exactly (a test
     checks); when the strips' tables differ, or the image is small, it is
     encoded in one piece."""
+    return jpeg_encode_rows(img.shape[0], img.shape[1], lambda r0, r1: img[r0:r1], quality, threads)
+
+
+def jpeg_encode_rows(H: int, W: int, rows, quality: int = JPEG_QUALITY, threads: int | None = None,
+                     row_multiple: int = 1, bgr: bool = False) -> bytes:
+    """:func:`jpeg_encode` of an image given by its rows: ``rows(r0, r1)``
+    returns rows ``r0:r1`` (``(r1 - r0, W, 3)`` uint8), called once for each
+    strip on the strip's thread (:mod:`service.strips`), in BGR order when
+    ``bgr`` (OpenCV's: no conversion). The strips are a whole number of MCU
+    rows and of ``row_multiple`` rows; an image that cannot be joined so is
+    asked for whole."""
     import cv2
 
-    H, W = img.shape[:2]
     params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)]
 
-    def one(rows: np.ndarray) -> bytes:
+    def one(px: np.ndarray) -> bytes:
         # RGB -> BGR by OpenCV (SIMD: a fifth of numpy's reversed copy, issue 19)
-        ok, enc = cv2.imencode(".jpg", cv2.cvtColor(rows, cv2.COLOR_RGB2BGR), params)
+        ok, enc = cv2.imencode(".jpg", px if bgr else cv2.cvtColor(px, cv2.COLOR_RGB2BGR), params)
         if not ok:
             raise ValueError("OpenCV could not encode the JPEG")
         return enc.tobytes()
 
     n_threads = max(1, threads or min(MAX_THREADS, os.cpu_count() or 1))
     if n_threads == 1 or H * W < MIN_JPEG_SPLIT_PIXELS or H < 64:
-        return one(img)
-    head = one(img[:16])
+        return one(rows(0, H))
+    head = one(rows(0, min(H, 16)))
     segs, _ = _segments(head)
     _, mcu_h, mcu_w, _ = _mcu_rows(head, segs)
     mcus_per_row = -(-W // mcu_w)
     n_strips = n_threads * STRIPS_PER_THREAD
     mcu_rows = -(-H // mcu_h)
     strip_mcu_rows = max(1, -(-mcu_rows // n_strips))
-    strip_mcu_rows = min(strip_mcu_rows, 65535 // mcus_per_row)   # the restart interval is 16-bit
+    unit = math.lcm(mcu_h, max(1, int(row_multiple))) // mcu_h      # MCU rows a strip is a multiple of
+    strip_mcu_rows = -(-strip_mcu_rows // unit) * unit
+    if strip_mcu_rows > 65535 // mcus_per_row:                       # the restart interval is 16-bit
+        strip_mcu_rows = (65535 // mcus_per_row) // unit * unit
     if strip_mcu_rows < 1:
-        return one(img)
+        return one(rows(0, H))
     step = strip_mcu_rows * mcu_h
     starts = list(range(0, H, step))
     if len(starts) < 2:
-        return one(img)
+        return one(rows(0, H))
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(min(n_threads, len(starts))) as pool:
-        parts = list(pool.map(lambda r: one(img[r:r + step]), starts))
+        parts = list(pool.map(lambda r: one(rows(r, min(H, r + step))), starts))
     first_segs, first_data = _segments(parts[0])
     sof, _, _, _ = _mcu_rows(parts[0], first_segs)
     tables = [parts[0][s:e] for m, s, e in first_segs if m in (0xDB, 0xC4, 0xDA)]
@@ -230,7 +268,7 @@ def jpeg_encode(img: np.ndarray, quality: int = JPEG_QUALITY, threads: int | Non
     for k, p in enumerate(parts):
         segs, start = _segments(p)
         if [p[s:e] for m, s, e in segs if m in (0xDB, 0xC4, 0xDA)] != tables or p[-2:] != b"\xff\xd9":
-            return one(img)                                           # not joinable: one piece
+            return one(rows(0, H))                                    # not joinable: one piece
         data.append(p[start:-2])
         if k < len(parts) - 1:
             data.append(bytes((0xFF, 0xD0 + k % 8)))

@@ -544,18 +544,29 @@ def default_crop(decoded, img: np.ndarray) -> np.ndarray:
     """The DNG DefaultCrop of a full-resolution image (a view), the file's
     orientation taken into account; the image itself when there is none or
     it does not fit."""
+    bounds = crop_bounds(decoded, img.shape[:2])
+    if bounds is None:
+        return img
+    r0, r1, c0, c1 = bounds
+    return img[r0:r1, c0:c1]
+
+
+def crop_bounds(decoded, shape) -> tuple[int, int, int, int] | None:
+    """The rows and columns ``(r0, r1, c0, c1)`` of :func:`default_crop` in
+    a full-resolution image of ``shape`` (oriented), or ``None`` (the whole
+    image)."""
     from .metadata import color_profile
 
     prof = color_profile(decoded)
     crop = None if prof is None else prof.default_crop
     if not crop:
-        return img
+        return None
     top, left, h, w = crop
     flip = int(getattr(decoded, "_postprocess", {}).get("user_flip", 0) or 0)
-    H, W = img.shape[:2]
+    H, W = shape
     sh, sw = (W, H) if flip & 4 else (H, W)          # the sensor's (unoriented) shape
     if top < 0 or left < 0 or top + h > sh or left + w > sw or (h, w) == (sh, sw):
-        return img
+        return None
     from .decode import FLIP_OPS
 
     rows = np.broadcast_to(np.arange(sh)[:, None], (sh, sw))
@@ -565,7 +576,7 @@ def default_crop(decoded, img: np.ndarray) -> np.ndarray:
     keep_r = (r[:, 0] >= top) & (r[:, 0] < top + h) if np.ptp(r[:, 0]) else (c[:, 0] >= left) & (c[:, 0] < left + w)
     keep_c = (c[0] >= left) & (c[0] < left + w) if np.ptp(c[0]) else (r[0] >= top) & (r[0] < top + h)
     ri, ci = np.flatnonzero(keep_r), np.flatnonzero(keep_c)
-    return img[ri[0]:ri[-1] + 1, ci[0]:ci[-1] + 1]
+    return int(ri[0]), int(ri[-1]) + 1, int(ci[0]), int(ci[-1]) + 1
 
 
 def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, surface_model=None,
@@ -628,12 +639,63 @@ def render_corrected(decoded, run: EstimateRun, *, target: str, output: str, fmt
 
 
 def write_corrected(decoded, run: EstimateRun, path: str, **kw) -> tuple[np.ndarray, dict]:
-    """:func:`render_corrected`, encoded to ``path``: ``(M, info)``."""
+    """:func:`render_corrected`, encoded to ``path``: ``(M, info)``. A PNG or
+    JPEG is made strip by strip when it can be (:func:`render_encoded`)."""
+    if kw["fmt"].encoder in STRIP_ENCODERS:
+        data, M, info, _ = render_encoded(decoded, run, **kw)
+        with open(path, "wb") as f:
+            f.write(data)
+        return M, info
     out, M, info, meta = render_corrected(decoded, run, **kw)
     t0 = time.perf_counter()
     encode_image(out, kw["fmt"].encoder, path, meta=meta, threads=kw.get("threads"))
     run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
     return M, info
+
+
+#: the encoders :func:`render_encoded` runs strip by strip (:mod:`service.strips`)
+STRIP_ENCODERS = ("png", "jpeg")
+
+
+def render_encoded(decoded, run: EstimateRun, *, target: str, output: str, fmt: Format,
+                   surface_basis=None, threads: int | None = None, white: str = "estimate",
+                   exposure: float | None = None) -> tuple[bytes, np.ndarray, dict, dict]:
+    """:func:`render_corrected` encoded as ``fmt`` with its metadata:
+    ``(bytes, M, info, meta)``. A PNG or JPEG of a RAW whose mosaic was kept
+    (``keep_mosaic``, no demosaic started ahead) is demosaicked, corrected
+    and encoded strip by strip (:mod:`service.strips`: the same pixels
+    without the full-resolution 16-bit image; timing ``render``); anything
+    else through the whole image (timings ``demosaic``, ``correct``,
+    ``encode``)."""
+    from . import strips
+
+    source = None
+    if fmt.encoder in STRIP_ENCODERS and getattr(decoded, "_full_future", None) is None:
+        source = strips.mosaic_rows(decoded, lambda shape: crop_bounds(decoded, shape))
+    if source is None:
+        out, M, info, meta = render_corrected(decoded, run, target=target, output=output, fmt=fmt,
+                                              surface_basis=surface_basis, threads=threads, white=white,
+                                              exposure=exposure)
+        t0 = time.perf_counter()
+        data = encode_image(out, fmt.encoder, meta=meta, threads=threads)
+        run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
+        return data, M, info, meta
+    M, info = correction_matrix(run, target, output, surface_basis, decoded=decoded, exposure=exposure)
+    t0 = time.perf_counter()
+    H, W = source.shape
+    kernel = Correction(M, info["encoding"], fmt.bits, neutral=info.get("neutral"), shoulder=info.get("shoulder"),
+                        curve=info.get("curve"), rows_per_chunk=min(chunk_rows(W), max(H, 1)),
+                        bgr=fmt.encoder == "jpeg")
+    try:
+        data = strips.encode_strips(source, kernel, fmt.encoder, threads)
+    except ValueError:
+        raise ServiceError(422, "encode_failed", f"could not encode {fmt.encoder}") from None
+    info["crop"] = [int(H), int(W)]
+    summary = estimate_summary(run, info, profile_of(decoded), white=white, target=target, output=output)
+    meta = output_meta(decoded, output, summary)
+    data = _with_meta(data, fmt.encoder, meta)
+    run.timings_ms["render"] = (time.perf_counter() - t0) * 1e3
+    return data, M, info, meta
 
 
 def xmp_sidecar(decoded, run: EstimateRun) -> tuple[str, dict, dict]:
@@ -647,7 +709,8 @@ def xmp_sidecar(decoded, run: EstimateRun) -> tuple[str, dict, dict]:
     return _xmp(tt["temperature"], tt["tint"], summary), tt, summary
 
 
-from .correction import CHUNK_PIXELS, _encoding_lut, _highlight_code, apply_matrix_inplace  # noqa: E402,F401 (re-exported)
+from .correction import (CHUNK_PIXELS, Correction, _encoding_lut, _highlight_code, apply_matrix_inplace,  # noqa: E402,F401,E501 (re-exported)
+                         chunk_rows)
 
 
 def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict | None = None,
@@ -661,10 +724,7 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
     ``meta`` (:func:`output_meta`): ``icc`` (profile bytes), ``facts`` (EXIF
     facts, :func:`service.outputs.output_facts`) and ``text`` (PNG text) are
     embedded so other tools read the colours and the source right."""
-    from . import outputs
-
     meta = meta or {}
-    icc, facts = meta.get("icc"), meta.get("facts")
     if fmt == "tiff":
         import tifffile
 
@@ -695,12 +755,23 @@ def encode_image(img: np.ndarray, fmt: str, path: str | None = None, meta: dict 
         if not ok:
             raise ServiceError(422, "encode_failed", f"could not encode {fmt}")
         data = enc.tobytes()
-    if icc or facts or meta.get("text"):
-        data = outputs.embed(data, fmt, icc, outputs.exif_block(facts) if facts else None, meta.get("text"))
+    data = _with_meta(data, fmt, meta)
     if path is not None:
         with open(path, "wb") as f:
             f.write(data)
         return None
+    return data
+
+
+def _with_meta(data: bytes, fmt: str, meta: dict | None) -> bytes:
+    """A PNG or JPEG's bytes with ``meta``'s ICC profile, EXIF facts and PNG
+    text embedded (:func:`service.outputs.embed`)."""
+    from . import outputs
+
+    meta = meta or {}
+    icc, facts = meta.get("icc"), meta.get("facts")
+    if icc or facts or meta.get("text"):
+        data = outputs.embed(data, fmt, icc, outputs.exif_block(facts) if facts else None, meta.get("text"))
     return data
 
 

@@ -333,9 +333,13 @@ def process_item(task: ItemTask) -> dict:
                     side = json.load(f)
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
                         "seconds": time.perf_counter() - t0}
+            fmt = FORMATS[task.options.format]
             # the demosaic overlaps the estimate when this item may use several
-            # threads (wandell white-balance); a pool worker (one per core) does not
-            decoded, cam, warns = _open(task, prefetch=task.threads != 1, render=True)
+            # threads (wandell white-balance) and writes a TIFF; a pool worker
+            # (one per core) does not, nor a PNG or JPEG: those are demosaicked
+            # strip by strip as they are encoded (pipeline.render_encoded)
+            strips = fmt.encoder in pipeline.STRIP_ENCODERS
+            decoded, cam, warns = _open(task, prefetch=task.threads != 1 and not strips, render=True)
             opts = task.options.estimate_kwargs()
             try:
                 _check_cancel(task)
@@ -347,11 +351,10 @@ def process_item(task: ItemTask) -> dict:
             except BaseException:
                 pipeline.drain_prefetch(decoded)
                 raise
-            fmt = FORMATS[task.options.format]
-            out, M, info, meta = pipeline.render_corrected(decoded, run, target=task.options.target,
-                                                           output=task.options.output, fmt=fmt,
-                                                           surface_basis=opts.get("surface_basis"),
-                                                           threads=task.threads, exposure=task.options.exposure)
+            render = pipeline.render_encoded if strips else pipeline.render_corrected
+            out, M, info, meta = render(decoded, run, target=task.options.target, output=task.options.output,
+                                        fmt=fmt, surface_basis=opts.get("surface_basis"), threads=task.threads,
+                                        exposure=task.options.exposure)
             _check_cancel(task)  # the last point before anything is written
             file_warnings = list(decoded.warnings)
             profile = pipeline.profile_of(decoded)
@@ -363,9 +366,12 @@ def process_item(task: ItemTask) -> dict:
                     "options": task.options.as_dict()}
             if task.exactly_once:
                 atomic_write(meta_path(task.out, ".json"), lambda p: write_text(p, json.dumps(_clean(side))))
-            atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta,
-                                                                           threads=task.threads),
-                         durable=task.exactly_once)
+            if strips:          # out: the file's bytes
+                atomic_write(task.out, lambda p: write_bytes(p, out), durable=task.exactly_once)
+            else:
+                atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta,
+                                                                               threads=task.threads),
+                             durable=task.exactly_once)
             if task.write_log:
                 with open(task.write_log, "a") as f:
                     f.write(json.dumps({"name": task.name, "out": os.path.basename(task.out),
@@ -378,6 +384,12 @@ def process_item(task: ItemTask) -> dict:
         return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
     except Exception as exc:
         return {"status": "failed", "error": _error_text(exc)}
+
+
+def write_bytes(path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` (for :func:`atomic_write`)."""
+    with open(path, "wb") as f:
+        f.write(data)
 
 
 def write_text(path: str, text: str) -> None:
