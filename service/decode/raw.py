@@ -92,7 +92,41 @@ def _bin_bayer_area(img: np.ndarray, sites, blacks, white: float, f: int):
     """Bin ``2f x 2f`` CFA blocks: each CFA plane averaged over ``f x f``
     sites (OpenCV ``INTER_AREA``, the exact block mean for an integer
     factor, rounded to whole digital numbers), then ``(d - b_c)/(w - b_c)``,
-    greens averaged; a block is saturated if any of its sites is."""
+    greens averaged; a block is saturated if any of its sites is.
+
+    The two sites of a mosaic row are read as the two channels of one
+    image (every other row, no copy), so each row of the cell is one
+    ``INTER_AREA`` and one ``inRange`` instead of a gathered copy of each
+    plane (issue 19: the same numbers, in about half the time)."""
+    import cv2
+
+    H, W = img.shape
+    hh, ww = (H // 2) // f, (W // 2) // f
+    if f == 2:
+        # OpenCV's 2x2 area mean of one channel (SIMD) rounds halves up, of two
+        # channels (the generic code) to even: plane by plane, as defined
+        return _bin_bayer_planes(img, sites, blacks, white, f)
+    est = np.zeros((hh, ww, 3), np.float32)
+    sat = None
+    for dy in (0, 1):
+        rows = img[dy:2 * hh * f:2, :2 * ww * f].reshape(hh * f, ww * f, 2)   # channel k: the site at dx = k
+        row_sites = sorted((s for s in sites if s[0] == dy), key=lambda s: s[1])
+        mean = cv2.resize(rows, (ww, hh), interpolation=cv2.INTER_AREA).astype(np.float32)
+        thr = [min(math.ceil(blacks[idx] + SATURATION_FRACTION * (white - blacks[idx])), 65535)
+               for _, _, idx, _ in row_sites]
+        unsat = cv2.inRange(rows, (0, 0), (thr[0] - 1, thr[1] - 1))       # 255 where neither site is saturated
+        hit = cv2.resize(cv2.bitwise_not(unsat), (ww, hh), interpolation=cv2.INTER_AREA) > 0
+        sat = hit if sat is None else (sat | hit)
+        for k, (_, _, idx, ch) in enumerate(row_sites):
+            b = float(blacks[idx])
+            m = mean[..., k] - np.float32(b)
+            m *= np.float32(1.0 / (white - b))
+            est[..., ch] += m * np.float32(0.5 if ch == 1 else 1.0)
+    return est, sat
+
+
+def _bin_bayer_planes(img: np.ndarray, sites, blacks, white: float, f: int):
+    """:func:`_bin_bayer_area` one CFA plane at a time (a gathered copy of each)."""
     import cv2
 
     H, W = img.shape
