@@ -528,9 +528,12 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
     d = dict(run.diag)
     d.update({"decision": (f"auto: {patches:.0%} of the analysis cells lie in uniform patches (under "
                            f"{UNIFORM_PATCH_SCENE:.0%}): a real scene, the learnt estimator decides; " if scene_choice
-                           else "") + "learned: 19 classical estimates and the place of the bright-pixel estimate among the "
-                          "physical lights, weighed by what they were worth on real photographs of 12 cameras "
-                          "from 3 benchmarks (relit to other lights, colour matrices perturbed)",
+                           else "") + "learned: 19 classical estimates relative to the bright-pixel estimate, "
+                          "weighed by what they were worth on real photographs of 12 cameras from 3 benchmarks "
+                          "(relit to other lights, colour matrices perturbed)"
+                          + ("; refined by a learnt convolutional likelihood over the log-chroma histograms of the "
+                             "image and of its edges (FFCC-style, Barron & Tsai 2017)"
+                             if res.diagnostics.get("histogram_shift_deg") is not None else ""),
               "confidence": res.confidence,
               "confidence_rule": "P(error < 3 deg) under the reported 90 % region (calibrated on held-out benchmarks)",
               "low_confidence": bool(res.confidence < LOW_CONFIDENCE),
@@ -538,6 +541,8 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
               "evidence_spread": res.diagnostics["evidence_spread"], "uniform_patch_fraction": patches,
               "color_matrix_source": ("file / LibRaw" if getattr(camera, "color_matrix", None) is not None
                                       else "fitted to the camera's sensitivities")})
+    if res.diagnostics.get("histogram_shift_deg") is not None:      # a model with the histogram stage
+        d["histogram_shift_deg"] = float(res.diagnostics["histogram_shift_deg"])
     d["out_of_gamut_fraction"] = float(res.diagnostics["out_of_gamut_fraction"])
     d["outside_training_range"] = bool(res.diagnostics["outside_training_range"])
     if d["outside_training_range"]:

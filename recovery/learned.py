@@ -64,6 +64,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from . import chroma_histogram as CH
 from . import imfilters
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation
@@ -350,6 +351,12 @@ class LearnedModel:
         its errors on the training images are held-out errors. NaN (a model
         saved before there was one, or fewer than 10 such images): the
         model's own uncertainty law is used there too.
+    hist_grid : (5,) the histogram stage's torus (:class:`recovery.chroma_histogram.Grid`),
+        empty for a model without that stage
+    hist_filters, hist_bias : (C, nu, nv), (nu, nv) its learnt filters and
+        bias (:func:`recovery.chroma_histogram.scores`); the estimate is the
+        first stage's fused with their likelihood (:func:`recovery.chroma_histogram.fuse`)
+    hist_var_scale : (1,) the first stage's variance is multiplied by it in the fusion
     info : dict, what it was trained on and how
     """
 
@@ -364,12 +371,41 @@ class LearnedModel:
     confidence_coef: np.ndarray = field(default_factory=lambda: np.array([np.nan, np.nan]))
     gamut_limit: np.ndarray = field(default_factory=lambda: np.array([np.inf]))
     outside_calibration: np.ndarray = field(default_factory=lambda: np.array([np.nan, np.nan, np.nan]))
+    hist_grid: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    hist_filters: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    hist_bias: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    hist_var_scale: np.ndarray = field(default_factory=lambda: np.array([1.0]))
     info: dict = field(default_factory=dict, compare=False)
 
     _ARRAYS = ("canonical", "mean", "scale", "expansion", "coef", "locus_uv", "locus_mired", "sigma",
-               "confidence_coef", "gamut_limit", "outside_calibration")
+               "confidence_coef", "gamut_limit", "outside_calibration", "hist_grid", "hist_filters", "hist_bias",
+               "hist_var_scale")
     #: what a model saved before a field existed gets for it
-    _DEFAULTS = {"gamut_limit": (np.inf,), "outside_calibration": (np.nan, np.nan, np.nan)}
+    _DEFAULTS = {"gamut_limit": (np.inf,), "outside_calibration": (np.nan, np.nan, np.nan),
+                 "hist_grid": np.zeros(0), "hist_filters": np.zeros((0, 0, 0)), "hist_bias": np.zeros((0, 0)),
+                 "hist_var_scale": (1.0,)}
+
+    @property
+    def has_histogram(self) -> bool:
+        """Whether the model has the histogram stage (:mod:`recovery.chroma_histogram`)."""
+        return np.asarray(self.hist_grid).size == 5 and np.asarray(self.hist_filters).size > 0
+
+    def fuse_histogram(self, cells, ok, uv, var) -> np.ndarray:
+        """The first stage's estimate ``uv`` (2,) of variance ``var`` fused
+        with the histogram likelihood of the canonical cells (the estimate
+        unchanged for a model without that stage)."""
+        if not self.has_histogram:
+            return np.asarray(uv, float)
+        grid = CH.Grid.from_array(self.hist_grid)
+        h = CH.scores(CH.histograms(cells, ok, grid), self.hist_filters, self.hist_bias)
+        return CH.fuse(h, uv, var * self.var_scale, grid)[0]
+
+    @property
+    def var_scale(self) -> float:
+        """The factor on the first stage's variance in the fusion (chosen by
+        inner leave-one-benchmark-out: the two stages read the same image,
+        so their product may count its evidence twice)."""
+        return float(np.asarray(self.hist_var_scale, float).ravel()[0])
 
     def save(self, path) -> None:
         np.savez_compressed(path, info=json.dumps(self.info, sort_keys=True),
@@ -527,6 +563,9 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     var, conf_outside, radius_outside = model.uncertainty(spread, outside)
     var = float(var[0])
     cov = np.eye(2) * var
+    first = uv
+    if not outside:              # the histogram stage (the first stage's spread law still gives the variance)
+        uv = model.fuse_histogram(can, ok, uv, var)
     cam = np.linalg.solve(K, uv_to_rgb(uv))
     if not np.all(cam > 0):
         cam = np.clip(cam, 1e-6, None)
@@ -539,6 +578,8 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     return LearnedResult(cam, uv, cov, float(radius), conf, int(ok.sum()),
                          {"evidence_spread": spread, "uniform_patch_fraction": uniform_patch_fraction(can @ np.linalg.inv(K).T, ok),
                           "out_of_gamut_fraction": gamut, "outside_training_range": outside,
+                          "histogram_shift_deg": (_angle(cam, np.linalg.solve(K, uv_to_rgb(first)))
+                                                  if model.has_histogram and not outside else None),
                           "estimates": {n: [float(a), float(b)] for n, (a, b) in zip(FEATURE_NAMES, f)}})
 
 
