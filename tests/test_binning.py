@@ -4,33 +4,11 @@ one OpenCV call): the numbers of the plane-by-plane definition exactly."""
 
 from __future__ import annotations
 
-import math
-
-import cv2
 import numpy as np
 import pytest
 
-from service.decode.raw import SATURATION_FRACTION, _bin_bayer_area
-
-
-def _plane_by_plane(img, sites, blacks, white, f):
-    """Each CFA plane gathered, block-averaged (INTER_AREA), scaled, and its
-    saturation (any site at or above the threshold) per block."""
-    H, W = img.shape
-    hh, ww = (H // 2) // f, (W // 2) // f
-    est = np.zeros((hh, ww, 3), np.float32)
-    sat = np.zeros((hh, ww), bool)
-    for dy, dx, idx, ch in sites:
-        b = float(blacks[idx])
-        plane = np.ascontiguousarray(img[dy:2 * hh * f:2, dx:2 * ww * f:2])
-        mean = cv2.resize(plane, (ww, hh), interpolation=cv2.INTER_AREA).astype(np.float32)
-        thr = math.ceil(b + SATURATION_FRACTION * (white - b))
-        hit = cv2.resize(cv2.compare(plane, min(thr, 65535), cv2.CMP_GE), (ww, hh), interpolation=cv2.INTER_AREA)
-        sat |= hit > 0
-        mean -= np.float32(b)
-        mean *= np.float32(1.0 / (white - b))
-        est[..., ch] += mean * np.float32(0.5 if ch == 1 else 1.0)
-    return est, sat
+from service.decode.raw import _bin_bayer_area
+from service.decode.raw import _bin_bayer_planes as _plane_by_plane   # the definition: each plane gathered
 
 
 @pytest.mark.parametrize("pattern", [[(0, 0, 0, 0), (0, 1, 1, 1), (1, 0, 3, 1), (1, 1, 2, 2)],
