@@ -298,7 +298,7 @@ def with_histogram(model, hist, tuv, weights, settings=None, log=None, start=Non
     x0 = None if start is None or not start.has_histogram else (start.hist_filters, start.hist_bias)
     f, b, info = fit_histogram(hist, tuv, weights, st, log, x0=x0)
     return dataclasses.replace(model, hist_grid=np.asarray(st["grid"], float), hist_filters=f, hist_bias=b,
-                               hist_var_scale=np.array([float(st.get("var_scale", 1.0))]),
+                               hist_var_scale=np.array([float(st["var_scale"])]),
                                info={**model.info, "histogram": {**info, "settings": {
                                    k: (list(v) if isinstance(v, tuple) else v) for k, v in st.items()}}})
 
@@ -524,13 +524,9 @@ def select_histogram(rs, hist, tuv, Ks, idx, inside, oof, grid=None, log=print):
             trn = (rs.dataset[idx] != g) & inside
             j = idx[trn]
             f, b, _ = fit_histogram(hist[j], tuv[j], balance_weights(rs.dataset[j], rs.camera[j]), st)
-            cg = CH.Grid(*st["grid"])
             t = np.flatnonzero(te)
-            h = np.concatenate([CH.scores(np.asarray(hist[idx[t[a:a + 500]]], float), f, b)
-                                for a in range(0, t.size, 500)]) if t.size else np.zeros((0, cg.nu, cg.nv))
             for vs in VAR_SCALES:
-                uv = np.concatenate([CH.fuse(h[a:a + 500], oof["uv"][t[a:a + 500]], oof["var"][t[a:a + 500]] * vs,
-                                             cg)[0] for a in range(0, t.size, 500)]) if t.size else np.zeros((0, 2))
+                uv = fuse_rows(hist, idx[t], f, b, oof["uv"][t], oof["var"][t] * vs, CH.Grid(*st["grid"]))
                 errs[vs][g] = float(camera_errors(uv, rs.truth[idx[t]], rs.camera[idx[t]], Ks).mean())
         for vs in VAR_SCALES:
             score = float(np.mean(list(errs[vs].values())))
@@ -541,6 +537,19 @@ def select_histogram(rs, hist, tuv, Ks, idx, inside, oof, grid=None, log=print):
                 best = (score, k, name, vs)
     chosen = {**HIST_SETTINGS, **grid[best[1]], "var_scale": best[3]}
     return chosen, {"inner_mean_error_by_histogram_setting": record, "chosen_histogram": best[2]}
+
+
+def fuse_rows(hist, rows, filters, bias, uv, var, grid, block: int = 500) -> np.ndarray:
+    """(len(rows), 2) the first stage's estimates ``uv`` of variances
+    ``var`` fused with the histogram likelihood of images ``rows`` of
+    ``hist`` (:func:`recovery.chroma_histogram.fuse`, as
+    :meth:`recovery.learned.LearnedModel.fuse_histogram` does one image), in
+    blocks of ``block`` images: bounded memory."""
+    out = np.array(uv, float).reshape(-1, 2)
+    for a in range(0, len(rows), block):
+        h = CH.scores(np.asarray(hist[rows[a:a + block]], float), filters, bias)
+        out[a:a + block] = CH.fuse(h, out[a:a + block], np.asarray(var, float)[a:a + block], grid)[0]
+    return out
 
 
 def apply(model, rs, feats, tuv, Ks, idx, sog=None, gam=None, hist=None) -> dict:
@@ -557,12 +566,9 @@ def apply(model, rs, feats, tuv, Ks, idx, sog=None, gam=None, hist=None) -> dict
     if hist is not None and model.has_histogram and ok.any():
         inside = ~model.outside(gam[idx[ok]]) if gam is not None else np.ones(int(ok.sum()), bool)
         var0, _, _ = model.uncertainty(L._spread(feats[idx[ok]], uv[ok]), ~inside)
-        grid = CH.Grid.from_array(model.hist_grid)
         j = np.flatnonzero(ok)[inside]
-        for a in range(0, j.size, 500):          # in blocks: bounded memory
-            jj = j[a:a + 500]
-            h = CH.scores(np.asarray(hist[idx[jj]], float), model.hist_filters, model.hist_bias)
-            uv[jj] = CH.fuse(h, uv[jj], var0[inside][a:a + 500] * model.var_scale, grid)[0]
+        uv[j] = fuse_rows(hist, idx[j], model.hist_filters, model.hist_bias, uv[j], var0[inside] * model.var_scale,
+                          CH.Grid.from_array(model.hist_grid))
     err = np.zeros(len(idx))
     err[ok] = camera_errors(uv[ok], rs.truth[idx[ok]], rs.camera[idx[ok]], Ks)
     if (~ok).any():

@@ -75,6 +75,13 @@ def bin_centres(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     return (grid.u0 + (np.arange(grid.nu) + 0.5) * grid.step, grid.v0 + (np.arange(grid.nv) + 0.5) * grid.step)
 
 
+def _log_chroma(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) positive -> (N, 2) ``(log g/r, log g/b)`` (as
+    :func:`recovery.learned.rgb_to_uv`, which imports this module)."""
+    lg = np.log(rgb)
+    return np.stack([lg[:, 1] - lg[:, 0], lg[:, 1] - lg[:, 2]], -1)
+
+
 def _hist(uv: np.ndarray, grid: Grid) -> np.ndarray:
     iu = np.floor((uv[:, 0] - grid.u0) / grid.step).astype(np.int64) % grid.nu
     iv = np.floor((uv[:, 1] - grid.v0) / grid.step).astype(np.int64) % grid.nv
@@ -108,13 +115,11 @@ def histograms(cells: np.ndarray, ok: np.ndarray, grid: Grid = DEFAULT_GRID) -> 
     positive channels and of their edge image (zero where there is none)."""
     c = np.asarray(cells, float)
     good = np.asarray(ok, bool) & np.all(c > 0, axis=-1)
-    lg = np.log(c[good])
-    h0 = _hist(np.stack([lg[:, 1] - lg[:, 0], lg[:, 1] - lg[:, 2]], -1), grid)
+    h0 = _hist(_log_chroma(c[good]), grid)
     e, eok = edge_image(c, good)
     eok &= np.all(e > 1e-9, axis=-1)
     if eok.any():
-        le = np.log(e[eok])
-        h1 = _hist(np.stack([le[:, 1] - le[:, 0], le[:, 1] - le[:, 2]], -1), grid)
+        h1 = _hist(_log_chroma(e[eok]), grid)
     else:
         h1 = np.zeros((grid.nu, grid.nv))
     return np.stack([h0, h1])
