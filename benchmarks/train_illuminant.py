@@ -337,16 +337,21 @@ def augment(feats, tuv, rng, settings=SETTINGS):
 
 
 def fit_model(feats, tuv, dataset, camera, ridge, loc, settings=SETTINGS, sigma=None, conf=None, info=None,
-              gam=None, outside=None, extra=None):
+              gam=None, outside=None, extra=None, sample_weight=None):
     """Fit on the given images (all usable) and their augmented copies (and
     ``extra``: further ``(estimates, labels, weights)`` to fit on, the
-    weights on the scale of :func:`balance_weights`'); the model's gamut
+    weights on the scale of :func:`balance_weights`'; ``sample_weight``: a
+    factor (N,) on each image's weight, its copy's too); the model's gamut
     limit is the ``gamut_quantile`` percentile of their out-of-gamut
     fractions ``gam`` (none without them)."""
     rng = np.random.default_rng(settings["augment_seed"])
     fa, ta = augment(feats, tuv, rng, settings)
     allf, allt = np.concatenate([feats, fa]), np.concatenate([tuv, ta])
-    w = np.tile(balance_weights(dataset, camera), 2)
+    w = balance_weights(dataset, camera)
+    if sample_weight is not None:
+        w = w * np.asarray(sample_weight, float)
+        w = w / w.sum()
+    w = np.tile(w, 2)
     if extra is not None:
         allf, allt, w = (np.concatenate([a, np.asarray(b, float)]) for a, b in zip((allf, allt, w), extra))
     x = L.model_inputs(allf, *loc, absolute=settings["absolute_inputs"])
