@@ -41,7 +41,7 @@ Variants:
 Prints, per left-out benchmark, mean / median and their ratios to shades of
 gray (p = 6) on it, the pooled mean / median, and the mean / median on
 Cube+'s photographs under lights warmer than 4000 K (where the learnt model
-loses to its own bright-pixel reference). About 6 minutes on two cores
+loses to its own bright-pixel reference). About 9 minutes on two cores
 (``--only`` for fewer).
 
 Usage::
