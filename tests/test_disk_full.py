@@ -12,6 +12,7 @@ import shutil
 import subprocess
 import tempfile
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -112,6 +113,43 @@ def test_tiff_answers_held_in_memory_are_bounded_by_the_work_slots(client, tmpdi
     assert second.status_code == 200 and made and made[0]["suffix"] == ".tiff"
     assert second.content == first.content
     assert held.n == 0 and os.listdir(tmpdir_only) == []
+
+
+def test_a_held_place_is_given_back_once_when_the_stream_ends_or_is_closed():
+    """The place a TIFF answer holds is given back by its stream, when the
+    last piece is sent or when the stream is closed early (a client that
+    went away), not whenever the garbage collector frees the image (a
+    reference cycle kept it, and a request right after saw the place still
+    taken); the image's finalizer calling the same releaser later gives
+    nothing back twice."""
+    import asyncio
+
+    from service.routers.analysis import _from_memory, _HeldAnswers
+
+    held = _HeldAnswers()
+    img = np.zeros((3000, 400, 3), np.uint16)            # 7 MB: several pieces
+    for early in (False, True):
+        assert held.take() and held.n == 1
+        release = held.releaser()
+
+        async def read():
+            gen = _from_memory(b"head", img, release)
+            got = [await gen.__anext__(), await gen.__anext__()]
+            if early:
+                await gen.aclose()                       # the client went away after two pieces
+            else:
+                got += [c async for c in gen]
+            return got
+
+        pieces = asyncio.run(read())
+        assert held.n == 0, early
+        release()                                        # the finalizer's call
+        assert held.n == 0
+        if not early:
+            assert sum(len(bytes(p)) for p in pieces) == 4 + img.nbytes
+    assert held.take() and held.take() and held.n == 2   # the places are really free
+    held.releaser()()
+    assert held.n == 1
 
 
 def test_upload_spooling_on_a_full_tmpdir_is_507(client, monkeypatch):

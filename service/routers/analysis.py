@@ -124,8 +124,9 @@ def _white_balance_sync(data, filename, sens, camera, method, opts, target, outp
             raise
         if head is not None:
             run.timings_ms["encode"] = (time.perf_counter() - t0) * 1e3
-            weakref.finalize(out, held_answers.give)     # given back when the answer has let go of it
-            return decoded, run, M, (head, out), info
+            release = held_answers.releaser()      # given back when the answer is sent (or let go of)
+            weakref.finalize(out, release)
+            return decoded, run, M, (head, out, release), info
         held_answers.give()
         with temp_output(prefix="wb-", suffix=".tiff") as path:
             pipeline.encode_image(out, "tiff", path, meta=meta)
@@ -160,6 +161,24 @@ class _HeldAnswers:
         with self._lock:
             self.n = max(0, self.n - 1)
 
+    def releaser(self):
+        """A function that gives one place back the first time it is called
+        and does nothing after: the answer's stream calls it when the client
+        has read it (or the stream is closed), and a finalizer on the image
+        calls it too in case the stream never ran, so a place is given back
+        exactly once, and not only when the garbage collector gets to the
+        image (a reference cycle could keep it for a while)."""
+        lock, done = threading.Lock(), []
+
+        def release() -> None:
+            with lock:
+                if done:
+                    return
+                done.append(True)
+            self.give()
+
+        return release
+
 
 held_answers = _HeldAnswers()
 
@@ -169,15 +188,20 @@ held_answers = _HeldAnswers()
 MEMORY_CHUNK = 1024 * 1024
 
 
-async def _from_memory(head: bytes, img):
+async def _from_memory(head: bytes, img, release=None):
     """``head`` then ``img``'s bytes in C order, in about 1 MiB pieces (views
-    when ``img`` is contiguous, a copy of the piece's rows when it is a crop)."""
+    when ``img`` is contiguous, a copy of the piece's rows when it is a crop);
+    ``release()`` once the last piece is sent or the stream is closed."""
     import numpy as np
 
-    yield head
-    rows = max(1, MEMORY_CHUNK // max(1, img[:1].nbytes))
-    for r in range(0, img.shape[0], rows):
-        yield np.ascontiguousarray(img[r:r + rows]).data.cast("B")
+    try:
+        yield head
+        rows = max(1, MEMORY_CHUNK // max(1, img[:1].nbytes))
+        for r in range(0, img.shape[0], rows):
+            yield np.ascontiguousarray(img[r:r + rows]).data.cast("B")
+    finally:
+        if release is not None:
+            release()
 
 
 @contextlib.contextmanager
@@ -255,9 +279,10 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                "Content-Disposition": content_disposition(
                    f'{"as-shot" if white == "as-shot" else "corrected"}.{fmt.extension}', "inline")}
     if isinstance(path, tuple):            # a TIFF: its header, then the corrected image from memory
-        head, img = path
+        head, img, release = path
         headers["Content-Length"] = str(len(head) + img.nbytes)
-        return StreamingResponse(_from_memory(head, img), media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
+        return StreamingResponse(_from_memory(head, img, release), media_type=MEDIA_TYPES[fmt.encoder],
+                                 headers=headers)
     # streamed from a temporary file (deleted after sending): the encoded
     # image never sits in memory next to the decoded one
     return LargeChunkFileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers,
