@@ -34,7 +34,11 @@ Training needs PyTorch (``pip install torch``; not a run-time dependency).
 
 Usage::
 
-    python -m benchmarks.deep_probe [--epochs N] [--cache PATH]
+    python -m benchmarks.deep_probe [--epochs N] [--cache PATH] [--cube-in-domain]
+
+The evidence and the shipped ridge's leave-one-benchmark-out estimates are
+kept in ``--cache`` (default ``/tmp/deep_probe_cache.npz``) for the next run:
+delete it after changing the data or the shipped procedure.
 """
 
 from __future__ import annotations
