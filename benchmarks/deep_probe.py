@@ -189,12 +189,6 @@ def train_predict(d, tr, te, epochs, seed=0, log=print):
     return out
 
 
-def errors(uv, d, idx):
-    est = np.einsum("nij,nj->ni", np.linalg.inv(d["Ks"][idx]), L.uv_to_rgb(uv))
-    from .realdata import angular_error
-    return angular_error(est, d["truth"][idx])
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--epochs", type=int, default=24)
@@ -205,6 +199,11 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     d = prepare(a.cache)
     good = T.usable(d["feats"])
+    Ks = dict(zip(d["camera"].tolist(), d["Ks"]))           # camera -> canonical transform
+
+    def errors(uv, idx):
+        return T.camera_errors(uv, d["truth"][idx], d["camera"][idx], Ks)
+
     if a.cube_in_domain:
         cube = np.flatnonzero((d["dataset"] == "Cube+") & good)
         te = cube[np.random.default_rng(0).integers(0, 5, len(cube)) == 0]
@@ -214,7 +213,7 @@ def main(argv=None) -> int:
         ridge = T.predict(m, d["feats"][te], d["gam"][te])
         cnn = train_predict(d, tr, te, a.epochs)
         for k, uv in (("ridge", ridge), ("cnn", cnn), ("average", 0.5 * (ridge + cnn))):
-            s = error_stats(errors(uv, d, te))
+            s = error_stats(errors(uv, te))
             print(f"Cube+ in-domain fold ({len(te)} images) {k:8s} mean {s['mean']:.2f} median {s['median']:.2f}")
         return 0
     allc = {"ridge": [], "cnn": [], "average": []}
@@ -225,7 +224,7 @@ def main(argv=None) -> int:
         cnn = train_predict(d, tr, te, a.epochs)
         ridge = d["ridge_uv"][te]
         for k, uv in (("ridge", ridge), ("cnn", cnn), ("average", 0.5 * (ridge + cnn))):
-            e = errors(uv, d, te)
+            e = errors(uv, te)
             allc[k].append(e)
             s = error_stats(e)
             print(f"  {k:8s} mean {s['mean']:.2f} median {s['median']:.2f} worst25 {s['worst25']:.2f}")

@@ -167,6 +167,14 @@ def _select(feats, extra, variant):
     return F, keep.index(L.REFERENCE)
 
 
+def _fit_predict(F, rs, tuv, gam, tr, te, loc, **kw):
+    """(len(te), 2) light log-chroma of images ``te`` by the shipped fit
+    (:func:`benchmarks.train_illuminant.fit_model`, the ridge grid averaged)
+    on images ``tr`` of the estimates ``F`` (``kw``: ``extra``, ``sample_weight``)."""
+    m = T.fit_model(F[tr], tuv[tr], rs.dataset[tr], rs.camera[tr], GRID_RIDGES, loc, gam=gam[tr], **kw)
+    return T.predict(m, F[te], gam[te])
+
+
 def _ridge_lodo(F, ref, rs, tuv, Ks, gam, good):
     """Out-of-benchmark light log-chroma of every usable image (the shipped
     fit on the estimates ``F`` whose reference is column ``ref``)."""
@@ -178,8 +186,7 @@ def _ridge_lodo(F, ref, rs, tuv, Ks, gam, good):
         for b in rs.datasets:
             tr = np.flatnonzero((rs.dataset != b) & good)
             te = np.flatnonzero((rs.dataset == b) & good)
-            m = T.fit_model(F[tr], tuv[tr], rs.dataset[tr], rs.camera[tr], GRID_RIDGES, loc, gam=gam[tr])
-            uv[te] = T.predict(m, F[te], gam[te])
+            uv[te] = _fit_predict(F, rs, tuv, gam, tr, te, loc)
     finally:
         L.REFERENCE = saved
     return uv
@@ -229,9 +236,7 @@ def _cutmix_lodo(feats, extra, rs, tuv, gam, good, seed: int = 1):
                 continue
             ym.append(tuv[i])
             wm.append(w0[k])
-        m = T.fit_model(feats[tr], tuv[tr], rs.dataset[tr], rs.camera[tr], GRID_RIDGES, loc, gam=gam[tr],
-                        extra=(np.array(fm), np.array(ym), np.array(wm)))
-        uv[te] = T.predict(m, feats[te], gam[te])
+        uv[te] = _fit_predict(feats, rs, tuv, gam, tr, te, loc, extra=(np.array(fm), np.array(ym), np.array(wm)))
     return uv
 
 
@@ -299,9 +304,7 @@ def _shift_lodo(feats, rs, tuv, gam, good, cap: float = 10.0):
         for c in sorted(set(rs.camera[rs.dataset == b].tolist())):
             te = np.flatnonzero((rs.camera == c) & good)
             r = np.minimum(density_ratio(xtr, L.model_inputs(feats[te], *loc)), cap)
-            m = T.fit_model(feats[tr], tuv[tr], rs.dataset[tr], rs.camera[tr], GRID_RIDGES, loc, gam=gam[tr],
-                            sample_weight=r)
-            uv[te] = T.predict(m, feats[te], gam[te])
+            uv[te] = _fit_predict(feats, rs, tuv, gam, tr, te, loc, sample_weight=r)
     return uv
 
 
@@ -317,32 +320,25 @@ def _cube_in_domain(feats, rs, tuv, gam, good, uv_lodo, folds: int = 5, seed: in
     for k in range(folds):
         te = cube[fold == k]
         tr = np.setdiff1d(np.flatnonzero(good), te)
-        m = T.fit_model(feats[tr], tuv[tr], rs.dataset[tr], rs.camera[tr], GRID_RIDGES, loc, gam=gam[tr])
-        uv[te] = T.predict(m, feats[te], gam[te])
+        uv[te] = _fit_predict(feats, rs, tuv, gam, tr, te, loc)
     return uv
 
 
-def _disagreement_lodo(feats, rs, tuv, gam, good, tau: float = 0.1):
-    """The shipped fit's correction of its reference shrunk where models
-    fitted on each training benchmark alone disagree (by
-    ``exp(-(d / tau) ** 2)``, ``d`` their corrections' log-chroma distance):
-    learn only what the training benchmarks agree on."""
+def _disagreement_lodo(feats, rs, tuv, gam, good, uv_lodo, tau: float = 0.1):
+    """The shipped fit's correction of its reference (its leave-one-benchmark-out
+    estimates ``uv_lodo``) shrunk where models fitted on each training
+    benchmark alone disagree (by ``exp(-(d / tau) ** 2)``, ``d`` their
+    corrections' log-chroma distance): learn only what the training
+    benchmarks agree on."""
     uv = np.full((len(tuv), 2), np.nan)
     loc = T.locus()
     for b in rs.datasets:
-        tr = np.flatnonzero((rs.dataset != b) & good)
         te = np.flatnonzero((rs.dataset == b) & good)
         ref = feats[te, L.REFERENCE]
-        off = T.predict(T.fit_model(feats[tr], tuv[tr], rs.dataset[tr], rs.camera[tr], GRID_RIDGES, loc,
-                                    gam=gam[tr]), feats[te], gam[te]) - ref
-        singles = []
-        for o in rs.datasets:
-            if o != b:
-                s = np.flatnonzero((rs.dataset == o) & good)
-                m = T.fit_model(feats[s], tuv[s], rs.dataset[s], rs.camera[s], GRID_RIDGES, loc, gam=gam[s])
-                singles.append(T.predict(m, feats[te], gam[te]) - ref)
+        singles = [_fit_predict(feats, rs, tuv, gam, np.flatnonzero((rs.dataset == o) & good), te, loc)
+                   for o in rs.datasets if o != b]
         d = np.linalg.norm(singles[0] - singles[-1], axis=1)
-        uv[te] = ref + off * np.exp(-(d / tau) ** 2)[:, None]
+        uv[te] = ref + (uv_lodo[te] - ref) * np.exp(-(d / tau) ** 2)[:, None]
     return uv
 
 
@@ -378,6 +374,12 @@ def main(argv=None) -> int:
         print(f"evidence of {len(tuv)} photographs in {time.time() - t0:.0f} s; leave one benchmark out, "
               "mean / median degrees (ratio to shades of gray p=6 on that benchmark)")
         cache = {}
+
+        def shipped():      # the shipped leave-one-benchmark-out estimates, computed once per run
+            if "shipped" not in cache:
+                cache["shipped"] = _ridge_lodo(*_select(feats, extra, "shipped"), rs, tuv, Ks, gam, good)
+            return cache["shipped"]
+
         for v in args.only or VARIANTS:
             t1 = time.time()
             if v.startswith("gbm"):
@@ -386,34 +388,28 @@ def main(argv=None) -> int:
                 except ImportError:
                     print(f"{v:18s} skipped: scikit-learn is not installed (pip install scikit-learn)")
                     continue
-                uv = cache.setdefault("gbm", _gbm_lodo(feats, rs, tuv, gam, good))
+                if "gbm" not in cache:       # gbm+ridge reuses gbm's fits
+                    cache["gbm"] = _gbm_lodo(feats, rs, tuv, gam, good)
+                uv = cache["gbm"]
                 if v == "gbm+ridge":
-                    if "shipped" not in cache:
-                        cache["shipped"] = _ridge_lodo(*_select(feats, extra, "shipped"), rs, tuv, Ks, gam, good)
-                    uv = 0.5 * (uv + cache["shipped"])
+                    uv = 0.5 * (uv + shipped())
             elif v == "locus-band":
-                if "shipped" not in cache:
-                    cache["shipped"] = _ridge_lodo(*_select(feats, extra, "shipped"), rs, tuv, Ks, gam, good)
-                uv = np.array(cache["shipped"])
+                uv = np.array(shipped())
                 for b in rs.datasets:
                     te = (rs.dataset == b) & good
                     uv[te] = locus_band(uv[te], tuv[(rs.dataset != b) & good])
             elif v == "covariate-shift":
                 uv = _shift_lodo(feats, rs, tuv, gam, good)
             elif v == "oracle-camera-offset":
-                if "shipped" not in cache:
-                    cache["shipped"] = _ridge_lodo(*_select(feats, extra, "shipped"), rs, tuv, Ks, gam, good)
-                uv = oracle_camera_offset(cache["shipped"], tuv, rs.camera, good)
+                uv = oracle_camera_offset(shipped(), tuv, rs.camera, good)
             elif v == "disagreement":
-                uv = _disagreement_lodo(feats, rs, tuv, gam, good)
+                uv = _disagreement_lodo(feats, rs, tuv, gam, good, shipped())
             elif v == "cube+-in-domain":
-                if "shipped" not in cache:
-                    cache["shipped"] = _ridge_lodo(*_select(feats, extra, "shipped"), rs, tuv, Ks, gam, good)
-                uv = _cube_in_domain(feats, rs, tuv, gam, good, cache["shipped"])
+                uv = _cube_in_domain(feats, rs, tuv, gam, good, shipped())
             elif v == "cutmix":
                 uv = _cutmix_lodo(feats, extra, rs, tuv, gam, good)
             else:
-                uv = cache.setdefault(v, _ridge_lodo(*_select(feats, extra, v), rs, tuv, Ks, gam, good))
+                uv = shipped() if v == "shipped" else _ridge_lodo(*_select(feats, extra, v), rs, tuv, Ks, gam, good)
             err = np.array(sog)         # shades of gray where an image has too few usable cells, as the product
             err[good] = T.camera_errors(uv[good], rs.truth[good], rs.camera[good], Ks)
             parts = []

@@ -62,7 +62,8 @@ def test_oracle_camera_offset_removes_each_cameras_median_residual():
 
 
 def test_fit_model_with_uniform_sample_weights_is_the_unweighted_fit():
-    # the weights are renormalised, so a constant factor changes nothing but rounding
+    # the weights are renormalised, so a constant factor changes nothing but rounding (measured: the
+    # same predictions bit for bit under OpenBLAS's Haswell, SkylakeX and Prescott kernels)
     from benchmarks import train_illuminant as T
 
     rng = np.random.default_rng(4)
