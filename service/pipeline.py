@@ -449,6 +449,12 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
     failed = method_failure(est, run.requested_method)
     if failed is not None:
         out["method_failed"] = failed
+    d = est.diagnostics
+    out["lights"] = {"found": 2 if lm_found(est) else 1, "decision": str(d.get("spatial_decision", "one light")),
+                     "reason": str(d.get("spatial_reason", ""))}
+    if lm_found(est):
+        out["lights"]["held"] = ("illuminant is the scene's one light (the whole image's estimate); light_map gives "
+                                 "the light across the frame, and white-balanced outputs correct each pixel by it")
     lm = est.light_map
     if lm is not None:  # the light at the map's centres, as fractions of the image height and width
         rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
@@ -472,6 +478,11 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
         if out["neutral"].get("warning"):
             out["warnings"].append(out["neutral"]["warning"])
     return out
+
+
+def lm_found(est: IlluminantEstimate) -> bool:
+    """Whether the estimate carries a light map (several lights)."""
+    return getattr(est, "light_map", None) is not None
 
 
 def rendering_choice(run: EstimateRun, decoded=None) -> dict:
@@ -591,7 +602,13 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
         drain_prefetch(decoded)
         raise
     t0 = time.perf_counter()
-    rgb16 = default_crop(decoded, _full_linear_u16(decoded))
+    full = _full_linear_u16(decoded)
+    field = light_gain_field(decoded, run, full.shape)
+    b = crop_bounds(decoded, full.shape[:2]) if field is not None else None
+    rgb16 = default_crop(decoded, full)
+    if field is not None:         # each pixel white-balanced by the light there (service.light_field)
+        field.apply(rgb16, *((b[0], b[2]) if b is not None else (0, 0)))
+        info["light_map_gains"] = list(field.range)
     t1 = time.perf_counter()
     out = apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=threads, neutral=info.get("neutral"),
                                shoulder=info.get("shoulder"), curve=info.get("curve"), reuse_input=True)
@@ -600,6 +617,17 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
         timings.update(demosaic=(t1 - t0) * 1e3, correct=(t2 - t1) * 1e3)
     info["crop"] = [int(out.shape[0]), int(out.shape[1])]
     return out, M, info
+
+
+def light_gain_field(decoded, run: EstimateRun, full_shape):
+    """The per-pixel white balances of the estimate's light map in the
+    full image's pixels (:mod:`service.light_field`), None for one light."""
+    from .light_field import gain_field
+
+    est = run.estimate
+    if getattr(est, "light_map", None) is None or decoded.estimation is None:
+        return None
+    return gain_field(est, run.camera, run.factor, decoded.estimation.shape, full_shape)
 
 
 def estimate_summary(run: EstimateRun, info: dict | None = None, profile=None, **extra) -> dict:
@@ -620,6 +648,11 @@ def estimate_summary(run: EstimateRun, info: dict | None = None, profile=None, *
         out["confidence"] = float(conf)
     if info:
         out["rendering"] = info.get("rendering")
+    d = est.diagnostics
+    if d.get("spatial_decision") == "light map":
+        out["lights"] = "several"
+        out["lights_reason"] = str(d.get("spatial_reason", ""))
+        out["light_held"] = "the scene's one light (the whole image's estimate); each pixel was corrected by the light map"
     out.update(extra)
     return out
 
@@ -682,6 +715,10 @@ def render_encoded(decoded, run: EstimateRun, *, target: str, output: str, fmt: 
         return data, M, info, meta
     M, info = correction_matrix(run, target, output, surface_basis, decoded=decoded, exposure=exposure)
     t0 = time.perf_counter()
+    field = light_gain_field(decoded, run, decoded.full_shape)
+    if field is not None:         # each pixel white-balanced by the light there (service.light_field)
+        source = strips.FieldRows(source, field)
+        info["light_map_gains"] = list(field.range)
     H, W = source.shape
     kernel = Correction(M, info["encoding"], fmt.bits, neutral=info.get("neutral"), shoulder=info.get("shoulder"),
                         curve=info.get("curve"), rows_per_chunk=min(chunk_rows(W), max(H, 1)),

@@ -273,6 +273,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     header["correction_matrix"] = M.tolist()
     header["rendering"] = pipeline.rendering_json(info)
     header["white"] = "neutral" if where is not None else white
+    header["lights"] = body["lights"]
     if "neutral" in body:
         header["neutral"] = body["neutral"]
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),

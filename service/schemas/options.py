@@ -77,9 +77,10 @@ def _model(name: str, base, doc: str, *groups):
 class _Estimating(OptionModel):
     def estimate_kwargs(self) -> dict:
         """Keyword options of :func:`recovery.estimate_illuminant`: one light
-        (``spatial=False``) unless the model has ``spatial``."""
+        or a light map decided from the image (``spatial="auto"``) unless the
+        model has ``spatial``."""
         return checks.estimate_options(self.method, self.surface_dim, self.light_dim, self.region_size,
-                                       getattr(self, "spatial", False), self.surface_model, self.light_model,
+                                       getattr(self, "spatial", "auto"), self.surface_model, self.light_model,
                                        self.quality)
 
 
