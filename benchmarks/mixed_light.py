@@ -251,15 +251,98 @@ def _fmt(s) -> str:
     return f"{s['mean']:5.2f} {s['median']:5.2f} {s['worst25']:5.2f}"
 
 
+def _relit_example(rs, i: int = None, seed: int = 3):
+    """A Cube+ photograph relit by two of its camera's lights more than 10
+    degrees apart across a soft edge (the speed runs' scene)."""
+    rng = np.random.default_rng(seed)
+    cube = np.flatnonzero(rs.dataset == "Cube+")
+    i = int(cube[300 % cube.size]) if i is None else i
+    L1, L2 = pick_pair(rs.truth[rs.camera == rs.camera[i]], "far", rng)
+    img, _ = relight(rs.images[i], rs.truth[i], L1, L2, mask_field("soft-half", rs.images[i].shape[:2], rng), 1.0)
+    return img, rs.matrices[rs.camera[i]]
+
+
+def speed(rs, repeats: int = 5) -> dict:
+    """Item 5's figures, side by side in one run: the one-light estimate of
+    a 64 x 64 photograph; the decision and map on the 1-megapixel analysis
+    image (estimate with ``spatial="auto"`` minus ``spatial=False``); a
+    24-megapixel DNG white-balanced through the app with the map and with
+    one light (TIFF, PNG, JPEG), medians of ``repeats`` runs."""
+    import io
+
+    import cv2
+    from fastapi.testclient import TestClient
+
+    from recovery import estimate_illuminant
+    from recovery.cameras import camera_from_matrix
+    from service.app import app
+    from testing.dngwriter import mosaic, write_dng
+
+    img, matrix = _relit_example(rs)
+    cam = camera_from_matrix(matrix)
+
+    def med(fn):
+        ts = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            out = fn()
+            ts.append(time.perf_counter() - t)
+        return float(np.median(ts)), out
+
+    out = {}
+    estimate_illuminant(img, cam, white_level=1.0)                 # warm
+    out["one_light_64_ms"] = 1e3 * med(lambda: estimate_illuminant(img, cam, white_level=1.0, spatial=False))[0]
+    t_auto, est = med(lambda: estimate_illuminant(img, cam, white_level=1.0))
+    out["auto_64_ms"] = 1e3 * t_auto
+    big = cv2.resize(img, (1000, 1000), interpolation=cv2.INTER_CUBIC).clip(0, 1)
+    t1, _ = med(lambda: estimate_illuminant(big, cam, white_level=1.0, spatial=False))
+    t2, est = med(lambda: estimate_illuminant(big, cam, white_level=1.0))
+    out.update(one_light_1mp_ms=1e3 * t1, auto_1mp_ms=1e3 * t2, decision_and_map_1mp_ms=1e3 * (t2 - t1),
+               map_decided_1mp=est.light_map is not None)
+    huge = cv2.resize(img, (6000, 4000), interpolation=cv2.INTER_LINEAR).clip(0, 1)
+    buf = io.BytesIO()
+    write_dng(buf, (mosaic(huge) * 60000).astype(np.uint16), color_matrix1=matrix, model="Canon EOS 550D relit")
+    del huge
+    data = buf.getvalue()
+    c = TestClient(app, base_url="http://127.0.0.1")
+    for fmt in ("tiff", "png", "jpeg"):
+        for mode in ("false", "auto"):
+            def post():
+                r = c.post("/v1/white-balance", files={"file": ("relit.dng", data)},
+                           data={"format": fmt, "spatial": mode})
+                assert r.status_code == 200, r.text[:300]
+                return json.loads(r.headers["x-illuminant"])["lights"]["found"]
+            t, found = med(post) if repeats > 1 else med(post)
+            out[f"wb24_{fmt}_{'map' if mode == 'auto' else 'one'}_s"] = t
+            out[f"wb24_{fmt}_{mode}_lights"] = found
+        out[f"wb24_{fmt}_ratio"] = out[f"wb24_{fmt}_map_s"] / out[f"wb24_{fmt}_one_s"]
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(REAL_DIR))
     ap.add_argument("--per", type=int, default=300, help="photographs per benchmark (default 300)")
     ap.add_argument("--out", default="out")
     ap.add_argument("--cache", default="out/mixed_light_models", help="fitted models kept here between runs")
+    ap.add_argument("--speed", action="store_true", help="only the speed figures (item 5), about a minute")
     a = ap.parse_args(argv)
     t_all = time.perf_counter()
     rs = load_real(a.data)
+    if a.speed:
+        sp = speed(rs, repeats=3)
+        print("speed, medians of 3 runs in this process (load average "
+              f"{' '.join(f'{x:.1f}' for x in __import__('os').getloadavg())}):")
+        print(f"  one light, 64 x 64: {sp['one_light_64_ms']:.1f} ms (target <= 20); with the decision "
+              f"{sp['auto_64_ms']:.1f} ms")
+        print(f"  1-megapixel analysis image: one light {sp['one_light_1mp_ms']:.0f} ms, with the decision and "
+              f"map {sp['auto_1mp_ms']:.0f} ms: decision and map {sp['decision_and_map_1mp_ms']:.0f} ms (target "
+              f"<= 150; map decided: {sp['map_decided_1mp']})")
+        for fmt in ("tiff", "png", "jpeg"):
+            print(f"  24-megapixel DNG white balance, {fmt}: one light {sp[f'wb24_{fmt}_one_s']:.2f} s, with the map "
+                  f"{sp[f'wb24_{fmt}_map_s']:.2f} s ({sp[f'wb24_{fmt}_auto_lights']} lights found): ratio "
+                  f"{sp[f'wb24_{fmt}_ratio']:.2f} (target <= 1.3)")
+        return 0
     rng = np.random.default_rng(27)
     feats, tuv, Ks, gam = dataset_features(rs)
     good = usable(feats)

@@ -101,19 +101,13 @@ def _run_bayes(img, m, camera, diag, warns, run_peer):
     return _finish(rgb, spd, None, camera, None, "bayes", d, list(warns))
 
 
-def _learned_light_map(img, m, camera, est, mode: str):
-    """One light or a light map from the learnt estimator's evidence on
-    overlapping windows (:mod:`recovery.light_mixture`): the decision of
-    :func:`recovery.light_mixture.decide`, the map's level the estimate
-    ``est`` itself (whatever method made it), its variation the windows'.
-    ``mode="map"`` always gives the map. Returns the estimate with
-    ``light_map`` and the diagnostics ``spatial_decision``,
-    ``spatial_reason``, ``spatial_test``; None when the learnt estimator
-    cannot read this camera or image (not 3 channels, no colour matrix, the
-    colour matrix outside its training range)."""
-    from .bayes import modulated_spectrum
-    from .learned import camera_color_matrix, canonical_analysis, load_model, rgb_to_uv, uv_to_rgb
-    from .light_mixture import decide, light_field, window_evidence
+def _window_decision(img, m, camera, est):
+    """:func:`recovery.light_mixture.decide` on the image, about the level
+    ``est.rgb``: ``(field or None, evidence, window evidence, K, usable
+    cells, level uv)``, or None when the learnt estimator cannot read this
+    camera or image."""
+    from .learned import camera_color_matrix, canonical_analysis, load_model, rgb_to_uv
+    from .light_mixture import decide, window_evidence
 
     if camera.channels != 3:
         return None
@@ -125,10 +119,30 @@ def _learned_light_map(img, m, camera, est, mode: str):
         return None
     if bool(model.outside(gam)[0]):
         return None
-    cam0 = np.asarray(est.rgb, float)
-    uv0 = rgb_to_uv(np.clip(K @ cam0, 1e-9, None))
+    uv0 = rgb_to_uv(np.clip(K @ np.asarray(est.rgb, float), 1e-9, None))
     ev = window_evidence(can, ok, model, gam)
     fld, evd = decide(ev, uv0, K)
+    return fld, evd, ev, K, ok, uv0
+
+
+def _learned_light_map(img, m, camera, est, mode: str):
+    """One light or a light map from the learnt estimator's evidence on
+    overlapping windows (:mod:`recovery.light_mixture`): the decision of
+    :func:`recovery.light_mixture.decide`, the map's level the estimate
+    ``est`` itself (whatever method made it), its variation the windows'.
+    ``mode="map"`` always gives the map. Returns the estimate with
+    ``light_map`` and the diagnostics ``spatial_decision``,
+    ``spatial_reason``, ``spatial_test``; None when the learnt estimator
+    cannot read this camera or image (not 3 channels, no colour matrix, the
+    colour matrix outside its training range)."""
+    from .bayes import modulated_spectrum
+    from .learned import uv_to_rgb
+    from .light_mixture import light_field
+
+    got = _window_decision(img, m, camera, est)
+    if got is None:
+        return None
+    fld, evd, ev, K, ok, uv0 = got
     reason = evd.pop("reason")
     if fld is None and mode == "map":
         fld = light_field(uv0, ev)
@@ -490,11 +504,21 @@ def _estimate_posterior(run: EstimatorInput) -> IlluminantEstimate:
     _check_pinned_models(run)
     est = _run_bayes(img, m, camera, run.diag, run.warns, run.run_peer)
     if spatial_mode != "uniform" and est.method == "bayes":
-        # the learnt windows decide where they can read the camera (their
-        # decision is the one validated on real photographs,
-        # benchmarks.mixed_light); the light posterior's own regions otherwise
-        learned = None if run.region_size else _learned_light_map(img, m, camera, est, spatial_mode)
-        est = learned or _maybe_light_map(img, m, camera, est, spatial_mode, run.region_size)
+        est = _maybe_light_map(img, m, camera, est, spatial_mode, run.region_size)
+        if est.light_map is not None and spatial_mode == "auto":
+            # the posterior's regions and trend are right on scenes its models
+            # describe and see a change of light in almost every real
+            # photograph (issue 27); the learnt windows, validated on real
+            # photographs (benchmarks.mixed_light), must agree
+            got = _window_decision(img, m, camera, est)
+            if got is not None and got[0] is None:
+                d = est.diagnostics
+                d["spatial_test"]["learnt_windows"] = {k: v for k, v in got[1].items() if k != "reason"}
+                d["spatial_reason"] = (f"{got[1]['reason']}; the light posterior alone saw a change "
+                                       f"({d['spatial_reason']}), which on real photographs is no evidence")
+                d["spatial_decision"] = "one light"
+                est.light_map = None
+        est.diagnostics["lights_found"] = 2 if est.light_map is not None else 1
     else:
         est.diagnostics["spatial_decision"] = "one light"
         est.diagnostics["spatial_reason"] = ("requested (spatial=False or quality='fast'; the default "

@@ -649,10 +649,11 @@ def estimate_summary(run: EstimateRun, info: dict | None = None, profile=None, *
     if info:
         out["rendering"] = info.get("rendering")
     d = est.diagnostics
-    if d.get("spatial_decision") == "light map":
+    if lm_found(est):
         out["lights"] = "several"
         out["lights_reason"] = str(d.get("spatial_reason", ""))
-        out["light_held"] = "the scene's one light (the whole image's estimate); each pixel was corrected by the light map"
+        out["light_held"] = ("the scene's one light (the whole image's estimate); a white-balanced output corrects "
+                             "each pixel by the light map, a single white balance (this sidecar's) cannot")
     out.update(extra)
     return out
 

@@ -200,8 +200,15 @@ def test_white_balance_follows_the_map_through_the_app():
     assert head["lights"]["found"] == 2 and "several lights" in head["lights"]["reason"]
     out = tifffile.imread(io.BytesIO(r.content)).astype(float)
     assert np.all(np.isfinite(out)) and out.shape[:2] == (256, 384)
+    # a single white balance (an XMP sidecar) says the photograph has several lights and which it holds
+    r = c.post("/v1/white-balance", files={"file": ("two.dng", data)}, data={"format": "xmp"})
+    assert r.status_code == 200, r.text
+    assert "<wandell:Lights>several</wandell:Lights>" in r.text
+    assert "<wandell:LightHeld>the scene&apos;s one light" in r.text or "<wandell:LightHeld>the scene's one light" in r.text
     # one light when asked: the same photograph, no map
-    r1 = c.post("/v1/analyze", files={"file": ("two.dng", data)}, data={"spatial": "false"})
-    assert r1.status_code == 200
-    assert r1.json()["diagnostics"]["spatial_decision"] == "one light"
-    assert "light_map" not in r1.json()
+    for path in ("/v1/analyze", "/v1/white-balance"):
+        form = {"spatial": "false", **({"format": "png"} if path.endswith("white-balance") else {})}
+        r1 = c.post(path, files={"file": ("two.dng", data)}, data=form)
+        assert r1.status_code == 200, r1.text
+        body = r1.json() if path == "/v1/analyze" else json.loads(r1.headers["x-illuminant"])
+        assert body["lights"]["found"] == 1 and body["lights"]["decision"] == "one light"

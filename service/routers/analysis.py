@@ -43,7 +43,7 @@ class LargeChunkFileResponse(FileResponse):
 #: The form fields of each endpoint, from the option models (service.schemas).
 _ANALYZE = form(AnalyzeEstimation)
 _NEUTRAL = form(Neutral)
-_WB_ESTIMATION = form(Estimation)
+_WB_ESTIMATION = form(AnalyzeEstimation)
 _WB_RENDERING = form(WhiteBalanceRendering, choices={"format": tuple(FORMATS)},
                      describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg, or xmp: a Camera Raw sidecar "
                                          "(crs:WhiteBalance=Custom, Temperature, Tint) to apply the estimate to "
@@ -228,7 +228,7 @@ def temp_output(**kw):
 
 @router.post("/white-balance")
 async def white_balance(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
-                        est: Estimation = Depends(_WB_ESTIMATION), rend: WhiteBalanceRendering = Depends(_WB_RENDERING),
+                        est: AnalyzeEstimation = Depends(_WB_ESTIMATION), rend: WhiteBalanceRendering = Depends(_WB_RENDERING),
                         nt: Neutral = Depends(_NEUTRAL), inp: Input = Depends(_INPUT),
                         settings: Settings = Depends(get_settings)):
     """The corrected image at full resolution (one 3x3 matrix per pixel
