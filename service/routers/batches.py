@@ -29,6 +29,7 @@ from ..headers import content_disposition
 from ..jsonsafe import clean
 from ..schemas import BatchOptions
 from ..schemas.forms import form
+from ..schemas.responses import BatchCreated, BatchProgress
 from ..settings import Settings, get_settings
 
 router = APIRouter(prefix="/v1", tags=["batches"])
@@ -36,6 +37,15 @@ router = APIRouter(prefix="/v1", tags=["batches"])
 #: The batch options as form fields (service.schemas.BatchOptions, as the CLI's flags).
 _OPTIONS = form(BatchOptions)
 log = logging.getLogger("service")
+
+#: What a result download is (the batch's format decides which), and the zip.
+_BINARY = {"schema": {"type": "string", "format": "binary"}}
+_ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16-bit TIFF, PNG or JPEG",
+                    "content": {"image/tiff": _BINARY, "image/png": _BINARY, "image/jpeg": _BINARY}},
+              404: {"description": "no such batch or item"}, 409: {"description": "not finished, or ambiguous"}}
+_ZIP = {200: {"description": "every finished result (with FAILURES.txt and manifest.json when items are missing)",
+              "content": {"application/zip": _BINARY}},
+        404: {"description": "no such batch"}, 409: {"description": "nothing finished yet"}}
 
 _runner: jobs.BatchRunner | None = None
 _runner_lock = threading.Lock()
@@ -118,7 +128,7 @@ async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) 
     return out
 
 
-@router.post("/batches", status_code=202)
+@router.post("/batches", status_code=202, response_model=BatchCreated)
 async def create_batch(files: list[UploadFile] | None = File(None, description="RAW files (repeat the field)"),
                        folder: str | None = Form(None, description="folder relative to WANDELL_BATCH_ROOT"),
                        opts: BatchOptions = Depends(_OPTIONS),
@@ -186,7 +196,7 @@ def _progress(bid: str) -> dict:
     return doc
 
 
-@router.get("/batches/{batch_id}")
+@router.get("/batches/{batch_id}", response_model=BatchProgress)
 def batch_status(batch_id: str):
     """Progress (done, failed, pending, rate per minute, time left) and
     each item's status with its estimate or error; ``settled`` is true once
@@ -194,7 +204,7 @@ def batch_status(batch_id: str):
     return JSONResponse(clean(_progress(batch_id)))
 
 
-@router.get("/batches/{batch_id}/items/by-index/{index}")
+@router.get("/batches/{batch_id}/items/by-index/{index}", response_class=FileResponse, responses=_ITEM_FILE)
 def batch_item_by_index(batch_id: str, index: str = Path(description="the item's index in the batch (0-based), "
                                                                        "as its url in the progress document",
                                                            examples=["0"])):
@@ -204,7 +214,7 @@ def batch_item_by_index(batch_id: str, index: str = Path(description="the item's
     return _item_file(store, batch_id, store.item_by_index(batch_id, index), index, "index")
 
 
-@router.get("/batches/{batch_id}/items/by-name/{name}")
+@router.get("/batches/{batch_id}/items/by-name/{name}", response_class=FileResponse, responses=_ITEM_FILE)
 def batch_item_by_name(batch_id: str, name: str = Path(description="the item's name as the progress document "
                                                                     "lists it (URL-encoded)",
                                                         examples=["a.dng"])):
@@ -214,7 +224,7 @@ def batch_item_by_name(batch_id: str, name: str = Path(description="the item's n
     return _item_file(store, batch_id, store.item_by_name(batch_id, name), name, "name")
 
 
-@router.get("/batches/{batch_id}/items/{item}")
+@router.get("/batches/{batch_id}/items/{item}", response_class=FileResponse, responses=_ITEM_FILE)
 def batch_item(batch_id: str, item: str):
     """Download one result, by item name or index; a key that is the name of
     one item and the index of another is refused (409 ``ambiguous_item``):
@@ -303,7 +313,7 @@ def zip_texts(batch_id: str, rows: list[dict], zipped: dict) -> list[tuple[str, 
             ("manifest.json", json.dumps({"batch": batch_id, "counts": counts, "items": items}, indent=1) + "\n")]
 
 
-@router.get("/batches/{batch_id}/zip")
+@router.get("/batches/{batch_id}/zip", response_class=StreamingResponse, responses=_ZIP)
 def batch_zip(batch_id: str):
     """Every finished result in one zip, streamed (not built in memory)."""
     store = get_runner().store
