@@ -29,7 +29,7 @@ from ..headers import content_disposition
 from ..jsonsafe import clean
 from ..schemas import BatchOptions
 from ..schemas.forms import form
-from ..schemas.responses import BatchCreated, BatchProgress
+from ..schemas.responses import BatchCreated, BatchDeleted, BatchList, BatchProgress
 from ..settings import Settings, get_settings
 
 router = APIRouter(prefix="/v1", tags=["batches"])
@@ -60,7 +60,8 @@ def get_runner(settings: Settings | None = None) -> jobs.BatchRunner:
             cfg = jobs.RunnerConfig(data_dir=s.data_dir or jobs.default_data_dir(), workers=s.batch_workers,
                                     max_concurrent_batches=s.max_concurrent_batches, max_pixels=s.max_pixels,
                                     estimation_pixels=s.estimation_pixels, dask_scheduler=s.dask_scheduler or None,
-                                    input_retention_s=s.batch_input_retention)
+                                    input_retention_s=s.batch_input_retention,
+                                    result_retention_s=s.batch_result_retention)
             try:
                 runner = jobs.BatchRunner(cfg)
                 runner.start()
@@ -329,14 +330,51 @@ def batch_zip(batch_id: str):
                              headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
 
 
-@router.delete("/batches/{batch_id}")
-def cancel_batch(batch_id: str):
-    """Cancel: pending items are dropped, running ones stop at their next
-    step without writing (``cancelled``); results finished before are kept.
-    The answer is the progress document: ``settled`` turns true once every
-    running item has answered and the counts are final."""
+@router.get("/batches", response_model=BatchList)
+def list_batches():
+    """Every batch the service keeps, newest first, with its status, counts
+    and disk space; the retention settings say when they go by themselves."""
+    runner = get_runner()
+    rows = runner.store.summaries()
+    for r in rows:
+        r["url"] = f"/v1/batches/{r['id']}"
+    return JSONResponse(clean({"batches": rows, "bytes": sum(r["bytes"] for r in rows),
+                               "result_retention_s": runner.config.result_retention_s,
+                               "input_retention_s": runner.config.input_retention_s}))
+
+
+@router.post("/batches/{batch_id}/cancel", response_model=BatchProgress)
+def cancel_batch_only(batch_id: str):
+    """Cancel, never delete: pending items are dropped, running ones stop at
+    their next step without writing; results finished before are kept. The
+    answer is the progress document (``settled`` once the counts are final)."""
     runner = get_runner()
     if runner.store.batch(batch_id) is None:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     runner.cancel(batch_id)
     return JSONResponse(clean(_progress(batch_id)))
+
+
+@router.delete("/batches/{batch_id}", response_model=BatchDeleted | BatchProgress,
+               responses={409: {"description": "cancelled, but running items have not stopped yet: try again"}})
+def delete_batch(batch_id: str):
+    """Remove a batch and its files (inputs and results): a batch that is
+    over (done, or cancelled and settled) is deleted and the answer says how
+    many bytes were freed; its URLs are 404 from then on. A batch still
+    queued or running is cancelled first, as ``POST .../cancel`` does (the
+    answer is its progress document with ``deleted: false``): send the
+    DELETE again once it is ``settled``; until then it is a 409
+    ``not_settled``."""
+    runner = get_runner()
+    b = runner.store.batch(batch_id)
+    if b is None:
+        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
+    if b["status"] in ("queued", "running"):
+        runner.cancel(batch_id)
+        return JSONResponse(clean({**_progress(batch_id), "deleted": False}))
+    freed = runner.store.delete_batch(batch_id)
+    if freed is None:
+        raise ServiceError(409, "not_settled", f"batch {batch_id!r} is cancelled but its running items have not "
+                           "stopped yet; DELETE it again when GET /v1/batches/{id} says settled: true")
+    log.info("batch %s deleted (%d bytes)", batch_id, freed)
+    return JSONResponse({"id": batch_id, "deleted": True, "freed_bytes": freed})
