@@ -751,6 +751,46 @@ def _model_disk_cache() -> None:
     os.environ.setdefault("WANDELL_MODEL_CACHE", "1")
 
 
+def _cmd_batches(args) -> int:
+    """``wandell batches``: the batches the server keeps under
+    ``WANDELL_DATA_DIR`` (default ``~/.cache/wandell``), and their removal
+    (the same as ``DELETE /v1/batches/{id}`` of a settled batch)."""
+    import datetime
+
+    data_dir = os.environ.get("WANDELL_DATA_DIR") or jobs.default_data_dir()
+    if not os.path.exists(os.path.join(data_dir, "jobs.sqlite")):
+        print(f"no batches under {data_dir}")
+        return 0
+    store = jobs.JobStore(data_dir)
+    ids = list(args.remove)
+    if args.older_than is not None:
+        if not args.older_than >= 0:
+            raise ServiceError(422, "invalid_parameter", f"--older-than: a number of days >= 0, not {args.older_than}")
+        ids += store.expired_batches(args.older_than * 86400.0)
+    rc = 0
+    for bid in dict.fromkeys(ids):
+        if store.batch(bid) is None:
+            print(f"error: not_found: no batch {bid!r} under {data_dir}", file=sys.stderr)
+            rc = 1
+            continue
+        freed = store.delete_batch(bid)
+        if freed is None:
+            print(f"error: batch_running: {bid} is still queued or running: cancel it first "
+                  f"(POST /v1/batches/{bid}/cancel)", file=sys.stderr)
+            rc = 1
+        else:
+            print(f"removed {bid} ({freed / 1e6:.1f} MB)")
+    if ids:
+        return rc
+    rows = store.summaries()
+    print(f"{len(rows)} batches under {data_dir}, {sum(r['bytes'] for r in rows) / 1e6:.1f} MB")
+    for r in rows:
+        when = datetime.datetime.fromtimestamp(r["created"]).strftime("%Y-%m-%d %H:%M")
+        c = r["counts"]
+        print(f"{r['id']}  {when}  {r['status']:<9}  {c['done']}/{c['total']} done  {r['bytes'] / 1e6:9.1f} MB")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = _ArgumentParser(prog="wandell", description="White balance and illuminant estimation of RAW "
                                  "files (Wandell 1985; Maloney & Wandell)")
@@ -767,6 +807,11 @@ def main(argv=None) -> int:
     w.add_argument("file")
     w.add_argument("out")
     _add_options(w, False)
+    k = sub.add_parser("batches", help="list the server's stored batches (WANDELL_DATA_DIR) or remove them")
+    k.add_argument("--remove", nargs="+", metavar="ID", default=[], help="remove these batches (files and all); "
+                   "a batch still running is refused")
+    k.add_argument("--older-than", type=float, metavar="DAYS", help="remove every finished or cancelled batch "
+                   "that finished more than DAYS days ago")
     out, err = sys.stdout, sys.stderr
     sys.stdout, sys.stderr = _SafeStream(out), _SafeStream(err)  # also what libraries and warnings print
     try:
@@ -777,6 +822,8 @@ def main(argv=None) -> int:
             return _cmd_batch(args)
         if args.command == "analyze":
             return _cmd_analyze(args)
+        if args.command == "batches":
+            return _cmd_batches(args)
         return _cmd_white_balance(args)
     except KeyboardInterrupt:  # Ctrl-C outside a batch's items (or while printing): no traceback
         sys.stderr.write("\ninterrupted\n")

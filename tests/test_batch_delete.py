@@ -151,3 +151,24 @@ def test_the_suite_never_writes_into_the_users_store():
     here = os.path.realpath(os.environ["WANDELL_DATA_DIR"])
     assert here.startswith(os.path.realpath(tempfile.gettempdir()) + os.sep)
     assert here != os.path.realpath(default_data_dir())
+
+
+def test_wandell_batches_lists_and_removes(app_with, capsys):
+    from service import cli
+
+    client, data = app_with()
+    first, second = _batch(client, n=1), _batch(client, n=1)
+    _settle(client, first)
+    _settle(client, second)
+    assert cli.main(["batches"]) == 0
+    out = capsys.readouterr().out
+    assert f"2 batches under {data}" in out and first in out and second in out and "1/1 done" in out
+    assert cli.main(["batches", "--remove", first, "nosuchbatch"]) == 1
+    captured = capsys.readouterr()
+    assert f"removed {first}" in captured.out and "not_found" in captured.err
+    assert client.get(f"/v1/batches/{first}").status_code == 404 and not (data / "batches" / first).exists()
+    assert cli.main(["batches", "--older-than", "1"]) == 0     # finished seconds ago: kept
+    assert client.get(f"/v1/batches/{second}").status_code == 200
+    assert cli.main(["batches", "--older-than", "0"]) == 0
+    assert f"removed {second}" in capsys.readouterr().out
+    assert client.get(f"/v1/batches/{second}").status_code == 404
