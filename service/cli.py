@@ -49,7 +49,7 @@ import threading
 
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
-from .schemas.fields import BATCH, ESTIMATION, RENDERING, SIDECAR
+from .schemas.fields import BATCH, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
 
 
 def _lazy_module(name: str):
@@ -816,6 +816,9 @@ def main(argv=None) -> int:
     sys.stdout, sys.stderr = _SafeStream(out), _SafeStream(err)  # also what libraries and warnings print
     try:
         args = ap.parse_args(argv)
+        if getattr(args, "xmp_name", "stem") not in XMP_NAMES:   # a CLI-only option: no model checks it
+            raise ServiceError(422, "invalid_parameter", f"--xmp-name {args.xmp_name!r} unknown; accepted: "
+                               + ", ".join(XMP_NAMES))
         _model_disk_cache()
         args.argv = sys.argv[1:] if argv is None else list(argv)
         if args.command == "batch":

@@ -89,6 +89,11 @@ def test_xmp_is_a_flag_that_never_takes_the_raw_as_its_value(shoot):
     rc, stdout, stderr = _run("white-balance", "--xmp-dir", str(side_dir), str(src), str(out / "IMG_0001.jpg"))
     assert rc == 0, stderr
     assert (side_dir / "IMG_0001.xmp").read_text(encoding="utf-8") == (raw / "IMG_0001.xmp").read_text(encoding="utf-8")
+    # a misused sidecar option is named, exit 2
+    with contextlib.redirect_stderr(io.StringIO()) as err:
+        assert cli.main(["white-balance", str(src), str(out / "x.png"), "--xmp", "--xmp-name", "ful"]) == 2
+    assert "--xmp-name 'ful' unknown; accepted: stem, full" in err.getvalue()
+    assert not (out / "x.png").exists()
     # a value after the flag is not its argument: it is a (surplus) positional, and argparse says so
     with pytest.raises(SystemExit) as e, contextlib.redirect_stderr(io.StringIO()) as err:
         cli.main(["white-balance", str(src), str(out / "x.png"), "--xmp", "elsewhere.xmp"])

@@ -11,7 +11,7 @@ against the models, so the description cannot drift from the service.
 
 Open-ended parts (an estimator's ``diagnostics``, the render's ``tried``
 rules) are typed as objects: each method reports its own keys (see the
-README's diagnostics and ``GET /v1/models``).
+docs/accuracy.md, "What the diagnostics mean", and ``GET /v1/models``).
 """
 
 from __future__ import annotations
@@ -105,8 +105,8 @@ class AnalyzeResult(_Answer):
     illuminant: Illuminant
     camera: CameraInfo
     method: str = Field(description="the method that ran (or `neutral-surface`)")
-    diagnostics: dict[str, Any] = Field(description="the method's own figures (README: what the diagnostics "
-                                                    "mean)")
+    diagnostics: dict[str, Any] = Field(description="the method's own figures (docs/accuracy.md: what the "
+                                                    "diagnostics mean)")
     warnings: list[str]
     timings_ms: dict[str, float]
     image: ImageInfo
