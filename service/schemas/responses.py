@@ -81,6 +81,15 @@ class LightMap(_Answer):
     camera_rgb: list[list[list[float]]] = Field(description="rows x columns x channels")
 
 
+class Lights(_Answer):
+    """How many lights the photograph has, as decided from the image
+    (``spatial=auto``; docs/mixed_light.md)."""
+    found: int = Field(description="1 (one light) or 2 (several: a light map is given and used)")
+    decision: str = Field(description="`one light` or `light map`")
+    reason: str = Field(description="why, in words, with the evidence's figures")
+    held: str | None = Field(None, description="with several lights: which light `illuminant` is")
+
+
 class Rendering(_Answer):
     """How the corrected image is (or would be) rendered."""
     rendering: str = Field(description="`dng-matrix` (the DNG specification's pipeline) or `spectral` "
@@ -112,6 +121,7 @@ class AnalyzeResult(_Answer):
     image: ImageInfo
     rendering: Rendering
     as_shot: AsShot | None = Field(None, description="absent when the file has no as-shot white")
+    lights: Lights | None = Field(None, description="one light or several, and why")
     light_map: LightMap | None = None
     method_failed: dict[str, Any] | None = Field(None, description="the literal method's own tests that failed")
     neutral: dict[str, Any] | None = Field(None, description="where a picked white (`neutral`) came from")
