@@ -1,10 +1,11 @@
 """The public loader: a camera file read into exactly what the service
-analyses (issue 29, item 2).
+analyses (issue 29, item 2)::
 
-    >>> from service.loader import load                      # doctest: +SKIP
-    >>> from recovery import estimate_illuminant
-    >>> photo = load("IMG_0001.dng")
-    >>> est = estimate_illuminant(photo.linear, photo.camera, mask=photo.mask)
+    from recovery import estimate_illuminant
+    from service.loader import load
+
+    photo = load("IMG_0001.dng")
+    est = estimate_illuminant(photo.linear, photo.camera, mask=photo.mask)
 
 ``est`` is the light ``POST /v1/analyze`` answers for the same file with
 the same options (``tests/test_loader.py`` checks it on the real
