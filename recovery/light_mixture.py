@@ -81,9 +81,9 @@ class MixtureSettings:
     cross-validation on relit development photographs
     (``python -m benchmarks.mixed_light``, inner leave-one-benchmark-out)."""
 
-    threshold: float = 8.0      #: the decision's threshold on T (module docstring)
-    gain: float = 1.0           #: multiplies the windows' variation (item 3 of the module docstring)
-    project: bool = True        #: project the variation on the principal direction (two lights)
+    threshold: float = 32.0     #: the decision's threshold on T (module docstring)
+    gain: float = 0.5           #: multiplies the windows' variation (item 3 of the module docstring)
+    project: bool = False       #: project the variation on the principal direction (two lights)
 
 
 #: The shipped settings (benchmarks.mixed_light prints how they were chosen).
