@@ -170,6 +170,9 @@ def estimate_options(method: str, surface_dim, light_dim, region_size: int | Non
     mode = check_spatial(spatial)
     if mode is not None:
         opts["spatial"] = mode
+    from .settings import get_settings
+
+    opts["max_regions"] = get_settings().max_light_map_regions    # the literal light map's bound (413 past it)
     return opts
 
 

@@ -1,0 +1,182 @@
+"""The mechanisms behind issue 28's part B (request costs bounded by limits a
+user can read, answers right or clearly refused): the literal light map's
+sparse overlap solve and its region limit, and the service limits answered
+as 4xx/503 JSON naming the limit. The shared reproductions themselves run in
+``tests/test_round3_repros.py``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recovery.errors import TooManyRegions
+from recovery.regions import overlap_log_scales, region_count
+
+EPS = np.finfo(float).eps
+
+
+@pytest.fixture(scope="module")
+def client():
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+
+    with TestClient(app) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def nikon():
+    from recovery import Camera
+
+    return Camera.named("Nikon 5100 (NPL)")
+
+
+def _overlap_system(rng, used):
+    """The equations of estimate_light_map's step 2 on a grid of regions
+    (``used`` marks those that take part): pairs of horizontal/vertical
+    neighbours, random right-hand sides."""
+    gr, gc = used.shape
+    idx = -np.ones(used.shape, int)
+    idx[used] = np.arange(used.sum())
+    r, s = [], []
+    for a in range(gr):
+        for b in range(gc):
+            if used[a, b]:
+                for a2, b2 in ((a + 1, b), (a, b + 1)):
+                    if a2 < gr and b2 < gc and used[a2, b2]:
+                        r.append(idx[a, b])
+                        s.append(idx[a2, b2])
+    return np.array(r, int), np.array(s, int), rng.normal(size=len(r)), int(used.sum())
+
+
+def _dense(r, s, d, n):
+    """The former dense solve: one row per overlap, the gauge row, lstsq."""
+    m = r.size
+    A = np.zeros((m + 1, n))
+    A[np.arange(m), r] = 1.0
+    A[np.arange(m), s] = -1.0
+    A[m] = 1.0 / n
+    y = np.r_[d, 0.0]
+    x, *_ = np.linalg.lstsq(A, y, rcond=None)
+    return A, y, x
+
+
+@pytest.mark.parametrize("keep", [1.0, 0.8, 0.6])     # connected, then split into several components
+def test_sparse_overlap_solve_is_the_dense_minimum_norm_solution(rng, keep):
+    """Same system, both minimum-norm least-squares solutions: they agree to
+    the least-squares perturbation bound (Golub & Van Loan 2013, thm 5.3.1:
+    relative error <= eps (2 kappa + kappa^2 |r| / (|A| |x|)) up to a modest
+    constant, kappa the ratio of the largest to the smallest non-zero
+    singular value), here with a constant of 100."""
+    for trial in range(4):
+        used = rng.random((13, 17)) < keep
+        r, s, d, n = _overlap_system(rng, used)
+        A, y, x_dense = _dense(r, s, d, n)
+        x = overlap_log_scales(r, s, d, n)
+        sv = np.linalg.svd(A, compute_uv=False)
+        sv = sv[sv > sv[0] * max(A.shape) * EPS]
+        kappa = sv[0] / sv[-1]
+        xn = np.linalg.norm(x_dense)
+        res = np.linalg.norm(A @ x_dense - y)
+        bound = 100 * EPS * (2 * kappa + kappa ** 2 * res / (sv[0] * xn)) * xn
+        assert np.linalg.norm(x - x_dense) <= bound, (trial, np.linalg.norm(x - x_dense), bound)
+        assert np.linalg.norm(A @ x - y) <= res * (1 + 1e-9) + bound   # as good a fit
+
+
+def test_sparse_overlap_solve_on_an_exact_system_recovers_the_scales(rng):
+    """Right-hand sides made from known log scales (zero mean) are solved
+    exactly: the answer is those scales (consistent system, one component)."""
+    used = np.ones((20, 30), bool)
+    r, s, _, n = _overlap_system(rng, used)
+    truth = rng.normal(size=n)
+    truth -= truth.mean()
+    x = overlap_log_scales(r, s, truth[r] - truth[s], n)
+    # conditioning of a 20x30 grid Laplacian is ~ (grid side)^2 ~ 1e3: 1e-10 leaves a margin of 1e3
+    np.testing.assert_allclose(x, truth, atol=1e-10)
+
+
+def test_sparse_overlap_solve_without_equations_is_zero():
+    assert np.array_equal(overlap_log_scales(np.array([], int), np.array([], int), np.array([]), 5), np.zeros(5))
+
+
+def test_light_map_of_a_long_strip_stays_small():
+    """25,000 regions in a chain (the reproduction's 100000 x 2 image at the
+    default region side): the solve is sparse, a few MB and well under a
+    second, where the dense system was 25,000^2 floats (5 GB)."""
+    import time
+    import tracemalloc
+
+    n = 25_000
+    r, s = np.arange(n - 1), np.arange(1, n)
+    d = np.full(n - 1, 0.01)
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    x = overlap_log_scales(r, s, d, n)
+    elapsed = time.perf_counter() - t0
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    # exact answer: a ramp of slope -0.01, centred
+    ramp = -0.01 * np.arange(n)
+    np.testing.assert_allclose(x, ramp - ramp.mean(), atol=1e-8 * n)
+    assert peak < 100 * 2 ** 20, peak                  # dense: 5 GB; sparse: O(n) arrays of 8 bytes
+    assert elapsed < 30, elapsed                        # not a timing target: a bound far from O(n^3)
+
+
+def _scene(rng):
+    """A 96 x 96 Mondrian of 16 surfaces under D65 (inside the model): at the
+    default region side (24) the literal map has 7 x 7 = 49 regions."""
+    from testing.scenes import mondrian_scene
+
+    return mondrian_scene(rng, 16, "Nikon 5100 (NPL)", "D65", 96).image
+
+
+def test_default_region_side_grows_to_the_region_limit_and_says_so(nikon, rng):
+    from recovery import estimate_illuminant
+
+    img = _scene(rng)
+    est = estimate_illuminant(img, nikon, "maloney-wandell", spatial=True, max_regions=20)
+    d = est.diagnostics
+    assert d["regions_total"] <= 20
+    assert "region_size_coarsened" in d and "limit of 20" in d["region_size_coarsened"]
+    # the smallest side that fits: one pixel less makes too many regions
+    side = d["region_size"][0]
+    assert region_count(img.shape[:2], side - 1, 0.5) > 20 >= region_count(img.shape[:2], side, 0.5)
+    unlimited = estimate_illuminant(img, nikon, "maloney-wandell", spatial=True)
+    assert unlimited.diagnostics["regions_total"] > 20
+    assert "region_size_coarsened" not in unlimited.diagnostics
+
+
+def test_explicit_region_side_past_the_limit_is_refused_before_any_region(nikon, rng, monkeypatch):
+    from recovery import estimate_illuminant
+    from recovery import regions
+
+    def no_map(*a, **k):
+        raise AssertionError("the map must not be started")
+    monkeypatch.setattr(regions, "estimate_light_map", no_map)
+    monkeypatch.setattr("recovery.api.estimate_light_map", no_map)
+    img = _scene(rng)
+    with pytest.raises(TooManyRegions, match="limit of 20 light-map regions"):
+        estimate_illuminant(img, nikon, "maloney-wandell", spatial=True, region_size=8, max_regions=20,
+                            on_failure="raise")
+
+
+def test_region_limit_through_the_service_is_a_413_naming_it(client, env_settings):
+    import io
+
+    import tifffile
+
+    env_settings(max_light_map_regions=50)
+    rng = np.random.default_rng(4)
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, rng.integers(1000, 50000, (64, 64, 3)).astype(np.uint16), photometric="rgb")
+    data = {"method": "maloney-wandell", "spatial": "true", "region_size": "8"}
+    r = client.post("/v1/analyze", files={"file": ("a.tif", buf.getvalue())}, data=data)
+    assert r.status_code == 413, r.text
+    body = r.json()
+    assert body["error"] == "too_many_regions"
+    assert "WANDELL_MAX_LIGHT_MAP_REGIONS" in body["detail"] and "50" in body["detail"]
+    # the default region side fits itself under the limit and answers
+    r = client.post("/v1/analyze", files={"file": ("a.tif", buf.getvalue())},
+                    data={"method": "maloney-wandell", "spatial": "true"})
+    assert r.status_code == 200, r.text
