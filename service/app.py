@@ -22,6 +22,11 @@ app.include_router(batches.router)
 app.include_router(render.router)
 app.include_router(web.router)
 
+# HEAD answered wherever GET is (RFC 9110 9.1), not a 405
+from .head import allow_head  # noqa: E402
+
+allow_head(app)
+
 
 # the upload limit, for declared and for streamed (chunked) bodies alike
 from .limits import UploadLimitMiddleware  # noqa: E402

@@ -180,3 +180,90 @@ def test_region_limit_through_the_service_is_a_413_naming_it(client, env_setting
     r = client.post("/v1/analyze", files={"file": ("a.tif", buf.getvalue())},
                     data={"method": "maloney-wandell", "spatial": "true"})
     assert r.status_code == 200, r.text
+
+
+# ---------------------------------------------------------------------------
+# A singular colour matrix: a 422 naming the tag (singular_color_matrix.py)
+# ---------------------------------------------------------------------------
+
+def _srationals(m) -> list:
+    vals = []
+    for v in np.asarray(m, float).ravel():
+        vals += [int(round(v * 10000)), 10000]
+    return vals
+
+
+def _mosaic_dng(color_matrix1=None, **kw) -> bytes:
+    """A 240 x 360 RGGB mosaic of coloured blocks as a DNG (testing.dngwriter);
+    ``color_matrix1`` given is written over the tag afterwards, as a damaged
+    file has it (the writer refuses a singular one)."""
+    import io
+
+    import tifffile
+
+    from testing.dngwriter import mosaic, write_dng
+
+    rng = np.random.default_rng(2)
+    blocks = rng.uniform(0.05, 0.6, (240 // 40 + 1, 360 // 40 + 1, 3))
+    rgb = np.kron(blocks, np.ones((40, 40, 1)))[:240, :360]
+    buf = io.BytesIO()
+    write_dng(buf, (mosaic(rgb) * 60000).astype(np.uint16), white_level=65535, as_shot_neutral=(0.5, 1.0, 0.6),
+              **kw)
+    if color_matrix1 is not None:
+        buf.seek(0)
+        with tifffile.TiffFile(buf, mode="r+b") as tf:
+            tf.pages[0].tags[50721].overwrite(_srationals(color_matrix1))
+    return buf.getvalue()
+
+
+def _calibration1(m):
+    """CameraCalibration1 (50723, SRATIONAL x 9) as a tifffile extra tag."""
+    return [(50723, "2i", 9, _srationals(m), True)]
+
+
+@pytest.mark.parametrize("what, kw, tag", [
+    ("ColorMatrix1 of ones (rank 1)", {"color_matrix1": np.ones((3, 3))}, "ColorMatrix1"),
+    ("CameraCalibration1 diag(1, 1, 0)", {"extratags": _calibration1(np.diag([1.0, 1.0, 0.0]))}, "CameraCalibration1"),
+    ("CameraCalibration1 of ones", {"extratags": _calibration1(np.ones((3, 3)))}, "CameraCalibration1"),
+])
+def test_singular_colour_matrix_is_a_422_naming_the_tag(client, what, kw, tag):
+    data = _mosaic_dng(**kw)
+    for path, fields in (("/v1/analyze", {}), ("/v1/white-balance", {"format": "png"}),
+                         ("/v1/surfaces", {"grid": "2x2"})):
+        r = client.post(path, files={"file": ("cm.dng", data)}, data=fields)
+        assert r.status_code == 422, (what, path, r.status_code, r.text[:300])
+        body = r.json()
+        assert body["error"] == "bad_color_matrix" and tag in body["detail"], (what, path, body)
+
+
+def test_a_well_conditioned_profile_has_no_problem_and_the_same_file_answers(client):
+    from recovery.dng_color import ColorProfile
+    from service.metadata import profile_problem
+
+    srgb_to_xyz_inv = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
+    assert profile_problem(ColorProfile(srgb_to_xyz_inv, camera_calibration1=np.diag([1.0, 1.1, 0.9]))) is None
+    assert "ColorMatrix2" in profile_problem(ColorProfile(srgb_to_xyz_inv, color_matrix2=np.ones((3, 3)),
+                                                          illuminant1=17, illuminant2=21))
+    r = client.post("/v1/analyze", files={"file": ("ok.dng", _mosaic_dng(color_matrix1=srgb_to_xyz_inv))})
+    assert r.status_code == 200, r.text[:300]
+
+
+# ---------------------------------------------------------------------------
+# HEAD wherever GET is (head_405.py)
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("path", ["/health", "/v1/models", "/v1/cameras", "/"])
+def test_head_answers_like_get_without_a_body(client, path):
+    g, h = client.get(path), client.head(path)
+    assert g.status_code == h.status_code == 200
+    assert h.content == b""
+    assert h.headers["content-length"] == g.headers["content-length"]
+    assert h.headers["content-type"] == g.headers["content-type"]
+
+
+def test_head_is_not_added_where_get_is_not_served_nor_documented(client):
+    r = client.head("/v1/analyze")
+    assert r.status_code == 405
+    schema = client.get("/openapi.json").json()
+    assert all("head" not in ops for ops in schema["paths"].values())
+    assert "get" in schema["paths"]["/health"]
