@@ -33,6 +33,11 @@ from .limits import UploadLimitMiddleware  # noqa: E402
 
 app.add_middleware(UploadLimitMiddleware)
 
+# an answer the client stops taking is given up after WANDELL_SEND_TIMEOUT
+from .limits import SendDeadlineMiddleware  # noqa: E402
+
+app.add_middleware(SendDeadlineMiddleware)
+
 # outermost: Host and Origin are checked before anything else runs
 from .security import HostOriginMiddleware  # noqa: E402
 

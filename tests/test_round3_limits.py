@@ -267,3 +267,163 @@ def test_head_is_not_added_where_get_is_not_served_nor_documented(client):
     schema = client.get("/openapi.json").json()
     assert all("head" not in ops for ops in schema["paths"].values())
     assert "get" in schema["paths"]["/health"]
+
+
+# ---------------------------------------------------------------------------
+# Slow clients: an overall body deadline, a connection cap, a send deadline
+# (slow_uploads_fd_exhaustion.py, stalled_readers_tmpdir.py)
+# ---------------------------------------------------------------------------
+
+def _scope(path="/v1/analyze", method="POST", headers=()):
+    return {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": method,
+            "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"",
+            "root_path": "", "headers": [(b"host", b"127.0.0.1:8000"), *headers],
+            "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 8000)}
+
+
+def test_a_body_that_trickles_is_cut_off_at_the_body_deadline(env_settings):
+    """A byte every 0.1 s never trips the 30 s gap timeout; the whole body
+    must still arrive within WANDELL_BODY_DEADLINE (1 s here): a 408 naming
+    it, with Connection: close."""
+    import asyncio
+    import json
+    import time
+
+    from service.app import app
+
+    env_settings(body_timeout=30, body_deadline=1)
+    head = (b'--zz\r\nContent-Disposition: form-data; name="file"; filename="a.dng"\r\n'
+            b"Content-Type: application/octet-stream\r\n\r\n")
+    first, sent = [head], []
+
+    async def receive():
+        if first:
+            return {"type": "http.request", "body": first.pop(), "more_body": True}
+        await asyncio.sleep(0.1)
+        return {"type": "http.request", "body": b"a", "more_body": True}
+
+    async def send(message):
+        sent.append(message)
+
+    scope = _scope(headers=[(b"content-type", b"multipart/form-data; boundary=zz"),
+                            (b"transfer-encoding", b"chunked")])
+    t0 = time.monotonic()
+    asyncio.run(asyncio.wait_for(app(scope, receive, send), 30))
+    took = time.monotonic() - t0
+    start = [m for m in sent if m["type"] == "http.response.start"]
+    body = json.loads(b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body"))
+    assert len(start) == 1 and start[0]["status"] == 408, sent
+    assert body["error"] == "body_deadline" and "WANDELL_BODY_DEADLINE" in body["detail"]
+    assert (b"connection", b"close") in start[0]["headers"]
+    assert 1 <= took < 15          # 1 s, plus scheduling on a loaded 2-core machine
+
+
+def test_an_answer_the_client_stops_taking_is_given_up_and_its_file_removed(env_settings, tmp_path):
+    """The client takes the headers and nothing more (the socket's buffer
+    full: the send waits for ever). After WANDELL_SEND_TIMEOUT (0.5 s) the
+    answer is abandoned without an error escaping, and the temporary file
+    it was sent from is gone."""
+    import asyncio
+    import time
+
+    from service.limits import SendDeadlineMiddleware
+    from service.routers.analysis import TemporaryFileResponse
+
+    env_settings(send_timeout=0.5)
+    path = tmp_path / "answer.png"
+    path.write_bytes(b"x" * (3 * 1024 * 1024))
+    got = []
+
+    async def receive():
+        await asyncio.sleep(3600)
+
+    async def send(message):
+        got.append(message["type"])
+        if message["type"] == "http.response.body":
+            await asyncio.sleep(3600)          # the reader stopped reading
+
+    mw = SendDeadlineMiddleware(TemporaryFileResponse(str(path), media_type="image/png"))
+    t0 = time.monotonic()
+    asyncio.run(asyncio.wait_for(mw(_scope("/x", "GET"), receive, send), 30))
+    took = time.monotonic() - t0
+    assert not path.exists()
+    assert got == ["http.response.start", "http.response.body"]
+    assert 0.5 <= took < 10
+
+
+def test_a_temporary_answer_sent_whole_is_removed_too(tmp_path):
+    import asyncio
+
+    from service.routers.analysis import TemporaryFileResponse
+
+    path = tmp_path / "answer.png"
+    path.write_bytes(b"y" * (2 * 1024 * 1024 + 5))
+    body = []
+
+    async def receive():
+        await asyncio.sleep(3600)
+
+    async def send(message):
+        body.append(message.get("body", b""))
+
+    asyncio.run(TemporaryFileResponse(str(path))(_scope("/x", "GET"), receive, send))
+    assert b"".join(body) == b"y" * (2 * 1024 * 1024 + 5) and not path.exists()
+
+
+def test_connection_cap_default_follows_the_descriptor_limit():
+    from service.__main__ import connection_cap
+
+    assert connection_cap(0, 1024) == (1024 - 100) // 2
+    assert connection_cap(0, 20000) == (20000 - 100) // 2
+    assert connection_cap(0, 50) == 8
+    assert connection_cap(7, 1024) == 7
+
+
+def test_accept_errors_are_logged_once_a_minute_without_the_traceback():
+    import logging
+
+    from service.__main__ import _RateLimitedAcceptErrors
+
+    f = _RateLimitedAcceptErrors(interval=60)
+    rec = lambda msg: logging.LogRecord("asyncio", logging.ERROR, __file__, 1, msg, None,  # noqa: E731
+                                        (OSError, OSError(24, "Too many open files"), None))
+    passed = [f.filter(rec("socket.accept() out of system resource\nsocket: <...>")) for _ in range(1000)]
+    assert passed.count(True) == 1 and passed[0]
+    assert f.filter(rec("something else")) is True      # other asyncio errors untouched
+
+
+def test_a_real_server_answers_connections_past_its_cap_with_a_503_naming_it():
+    """``python -m service`` with WANDELL_MAX_CONNECTIONS=3: three idle
+    connections are held; the fourth is answered at once with 503
+    too_many_connections (JSON naming the setting) and closed; once they
+    go, /health answers 200."""
+    import json
+    import socket
+    import time
+
+    import httpx
+
+    from .conftest import running_server
+
+    with running_server({"max_connections": 3, "keep_alive_timeout": 30}) as (base, _, _):
+        port = int(base.rsplit(":", 1)[1])
+        held = [socket.create_connection(("127.0.0.1", port)) for _ in range(3)]
+        time.sleep(0.5)
+        extra = socket.create_connection(("127.0.0.1", port))
+        extra.settimeout(10)
+        extra.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        data = b""
+        while True:
+            piece = extra.recv(4096)
+            if not piece:
+                break
+            data += piece
+        extra.close()
+        head, _, body = data.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 503"), data[:200]
+        d = json.loads(body)
+        assert d["error"] == "too_many_connections" and "WANDELL_MAX_CONNECTIONS" in d["detail"]
+        for s in held:
+            s.close()
+        time.sleep(0.5)
+        assert httpx.get(base + "/health", timeout=10).status_code == 200
