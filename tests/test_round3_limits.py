@@ -427,3 +427,52 @@ def test_a_real_server_answers_connections_past_its_cap_with_a_503_naming_it():
             s.close()
         time.sleep(0.5)
         assert httpx.get(base + "/health", timeout=10).status_code == 200
+
+
+# ---------------------------------------------------------------------------
+# /v1/surfaces' box sums at the corners only (mem_surfaces_tiff.py)
+# ---------------------------------------------------------------------------
+
+def test_streamed_box_sums_equal_the_summed_area_table(rng):
+    """Same sums as the full table (_box over _box_sums) for random boxes and
+    strip heights, to the error bound of recursive summation (Higham 2002,
+    eq. 4.4: |error| <= (n - 1) eps sum |x|, n the terms summed; both sides
+    sum at most h*w terms, so 2 h w eps sum|a| bounds their difference)."""
+    from service.pipeline import _box, _box_sums, box_sums_streamed
+
+    for h, w, strip in [(100, 70, 7), (64, 64, 64), (5, 300, 2), (300, 5, 1000), (129, 33, 64)]:
+        a = rng.normal(size=(h, w, 4))
+        n = 300
+        r0 = rng.integers(0, h, n)
+        r1 = np.minimum(h, r0 + rng.integers(1, h + 1, n))
+        c0 = rng.integers(0, w, n)
+        c1 = np.minimum(w, c0 + rng.integers(1, w + 1, n))
+        ref = _box(_box_sums(a), r0, c0, r1, c1)
+        got = box_sums_streamed(lambda i, j: a[i:j], h, w, r0, c0, r1, c1, strip=strip)
+        assert np.all(np.abs(got - ref) <= 2 * h * w * EPS * np.abs(a).sum()), (h, w, strip)
+    # corners on the first row and column (empty sums there) and one-pixel boxes
+    a = rng.normal(size=(10, 12, 1))
+    got = box_sums_streamed(lambda i, j: a[i:j], 10, 12, [0, 9, 3], [0, 11, 0], [1, 10, 10], [1, 12, 12], strip=4)
+    np.testing.assert_allclose(got[:, 0], [a[0, 0, 0], a[9, 11, 0], a[3:, :, 0].sum()], rtol=1e-12)
+
+
+def test_streamed_box_sums_hold_a_strip_not_the_table(rng):
+    """A 2000 x 3000 image with 5 layers: the full table would be 240 MB of
+    float64 (plus its temporaries); the streamed sums hold a strip's worth
+    (64 x 3001 x 5 doubles, 7.7 MB) a few times over."""
+    import tracemalloc
+
+    from service.pipeline import box_sums_streamed
+
+    h, w = 2000, 3000
+    row = rng.random((1, w, 5))
+
+    def layers(i, j):
+        return np.repeat(row, j - i, axis=0)
+    tracemalloc.start()
+    got = box_sums_streamed(layers, h, w, [0, 100], [0, 7], [h, 1500], [w, 2000])
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    np.testing.assert_allclose(got[0], h * row[0].sum(axis=0), rtol=1e-10)
+    np.testing.assert_allclose(got[1], 1400 * row[0, 7:2000].sum(axis=0), rtol=1e-10)
+    assert peak < 6 * 64 * (w + 1) * 5 * 8, peak
