@@ -476,3 +476,111 @@ def test_streamed_box_sums_hold_a_strip_not_the_table(rng):
     np.testing.assert_allclose(got[0], h * row[0].sum(axis=0), rtol=1e-10)
     np.testing.assert_allclose(got[1], 1400 * row[0, 7:2000].sum(axis=0), rtol=1e-10)
     assert peak < 6 * 64 * (w + 1) * 5 * 8, peak
+
+
+# ---------------------------------------------------------------------------
+# LinearRaw DNGs read tile by tile (mem_linear_raw_dng.py)
+# ---------------------------------------------------------------------------
+
+def _linear_dng(img, black=0, white=None, tile=None, compression=None, orientation=1) -> bytes:
+    """A LinearRaw DNG (PhotometricInterpretation 34892, three samples per
+    pixel) of ``img`` with tifffile: the tags LibRaw needs and no more."""
+    import io
+
+    import tifffile
+
+    cm = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
+    if white is None:
+        white = 1 if img.dtype.kind == "f" else np.iinfo(img.dtype).max
+    black = np.atleast_1d(black)
+    tags = [(271, "s", 0, "Acme", True), (272, "s", 0, "LinCam", True), (274, "H", 1, orientation, True),
+            (50706, "B", 4, (1, 4, 0, 0), True), (50707, "B", 4, (1, 1, 0, 0), True),
+            (50708, "s", 0, "Acme LinCam", True), (50721, "2i", 9, _srationals(cm), True),
+            (50778, "H", 1, 21, True), (50728, "2I", 3, _srationals((0.5, 1.0, 0.6)), True),
+            (50713, "H", 2, (1, 1), True), (50714, "2I", black.size, [v for b in black for v in (int(b), 1)], True),
+            (50717, "I", 1, int(white), True)]
+    buf = io.BytesIO()
+    kw = dict(photometric=34892, subfiletype=0, compression=compression, metadata=None, extratags=tags,
+              planarconfig="contig")
+    if tile:
+        kw["tile"] = tile
+    else:
+        kw["rowsperstrip"] = 16
+    tifffile.imwrite(buf, img, **kw)
+    return buf.getvalue()
+
+
+def _linear_base(rng, h=300, w=452):
+    blocks = rng.uniform(0.05, 0.9, (h // 16 + 1, w // 16 + 1, 3))
+    return np.kron(blocks, np.ones((16, 16, 1)))[:h, :w]
+
+
+@pytest.mark.parametrize("orientation", [1, 6])
+def test_linear_dng_estimation_is_libraws_to_its_rounding(rng, monkeypatch, orientation):
+    """16-bit samples with a black level: the tile-by-tile estimation image
+    equals the one LibRaw's postprocess made (the former path) to LibRaw's
+    rounding to whole 16-bit output values (half a DN each side: 1/65535),
+    oriented the same, with the same neutral and shape."""
+    import service.decode.linear_dng as L
+    from service.decode.upload import decode_upload
+
+    base = _linear_base(rng)
+    data = _linear_dng((1000 + base * 60000).astype(np.uint16), black=1000, orientation=orientation)
+    ours = decode_upload(data, "a.dng", max_pixels=10 ** 8, estimation_pixels=10 ** 8)
+    monkeypatch.setattr(L, "linear_dng_estimation", lambda *a, **k: None)
+    libraw = decode_upload(data, "a.dng", max_pixels=10 ** 8, estimation_pixels=10 ** 8)
+    assert "the file's own samples" in ours.warnings[-1] and "LibRaw's own" in libraw.warnings[-1]
+    assert ours.estimation.shape == libraw.estimation.shape and ours.full_shape == libraw.full_shape
+    assert np.max(np.abs(ours.estimation - libraw.estimation)) <= 1 / 65535 + 1e-7
+    np.testing.assert_allclose(ours.as_shot_neutral, libraw.as_shot_neutral, rtol=1e-6)
+    assert not ours.saturated.any() and not libraw.saturated.any()
+
+
+def test_linear_dng_float_tiles_are_read_as_their_samples_and_block_averaged(rng):
+    """float32 samples (white 1) in deflate tiles: the estimation image is
+    the samples themselves (to float32 rounding), and with an estimation
+    size of a ninth, their 3x3 block means; a sample at 98 % of white marks
+    its block saturated."""
+    from service.decode.upload import decode_upload
+
+    base = _linear_base(rng).astype(np.float32)
+    base[7, 7] = 0.99
+    data = _linear_dng(base, tile=(64, 64), compression="zlib")
+    full = decode_upload(data, "a.dng", max_pixels=10 ** 8, estimation_pixels=10 ** 8)
+    np.testing.assert_allclose(full.estimation, base, rtol=2 * np.finfo(np.float32).eps)
+    assert full.saturated.sum() == 1 and full.saturated[7, 7]
+    small = decode_upload(data, "a.dng", max_pixels=10 ** 8, estimation_pixels=300 * 452 // 9 + 1)   # f = 3
+    h, w = 100, 150
+    means = base[:3 * h, :3 * w].astype(np.float64).reshape(h, 3, w, 3, 3).mean(axis=(1, 3))
+    assert small.estimation.shape == (h, w, 3)
+    np.testing.assert_allclose(small.estimation, means, rtol=4 * np.finfo(np.float32).eps)
+    assert small.saturated.sum() == 1 and small.saturated[2, 2]
+
+
+def test_linear_dng_estimation_holds_a_tile_not_the_image(rng):
+    """A 2000 x 3000 float DNG in 256-pixel tiles binned to 0.375 MP: the
+    decoded image would be 72 MB (float32) and LibRaw's buffers more; the
+    tile-by-tile read holds the estimation image, its float64 sums and
+    saturation flags (0.375 MP x 37 bytes, 14 MB) and a tile's temporaries."""
+    import tracemalloc
+
+    from service.decode.linear_dng import linear_dng_estimation
+
+    img = np.broadcast_to(rng.uniform(0.1, 0.8, (1, 3000, 3)).astype(np.float32), (2000, 3000, 3))
+    data = _linear_dng(np.ascontiguousarray(img), tile=(256, 256), compression="zlib")
+    tracemalloc.start()
+    got = linear_dng_estimation(data, 2000, 3000, 375_001)     # f = 4
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert got is not None and got[0].shape == (500, 750, 3)
+    n = 500 * 750
+    assert peak < n * (3 * 8 + 3 * 4 + 1) + 8 * 2 ** 20, peak     # the sums, the image, the flags; 8 MiB for a tile
+
+
+def test_linear_dng_outside_the_plain_layout_is_left_to_libraw(rng):
+    from service.decode.linear_dng import linear_dng_estimation
+
+    data = _linear_dng((_linear_base(rng) * 60000).astype(np.uint16))
+    assert linear_dng_estimation(data, 300, 452, None) is not None
+    assert linear_dng_estimation(data, 301, 452, None) is None          # not the size LibRaw reports
+    assert linear_dng_estimation(_mosaic_dng(), 240, 360, None) is None  # a CFA DNG
