@@ -577,10 +577,14 @@ def test_linear_dng_estimation_holds_a_tile_not_the_image(rng):
     assert peak < n * (3 * 8 + 3 * 4 + 1) + 8 * 2 ** 20, peak     # the sums, the image, the flags; 8 MiB for a tile
 
 
-def test_linear_dng_outside_the_plain_layout_is_left_to_libraw(rng):
-    from service.decode.linear_dng import linear_dng_estimation
+def test_linear_dng_outside_the_plain_layout_is_left_to_libraw(rng, monkeypatch):
+    import service.decode.linear_dng as L
 
     data = _linear_dng((_linear_base(rng) * 60000).astype(np.uint16))
-    assert linear_dng_estimation(data, 300, 452, None) is not None
-    assert linear_dng_estimation(data, 301, 452, None) is None          # not the size LibRaw reports
-    assert linear_dng_estimation(_mosaic_dng(), 240, 360, None) is None  # a CFA DNG
+    assert L.linear_dng_estimation(data, 300, 452, None) is not None
+    assert L.linear_dng_estimation(data, 301, 452, None) is None          # not the size LibRaw reports
+    assert L.linear_dng_estimation(_mosaic_dng(), 240, 360, None) is None  # a CFA DNG
+    tiled = _linear_dng((_linear_base(rng) * 60000).astype(np.uint16), tile=(64, 64))
+    assert L.linear_dng_estimation(tiled, 300, 452, None) is not None
+    monkeypatch.setattr(L, "MAX_TILE_PIXELS", 64 * 64 - 1)                  # a tile declared too large
+    assert L.linear_dng_estimation(tiled, 300, 452, None) is None

@@ -41,6 +41,9 @@ SATURATION_FRACTION = 0.98
 
 LINEAR_RAW = 34892
 
+#: largest tile (pixels) decoded here; DNG writers use 256x256 or 512x512 (a larger one goes to LibRaw)
+MAX_TILE_PIXELS = 4096 * 4096
+
 
 def _values(page, code):
     t = page.tags.get(code)
@@ -114,6 +117,8 @@ def linear_dng_estimation(data: bytes, height: int, width: int, estimation_pixel
         H, W = int(page.imagelength), int(page.imagewidth)
         if (H, W) != (int(height), int(width)):
             return None
+        if page.is_tiled and int(page.tilelength) * int(page.tilewidth) > MAX_TILE_PIXELS:
+            return None                 # a tile is decoded whole: its declared size must stay small
         area = _values(page, 50829)                     # ActiveArea: top, left, bottom, right
         if area is not None and not (area.size == 4 and list(area) == [0, 0, H, W]):
             return None
