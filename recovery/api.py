@@ -361,6 +361,7 @@ class EstimationOptions:
     fallback: str = "shades-of-gray"
     p: float = 6.0
     sigma: float = 1.0
+    max_regions: int | None = None
 
 
 @dataclass
@@ -410,7 +411,7 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
                         dark_fraction: float = 1e-3, spatial: bool | str = "auto", region_size: int | None = None,
                         overlap: float = 0.5, min_variation: float = 0.02, subspace_tolerance: float = 0.1,
                         on_failure: str = "fallback", fallback: str = "shades-of-gray", p: float = 6.0,
-                        sigma: float = 1.0) -> IlluminantEstimate:
+                        sigma: float = 1.0, max_regions: int | None = None) -> IlluminantEstimate:
     """Estimate the scene light from a linear camera image.
 
     Parameters
@@ -441,6 +442,11 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         are not confined to a subspace (the paper's first failure mode)
     on_failure : ``"fallback"`` (declared in diagnostics) or ``"raise"``
     fallback : the peer used when the subspace method cannot run
+    max_regions : at most this many regions in the literal method's light
+        map (None: no limit). The default region size grows until the map
+        fits (said in ``diagnostics["region_size_coarsened"]``); an explicit
+        ``region_size`` that would make more raises
+        :class:`~recovery.errors.TooManyRegions` before any region is analysed
 
     Returns
     -------
@@ -480,7 +486,7 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         d_e = light_dim or (d_e if light_basis is not None and not isinstance(light_basis, str) else min(d_s + 1, C))
     options = EstimationOptions(method, spatial_mode, region_size, surface_basis, light_basis, surface_dim,
                                 light_dim, d_s, d_e, order_auto, overlap, min_variation, subspace_tolerance,
-                                on_failure, fallback, p, sigma)
+                                on_failure, fallback, p, sigma, max_regions)
     run = EstimatorInput(Evidence(img, m, dict(info), []), camera, options)
     return ESTIMATORS[method](run)
 
@@ -667,6 +673,37 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
 LOW_CONFIDENCE = 0.5
 
 
+def _light_map_region_size(shape, region_size: int | None, overlap: float, max_regions: int | None,
+                           diag: dict) -> int:
+    """The literal light map's region side: ``region_size``, or by default a
+    quarter of the shorter side (at least 8 pixels), grown (doubling, then
+    bisecting to the smallest side that fits) until the map has at most
+    ``max_regions`` regions, said in ``diag``. An explicit ``region_size``
+    giving more regions than ``max_regions`` raises
+    :class:`~recovery.errors.TooManyRegions`."""
+    from .errors import TooManyRegions
+    from .regions import region_count
+
+    size = region_size or max(8, min(shape) // 4)
+    if not max_regions or region_count(shape, size, overlap) <= max_regions:
+        return size
+    n = region_count(shape, size, overlap)
+    if region_size:
+        raise TooManyRegions(f"region_size={region_size} makes {n} regions on the {shape[0]}x{shape[1]} analysis "
+                             f"image, more than the limit of {max_regions} light-map regions per request "
+                             "(WANDELL_MAX_LIGHT_MAP_REGIONS); use a larger region_size or leave it out")
+    lo, hi = size, size * 2
+    while region_count(shape, hi, overlap) > max_regions and hi < max(shape):
+        lo, hi = hi, hi * 2
+    while hi - lo > 1:                     # the count falls as the side grows (fewer, larger tiles)
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if region_count(shape, mid, overlap) <= max_regions else (mid, hi)
+    diag["region_size_coarsened"] = (f"the default region side {size} makes {n} regions, more than the limit of "
+                                     f"{max_regions}; regions of {hi} pixels make "
+                                     f"{region_count(shape, hi, overlap)}")
+    return hi
+
+
 def _estimate_subspace(run: EstimatorInput) -> IlluminantEstimate:
     """``maloney-wandell``: the literal method of the paper (eq. 30, 35), one light or a map."""
     camera, img, m, diag, warns, o = run.camera, run.img, run.m, run.diag, run.warns, run.options
@@ -703,7 +740,7 @@ def _estimate_subspace(run: EstimatorInput) -> IlluminantEstimate:
     try:
         lm = None
         if o.spatial_mode == "map":
-            size = o.region_size or max(8, min(img.shape[:2]) // 4)
+            size = _light_map_region_size(img.shape[:2], o.region_size, o.overlap, o.max_regions, diag)
             lm, ldiag = estimate_light_map(img, m, T, E.basis, d_s, size, o.overlap, min_variation)
             diag.update(ldiag)
             w = np.average(lm.weights[lm.used], axis=0)
@@ -936,19 +973,41 @@ def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str 
     return surfaces_from_estimate(image, camera, est, surface_dim_render, synthesis_basis)
 
 
+def _every_kth_finite(img: np.ndarray, n: int, strip: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of every ``k``-th pixel with all channels finite, in
+    row-major order, ``k = max(1, count // n)``: what ``np.nonzero`` of the
+    finite mask, taken with that step, gives, without its two int64 arrays
+    per usable pixel (16 bytes a pixel: 0.5 GB for 30 MP). The mask is made
+    ``strip`` rows at a time (1 byte a pixel)."""
+    h = img.shape[0]
+    finite = np.empty(img.shape[:2], bool)
+    for a in range(0, h, strip):
+        finite[a:a + strip] = np.all(np.isfinite(img[a:a + strip]), axis=2)
+    counts = finite.sum(axis=1)
+    total = int(counts.sum())
+    step = max(1, total // n)
+    ks = np.arange(0, total, step)
+    ends = np.cumsum(counts)
+    rows = np.searchsorted(ends, ks, side="right")
+    cols = np.empty(ks.size, np.intp)
+    for r in np.unique(rows):
+        pick = rows == r
+        cols[pick] = np.flatnonzero(finite[r])[ks[pick] - (ends[r] - counts[r])]
+    return rows.astype(np.intp), cols
+
+
 def surfaces_from_estimate(image, camera: Camera, est: IlluminantEstimate, surface_dim_render: int | None = None,
                            synthesis_basis=None) -> AnalysisResult:
     """The surface half of :func:`analyze` for a light already estimated
     (eq. 36 with a C-term surface model), e.g. on a reduced image."""
-    img = np.asarray(image, dtype=np.float64)
+    img = np.asarray(image)
+    if img.dtype.kind != "f":                  # a float image is read as it is (values cast where used)
+        img = img.astype(np.float64)
     d = surface_dim_render or camera.channels
     S = resolve_model(synthesis_basis, "surface", None if isinstance(synthesis_basis, np.ndarray) else d,
                       camera.wavelengths)
     res = AnalysisResult(est, camera, S, img, 1.0)
-    finite = np.all(np.isfinite(img), axis=2)
-    ys, xs = np.nonzero(finite)
-    step = max(1, ys.size // 4096)
-    ys, xs = ys[::step], xs[::step]
+    ys, xs = _every_kth_finite(img, 4096)
     refl = res.reflectance(np.stack([ys, xs], 1)) if ys.size else np.zeros((0, camera.wavelengths.size))
     peak = np.percentile(refl.max(axis=1), 99) if refl.size else 0.0
     res.reflectance_scale = float(1.0 / peak) if peak > 0 and np.isfinite(peak) else 1.0

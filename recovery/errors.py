@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["RecoveryError", "ModelDimensionError", "InsufficientSurfaceVariation", "InputError"]
+__all__ = ["RecoveryError", "ModelDimensionError", "InsufficientSurfaceVariation", "InputError", "TooManyRegions"]
 
 
 class RecoveryError(ValueError):
@@ -41,3 +41,14 @@ class InputError(RecoveryError):
         super().__init__(message)
         if code is not None:
             self.code = code
+
+
+class TooManyRegions(RecoveryError):
+    """The literal light map would have more regions than the caller's limit
+    (``max_regions``): its cost is linear in the regions (one eq. 30/35
+    solve each, two eq. 36 solves per overlap), so a request's cost is
+    bounded by refusing, not by running out of time. ``status`` is the HTTP
+    status the service answers with (413: the request is too large)."""
+
+    code = "too_many_regions"
+    status = 413

@@ -20,7 +20,8 @@ from .estimators import maloney_wandell_pixels
 from .lighting import lighting_matrix
 from .subspace import surface_weights
 
-__all__ = ["tile_starts", "tile_regions", "LightMap", "estimate_light_map", "bilinear"]
+__all__ = ["tile_starts", "tile_regions", "region_count", "LightMap", "estimate_light_map",
+           "overlap_log_scales", "bilinear"]
 
 
 def tile_starts(length: int, size: int, overlap: float) -> np.ndarray:
@@ -96,6 +97,80 @@ class LightMap:
         return self.weights_at(rows, cols) @ self.light_basis.T
 
 
+def region_count(shape: tuple[int, int], size: int, overlap: float = 0.5) -> int:
+    """How many regions :func:`tile_regions` makes for an image of ``shape``:
+    the literal light map's cost is linear in it (one eq. 30/35 solve per
+    region, two eq. 36 solves per overlap)."""
+    rs, cs, _, _ = tile_regions(shape, size, overlap)
+    return int(rs.size * cs.size)
+
+
+def overlap_log_scales(r: np.ndarray, s: np.ndarray, d: np.ndarray, n: int) -> np.ndarray:
+    """The regions' log scales :math:`x = \\log\\alpha` made consistent on
+    overlaps: the minimum-norm least-squares solution of
+
+    .. math:: x_{r_k} - x_{s_k} = d_k \\ (k = 1..m), \\qquad \\tfrac{1}{n}\\textstyle\\sum_i x_i = 0,
+
+    the system of step 2 of :func:`estimate_light_map` (one row per overlap
+    of regions ``r[k]`` and ``s[k]``, ``d[k] = log(|sigma_r| / |sigma_s|)``
+    from eq. 36 in both regions, and the gauge row fixing the free common
+    scale of eq. 27-28), solved sparsely.
+
+    The equations are the incidence matrix :math:`B` of the overlap graph;
+    :math:`B^T B` is its Laplacian :math:`L`, whose null space is spanned by
+    the indicator vectors of its connected components. The least-squares
+    solutions of :math:`Bx = d` are :math:`z + \\sum_k c_k 1_{C_k}`, with
+    :math:`z` the one of zero mean on every component; the gauge row is then
+    met exactly when :math:`\\sum_k c_k |C_k| = 0`, and the norm
+    :math:`\\|z\\|^2 + \\sum_k c_k^2 |C_k|` is least at :math:`c = 0`. So the
+    answer is :math:`z`: on each component, :math:`L x = B^T d` with one node
+    grounded (the reduced Laplacian of a connected graph is positive
+    definite), then the component's mean removed. Memory and time grow with
+    the number of overlaps (sparse LU of a planar grid graph), where the
+    dense ``lstsq`` of the same system took ``(m + 1) x n`` floats and
+    :math:`O(m n^2)` time; the answer is the same (``lstsq`` returns the
+    minimum-norm solution too), to rounding.
+
+    Parameters
+    ----------
+    r, s : (m,) int, the two regions of each overlap equation (``r != s``)
+    d : (m,) float, the equations' right-hand sides
+    n : number of regions (unknowns)
+
+    Returns
+    -------
+    (n,) float, the log scales; regions in no overlap equation get 0.
+
+    References
+    ----------
+    Wandell (1985) [docs/references.md#seed-002], Fig. 1 and eq. 27-28, 36
+    (the scale fixed by consistency on overlaps); Golub & Van Loan,
+    *Matrix Computations* (4th ed., 2013), sec. 5.5 (minimum-norm least
+    squares); Chung, *Spectral Graph Theory* (1997), ch. 1 (the Laplacian's
+    null space and its connected components).
+    """
+    from scipy import sparse                       # imported when needed, as scipy.ndimage below
+    from scipy.sparse import csgraph
+    from scipy.sparse.linalg import spsolve
+
+    r, s, d = np.asarray(r, int), np.asarray(s, int), np.asarray(d, float)
+    x = np.zeros(int(n))
+    if n == 0 or r.size == 0:
+        return x
+    m = r.size
+    rows = np.arange(m)
+    B = sparse.csr_matrix((np.r_[np.ones(m), -np.ones(m)], (np.r_[rows, rows], np.r_[r, s])), shape=(m, n))
+    L = (B.T @ B).tocsr()
+    b = B.T @ d
+    _, labels = csgraph.connected_components(L, directed=False)
+    free = np.ones(n, bool)
+    free[np.unique(labels, return_index=True)[1]] = False     # one grounded node per component
+    if free.any():
+        x[free] = np.atleast_1d(spsolve(L[free][:, free].tocsc(), b[free]))
+    x -= (np.bincount(labels, x) / np.bincount(labels))[labels]
+    return x
+
+
 def _region_pixels(image, mask, r0, c0, sr, sc):
     block = image[r0:r0 + sr, c0:c0 + sc]
     m = mask[r0:r0 + sr, c0:c0 + sc]
@@ -148,7 +223,7 @@ def estimate_light_map(image: np.ndarray, mask: np.ndarray, tensor: np.ndarray,
     # --- scale consistency on overlaps: log a_r - log a_s = log(|sig_r| / |sig_s|)
     idx = -np.ones((gr, gc), int)
     idx[used] = np.arange(used.sum())
-    rows_eq, rhs = [], []
+    pair_r, pair_s, rhs = [], [], []
     rng = np.random.default_rng(0)
     for a in range(gr):
         for b in range(gc):
@@ -170,15 +245,12 @@ def estimate_light_map(image: np.ndarray, mask: np.ndarray, tensor: np.ndarray,
                 s2, _ = surface_weights(lighting_matrix(weights[a2, b2], tensor), px)
                 n1, n2 = np.linalg.norm(s1), np.linalg.norm(s2)
                 if n1 > 0 and n2 > 0 and np.isfinite(n1 + n2):
-                    row = np.zeros(used.sum())
-                    row[idx[a, b]], row[idx[a2, b2]] = 1.0, -1.0
-                    rows_eq.append(row)
+                    pair_r.append(idx[a, b])
+                    pair_s.append(idx[a2, b2])
                     rhs.append(np.log(n1 / n2))
     n_used = int(used.sum())
-    gauge = np.ones(n_used) / n_used
-    A = np.vstack(rows_eq + [gauge]) if rows_eq else gauge[None]
-    y = np.asarray(rhs + [0.0])
-    log_alpha, *_ = np.linalg.lstsq(A, y, rcond=None)
+    log_alpha = overlap_log_scales(np.asarray(pair_r, int), np.asarray(pair_s, int), np.asarray(rhs, float),
+                                   n_used)
     weights[used] *= np.exp(log_alpha)[:, None]
 
     # --- fill rejected regions from the nearest used region
@@ -198,6 +270,6 @@ def estimate_light_map(image: np.ndarray, mask: np.ndarray, tensor: np.ndarray,
         "region_overlap": float(overlap),
         "region_fit_ratio_median": float(np.nanmedian(fit)),
         "region_fit_ratio_max": float(np.nanmax(fit)),
-        "overlap_equations": len(rows_eq),
+        "overlap_equations": len(rhs),
     }
     return lm, diag

@@ -41,11 +41,21 @@ app.include_router(batches.router)
 app.include_router(render.router)
 app.include_router(web.router)
 
+# HEAD answered wherever GET is (RFC 9110 9.1), not a 405
+from .head import allow_head  # noqa: E402
+
+allow_head(app)
+
 
 # the upload limit, for declared and for streamed (chunked) bodies alike
 from .limits import UploadLimitMiddleware  # noqa: E402
 
 app.add_middleware(UploadLimitMiddleware)
+
+# an answer the client stops taking is given up after WANDELL_SEND_TIMEOUT
+from .limits import SendDeadlineMiddleware  # noqa: E402
+
+app.add_middleware(SendDeadlineMiddleware)
 
 # outermost: Host and Origin are checked before anything else runs
 from .security import HostOriginMiddleware  # noqa: E402

@@ -55,7 +55,7 @@ def service_error(exc: BaseException) -> ServiceError | None:
     from recovery.errors import RecoveryError  # here: the CLI's start-up imports no numerical library
 
     if isinstance(exc, RecoveryError):
-        return ServiceError(422, exc.code, str(exc))
+        return ServiceError(getattr(exc, "status", 422), exc.code, str(exc))
     return None
 
 

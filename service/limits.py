@@ -20,20 +20,26 @@ limit, or a file beyond the batch limit (``max_batch_items``, and at most
 ``file_too_large`` / ``too_many_items``, before the rest is spooled to disk.
 
 A body that stops arriving (no byte for ``Settings.body_timeout`` seconds,
-``WANDELL_BODY_TIMEOUT``) is cut off with a 408 ``body_timeout``: a slow or
-stalled upload cannot hold a connection and a spooled file indefinitely.
+``WANDELL_BODY_TIMEOUT``) is cut off with a 408 ``body_timeout``; one that
+keeps trickling is cut off ``Settings.body_deadline`` seconds
+(``WANDELL_BODY_DEADLINE``) after its first byte was awaited, with a 408
+``body_deadline``: a slow or stalled upload cannot hold a connection and a
+spooled file indefinitely (one byte every 20 s did, issue 28).
 Every cut-off answer says ``Connection: close``, so the server drops the
 connection instead of waiting for the rest of the body.
 """
 
 from __future__ import annotations
 
+import logging
+import time
+
 import anyio
 
 from .errors import error_response
 from .settings import get_settings
 
-__all__ = ["COALESCE_BYTES", "FORM_MAX_FILES", "FRAMING", "UploadLimitMiddleware"]
+__all__ = ["COALESCE_BYTES", "FORM_MAX_FILES", "FRAMING", "SendDeadlineMiddleware", "UploadLimitMiddleware"]
 
 #: Bytes allowed on top of the upload limit for multipart boundaries, part
 #: headers and the small form fields.
@@ -161,6 +167,7 @@ class UploadLimitMiddleware:
             if ctype.lower().startswith(b"multipart/"):
                 counter = _PartCounter(ctype, upload, min(max(1, settings.max_batch_items), FORM_MAX_FILES))
         timeout = settings.body_timeout if settings.body_timeout > 0 else None
+        deadline = time.monotonic() + settings.body_deadline if settings.body_deadline > 0 else None
 
         received = 0
         body_done = False
@@ -171,15 +178,21 @@ class UploadLimitMiddleware:
             nonlocal received, cut, body_done
             if cut is not None:
                 raise cut
-            if body_done or timeout is None:
+            left = None if deadline is None else deadline - time.monotonic()
+            if body_done or (timeout is None and left is None):
                 message = await receive()
             else:
+                wait = min(t for t in (timeout, left) if t is not None)
                 try:
-                    with anyio.fail_after(timeout):
+                    with anyio.fail_after(max(0.0, wait)):
                         message = await receive()
                 except TimeoutError:
-                    cut = _CutOff(408, "body_timeout", f"no part of the request body arrived for {timeout:g} s "
-                                  "(WANDELL_BODY_TIMEOUT); the upload was stopped")
+                    if left is not None and wait == left:
+                        cut = _CutOff(408, "body_deadline", "the request body did not arrive within "
+                                      f"{settings.body_deadline:g} s (WANDELL_BODY_DEADLINE); the upload was stopped")
+                    else:
+                        cut = _CutOff(408, "body_timeout", f"no part of the request body arrived for {timeout:g} s "
+                                      "(WANDELL_BODY_TIMEOUT); the upload was stopped")
                     raise cut from None
             if message["type"] == "http.request":
                 body = message.get("body", b"")
@@ -247,3 +260,63 @@ class UploadLimitMiddleware:
             await self.app(scope, counting_receive, guarded_send)
         except _CutOff:
             await answer_cut()
+
+
+log = logging.getLogger("wandell.limits")
+
+
+class _SendStalled(BaseException):
+    """The client stopped taking the answer: raised out of the app's
+    ``send`` so that every response's clean-up runs (a temporary answer is
+    removed, a held image released) on the way out. A ``BaseException`` so
+    that no application error handler turns it into an answer."""
+
+
+class SendDeadlineMiddleware:
+    """Give up an answer whose client stops reading it.
+
+    Each piece of a response body (at most 1 MiB: the file and memory
+    answers' chunk) must be taken by the connection within
+    ``Settings.send_timeout`` seconds (``WANDELL_SEND_TIMEOUT``; 0 = no
+    limit): the send waits while the socket's buffer is full, so a client
+    that stops reading made it wait for ever, holding the answer's temporary
+    file or image (issue 28: ten such readers held 425 MB of TMPDIR). Past
+    the deadline the response is abandoned: the exception unwinds the app
+    (its ``finally`` clean-ups run), the connection is closed by the server
+    (an incomplete response), and one line is logged.
+    """
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        timeout = get_settings().send_timeout
+        if timeout <= 0:
+            await self.app(scope, receive, send)
+            return
+        stalled = False
+
+        async def timed_send(message):
+            nonlocal stalled
+            if stalled:
+                raise _SendStalled()
+            if message["type"] != "http.response.body":
+                await send(message)
+                return
+            try:
+                with anyio.fail_after(timeout):
+                    await send(message)
+            except TimeoutError:
+                stalled = True
+                raise _SendStalled() from None
+
+        try:
+            await self.app(scope, receive, timed_send)
+        except BaseException:
+            if not stalled:
+                raise
+            log.warning("%s %s: the client took no part of the answer for %g s (WANDELL_SEND_TIMEOUT); "
+                        "the answer was given up", scope.get("method"), scope.get("path"), timeout)

@@ -16,7 +16,7 @@ import numpy as np
 
 from recovery.dng_color import ColorProfile
 
-__all__ = ["color_profile", "source_exif", "read_dng_profile"]
+__all__ = ["color_profile", "source_exif", "read_dng_profile", "profile_problem"]
 
 _CACHE_ATTR = "_h13_meta"
 
@@ -87,6 +87,42 @@ def read_dng_profile(page) -> ColorProfile | None:
     return prof
 
 
+#: A colour matrix the DNG pipeline inverts (NeutralToXY, the camera -> XYZ
+#: matrix) is unusable when its condition number passes this: the inverse
+#: would carry no correct digit (1 / float64 epsilon is 4.5e15; 1e12 leaves
+#: three digits of margin, far beyond any real camera's matrix, ~10-100).
+MAX_MATRIX_CONDITION = 1e12
+
+
+def profile_problem(prof: ColorProfile) -> str | None:
+    """What makes ``prof`` unusable, naming the tag, or ``None``: each colour
+    matrix the DNG SDK inverts (``AnalogBalance * CameraCalibrationN *
+    ColorMatrixN``, DNG specification 1.4, chapter 6) must be invertible.
+    A singular (not all-zero) ColorMatrix1 or CameraCalibration1 made
+    ``np.linalg.solve`` fail in :func:`recovery.dng_color.neutral_to_xy`
+    (a 500, issue 28)."""
+    def bad(m) -> bool:
+        if m is None:
+            return False
+        with np.errstate(all="ignore"):
+            c = np.linalg.cond(np.asarray(m, float))
+        return not np.isfinite(c) or c > MAX_MATRIX_CONDITION
+
+    ab = np.diag(prof.analog_balance) if prof.analog_balance is not None else np.eye(3)
+    used = [(1, prof.color_matrix1, prof.camera_calibration1)]
+    if prof.color_matrix2 is not None:
+        used.append((2, prof.color_matrix2, prof.camera_calibration2))
+    for k, cm, cc in used:
+        for name, m in ((f"ColorMatrix{k}", cm), (f"CameraCalibration{k}", cc)):
+            if bad(m):
+                return (f"the DNG's {name} is singular (condition number above {MAX_MATRIX_CONDITION:.0e}): the "
+                        "camera's colours cannot be converted; the file's colour tags are damaged")
+        if bad(ab @ (cc if cc is not None else np.eye(3)) @ cm):
+            return (f"the DNG's AnalogBalance x CameraCalibration{k} x ColorMatrix{k} is singular: the camera's "
+                    "colours cannot be converted; the file's colour tags are damaged")
+    return None
+
+
 def _int(v):
     try:
         return int(np.asarray(v).ravel()[0])
@@ -119,10 +155,14 @@ def _meta(decoded) -> dict:
                 p0 = tf.pages.first if hasattr(tf.pages, "first") else tf.pages[0]
                 if p0.tags.get(50706) is not None:
                     meta["profile"] = read_dng_profile(p0)
+                    if meta["profile"] is not None:
+                        meta["problem"] = profile_problem(meta["profile"])
                 meta["exif"] = _exif_of(tf, p0)
         except Exception:  # noqa: BLE001
             pass
-    if meta["profile"] is None and getattr(decoded, "kind", None) == "raw" and decoded.color_matrix is not None:
+    if meta.get("problem"):
+        meta["profile"] = None
+    elif meta["profile"] is None and getattr(decoded, "kind", None) == "raw" and decoded.color_matrix is not None:
         cm = np.asarray(decoded.color_matrix, float)
         if cm.shape == (3, 3) and np.all(np.isfinite(cm)) and abs(np.linalg.det(cm)) > 1e-12:
             meta["profile"] = ColorProfile.from_matrix(cm, "LibRaw")
@@ -140,10 +180,18 @@ def _meta(decoded) -> dict:
 def color_profile(decoded) -> ColorProfile | None:
     """The camera->XYZ profile of a decoded RAW: the DNG's colour tags, or
     LibRaw's XYZ(D65)->camera matrix for other RAWs; ``None`` for TIFF/PNG
-    input and cameras LibRaw has no matrix for."""
+    input and cameras LibRaw has no matrix for.
+
+    Raises a 422 ``bad_color_matrix`` naming the tag when a colour matrix
+    of the DNG is singular (:func:`profile_problem`)."""
     if getattr(decoded, "kind", None) != "raw":
         return None
-    return _meta(decoded)["profile"]
+    meta = _meta(decoded)
+    if meta.get("problem"):
+        from .errors import ServiceError
+
+        raise ServiceError(422, "bad_color_matrix", meta["problem"])
+    return meta["profile"]
 
 
 #: EXIF facts copied to outputs: name -> (tag code, in the EXIF sub-IFD?)

@@ -54,4 +54,4 @@ from .rendering import (STRIP_ENCODERS, _estimation_image, correction_matrix, cr
 from .report import (MATRIX_COLORIMETRY, _temperature_tint_xy, analysis_json, camera_json, estimate_summary,  # noqa: F401
                      illuminant_json, light_cct_duv, light_xy, profile_of, rendering_choice, rendering_json,
                      temperature_tint)
-from .surfaces import _box, _box_sums, surfaces_at  # noqa: F401
+from .surfaces import BOX_STRIP_ROWS, _box, _box_sums, box_sums_streamed, surfaces_at  # noqa: F401

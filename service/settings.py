@@ -47,6 +47,9 @@ class Settings(BaseSettings):
     max_render_values: int = 64_000_000
     #: POST /v1/surfaces answers at most this many points + rectangles + grid cells (413 too_many_regions)
     max_surface_regions: int = 10_000
+    #: method=maloney-wandell&spatial=true makes at most this many regions: the default region side grows to
+    #: fit, an explicit region_size past it is a 413 too_many_regions (about 2 s per 1,000 regions, docs/limits.md)
+    max_light_map_regions: int = 4096
     #: Host header names served besides the bound host, localhost and 127.0.0.1 (comma-separated; others: 400)
     allowed_hosts: str = ""
     #: origins (scheme://host:port) allowed to send POST/DELETE besides the page's own (comma-separated; others: 403)
@@ -55,6 +58,14 @@ class Settings(BaseSettings):
     keep_alive_timeout: float = 5.0
     #: seconds a request body may go without sending a byte before it is cut off (408)
     body_timeout: float = 30.0
+    #: seconds a whole request body may take, however it trickles (408 body_deadline; 0 = no limit)
+    body_deadline: float = 600.0
+    #: seconds each piece (<= 1 MiB) of an answer may wait for the client to take it; then the answer is
+    #: given up, its temporary file removed and the connection closed (0 = no limit)
+    send_timeout: float = 60.0
+    #: open connections at once; more are answered 503 too_many_connections and closed at once
+    #: (0 = from the process's file-descriptor limit: (RLIMIT_NOFILE - 100) / 2)
+    max_connections: int = 0
     #: seconds the uploaded inputs of a finished or cancelled batch are kept (results are kept)
     batch_input_retention: float = 24 * 3600.0
     #: seconds a finished or cancelled batch is kept with its results before it is deleted (negative: for ever)

@@ -26,6 +26,51 @@ def _box(S: np.ndarray, r0, c0, r1, c1) -> np.ndarray:
     return S[r1, c1] - S[r0, c1] - S[r1, c0] + S[r0, c0]
 
 
+#: rows of the image summed at a time by :func:`box_sums_streamed`
+BOX_STRIP_ROWS = 64
+
+
+def box_sums_streamed(layers, h: int, w: int, r0, c0, r1, c1, strip: int = BOX_STRIP_ROWS) -> np.ndarray:
+    """The sums of ``layers`` over the boxes rows ``r0..r1-1``, columns
+    ``c0..c1-1``: what :func:`_box` gives from the summed-area table
+    :func:`_box_sums`, with the table's values computed only at the boxes'
+    corners, ``strip`` rows at a time. ``layers(a, b)`` returns rows
+    ``a..b-1`` as ``(b - a, w, K)`` float64. The whole table of a 30 MP
+    image (float64, three channels and the masks: some 1.5 GB with its
+    temporaries) is never held: at most ``strip x (w + 1) x K`` of it (issue
+    28: ``/v1/surfaces`` took 95 MiB per megapixel).
+
+    The table's row ``r`` is the running sum over image rows ``< r`` of each
+    row's cumulative sum along the columns; a corner ``(r, c)`` is read from
+    it when the running sum reaches row ``r``."""
+    r0, c0, r1, c1 = (np.asarray(v, np.intp) for v in (r0, c0, r1, c1))
+    R = np.concatenate([r1, r0, r1, r0])
+    C = np.concatenate([c1, c1, c0, c0])
+    sign = np.repeat([1.0, -1.0, -1.0, 1.0], r0.size)
+    vals = None
+    acc = None
+    for a in range(0, h, strip):
+        b = min(h, a + strip)
+        want = (R > a) & (R <= b)
+        x = layers(a, b)
+        if vals is None:
+            vals = np.zeros((R.size, x.shape[2]))
+            acc = np.zeros((w + 1, x.shape[2]))
+        if not want.any():
+            acc[1:] += np.cumsum(x.sum(axis=0), axis=0)
+            continue
+        cs = np.zeros((b - a, w + 1, x.shape[2]))
+        np.cumsum(x, axis=1, out=cs[:, 1:])
+        np.cumsum(cs, axis=0, out=cs)
+        cs += acc
+        k = np.flatnonzero(want)
+        vals[k] = cs[R[k] - a - 1, C[k]]
+        acc = cs[-1].copy()
+    if vals is None:
+        return np.zeros((r0.size, 0))
+    return (sign[:, None] * vals).reshape(4, r0.size, -1).sum(axis=0)
+
+
 def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -> dict:
     """Reflectance spectra (eq. 36 with a C-term surface model) at full-
     resolution pixel points, rectangle means, or a coarse grid.
@@ -71,16 +116,28 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
     if kinds:
         r0, r1 = np.asarray(rows, np.intp).T
         c0, c1 = np.asarray(cols, np.intp).T
-        finite = np.all(np.isfinite(img), axis=2)
-        data = np.where(finite[..., None], img, 0.0)
+        saturated = np.asarray(decoded.saturated, bool)
+        C = img.shape[2]
+
+        def layers(a, b):
+            """Rows a..b-1: the RGB with non-finite pixels as 0, a non-finite flag, the saturation flag."""
+            x = np.empty((b - a, w, C + 2))
+            part = img[a:b]
+            finite = np.all(np.isfinite(part), axis=2)
+            x[..., :C] = np.where(finite[..., None], part, 0.0)
+            x[..., C] = ~finite
+            x[..., C + 1] = saturated[a:b]
+            return x
+
+        sums = box_sums_streamed(layers, h, w, r0, c0, r1, c1)
         n = ((r1 - r0) * (c1 - c0)).astype(float)
-        rho = _box(_box_sums(data), r0, c0, r1, c1) / n[:, None]
-        bad = _box(_box_sums(~finite), r0, c0, r1, c1) > 0
+        rho = sums[:, :C] / n[:, None]
+        bad = sums[:, C] > 0
         if bad.any():
             k = int(np.argmax(bad))
             raise ServiceError(422, "invalid_parameter", f"{kinds[k]} {wheres[k]} covers non-finite pixel values: "
                            "no reflectance there")
-        sat = _box(_box_sums(np.asarray(decoded.saturated, bool)), r0, c0, r1, c1) > 0
+        sat = sums[:, C + 1] > 0
         # the light at each entry's centre (one light: the same everywhere)
         L = res._lighting((r0 + r1 - 1) / 2.0, (c0 + c1 - 1) / 2.0)
         weights = np.einsum("pjk,pk->pj", np.linalg.pinv(L), rho) * res.reflectance_scale

@@ -188,6 +188,15 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
         warnings.append(f"{fmt} file: camera make/model are not read for this format; "
                         "give camera=... to use measured sensitivities")
 
+    if fmt in ("TIFF", "BigTIFF") and info is not None and info.color_matrix is not None:
+        # a LinearRaw (demosaiced) DNG: its samples block-averaged tile by tile, before LibRaw
+        # unpacks anything (its full-size buffers: 35-42 MiB per megapixel, issue 28)
+        from .linear_dng import linear_dng_estimation
+
+        got = linear_dng_estimation(data, int(s.height), int(s.width), estimation_pixels)
+        if got is not None:
+            return _linear_dng_decoded(got, s, data, make, model, info.color_matrix, warnings)
+
     # -- pixels (unpacks; LibRawIOError etc. on truncated data)
     num_colors = int(raw.num_colors)
     if num_colors < 3:
@@ -293,6 +302,36 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
         color_matrix=None if color_matrix is None else np.array(color_matrix, dtype=np.float64),
         as_shot_neutral=neutral, black_level=float(np.mean(blacks)), white_level=white,
         warnings=warnings, _source=data, _postprocess=post, _mosaic=mosaic,
+    )
+
+
+def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings) -> DecodedImage:
+    """The :class:`DecodedImage` of a LinearRaw DNG read by
+    :func:`service.decode.linear_dng.linear_dng_estimation` (``got``): the
+    estimation image oriented as LibRaw would (``s.flip``); the full-
+    resolution image is LibRaw's (:func:`_raw_full_linear`, which then
+    takes the black and white levels from LibRaw itself)."""
+    import rawpy
+
+    est, sat, f, neutral, black, white = got
+    flip = int(s.flip) if int(s.flip) in FLIP_OPS else 0
+    if flip:
+        est = np.ascontiguousarray(FLIP_OPS[flip](est))
+        sat = np.ascontiguousarray(FLIP_OPS[flip](sat))
+    warnings.append("demosaiced (linear) DNG: the estimation image is the file's own samples"
+                    + (f" averaged over {f}x{f} blocks" if f > 1 else "") + ", saturation judged on the samples")
+    post = dict(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=False, use_auto_wb=False,
+                output_color=rawpy.ColorSpace.raw, adjust_maximum_thr=0.0, bright=1.0,
+                highlight_mode=rawpy.HighlightMode.Clip, user_flip=flip)
+    full_shape = _oriented_shape(int(s.height), int(s.width), flip, float(s.pixel_aspect))
+    frac = float(sat.mean()) if sat.size else 0.0
+    if frac > 0.01:
+        warnings.append(f"{100 * frac:.1f} % of the image is saturated (those cells are flagged)")
+    return DecodedImage(
+        kind="raw", estimation=est, saturated=sat, full_shape=full_shape, make=make, model=model,
+        color_matrix=np.array(color_matrix, dtype=np.float64), as_shot_neutral=neutral,
+        black_level=float(np.mean(black)), white_level=float(np.mean(white)),
+        warnings=warnings, _source=data, _postprocess=post, _mosaic=None,
     )
 
 
@@ -406,6 +445,7 @@ def _raw_full_linear(img: DecodedImage, demosaic: str | None) -> np.ndarray:
         demosaic = "AHD"
         img.warnings.append("not a plain Bayer sensor: demosaicked by LibRaw (AHD) instead of the fast path")
     params = dict(img._postprocess)
+    user_wb = "user_wb" not in params        # a LinearRaw DNG read without LibRaw: its levels are LibRaw's here
     if demosaic is not None:
         try:
             params["demosaic_algorithm"] = rawpy.DemosaicAlgorithm[str(demosaic).upper()]
@@ -414,6 +454,9 @@ def _raw_full_linear(img: DecodedImage, demosaic: str | None) -> np.ndarray:
             raise ValueError(f"unknown demosaic algorithm {demosaic!r}; accepted: {names}") from None
     try:
         with rawpy.imread(io.BytesIO(img._source)) as raw:
+            if user_wb:
+                blacks, white = [float(b) for b in raw.black_level_per_channel], float(raw.white_level)
+                params["user_wb"] = [(white - min(blacks)) / (white - b) for b in blacks]
             rgb = raw.postprocess(**params)
     except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError, MemoryError) as exc:
         raise ServiceError(413, "too_many_pixels", f"not enough memory to demosaic the image ({exc})") from None

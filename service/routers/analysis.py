@@ -14,7 +14,6 @@ import weakref
 
 from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
-from starlette.background import BackgroundTask
 
 from .. import pipeline
 from ..deps import read_upload
@@ -39,6 +38,21 @@ class LargeChunkFileResponse(FileResponse):
     quarter of their memory). A chunk is in memory only while it is sent."""
 
     chunk_size = 1024 * 1024
+
+
+class TemporaryFileResponse(LargeChunkFileResponse):
+    """A :class:`LargeChunkFileResponse` of a temporary file, removed when
+    the response ends however it ends: sent, the client gone, or the send
+    given up after ``WANDELL_SEND_TIMEOUT`` (:class:`service.limits.SendDeadlineMiddleware`).
+    A background task would run only after a complete send, so a reader
+    that stopped reading kept the file for ever (issue 28)."""
+
+    async def __call__(self, scope, receive, send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
 
 
 #: The form fields of each endpoint, from the option models (service.schemas).
@@ -287,8 +301,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                                  headers=headers)
     # streamed from a temporary file (deleted after sending): the encoded
     # image never sits in memory next to the decoded one
-    return LargeChunkFileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers,
-                                  background=BackgroundTask(os.unlink, path))
+    return TemporaryFileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
 
 
 @router.post("/surfaces", response_model=SurfacesResult,

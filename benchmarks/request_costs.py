@@ -1,0 +1,232 @@
+"""What one request costs, per input kind and endpoint: the figures of
+``docs/limits.md``.
+
+Memory: ``python -m service`` started as users start it (a fresh data dir and
+TMPDIR), one warm-up request, then for each case the server's peak RSS rise
+(``VmHWM`` after resetting it through ``/proc/PID/clear_refs``, and RSS
+sampled every 50 ms) while the request runs, divided by the megapixels.
+Each case runs on a server of its own, so one case's freed-but-kept memory
+does not hide the next one's.
+
+Time: the literal light map (``method=maloney-wandell``, ``spatial=true``)
+estimated in-process on random 16-bit images whose default regions number
+about 1,000 to 25,000 (``max_regions`` lifted): seconds per 1,000 regions.
+
+Usage (from the checkout root)::
+
+    .venv/bin/python -m benchmarks.request_costs [--port 8660] [--mp 10] [--skip-memory] [--skip-map]
+
+Linux only (``/proc``). Prints one line per case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import io
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _status(pid: int, key: str) -> int | None:
+    try:
+        for line in open(f"/proc/{pid}/status"):
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) // 1024
+    except OSError:
+        return None
+    return None
+
+
+def _multipart(fields: dict, name: str, data: bytes):
+    b = "----bench" + uuid.uuid4().hex
+    out = []
+    for k, v in fields.items():
+        out += [f"--{b}", f'Content-Disposition: form-data; name="{k}"', "", v]
+    head = "\r\n".join(out + [f"--{b}", f'Content-Disposition: form-data; name="file"; filename="{name}"',
+                              "Content-Type: application/octet-stream", "", ""]).encode()
+    return head + data + f"\r\n--{b}--\r\n".encode(), f"multipart/form-data; boundary={b}"
+
+
+def _post(port, path, fields, name, data, timeout=600):
+    body, ctype = _multipart(fields, name, data)
+    c = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout)
+    try:
+        c.request("POST", path, body=body, headers={"Content-Type": ctype})
+        r = c.getresponse()
+        got = r.read()
+        return r.status, got
+    finally:
+        c.close()
+
+
+class _Server:
+    def __init__(self, port: int):
+        self.port = port
+        self.work = tempfile.mkdtemp(prefix="wandell-bench-")
+        env = dict(os.environ, WANDELL_HOST="127.0.0.1", WANDELL_PORT=str(port),
+                   WANDELL_DATA_DIR=os.path.join(self.work, "data"), TMPDIR=self.work)
+        self.p = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL, start_new_session=True)
+        t0 = time.time()
+        while time.time() - t0 < 120:
+            try:
+                c = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+                c.request("GET", "/health")
+                if c.getresponse().status == 200:
+                    return
+            except OSError:
+                time.sleep(0.3)
+        raise RuntimeError("the server did not start")
+
+    def stop(self):
+        os.killpg(self.p.pid, signal.SIGTERM)
+        try:
+            self.p.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.p.pid, signal.SIGKILL)
+            self.p.wait()
+        shutil.rmtree(self.work, ignore_errors=True)
+
+    def peak_rise(self, fn):
+        pid = self.p.pid
+        base = _status(pid, "VmRSS")
+        peak = [base]
+        with open(f"/proc/{pid}/clear_refs", "w") as f:
+            f.write("5")
+        stop = threading.Event()
+
+        def sample():
+            while not stop.is_set():
+                peak[0] = max(peak[0], _status(pid, "VmRSS") or 0)
+                time.sleep(0.05)
+        t = threading.Thread(target=sample, daemon=True)
+        t.start()
+        try:
+            res = fn()
+        finally:
+            stop.set()
+            t.join()
+        peak[0] = max(peak[0], _status(pid, "VmHWM") or 0)
+        return res, peak[0] - base
+
+
+def _linear_tiff(mp: float) -> tuple[bytes, float]:
+    import tifffile
+
+    h = int(round((mp * 1e6 * 3 / 4) ** 0.5))
+    w = int(round(mp * 1e6 / h))
+    rng = np.random.default_rng(0)
+    blocks = rng.integers(2000, 40000, (h // 64 + 1, w // 64 + 1, 3)).astype(np.uint16)
+    img = np.kron(blocks, np.ones((64, 64, 1), np.uint16))[:h, :w]
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, img, photometric="rgb", compression="zlib", predictor=True)
+    return buf.getvalue(), h * w / 1e6
+
+
+def _linear_dng(mp: float, float_samples: bool) -> tuple[bytes, float]:
+    import tifffile
+
+    h = int(round((mp * 1e6 * 3 / 4) ** 0.5))
+    w = int(round(mp * 1e6 / h))
+    ramp = np.linspace(0.05, 0.6, w, dtype=np.float32)[None, :, None] * np.array([0.8, 1.0, 0.6], np.float32)
+    img = np.broadcast_to(ramp, (h, w, 3))
+    img = np.ascontiguousarray(img if float_samples else (img * 65535).astype(np.uint16))
+
+    def rat(vals):
+        return [v for x in np.ravel(vals) for v in (int(round(x * 10000)), 10000)]
+    cm = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
+    tags = [(271, "s", 0, "Acme", True), (272, "s", 0, "LinCam", True), (50706, "B", 4, (1, 4, 0, 0), True),
+            (50707, "B", 4, (1, 1, 0, 0), True), (50708, "s", 0, "Acme LinCam", True),
+            (50721, "2i", 9, rat(cm), True), (50778, "H", 1, 21, True), (50728, "2I", 3, rat((0.5, 1, 0.6)), True),
+            (50713, "H", 2, (1, 1), True), (50714, "I", 1, 0, True),
+            (50717, "I", 1, 1 if float_samples else 65535, True)]
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, img, photometric=34892, subfiletype=0, compression="zlib", tile=(256, 256),
+                     planarconfig="contig", metadata=None, extratags=tags)
+    return buf.getvalue(), h * w / 1e6
+
+
+def _cfa_dng(mp: float) -> tuple[bytes, float]:
+    from testing.dngwriter import mosaic, write_dng
+
+    h = int(round((mp * 1e6 * 3 / 4) ** 0.5)) // 2 * 2
+    w = int(round(mp * 1e6 / h)) // 2 * 2
+    rng = np.random.default_rng(1)
+    blocks = rng.uniform(0.05, 0.6, (h // 64 + 1, w // 64 + 1, 3))
+    rgb = np.kron(blocks, np.ones((64, 64, 1)))[:h, :w]
+    buf = io.BytesIO()
+    write_dng(buf, (mosaic(rgb) * 60000).astype(np.uint16), white_level=65535, as_shot_neutral=(0.5, 1.0, 0.6))
+    return buf.getvalue(), h * w / 1e6
+
+
+def memory(port: int, mp: float) -> None:
+    kinds = {"linear 16-bit TIFF (deflate)": ("a.tif", lambda: _linear_tiff(mp)),
+             "CFA DNG (16-bit Bayer)": ("a.dng", lambda: _cfa_dng(mp)),
+             "LinearRaw DNG, 16-bit, deflate tiles": ("a.dng", lambda: _linear_dng(mp, False)),
+             "LinearRaw DNG, float32, deflate tiles": ("a.dng", lambda: _linear_dng(mp, True))}
+    endpoints = (("/v1/analyze", {}), ("/v1/white-balance", {"format": "tiff"}), ("/v1/surfaces", {"grid": "4x4"}))
+    warm = _cfa_dng(0.05)[0]
+    for kind, (name, make) in kinds.items():
+        data, mpx = make()
+        for path, fields in endpoints:
+            srv = _Server(port)
+            try:
+                _post(port, "/v1/analyze", {"method": "gray-world"}, "warm.dng", warm)
+                t0 = time.perf_counter()
+                (st, body), rise = srv.peak_rise(lambda: _post(port, path, fields, name, data))
+                took = time.perf_counter() - t0
+            finally:
+                srv.stop()
+            what = "" if st == 200 else f" ({json.loads(body).get('error') if body[:1] == b'{' else body[:60]})"
+            print(f"{kind:40s} {path:18s} {mpx:5.1f} MP ({len(data) / 1e6:6.1f} MB): HTTP {st}{what}, "
+                  f"RSS +{rise:5d} MiB = {rise / mpx:5.1f} MiB/MP, {took:5.1f} s", flush=True)
+
+
+def light_map() -> None:
+    from recovery import estimate_illuminant
+    from recovery.cameras import generic_camera
+    from recovery.regions import region_count
+
+    cam = generic_camera()
+    rng = np.random.default_rng(1)
+    for h, w in ((2000, 64), (4000, 64), (10000, 64), (25000, 32)):
+        img = rng.integers(1000, 50000, (h, w, 3)).astype(np.float64) / 65535
+        size = max(8, min(h, w) // 4)
+        n = region_count((h, w), size, 0.5)
+        t0 = time.perf_counter()
+        est = estimate_illuminant(img, cam, "maloney-wandell", spatial=True, max_regions=None)
+        took = time.perf_counter() - t0
+        print(f"light map {h}x{w}, region side {size}: {n:6d} regions "
+              f"({est.diagnostics.get('regions_used')} used, {est.diagnostics.get('overlap_equations')} overlap "
+              f"equations): {took:5.1f} s = {1000 * took / n:.2f} s per 1,000 regions", flush=True)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--port", type=int, default=8660)
+    ap.add_argument("--mp", type=float, default=10.0, help="megapixels of the memory cases (default 10)")
+    ap.add_argument("--skip-memory", action="store_true")
+    ap.add_argument("--skip-map", action="store_true")
+    a = ap.parse_args(argv)
+    if not a.skip_map:
+        light_map()
+    if not a.skip_memory:
+        memory(a.port, a.mp)
+
+
+if __name__ == "__main__":
+    main()
