@@ -251,7 +251,7 @@ def _fmt(s) -> str:
     return f"{s['mean']:5.2f} {s['median']:5.2f} {s['worst25']:5.2f}"
 
 
-def _relit_example(rs, i: int = None, seed: int = 3):
+def _relit_example(rs, i: int = None, seed: int = 6):
     """A Cube+ photograph relit by two of its camera's lights more than 10
     degrees apart across a soft edge (the speed runs' scene)."""
     rng = np.random.default_rng(seed)
