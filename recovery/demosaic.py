@@ -156,8 +156,12 @@ def rcd_rows(cfa: np.ndarray, pattern: str, r0: int, r1: int, white: float | Non
     if kernel is not None:
         pat = np.array(["RGB".index(letters[(py, px)]) for py in (0, 1) for px in (0, 1)], np.int64)
         integer = out.dtype == np.uint16
-        kernel(block, pat, P, n, m, out, np.float32(65535.0 if integer else white),
-               np.float32(0.5 if integer else 0.0), _workspace(block.size))
+        ws = _take_workspace(block.size)
+        try:
+            kernel(block, pat, P, n, m, out, np.float32(65535.0 if integer else white),
+                   np.float32(0.5 if integer else 0.0), ws)
+        finally:
+            _give_workspace(ws)
         return out
     R, G, B = _rcd_core(block, letters)
     for ch, planes in enumerate((R, G, B)):
@@ -596,16 +600,27 @@ def _rb_col(pat, r):
 
 
 _KERNEL = {}
-_LOCAL = threading.local()
+#: workspaces of :func:`_rcd_loops` not in use, kept for the next strip
+#: (new memory is the slow part on a busy machine): at most :data:`_SPARE`
+_FREE: list = []
+_FREE_LOCK = threading.Lock()
+_SPARE = 4
 
 
-def _workspace(size: int) -> np.ndarray:
-    """This thread's workspace of :func:`_rcd_loops` (8 rows of at least
-    ``size`` float32, zeros when new: every value in it is finite)."""
-    ws = getattr(_LOCAL, "ws", None)
-    if ws is None or ws.shape[1] < size:
-        ws = _LOCAL.ws = np.zeros((8, size), np.float32)
-    return ws
+def _take_workspace(size: int) -> np.ndarray:
+    """A workspace of :func:`_rcd_loops`: 8 rows of at least ``size``
+    float32, zeros when new (so every value in it is finite), reused."""
+    with _FREE_LOCK:
+        for k, ws in enumerate(_FREE):
+            if ws.shape[1] >= size:
+                return _FREE.pop(k)
+    return np.zeros((8, size), np.float32)
+
+
+def _give_workspace(ws: np.ndarray) -> None:
+    with _FREE_LOCK:
+        if len(_FREE) < _SPARE:
+            _FREE.append(ws)
 
 
 def _kernel():
