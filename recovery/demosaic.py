@@ -623,16 +623,22 @@ def _give_workspace(ws: np.ndarray) -> None:
             _FREE.append(ws)
 
 
+_KERNEL_LOCK = threading.Lock()
+
+
 def _kernel():
     """The compiled :func:`_rcd_loops` (numba, cached on disk), or ``None``
-    when numba is not installed."""
-    if "k" not in _KERNEL:
-        try:
-            import numba
-        except ImportError:
-            _KERNEL["k"] = None
-        else:
-            global _rb_col
-            _rb_col = numba.njit(cache=True)(_rb_col)
-            _KERNEL["k"] = numba.njit(nogil=True, cache=True)(_rcd_loops)
-    return _KERNEL["k"]
+    when numba is not installed. Compiled once per process, whichever thread
+    asks first (the strips of one image ask from several)."""
+    with _KERNEL_LOCK:
+        if "k" not in _KERNEL:
+            try:
+                import numba
+            except ImportError:
+                _KERNEL["k"] = None
+            else:
+                global _rb_col
+                if not hasattr(_rb_col, "py_func"):
+                    _rb_col = numba.njit(cache=True)(_rb_col)
+                _KERNEL["k"] = numba.njit(nogil=True, cache=True)(_rcd_loops)
+        return _KERNEL["k"]

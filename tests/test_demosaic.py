@@ -191,3 +191,20 @@ def test_the_white_balance_endpoint_renders_with_rcd_by_default(dng):
             outs[q] = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
     assert outs[None].shape == outs["fast"].shape
     assert np.any(outs[None] != outs["fast"])
+
+
+@pytest.mark.skipif(not _numba(), reason="numba is not installed")
+def test_a_fresh_process_demosaics_on_several_threads_at_once():
+    """The first call of a process, from several strips' threads at once,
+    compiles (or loads) the loops once: no thread sees a half-made kernel
+    (it did: 'A jit decorator was called on an already jitted function')."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, recovery.demosaic as D; "
+            "m = np.random.default_rng(0).integers(0, 65535, (200, 100)).astype(np.uint16); "
+            "a = D.rcd(m, 'RGGB', rows=10, threads=4); b = D.rcd(m, 'RGGB', rows=10 ** 6); "
+            "assert (a == b).all(); print('ok')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
+                       cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-2000:]
