@@ -602,9 +602,10 @@ def _rb_col(pat, r):
 _KERNEL = {}
 #: workspaces of :func:`_rcd_loops` not in use, kept for the next strip
 #: (new memory is the slow part on a busy machine): at most :data:`_SPARE`
+#: (one per core here: a 6000-pixel-wide strip of 128 rows holds 29 MB)
 _FREE: list = []
 _FREE_LOCK = threading.Lock()
-_SPARE = 4
+_SPARE = 2
 
 
 def _take_workspace(size: int) -> np.ndarray:

@@ -423,7 +423,7 @@ def _demosaic_scaled(mos: np.ndarray, sites, flip: int, method: str = "fast") ->
 #: rows of the mosaic :func:`recovery.demosaic.rcd` demosaics at a time
 #: (its context, :data:`recovery.demosaic.MARGIN` rows either side, is
 #: demosaicked again for each strip)
-RCD_ROWS = 256
+RCD_ROWS = 128
 
 
 def _threads() -> int:
