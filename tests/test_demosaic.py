@@ -131,7 +131,7 @@ def test_the_strip_path_demosaics_like_the_whole_mosaic():
 @pytest.mark.skipif(not _numba(), reason="numba is not installed: only the numpy implementation runs")
 def test_the_compiled_loops_agree_with_the_numpy_steps(hopper):
     """The two implementations of the same arithmetic: equal up to float32
-    rounding (measured on a mosaicked photograph in the four phases: 1 level
+    rounding (measured on scikit-image's astronaut in the four phases: 1 level
     of 65535 at most, on 0.03 % of the values)."""
     m = mosaic(hopper[:200, :256], "BGGR")
     a = rcd(m, "BGGR", implementation="numba").astype(np.int64)
