@@ -550,8 +550,14 @@ def _batch_sidecars(tasks, rows, options, out_dir: str, executor, xmp: dict) -> 
             r["xmp"] = res["xmp"]
         if res.get("kept"):
             r["xmp_kept"] = res["kept"]
-        if res.get("note"):
-            r["note"] = "; ".join(n for n in (r.get("note"), res["note"]) if n)
+        for key in ("dng", "dng_kept"):                 # a DNG's copy with the white balance inside
+            if res.get(key):
+                r[key] = res[key]
+        notes = [res.get("note"), res.get("dng_error")]
+        if res.get("dng_kept"):
+            notes.append(f"DNG copy {res['dng_kept']} exists: kept as it is (--xmp-overwrite replaces it)")
+        if any(notes):
+            r["note"] = "; ".join(n for n in (r.get("note"), *notes) if n)
 
 
 def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = False) -> dict | None:

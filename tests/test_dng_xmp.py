@@ -138,3 +138,20 @@ def test_a_non_dng_raw_gets_no_copy(tmp_path):
     assert (tmp_path / "a.xmp").exists()
     assert not (tmp_path / "a.wandell.dng").exists()
     assert "DNG" not in stdout
+
+
+def test_a_batch_writes_the_copies_too(tmp_path):
+    card = tmp_path / "card"
+    card.mkdir()
+    for i in range(2):
+        scene_dng(card / f"IMG_{i}.dng", "Nikon 5100 (NPL)", "D65", 64, 96, seed=i, grid=(4, 6))
+    before = {p.name: p.read_bytes() for p in card.iterdir()}
+    rc, stdout, stderr = _run("batch", str(card), str(tmp_path / "out"), "--format", "jpeg", "--xmp",
+                              "--workers", "1")
+    assert rc == 0, stderr
+    for i in range(2):
+        copy = card / f"IMG_{i}.wandell.dng"
+        assert copy.exists() and (card / f"IMG_{i}.xmp").exists()
+        assert _tag(copy, 700) is not None and _tag(copy, 50728) is not None
+    for name, data in before.items():
+        assert (card / name).read_bytes() == data
