@@ -41,8 +41,10 @@ __all__ = ["PATTERNS", "MARGIN", "rcd", "rcd_rows", "mosaic"]
 #: The 2x2 Bayer cells: the colours of sites (0,0), (0,1), (1,0), (1,1).
 PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 
-#: Rows (and columns) of mosaic each side of a pixel that its RCD value
-#: depends on, rounded up to even (measured: 10 is the support; see the tests).
+#: Rows (and columns) of mosaic each side of a pixel given with it: its
+#: value depends on fewer (RCD's steps reach 4 + 1 + 1 + 2 + 2 pixels; the
+#: reference tiles with a border of 9); even, to keep the filter phase. The
+#: tests check that strips of any height equal the whole image.
 MARGIN = 12
 
 _EPS = np.float32(1e-5)
