@@ -234,6 +234,20 @@ def run_load(base: str, inputs, *, pid: int | None = None, timeout: float = 600.
 
 
 def _free_port() -> int:
+    """A free loopback port: the first free one of ``WANDELL_BENCH_PORTS``
+    (``LOW-HIGH``) when it is set (a shared machine's allotment), else the
+    system's choice."""
+    span = os.environ.get("WANDELL_BENCH_PORTS")
+    if span:
+        low, high = (int(v) for v in span.split("-"))
+        for port in range(low, high + 1):
+            with socket.socket() as s:
+                try:
+                    s.bind(("127.0.0.1", port))
+                except OSError:
+                    continue
+                return port
+        raise RuntimeError(f"no free port in WANDELL_BENCH_PORTS={span}")
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]

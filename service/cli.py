@@ -147,9 +147,13 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
                         help="run on this Dask cluster (tcp://host:8786) instead of the local pool")
     add_options(ap, SIDECAR, describe={
         "xmp": "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) for every RAW, beside it "
-               "(IMG_0001.dng -> IMG_0001.xmp; into OUT_DIR when the RAW's folder is not writable)" if batch else
+               "(IMG_0001.dng -> IMG_0001.xmp; into OUT_DIR when the RAW's folder is not writable); for a DNG also a "
+               "copy with the white balance inside, IMG_0001.wandell.dng (Lightroom reads a DNG's own XMP, not a "
+               "sidecar; the original is left untouched)" if batch else
                "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) beside the RAW (IMG_0001.dng "
-               "-> IMG_0001.xmp; beside OUT when the RAW's folder is not writable)",
+               "-> IMG_0001.xmp; beside OUT when the RAW's folder is not writable); for a DNG also a copy with the "
+               "white balance inside (its XMP and AsShotNeutral), IMG_0001.wandell.dng beside the sidecar: "
+               "Lightroom reads a DNG's own XMP, not a sidecar; the original is left untouched",
         "xmp_dir": "write the sidecars into DIR instead (the subfolders of IN_DIR kept; implies --xmp)" if batch else
                    "write the sidecar into DIR instead of beside the RAW (implies --xmp)"})
 
@@ -548,8 +552,14 @@ def _batch_sidecars(tasks, rows, options, out_dir: str, executor, xmp: dict) -> 
             r["xmp"] = res["xmp"]
         if res.get("kept"):
             r["xmp_kept"] = res["kept"]
-        if res.get("note"):
-            r["note"] = "; ".join(n for n in (r.get("note"), res["note"]) if n)
+        for key in ("dng", "dng_kept"):                 # a DNG's copy with the white balance inside
+            if res.get(key):
+                r[key] = res[key]
+        notes = [res.get("note"), res.get("dng_error")]
+        if res.get("dng_kept"):
+            notes.append(f"DNG copy {res['dng_kept']} exists: kept as it is (--xmp-overwrite replaces it)")
+        if any(notes):
+            r["note"] = "; ".join(n for n in (r.get("note"), *notes) if n)
 
 
 def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = False) -> dict | None:
@@ -691,6 +701,15 @@ def _cmd_white_balance(args) -> int:
                 if not args.quiet:
                     print(f"XMP sidecar: {term_safe(sc['xmp'])} (Temperature {sc['temperature']:.0f} K, "
                           f"Tint {sc['tint']:+.0f})")
+            for key in ("dng", "dng_kept", "dng_error"):
+                if sc.get(key):
+                    res[key] = sc[key]
+            if sc.get("dng") and not args.quiet:
+                print(f"DNG with the white balance inside (for Lightroom): {term_safe(sc['dng'])}")
+            elif sc.get("dng_kept") and not args.quiet:
+                print(f"DNG copy {term_safe(sc['dng_kept'])} exists: kept as it is (--xmp-overwrite replaces it)")
+            elif sc.get("dng_error") and not args.quiet:
+                print(term_safe(sc["dng_error"]), file=sys.stderr)
             if sc.get("note"):
                 res["note"] = sc["note"]
     _summary([res], sys.stdout, args.quiet)

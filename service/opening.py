@@ -28,16 +28,21 @@ def decode(data: bytes, filename: str | None, limits, display_referred: str = "l
 
 def open_image(data: bytes, filename: str | None, limits, camera: str | None = None,
                sensitivities: bytes | None = None, prefetch: bool = False, display_referred: str = "linearise",
-               keep_mosaic: bool | None = None):
+               keep_mosaic: bool | None = None, quality: str | None = None):
     """Decode and choose the camera (:func:`recovery.cameras.resolve_camera`):
     ``(decoded, camera, warnings, milliseconds)``. With ``prefetch`` (a
     caller that renders the full image next) the demosaic starts at once on
     a thread (:func:`prefetch_full_linear`). ``keep_mosaic`` (default:
-    ``prefetch``): the full image is rendered later (:func:`decode`)."""
+    ``prefetch``): the full image is rendered later (:func:`decode`).
+    ``quality``: the preset, which chooses a RAW's demosaic
+    (:func:`service.decode.raw.demosaic_for`: ``fast`` the bilinear, else RCD)."""
     from recovery.cameras import resolve_camera
+
+    from .decode.raw import demosaic_for
 
     t0 = time.perf_counter()
     decoded = decode(data, filename, limits, display_referred, prefetch if keep_mosaic is None else keep_mosaic)
+    decoded.demosaic = demosaic_for(quality)
     if prefetch:
         prefetch_full_linear(decoded)
     try:
@@ -96,7 +101,8 @@ def analyze(data: bytes, filename: str | None, limits, *, camera: str | None = N
     caller renders next, demosaic meanwhile (:func:`prefetch_full_linear`);
     ``keep_mosaic``: it renders later (:func:`open_image`)."""
     decoded, cam, warns, ms = open_image(data, filename, limits, camera, sensitivities, prefetch=prefetch,
-                                         display_referred=display_referred, keep_mosaic=keep_mosaic)
+                                         display_referred=display_referred, keep_mosaic=keep_mosaic,
+                                         quality=(options or {}).get("quality"))
     try:
         run = run_estimate(decoded, cam, warns, method=method, options=options or {})
         run.timings_ms["decode"] = ms

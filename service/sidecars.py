@@ -29,8 +29,51 @@ def _sidecar_text(src: str, illuminant: dict, opts, limits) -> tuple[str, dict]:
     with open(src, "rb") as f:
         decoded, cam, warns, _ = pipeline.open_image(f.read(), os.path.basename(src), limits, opts.camera)
     run = pipeline.EstimateRun(jobs._estimate_from_json(illuminant, cam), cam, warns)  # the item's own light
-    text, tt, _ = pipeline.xmp_sidecar(decoded, run)
-    return text, tt
+    text, tt, summary = pipeline.xmp_sidecar(decoded, run)
+    return text, {**tt, "camera_rgb": summary["camera_rgb"]}
+
+
+def dng_copy_path(sidecar: str, src: str) -> str:
+    """Where a DNG's copy with the white balance inside goes: beside its
+    sidecar, ``IMG_0001.wandell.dng`` (never the original's name)."""
+    return os.path.join(os.path.dirname(os.path.abspath(sidecar)),
+                        os.path.splitext(os.path.basename(src))[0] + ".wandell.dng")
+
+
+def _write_dng_copy(src: str, text: str, neutral, target: str, overwrite: bool) -> dict:
+    """For a DNG input: a copy of it with the sidecar's XMP packet and
+    AsShotNeutral inside (:func:`service.dngxmp.dng_with_white`; what
+    Lightroom reads for a DNG) at ``target``; the original is only read.
+    ``{}`` for any other input; ``dng`` (the path), ``dng_kept`` or
+    ``dng_error`` otherwise."""
+    from .dngxmp import NotADng, dng_with_white
+
+    with open(src, "rb") as f:
+        data = f.read()
+    try:
+        copy = dng_with_white(data, text, neutral)
+    except NotADng:
+        return {}
+    except ValueError as e:
+        return {"dng_error": f"no DNG copy: {e}"}
+    if os.path.abspath(target) == os.path.abspath(src):
+        return {"dng_error": "no DNG copy: it would replace the original"}
+
+    def write(p):
+        with open(p, "wb") as f:
+            f.write(copy)
+
+    try:
+        if overwrite:
+            jobs.atomic_write(target, write)
+        else:
+            with open(target, "xb") as f:
+                f.write(copy)
+    except FileExistsError:
+        return {"dng_kept": target}
+    except OSError as e:
+        return {"dng_error": f"no DNG copy: cannot write {target}: {e.strerror or e}"}
+    return {"dng": target}
 
 
 def _write_sidecar(path: str, text: str, overwrite: bool) -> None:
@@ -74,7 +117,8 @@ def _sidecar_job(src: str, illuminant: dict, opts, target: str, fallback: str | 
         if not os.access(folder, os.W_OK):
             raise PermissionError(13, "permission denied", folder)
         _write_sidecar(target, text, overwrite)
-        return {**out, "xmp": target}
+        return {**out, "xmp": target, **_write_dng_copy(src, text, tt["camera_rgb"], dng_copy_path(target, src),
+                                                       overwrite)}
     except FileExistsError:
         return {**out, "kept": target, "note": f"XMP sidecar {target} exists: kept as it is (--xmp-overwrite "
                                                "replaces it)"}
@@ -95,5 +139,6 @@ def _sidecar_job(src: str, illuminant: dict, opts, target: str, fallback: str | 
     except OSError as e:
         return {**out, "error": f"{why}, nor {fallback} ({e.strerror or e})",
                 "note": f"no XMP sidecar: {why}, nor {fallback} ({e.strerror or e})"}
-    return {**out, "xmp": alt, "note": f"{why}: XMP sidecar written to {alt} instead; editors look for it beside "
+    return {**out, "xmp": alt, **_write_dng_copy(src, text, tt["camera_rgb"], dng_copy_path(alt, src), overwrite),
+            "note": f"{why}: XMP sidecar written to {alt} instead; editors look for it beside "
                                        "the RAW, so move it there"}

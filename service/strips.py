@@ -17,7 +17,9 @@ The pixels are those of the whole-image path exactly:
 * OpenCV's edge-aware Bayer interpolation looks at two rows either side at
   most, so a strip demosaicked with :data:`MARGIN` rows of the mosaic on
   each side (starting on an even row: the same colour-filter phase) gives
-  the rows of the whole image's demosaic bit for bit (a test checks);
+  the rows of the whole image's demosaic bit for bit (a test checks); RCD
+  (the default, :mod:`recovery.demosaic`) takes its own margin
+  (:data:`recovery.demosaic.MARGIN`) and is bit for bit the same too;
 * the correction works on chunks of whole rows and what it does to a chunk
   depends on that chunk's pixels only (:class:`service.correction.Correction`),
   so the strips are cut on the whole-image path's chunk bounds
@@ -42,16 +44,26 @@ CHUNKS_PER_PIECE = 4
 class MosaicRows:
     """Rows ``r0:r1`` of the oriented, DefaultCropped full-resolution linear
     image of a decoded RAW, demosaicked from its kept mosaic on demand
-    (uint16, 65535 = saturation, as ``decoded.full_linear("uint16")``)."""
+    (uint16, 65535 = saturation, as ``decoded.full_linear("uint16")``) by
+    ``method``: ``fast`` (OpenCV's edge-aware interpolation, ``code`` its
+    conversion) or ``rcd`` (:func:`recovery.demosaic.rcd_rows`, ``pattern``
+    the 2x2 cell)."""
 
-    def __init__(self, mosaic: np.ndarray, code: int, bounds):
-        self.mosaic, self.code = mosaic, code
+    def __init__(self, mosaic: np.ndarray, code: int, bounds, method: str = "fast", pattern: str | None = None):
+        self.mosaic, self.code, self.method, self.pattern = mosaic, code, method, pattern
         H, W = mosaic.shape
         self.r0, self.r1, self.c0, self.c1 = bounds if bounds is not None else (0, H, 0, W)
         self.shape = (self.r1 - self.r0, self.c1 - self.c0)
+        #: rows worth demosaicking at a time: RCD demosaics its context of
+        #: MARGIN rows either side again for each call
+        self.min_rows = RCD_MIN_ROWS if method == "rcd" else 1
 
     def __call__(self, r0: int, r1: int) -> np.ndarray:
         """Rows ``r0:r1`` of the image (a view of a new strip)."""
+        if self.method == "rcd":
+            from recovery.demosaic import rcd_rows
+
+            return rcd_rows(self.mosaic, self.pattern, self.r0 + r0, self.r0 + r1, c0=self.c0, c1=self.c1)
         import cv2
 
         H = self.mosaic.shape[0]
@@ -71,36 +83,39 @@ class FieldRows:
     def __init__(self, source: MosaicRows, field):
         self.source, self.field = source, field
         self.shape = source.shape
+        self.min_rows = getattr(source, "min_rows", 1)
 
     def __call__(self, r0: int, r1: int) -> np.ndarray:
         rows = np.ascontiguousarray(self.source(r0, r1))
         return self.field.apply(rows, self.source.r0 + r0, self.source.c0)
 
 
+#: rows of the image an RCD strip demosaicks at a time (at least)
+RCD_MIN_ROWS = 128
+
+
 def mosaic_rows(decoded, bounds_of) -> MosaicRows | None:
     """A :class:`MosaicRows` of ``decoded`` taking its kept mosaic (which
     the whole-image path can then no longer use), or ``None`` when there is
-    none, the image is rotated or the filter pattern is not one OpenCV
-    interpolates. ``bounds_of(shape)``: the crop in the full image
-    (:func:`service.pipeline.crop_bounds`)."""
+    none, the image is rotated, the filter pattern is not a 2x2 Bayer one
+    or its demosaic is LibRaw's. ``bounds_of(shape)``: the crop in the full
+    image (:func:`service.pipeline.crop_bounds`)."""
     import cv2
 
-    from .decode.raw import _OPENCV_BAYER
+    from .decode.raw import _OPENCV_BAYER, DEMOSAIC_DEFAULT, MOSAIC_DEMOSAICS, _pattern
 
+    method = str(getattr(decoded, "demosaic", None) or DEMOSAIC_DEFAULT).lower()
     kept = getattr(decoded, "_mosaic", None)
-    if not kept or kept.get("flip") or kept.get("scaled") is None:
+    if not kept or kept.get("flip") or kept.get("scaled") is None or method not in MOSAIC_DEMOSAICS:
         return None
-    letters = [""] * 4
-    for dy, dx, _idx, ch in kept["sites"]:
-        letters[dy * 2 + dx] = "RGB"[ch]
-    code = _OPENCV_BAYER.get("".join(letters))
-    if code is None:
+    pattern = _pattern(kept["sites"])
+    if pattern is None:
         return None
     mosaic = kept["scaled"]
     if tuple(mosaic.shape) != tuple(decoded.full_shape):
         return None
     decoded._mosaic = None
-    return MosaicRows(mosaic, getattr(cv2, code), bounds_of(mosaic.shape))
+    return MosaicRows(mosaic, getattr(cv2, _OPENCV_BAYER[pattern]), bounds_of(mosaic.shape), method, pattern)
 
 
 def encode_strips(source: MosaicRows, kernel, fmt: str, threads: int | None = None) -> bytes:
@@ -113,7 +128,7 @@ def encode_strips(source: MosaicRows, kernel, fmt: str, threads: int | None = No
 
     H, W = source.shape
     step = kernel.rows
-    piece = step * CHUNKS_PER_PIECE
+    piece = step * max(CHUNKS_PER_PIECE, -(-getattr(source, "min_rows", 1) // step))
     dtype = np.uint8 if kernel.bits == 8 else np.uint16
 
     def rows(r0: int, r1: int) -> np.ndarray:

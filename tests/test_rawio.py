@@ -206,7 +206,10 @@ def test_full_linear_is_on_the_estimation_scale(nikon):
     assert full.dtype == np.uint16 and full.shape == (H, W, 3) and full.shape[:2] == d.full_shape
     checked = 0
     for p in range(len(truth.patch_names)):
-        px, cells = _eroded(truth.labels, p), _cells_inside(truth.labels, p)
+        # 4 pixels in: the default demosaic (RCD) reads 4 pixels along rows and
+        # columns for green; at 3 the frame's thin bands between patches were
+        # 2.8 % off in green, the patches within 0.5 % (as the bilinear's)
+        px, cells = _eroded(truth.labels, p, 4), _cells_inside(truth.labels, p)
         if px.sum() < 50:
             continue
         f = full[px].mean(axis=0) / 65535

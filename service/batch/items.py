@@ -164,7 +164,8 @@ def _open(task: "ItemTask", prefetch: bool = False, render: bool = False) -> tup
         data = f.read()
     decoded, cam, warns, _ = pipeline.open_image(data, task.name or os.path.basename(task.src), task,
                                                  task.options.camera, prefetch=prefetch,
-                                                 keep_mosaic=prefetch or render)
+                                                 keep_mosaic=prefetch or render,
+                                                 quality=getattr(task.options, "quality", None))
     return decoded, cam, warns
 
 

@@ -99,6 +99,10 @@ class DecodedImage:
     _mosaic: dict | None = field(default=None, repr=False, compare=False)
     #: RAW: LibRaw postprocessing parameters giving the estimation scale.
     _postprocess: dict = field(default_factory=dict, repr=False, compare=False)
+    #: RAW: the demosaic :meth:`full_linear` uses when it is given none
+    #: (``None``: :data:`service.decode.raw.DEMOSAIC_DEFAULT`; the pipeline
+    #: sets it from the ``quality`` preset, :func:`service.decode.raw.demosaic_for`).
+    demosaic: str | None = field(default=None, repr=False, compare=False)
 
     @property
     def binning(self) -> float:
@@ -123,9 +127,12 @@ class DecodedImage:
             ``uint16``: 65535 = saturation. ``float32``: 1.0 = saturation
             (for float TIFF input, values outside [0, 1] are kept).
         demosaic : str, optional
-            ``"fast"`` (the default: OpenCV's edge-aware interpolation of
-            the Bayer mosaic) or a ``rawpy.DemosaicAlgorithm`` name
-            (``AHD``, ``LINEAR``, ``DCB``, ``PPG``, ``VNG``...). RAW only.
+            ``"rcd"`` (the default: ratio-corrected demosaicing of the Bayer
+            mosaic, :mod:`recovery.demosaic`), ``"fast"`` (OpenCV's
+            edge-aware bilinear interpolation, ``quality=fast``) or a
+            ``rawpy.DemosaicAlgorithm`` name (``AHD``, ``DHT``, ``AAHD``,
+            ``LINEAR``, ``DCB``, ``PPG``, ``VNG``...). RAW only; without
+            it, :attr:`demosaic`.
 
         Returns
         -------
@@ -142,7 +149,7 @@ class DecodedImage:
         if self.kind == "raw":
             from .raw import _raw_full_linear   # here: the RAW decoder imports this module
 
-            rgb = _raw_full_linear(self, demosaic)
+            rgb = _raw_full_linear(self, demosaic or self.demosaic)
             if out == "uint16":
                 return rgb
             return _uint16_to_unit_float(rgb)

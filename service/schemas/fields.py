@@ -178,7 +178,8 @@ ESTIMATION = {
                                "learned, bayes (the light posterior), maloney-wandell (the literal subspace "
                                "method) or a classical peer; GET /v1/models describes each",
                   choices=METHOD_NAMES, examples=("auto", "maloney-wandell")),
-    "quality": Opt(str | None, None, "speed/accuracy preset (the measured trade-off); default: neither",
+    "quality": Opt(str | None, None, "speed/accuracy preset (the measured trade-off); a RAW's demosaic too: "
+                                     "fast = OpenCV's bilinear, otherwise RCD; default: neither",
                    choices=QUALITY_NAMES, examples=("balanced",)),
     "surface_dim": Opt(str | None, None, "surface model terms D(S): 1..C-1, or auto (BIC)",
                        examples=("2", "auto"), check=_dim),
