@@ -79,14 +79,19 @@ class GainField:
         t = (fr - i0)[:, None, None].astype(np.float32)
         return (1 - t) * colg[i0] + t * colg[i1]
 
-    def apply(self, rgb16: np.ndarray, r0: int = 0, c0: int = 0, block: int = 256) -> np.ndarray:
+    def apply(self, rgb16: np.ndarray, r0: int = 0, c0: int = 0, block: int = 128,
+              threads: int = 1) -> np.ndarray:
         """Multiply ``rgb16`` (h, W, 3) uint16, rows ``r0 ..`` and columns
         ``c0 ..`` of the full image, by the gains, in place (saturating at
-        65535), ``block`` rows at a time."""
+        65535), ``block`` rows at a time, on ``threads`` threads (OpenCV and
+        numpy release the interpreter lock). Each pixel's value depends on
+        its own row and column only, so any cut into blocks, strips or
+        threads gives the same pixels."""
         import cv2
 
         h, W = rgb16.shape[:2]
-        for a in range(0, h, block):
+
+        def one(a):
             b = min(h, a + block)
             part = rgb16[a:b]
             g = self.rows(r0 + a, r0 + b, c0, W)
@@ -94,6 +99,16 @@ class GainField:
                 cv2.multiply(part, g, dst=part, dtype=cv2.CV_16U)
             else:
                 part[...] = cv2.multiply(np.ascontiguousarray(part), g, dtype=cv2.CV_16U)
+
+        starts = range(0, h, block)
+        if threads > 1 and h > 2 * block:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(threads) as ex:
+                list(ex.map(one, starts))
+        else:
+            for a in starts:
+                one(a)
         return rgb16
 
 

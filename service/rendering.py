@@ -135,7 +135,9 @@ def render_full(decoded, run: EstimateRun, target: str, output: str, bits: int, 
     b = crop_bounds(decoded, full.shape[:2]) if field is not None else None
     rgb16 = default_crop(decoded, full)
     if field is not None:         # each pixel white-balanced by the light there (service.light_field)
-        field.apply(rgb16, *((b[0], b[2]) if b is not None else (0, 0)))
+        import os
+
+        field.apply(rgb16, *((b[0], b[2]) if b is not None else (0, 0)), threads=threads or os.cpu_count() or 1)
         info["light_map_gains"] = list(field.range)
     t1 = time.perf_counter()
     out = apply_matrix_inplace(rgb16, M, info["encoding"], bits, threads=threads, neutral=info.get("neutral"),

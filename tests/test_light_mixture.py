@@ -93,6 +93,7 @@ def test_gain_field_interpolates_bilinearly_and_has_no_seams_between_strips():
     for a, b in ((0, 7), (7, 60), (60, 101)):                           # strips of any size, same pixels
         f.apply(parts[a:b], r0=a)
     np.testing.assert_array_equal(parts, whole)
+    np.testing.assert_array_equal(f.apply(img.copy(), block=8, threads=2), whole)    # threads: the same pixels
     expect = np.clip(np.rint(img * g), 0, 65535)
     assert np.abs(whole.astype(float) - expect).max() <= 1                # rounding only
     # saturating: no wrap-around
