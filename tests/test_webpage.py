@@ -116,9 +116,12 @@ def server():
 
     port = _free_port()
     log = tempfile.TemporaryFile()
+    # the server's batch store in a temporary directory, never the user's (issue 29)
+    store = tempfile.TemporaryDirectory(prefix="wandell-webpage-")
+    env = dict(os.environ, WANDELL_DATA_DIR=store.name)
     proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
                              "--port", str(port), "--log-level", "warning"],
-                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=env)
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 60
@@ -143,6 +146,7 @@ def server():
             proc.kill()
             proc.wait()
         log.close()
+        store.cleanup()
 
 
 @pytest.fixture(scope="module")
@@ -200,8 +204,9 @@ def test_upload_shows_both_images_the_light_and_the_diagnostics(page, server, tm
     for sel in ("#img-original", "#img-corrected"):
         w = page.eval_on_selector(sel, "img => img.complete ? img.naturalWidth : 0")
         assert w > 0, f"{sel} shows no image"
-    # the previews are the 2x2-binned image: 180 x 120 for a 360 x 240 file
+    # the previews are the 2x2-binned image: 180 x 120 for a 360 x 240 file, both of the same frame
     assert page.eval_on_selector("#img-corrected", "i => [i.naturalWidth, i.naturalHeight]") == [180, 120]
+    assert page.eval_on_selector("#img-original", "i => [i.naturalWidth, i.naturalHeight]") == [180, 120]
 
     # the numbers on the page are the API's (same file, same default options)
     est = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())}, timeout=60).json()
@@ -214,14 +219,16 @@ def test_upload_shows_both_images_the_light_and_the_diagnostics(page, server, tm
     assert len(re.findall(r"[ML]", d)) == len(est["illuminant"]["wavelengths"])
 
     summary = page.inner_text("#diag-summary")
-    assert summary.startswith("The light was estimated by ")
     from recovery.methods import METHODS                 # the registry's words, served by /v1/models
 
     used = est.get("method") or est["diagnostics"].get("method")
-    assert summary.startswith(f"The light was estimated by {METHODS[used].words}."), (used, summary)
+    assert summary.startswith(f"Auto found a light of about {round(est['illuminant']['temperature'])} K, "
+                              f"estimated by {METHODS[used].words}."), (used, summary)
     if est["diagnostics"].get("confidence") is not None:
         assert f"({round(100 * est['diagnostics']['confidence'])} %)" in summary
-    assert "Camera: Nikon 5100 (NPL), with measured spectral sensitivities." in page.inner_text("#diag-details")
+    # the jargon is folded away, and still there
+    assert page.eval_on_selector("#diag-more", "d => d.open") is False
+    assert "Camera: Nikon 5100 (NPL), with measured spectral sensitivities." in page.text_content("#diag-details")
 
     shot = _screenshot(page, tmp_path, "wandell-webpage.png")
     assert shot.stat().st_size > 10_000
@@ -295,17 +302,25 @@ def test_phone_width_has_no_horizontal_scroll_and_a_click_sets_the_white(browser
     pg.set_input_files("#file", str(_dng(tmp_path / "scene.dng")))
     pg.wait_for_selector("#result", state="visible", timeout=90_000)
     assert pg.evaluate("document.documentElement.scrollWidth") <= 375
-    img = pg.locator("#img-corrected")
-    img.scroll_into_view_if_needed()
-    box = img.bounding_box()
-    img.click(position={"x": box["width"] * 0.3, "y": box["height"] * 0.3})
+    viewer = pg.locator("#viewer")
+    viewer.scroll_into_view_if_needed()
+    box = viewer.bounding_box()
+    viewer.click(position={"x": box["width"] * 0.3, "y": box["height"] * 0.3})
     for _ in range(180):
-        if (pg.locator("#neutral-note").text_content() or "").startswith("White fixed"):
+        if (pg.locator("#neutral-note").text_content() or "").startswith("White taken"):
             break
         pg.wait_for_timeout(500)
-    assert pg.locator("#neutral-note").text_content().startswith("White fixed")
+    assert pg.locator("#neutral-note").text_content().startswith("White taken")
     assert pg.locator("#neutral-clear").is_visible()
+    # the mark sits where the click was
+    mark = pg.locator("#pick-mark").bounding_box()
+    assert abs(mark["x"] + mark["width"] / 2 - (box["x"] + 0.3 * box["width"])) <= 1.5, (mark, box)
+    assert abs(mark["y"] + mark["height"] / 2 - (box["y"] + 0.3 * box["height"])) <= 1.5, (mark, box)
     assert pg.evaluate("document.documentElement.scrollWidth") <= 375
+    pg.click("#zoom-100")                    # 100 % on a phone: the view pans, the page does not widen
+    pg.wait_for_selector("#zoom-note:has-text('full size')", timeout=120_000)
+    assert pg.evaluate("document.documentElement.scrollWidth") <= 375
+    _screenshot(pg, tmp_path, "wandell-webpage-phone.png")
     ctx.close()
 
 
@@ -394,7 +409,8 @@ def test_cancel_stops_running_items_and_the_page_shows_the_end_state(page, serve
     assert rows == [it["status"] for it in doc["items"]]
     page.wait_for_timeout(1500)   # and it stays so
     assert page.inner_text("#batch-status") == status
-    assert page.eval_on_selector("#batch-progress", "p => [p.value, p.max]") == [len(files), len(files)]
+    # the bar shows the work done: done and failed items, not the cancelled ones
+    assert page.eval_on_selector("#batch-progress", "p => [p.value, p.max]") == [c["done"] + c["failed"], len(files)]
     _screenshot(page, tmp_path, "wandell-webpage-batch-cancelled.png")
 
 
@@ -445,10 +461,12 @@ def test_keyboard_opens_the_choosers_the_table_keeps_words_whole_and_the_flag_ke
     fc.value.set_files(str(_dng(tmp_path / "scene.dng")))
     pg.wait_for_selector("#result", state="visible", timeout=90_000)
     assert pg.is_visible("#corrected-flag")
-    if width > 700:   # side by side: both images start at the same height
-        tops = pg.eval_on_selector_all("#img-original, #img-corrected",
-                                       "is => is.map(i => Math.round(i.getBoundingClientRect().top))")
-        assert tops[0] == tops[1], tops
+    # before and after are one picture split by the divider: the flag is below it, not between them
+    tops = pg.eval_on_selector_all("#img-original, #img-corrected",
+                                   "is => is.map(i => Math.round(i.getBoundingClientRect().top))")
+    assert tops[0] == tops[1], tops
+    assert pg.locator("#corrected-flag").bounding_box()["y"] >= pg.locator("#viewer").bounding_box()["y"] + \
+        pg.locator("#viewer").bounding_box()["height"]
     _screenshot(pg, tmp_path, f"wandell-webpage-flag-{width}.png")
 
     for _ in range(60):
@@ -487,3 +505,266 @@ def test_preview_shows_the_default_crop_and_says_the_output_size(page, tmp_path)
         w, h = page.eval_on_selector(sel, "i => [i.naturalWidth, i.naturalHeight]")
         assert abs(w / h - 4096 / 2160) < 0.004, (sel, w, h)   # uncropped: 4128 / 2176 = 1.8971 vs 1.8963
         assert w <= 1024
+
+
+# ---------------------------------------------------------------------------
+# Issue 29: the page as a place to work
+# ---------------------------------------------------------------------------
+
+#: The bytes of an <img> as the page holds them (the blob it made the image's URL of).
+_IMG_BYTES = """sel => new Promise((resolve, reject) => {
+    const f = new FileReader();
+    f.onload = () => resolve(f.result.split(",")[1]);
+    f.onerror = () => reject(f.error);
+    f.readAsDataURL(document.querySelector(sel).blob);   // the page keeps the bytes it shows (no fetch: CSP)
+})"""
+
+
+def _img(pg, sel: str) -> np.ndarray:
+    """The image an <img> shows, decoded by OpenCV (BGR, uint8)."""
+    import cv2
+
+    data = base64.b64decode(pg.evaluate(_IMG_BYTES, sel))
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+
+
+def _wait_rendered(pg, timeout_s=120):
+    """Until the white-balance panel says nothing is pending."""
+    for _ in range(int(timeout_s * 4)):
+        if not (pg.text_content("#wb-status") or "").strip():
+            return
+        pg.wait_for_timeout(250)
+    raise AssertionError("the corrected image was not rendered again")
+
+
+def _open(pg, server, path: Path):
+    pg.goto(server + "/")
+    pg.set_input_files("#file", str(path))
+    pg.wait_for_selector("#result", state="visible", timeout=120_000)
+    pg.wait_for_selector("#status:has-text('Done')", timeout=120_000)
+
+
+def test_zoom_100_shows_the_downloads_pixels_one_to_one_and_pans(browser, server, tmp_path):
+    """100 %: the full-size image (the download's rendering) with one image
+    pixel per screen pixel: a screenshot of the view equals the image's own
+    pixels at the place the view says it shows, and fits them worse one
+    pixel off (so the comparison can tell); a drag pans by the drag."""
+    import cv2
+
+    dng = tmp_path / "big.dng"
+    scene_dng(dng, "Nikon 5100 (NPL)", "D50", 900, 1600, seed=21)
+    ctx = browser.new_context(viewport={"width": 1280, "height": 1000}, device_scale_factor=1)
+    pg = ctx.new_page()
+    _open(pg, server, dng)
+    assert pg.eval_on_selector("#img-corrected", "i => i.naturalWidth") <= 800          # the binned preview
+    pg.click("#view-after")
+    pg.click("#zoom-100")
+    pg.wait_for_selector("#zoom-note:has-text('full size')", timeout=120_000)
+    assert pg.eval_on_selector("#img-corrected", "i => [i.naturalWidth, i.naturalHeight]") == [1600, 900]
+    box = pg.eval_on_selector("#img-corrected", "i => { const b = i.getBoundingClientRect(); return [b.width, b.height]; }")
+    assert box == pytest.approx([1600, 900], abs=0.01)
+
+    def shown_vs_image():
+        v = pg.locator("#viewer").bounding_box()
+        s = pg.eval_on_selector("#img-corrected", "i => { const b = i.getBoundingClientRect(); return [b.left, b.top]; }")
+        shot = cv2.imdecode(np.frombuffer(pg.screenshot(clip={"x": v["x"] + 100, "y": v["y"] + 60, "width": 300,
+                                                                  "height": 200}), np.uint8), cv2.IMREAD_COLOR)
+        full = _img(pg, "#img-corrected").astype(float)
+        c0, r0 = round(v["x"] + 100 - s[0]), round(v["y"] + 60 - s[1])
+        diffs = {}
+        for dr, dc in ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)):
+            diffs[(dr, dc)] = float(np.abs(shot - full[r0 + dr:r0 + dr + 200, c0 + dc:c0 + dc + 300]).mean())
+        return (r0, c0), diffs
+
+    (r0, c0), diffs = shown_vs_image()
+    off = min(v for k, v in diffs.items() if k != (0, 0))
+    assert diffs[(0, 0)] < 0.5 * off, diffs             # aligned 1:1 fits better than any one-pixel shift
+    _screenshot(pg, tmp_path, "wandell-webpage-100.png")
+
+    # pan: drag the picture 200 px left and 100 px up: the view shows 200 columns and 100 rows further
+    v = pg.locator("#viewer").bounding_box()
+    pg.mouse.move(v["x"] + 600, v["y"] + 300)
+    pg.mouse.down()
+    pg.mouse.move(v["x"] + 500, v["y"] + 250, steps=5)
+    pg.mouse.move(v["x"] + 400, v["y"] + 200, steps=5)
+    pg.mouse.up()
+    (r1, c1), diffs = shown_vs_image()
+    assert (r1 - r0, c1 - c0) == (100, 200), ((r0, c0), (r1, c1))
+    assert diffs[(0, 0)] < 0.5 * min(v for k, v in diffs.items() if k != (0, 0)), diffs
+    assert not (pg.text_content("#neutral-note") or "").startswith("White taken")   # a drag picks no white
+    ctx.close()
+
+
+def test_split_divider_moves_and_shows_before_left_after_right(browser, server, tmp_path):
+    """A scene under CIE A whose camera recorded a daylight white: before
+    (as shot) is orange, after (Auto) is not; the divider splits the view
+    where it is dragged, and the keyboard moves it too."""
+    import cv2
+
+    dng = tmp_path / "warm.dng"
+    scene_dng(dng, "Nikon 5100 (NPL)", "A", 240, 360, seed=5, as_shot_neutral="D65")
+    ctx = browser.new_context(viewport={"width": 1280, "height": 1000}, device_scale_factor=1)
+    pg = ctx.new_page()
+    _open(pg, server, dng)
+    assert pg.get_attribute("#view-split", "aria-pressed") == "true"
+    v = pg.locator("#viewer").bounding_box()
+    d = pg.locator("#divider").bounding_box()
+    assert abs(d["x"] + d["width"] / 2 - (v["x"] + v["width"] / 2)) <= 1
+
+    def warmth(x_fraction):
+        """R - B of a column strip of the view at ``x_fraction`` of its width (screenshot)."""
+        shot = cv2.imdecode(np.frombuffer(pg.screenshot(clip={"x": v["x"] + x_fraction * v["width"] - 5,
+                                                                  "y": v["y"] + 0.2 * v["height"], "width": 10,
+                                                                  "height": 0.6 * v["height"]}), np.uint8),
+                            cv2.IMREAD_COLOR).astype(float)
+        return float(shot[..., 2].mean() - shot[..., 0].mean())
+
+    # how much warmer before is than after, over the whole images
+    rb = [float(i[..., 2].mean() - i[..., 0].mean()) for i in (_img(pg, "#img-original").astype(float),
+                                                                _img(pg, "#img-corrected").astype(float))]
+    assert rb[0] - rb[1] > 20, rb
+    w15, w40 = warmth(0.15), warmth(0.40)
+    # drag the divider to a quarter of the width: 40 % is now on the after side, 15 % still before
+    pg.mouse.move(d["x"] + d["width"] / 2, d["y"] + d["height"] / 2)
+    pg.mouse.down()
+    pg.mouse.move(v["x"] + 0.25 * v["width"], d["y"] + d["height"] / 2, steps=8)
+    pg.mouse.up()
+    assert pg.get_attribute("#divider", "aria-valuenow") == "25"
+    assert warmth(0.15) == w15
+    assert w40 - warmth(0.40) > 0.5 * (rb[0] - rb[1]), (w40, warmth(0.40), rb)
+    pg.focus("#divider")
+    pg.keyboard.press("ArrowRight")
+    assert pg.get_attribute("#divider", "aria-valuenow") == "30"
+    pg.click("#view-before")
+    assert pg.is_hidden("#after-layer") and pg.is_hidden("#divider")
+    _screenshot(pg, tmp_path, "wandell-webpage-split.png")
+    ctx.close()
+
+
+def test_temperature_slider_re_renders_in_the_expected_direction(page, server, tmp_path):
+    """Custom white: a higher Temperature is a bluer light corrected away,
+    so the picture gets warmer (more red than blue), a lower one cooler;
+    the image shown is the API's own rendering for that white (the same
+    bytes as /v1/preview with white=T/tint); As shot and Auto show the
+    API's Temperature/Tint."""
+    import httpx
+
+    dng = _dng(tmp_path / "scene.dng", "D50", 6)
+    _open(page, server, dng)
+    est = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())}, timeout=60).json()
+    il, shot = est["illuminant"], est["as_shot"]
+    assert page.text_content("#auto-tt") == f"{round(il['temperature'])} K, tint {round(il['tint']):+d}"
+    assert page.text_content("#asshot-tt").startswith(f"{round(shot['temperature'])} K, tint {round(shot['tint']):+d}")
+    assert f"({shot['angle_to_estimate_deg']:.1f}° from Auto)" in page.text_content("#asshot-tt")
+
+    def red_minus_blue():
+        img = _img(page, "#img-corrected").astype(float)
+        return float(img[..., 2].mean() - img[..., 0].mean())
+
+    auto = red_minus_blue()
+    results = {}
+    for k in (3500, 9000):
+        page.eval_on_selector("#temp", """(el, k) => {
+            el.value = Math.round(1000 * (500 - 1e6 / k) / (500 - 20));
+            el.dispatchEvent(new Event("input", {bubbles: true}));
+        }""", k)
+        assert page.get_attribute("#wb-custom", "aria-pressed") == "true"
+        _wait_rendered(page)
+        white = page.text_content("#dl-white").replace("Custom ", "")
+        t = float(white.split("/")[0])
+        assert abs(t - k) <= 0.01 * k, (white, k)                    # the slider's scale is the one shown
+        results[k] = red_minus_blue()
+        ref = httpx.post(server + "/v1/preview", files={"file": ("scene.dng", dng.read_bytes())},
+                         data={"wb": "corrected", "white": white, "target": "D65", "format": "jpeg",
+                               "max_side": "1024"}, timeout=60)
+        assert ref.status_code == 200 and base64.b64decode(page.evaluate(_IMG_BYTES, "#img-corrected")) == ref.content
+    assert results[3500] < auto < results[9000], (results, auto)
+    page.click("#wb-auto")
+    _wait_rendered(page)
+    assert red_minus_blue() == pytest.approx(auto, abs=1e-9)
+    assert page.problems == []
+
+
+def test_histogram_and_clipping_are_the_images(page, server, tmp_path):
+    """The histogram's counts are the corrected image's (decoded by OpenCV
+    from the same bytes), and the clipping overlay marks exactly its
+    clipped pixels; an over-exposed scene has some."""
+    import cv2
+
+    dng = tmp_path / "bright.dng"
+    scene_dng(dng, "Nikon 5100 (NPL)", "D65", 240, 360, seed=8, exposure=1.0)
+    _open(page, server, dng)
+    img = _img(page, "#img-corrected")
+    counts = json.loads(page.get_attribute("#histogram", "data-counts"))
+    for k, ch in enumerate((2, 1, 0)):          # R, G, B in the page; OpenCV is BGR
+        ours = np.bincount(img[..., ch].ravel(), minlength=256)
+        # two JPEG decoders (Chromium's, OpenCV's): each pixel at most a level or two apart
+        assert sum(counts[k]) == ours.sum()
+        assert abs(np.dot(np.arange(256), counts[k]) - np.dot(np.arange(256), ours)) / ours.sum() < 0.5
+    high = (img >= 254).any(axis=2)
+    low = (img <= 1).all(axis=2) & ~high
+    assert high.mean() > 0.001, "the scene has no clipped highlights: the test proves nothing"
+    page.check("#show-clipping")
+    marked = int(page.get_attribute("#clip-overlay", "data-marked"))
+    assert abs(marked - int(high.sum() + low.sum())) <= 0.01 * high.size
+    assert page.is_visible("#clip-overlay")
+    assert float(page.get_attribute("#clip-stats", "data-high")) == pytest.approx(high.mean(), abs=0.01)
+    _screenshot(page, tmp_path, "wandell-webpage-clipping.png")
+
+
+def test_target_lights_the_api_takes(page, server, tmp_path):
+    """Target light offers D50, A, a daylight or blackbody at a chosen
+    kelvin and "as seen", and the page's request is one the API takes."""
+    page.wait_for_selector("#opt-target option[value='FL11']", state="attached")   # GET /v1/models's names
+    values = page.eval_on_selector_all("#opt-target option", "os => os.map(o => o.value)")
+    for v in ("D65", "D50", "A", "estimate", "custom-D", "custom-BB", "FL11"):
+        assert v in values, (v, values)
+    dng = _dng(tmp_path / "scene.dng", "D50", 6)
+    _open(page, server, dng)
+    page.select_option("#opt-target", "custom-BB")
+    page.fill("#target-k", "3200")
+    page.dispatch_event("#target-k", "change")
+    page.wait_for_selector("#corrected-target:has-text('BB3200')", timeout=120_000)
+    page.wait_for_selector("#status:has-text('Done')", timeout=120_000)
+    assert page.is_hidden("#error")
+
+
+def test_an_unmeasured_dng_camera_is_a_quiet_note_once_not_a_warning(page, server, tmp_path):
+    """The "approximate camera" of a DNG without measured sensitivities is
+    information, said once: the first file notes it, a second says nothing
+    of it outside the details; it is a warning only when the estimate is
+    uncertain (not so here: the check below says which case ran)."""
+    dng = tmp_path / "unknown.dng"
+    scene_dng(dng, "Nikon 5100 (NPL)", "D50", 240, 360, seed=9, make="Acme", model="Unmeasured 1")
+    _open(page, server, dng)
+    import httpx
+
+    est = httpx.post(server + "/v1/analyze", files={"file": ("u.dng", dng.read_bytes())}, timeout=60).json()
+    assert est["camera"]["source"] == "matrix-derived" and "approximate: derived from colour matrix" in est["warnings"]
+    assert not est["diagnostics"].get("low_confidence"), "the estimate is uncertain here: the case is the other one"
+    assert "not measured" in page.text_content("#diag-notes")
+    assert "approximate" not in page.text_content("#diag-warnings").lower()
+    assert "not measured" not in page.text_content("#diag-warnings")
+    page.set_input_files("#file", str(_dng(tmp_path / "second.dng", "D50", 10)))
+    page.set_input_files("#file", str(dng))
+    page.wait_for_selector("#status:has-text('Done')", timeout=120_000)
+    assert "not measured" not in page.text_content("#diag-notes")
+    assert "matrix-derived" in page.text_content("#diag-details")
+
+
+def test_a_batch_cancelled_before_anything_ran_shows_an_empty_bar(page, server, tmp_path):
+    files = _batch_files(tmp_path, 6, (1000, 1500))
+    page.set_input_files("#batch-files", [str(f) for f in files])
+    page.click("#batch-run")
+    page.wait_for_selector("#batch-cancel", state="visible", timeout=60_000)
+    page.click("#batch-cancel")
+    page.wait_for_selector("#batch-cancel", state="hidden", timeout=120_000)
+    import httpx
+
+    bid = page.inner_text("#batch-status").split(":")[0].replace("Batch ", "").strip()
+    c = httpx.get(f"{server}/v1/batches/{bid}", timeout=30).json()["counts"]
+    value, mx = page.eval_on_selector("#batch-progress", "p => [p.value, p.max]")
+    assert (value, mx) == (c["done"] + c["failed"], len(files)), c
+    if c["done"] + c["failed"] == 0:
+        assert value == 0
+    _screenshot(page, tmp_path, "wandell-webpage-batch-cancelled-early.png")

@@ -130,6 +130,7 @@ function setImage(img, blob) {
     img.onload = () => resolve();
     img.onerror = () => reject(new Error("the browser could not display the preview image"));
     img.src = URL.createObjectURL(blob);
+    img.blob = blob;   // the bytes shown (what the browser tests compare with the API's)
   });
 }
 
@@ -627,6 +628,7 @@ function onSlider() {
       M.map((r) => `${r.map((v) => v.toFixed(5)).join(" ")} 0 0`).join("  ") + "  0 0 0 1 0");
     $("img-corrected").style.filter = "url(#wb-approx)";
   }
+  $("wb-status").textContent = "Rendering…";
   clearTimeout(sliderTimer);
   sliderTimer = setTimeout(rerenderAfter, 250);
 }
