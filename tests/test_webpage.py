@@ -210,8 +210,8 @@ def test_upload_shows_both_images_the_light_and_the_diagnostics(page, server, tm
 
     # the numbers on the page are the API's (same file, same default options)
     est = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())}, timeout=60).json()
-    assert page.inner_text("#cct") == f"{round(est['illuminant']['cct'])} K"
-    assert re.fullmatch(r"[+-]\d\.\d{4}", page.inner_text("#duv"))
+    assert page.text_content("#cct") == f"{round(est['illuminant']['cct'])} K"      # under Technical details
+    assert re.fullmatch(r"[+-]\d\.\d{4}", page.text_content("#duv"))
 
     # the spectrum: one vertex per wavelength of the estimate
     d = page.get_attribute("#spectrum-svg #spectrum-path", "d")
@@ -768,3 +768,33 @@ def test_a_batch_cancelled_before_anything_ran_shows_an_empty_bar(page, server, 
     if c["done"] + c["failed"] == 0:
         assert value == 0
     _screenshot(page, tmp_path, "wandell-webpage-batch-cancelled-early.png")
+
+
+def test_a_light_map_is_shown_as_lights_found_and_a_picture(page, server, tmp_path):
+    """With "always map the light" the API answers a light map; the page
+    counts its lights as the API's map says (regions more than 3 degrees
+    apart, counted here the same way from the API's own answer), gives the
+    reason, and draws the map in the picture's proportions."""
+    import httpx
+
+    from recovery import angular_error
+
+    dng = _dng(tmp_path / "scene.dng", "D50", 12)
+    page.select_option("#opt-spatial", "true")
+    page.set_input_files("#file", str(dng))
+    page.wait_for_selector("#status:has-text('Done')", timeout=120_000)
+    est = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())},
+                     data={"spatial": "true"}, timeout=60).json()
+    cells = [c for row in est["light_map"]["camera_rgb"] for c in row]
+    groups = []
+    for c in cells:
+        if not any(angular_error(np.array(g), np.array(c)) <= 3 for g in groups):
+            groups.append(c)
+    assert page.is_visible("#lights") and page.is_visible("#light-map")
+    assert page.get_attribute("#light-map", "data-lights") == str(len(groups))
+    title = page.text_content("#lights-title")
+    assert title.startswith(f"{len(groups)} lights found" if len(groups) > 1 else "One light, varying"), title
+    assert page.text_content("#lights-reason") == est["diagnostics"]["spatial_reason"].replace(
+        "spatial='map' asks for a light map", '"always map the light" under Options asks for a map')
+    w, h = page.eval_on_selector("#light-map", "c => [c.width, c.height]")
+    assert abs(w / h - 360 / 240) < 0.05
