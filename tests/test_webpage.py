@@ -798,3 +798,42 @@ def test_a_light_map_is_shown_as_lights_found_and_a_picture(page, server, tmp_pa
         "spatial='map' asks for a light map", '"always map the light" under Options asks for a map')
     w, h = page.eval_on_selector("#light-map", "c => [c.width, c.height]")
     assert abs(w / h - 360 / 240) < 0.05
+
+
+def test_several_picks_are_averaged(page, server, tmp_path):
+    """A click picks white there (a mark shows it); Shift-click adds a
+    pick: the white used is the mean chromaticity of the picks' whites, each
+    read by the API (/v1/analyze with that neutral), as Temperature/Tint."""
+    import httpx
+
+    from recovery.dng_color import temperature_tint_to_xy, xy_to_temperature_tint
+
+    dng = _dng(tmp_path / "scene.dng", "D50", 6)
+    _open(page, server, dng)
+    page.locator("#viewer").scroll_into_view_if_needed()
+    v = page.locator("#viewer").bounding_box()
+    img = page.eval_on_selector("#img-corrected", "i => { const b = i.getBoundingClientRect(); "
+                                                  "return [b.left, b.top, b.width, b.height]; }")
+    # two grey patches of the chart's bottom row (ColorChecker layout, 4 x 6)
+    points = [(img[0] + img[2] * (c + 0.5) / 6 - v["x"], img[1] + img[3] * 3.5 / 4 - v["y"]) for c in (1, 3)]
+    page.mouse.click(v["x"] + points[0][0], v["y"] + points[0][1])
+    page.wait_for_selector("#neutral-note:has-text('White taken')", timeout=120_000)
+    page.wait_for_selector("#status:has-text('Done')", timeout=120_000)
+    page.keyboard.down("Shift")
+    page.mouse.click(v["x"] + points[1][0], v["y"] + points[1][1])
+    page.keyboard.up("Shift")
+    page.wait_for_selector("#dl-white:has-text('the mean of 2 picks')", timeout=120_000)
+    _wait_rendered(page)
+    assert page.eval_on_selector_all(".pick-mark", "ms => ms.filter(m => !m.hidden).length") == 2
+    neutrals = page.evaluate("() => current.picks.map(p => p.neutral)")
+    xys = []
+    for n in neutrals:
+        il = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())},
+                        data={"neutral": json.dumps(n)}, timeout=60).json()["illuminant"]
+        xys.append(temperature_tint_to_xy(il["temperature"], il["tint"]))
+    t, tint = xy_to_temperature_tint(np.mean(xys, axis=0))
+    white = page.text_content("#dl-white").split(", ")[-1]
+    # the page sends whole kelvin and whole tint units
+    assert white == f"{round(t)}/{'+' if tint >= 0 else ''}{round(tint)}", (white, t, tint)
+    assert page.get_attribute("#wb-custom", "aria-pressed") == "true"
+    _screenshot(page, tmp_path, "wandell-webpage-picks.png")

@@ -407,6 +407,29 @@ function ttToXy(temperature, tint) {
   return [1.5 * u / den, v / den];
 }
 
+// Temperature/Tint of an xy (DNG SDK dng_temperature::Set_xy_coord, Robertson's method)
+function xyToTt([x, y]) {
+  const d = 1.5 - x + 6 * y, u = 2 * x / d, v = 3 * y / d;
+  let lastDt = 0, lastDu = 0, lastDv = 0;
+  for (let i = 1; i < ROBERTSON.length; i++) {
+    const [, u1, v1, t1] = ROBERTSON[i];
+    const n = Math.hypot(1, t1);
+    let du = 1 / n, dv = t1 / n;
+    let dt = -(u - u1) * dv + (v - v1) * du;
+    if (dt <= 0 || i === ROBERTSON.length - 1) {
+      dt = -Math.min(dt, 0);
+      const f = i === 1 ? 0 : dt / (lastDt + dt);
+      const [r0, u0, v0] = ROBERTSON[i - 1], r1 = ROBERTSON[i][0];
+      const t = 1e6 / (r0 * f + r1 * (1 - f));
+      const uu = u - (u0 * f + u1 * (1 - f)), vv = v - (v0 * f + v1 * (1 - f));
+      du = du * (1 - f) + lastDu * f; dv = dv * (1 - f) + lastDv * f;
+      return {t, tint: (uu * du + vv * dv) / Math.hypot(du, dv) * -3000};
+    }
+    lastDt = dt; lastDu = du; lastDv = dv;
+  }
+  return null;
+}
+
 // The slider's 0..1000 is linear in mireds (even steps of perceived colour), 2000 K to 50000 K.
 const MIRED_WARM = 1e6 / 2000, MIRED_COOL = 1e6 / 50000;
 const sliderToK = (v) => 1e6 / (MIRED_WARM - v / 1000 * (MIRED_WARM - MIRED_COOL));
@@ -439,11 +462,11 @@ function approxMatrix(from, to) {
 
 // ---------------------------------------------------------------- one file
 
-let current = null;   // {file, options, estimate, neutral, pick, box, hasAsShot, wb, shown, seq}
+let current = null;   // {file, options, estimate, neutral, picks, box, hasAsShot, wb, shown, seq}
 const view = {mode: "split", zoom: "fit", s: 1, tx: 0, ty: 0, split: 0.5, W: 0, H: 0, full: null};
 
 function chooseFile(file) {
-  current = file ? {file, wb: {mode: "auto"}, seq: 0} : null;
+  current = file ? {file, wb: {mode: "auto"}, seq: 0, picks: []} : null;
   $("file-name").textContent = file ? `${file.name} (${(file.size / 1e6).toFixed(2)} MB)` : "no file chosen";
   $("run").disabled = !file;
   if (file) run();
@@ -521,7 +544,7 @@ async function run() {
       : "the file as LibRaw shows it (it records no white of its own)";
     // the as-shot preview repeats the estimate's warnings (said below); LibRaw's rendering has its own
     const beforeWarnings = before.asShot ? [] : (on.warnings || []);
-    $("original-note").textContent = beforeWarnings.length ? `(${beforeWarnings.join("; ")})` : "";
+    $("original-note").textContent = beforeWarnings.length ? ` (${beforeWarnings.join("; ")})` : "";
     $("corrected-target").textContent = targetWords(opts.target);
     const outW = cn.output_width || cn.width, outH = cn.output_height || cn.height;
     $("corrected-note").textContent = `(preview ${cn.width}×${cn.height}; the downloads are ${outW}×${outH})`;
@@ -599,7 +622,8 @@ function showWhiteBalance() {
   }
   $("temp-value").textContent = w ? `${Math.round(w.t)} K` : "–";
   $("tint-value").textContent = w ? `${w.tint >= 0 ? "+" : ""}${Math.round(w.tint)}` : "–";
-  $("dl-white").textContent = current.wb.mode === "custom" ? `Custom ${whiteField()}`
+  $("dl-white").textContent = current.wb.mode === "custom"
+    ? `${current.wb.picks ? `the mean of ${current.wb.picks} picks, ` : "Custom "}${whiteField()}`
     : current.wb.mode === "as-shot" ? "As shot" : (current.neutral ? "your white" : "Auto");
 }
 
@@ -712,12 +736,7 @@ function applyView() {
   $("after-layer").hidden = view.mode === "before";
   $("after-layer").style.clipPath = `inset(0 0 0 ${(100 * cut).toFixed(3)}%)`;
   $("img-original").hidden = view.mode === "after";
-  const mark = $("pick-mark");
-  mark.hidden = !(current && current.pick);
-  if (current && current.pick) {
-    mark.style.left = `${view.tx + current.pick.x * view.s}px`;
-    mark.style.top = `${view.ty + current.pick.y * view.s}px`;
-  }
+  drawMarks();
   $("viewer").classList.toggle("zoomed", view.zoom === "100");
   for (const [id, m] of [["view-split", "split"], ["view-before", "before"], ["view-after", "after"]]) {
     $(id).setAttribute("aria-pressed", String(view.mode === m));
@@ -732,8 +751,9 @@ function setMode(mode) { view.mode = mode; applyView(); }
 function setZoom(zoom) {
   if (!view.W) return;
   const [vw, vh] = viewerSize();
-  const cx = current && current.pick ? current.pick.x : (vw / 2 - view.tx) / view.s;
-  const cy = current && current.pick ? current.pick.y : (vh / 2 - view.ty) / view.s;
+  const last = current && current.picks.length ? current.picks[current.picks.length - 1] : null;
+  const cx = last ? last.x : (vw / 2 - view.tx) / view.s;
+  const cy = last ? last.y : (vh / 2 - view.ty) / view.s;
   view.zoom = zoom;
   if (zoom === "100") {
     view.s = 1 / (window.devicePixelRatio || 1);
@@ -808,7 +828,7 @@ function wireViewer() {
     const d = drag;
     drag = null;
     v.classList.remove("panning");
-    if (ev.type === "pointerup" && !d.moved) pickWhite(d.x, d.y);
+    if (ev.type === "pointerup" && !d.moved) pickWhite(d.x, d.y, ev.shiftKey || $("pick-add").checked);
   };
   v.addEventListener("pointerup", end);
   v.addEventListener("pointercancel", end);
@@ -844,18 +864,82 @@ function wireViewer() {
 
 // "Use this as white": a click fixes the light from a small square around
 // that point (about 1 % of the long side), in the decoded image's pixels.
-function pickWhite(x, y) {
+// With Shift (or "Average several picks") the click adds a pick: each pick's
+// white comes from /v1/analyze with that neutral, and the white used is the
+// mean of their chromaticities (each pick weighs the same), as Temperature/Tint.
+function pickWhite(x, y, add) {
   if (!current || !current.box || !view.W) return;
   const px = (x - view.tx) / view.s, py = (y - view.ty) / view.s;
   if (px < 0 || py < 0 || px >= view.W || py >= view.H) return;
   const [H, W] = current.box.full, [top, left] = current.box.crop;
   const r = Math.min(H - 1, top + Math.floor(py)), c = Math.min(W - 1, left + Math.floor(px));
   const half = Math.max(2, Math.round(0.005 * Math.max(W, H)));
-  current.pick = {x: px, y: py};
-  current.neutral = [Math.max(0, r - half), Math.max(0, c - half), Math.min(H, r + half + 1), Math.min(W, c + half + 1)];
+  const neutral = [Math.max(0, r - half), Math.max(0, c - half), Math.min(H, r + half + 1), Math.min(W, c + half + 1)];
+  const pick = {x: px, y: py, neutral};
+  if (add && current.picks.length && current.estimate && current.neutral) {
+    addPick(pick);
+    return;
+  }
+  current.picks = [pick];
+  current.neutral = neutral;
   current.wb = {mode: "auto"};
   applyView();
   run();
+}
+
+async function addPick(pick) {
+  const first = current.picks[0];
+  if (first.t === undefined) {
+    const il = current.estimate.illuminant || {};
+    first.t = il.temperature; first.tint = il.tint;
+  }
+  current.picks.push(pick);
+  applyView();
+  const seq = current.seq;
+  $("wb-status").textContent = "Reading the white there…";
+  try {
+    const j = await post("/v1/analyze", formFor(current.file, Object.assign(estimationFields(current.options),
+      {neutral: JSON.stringify(pick.neutral)}))).then((r) => r.json());
+    if (!current || current.seq !== seq || !current.picks.includes(pick)) return;
+    const il = j.illuminant || {};
+    if (typeof il.temperature !== "number") throw new Error("That surface's colour has no temperature: pick a white or grey one.");
+    pick.t = il.temperature; pick.tint = il.tint;
+    const xy = [0, 0];
+    const ok = current.picks.filter((p) => typeof p.t === "number");
+    for (const p of ok) { const q = ttToXy(p.t, p.tint); xy[0] += q[0] / ok.length; xy[1] += q[1] / ok.length; }
+    const mean = xyToTt(xy);
+    current.wb = {mode: "custom", t: mean.t, tint: mean.tint, picks: ok.length};
+    $("neutral-note").textContent = `White averaged from ${ok.length} picks (the mean of their chromaticities). ` +
+      "Shift-click to add another; click without Shift to start again.";
+    showWhiteBalance();
+    rerenderAfter();
+  } catch (err) {
+    current.picks = current.picks.filter((p) => p !== pick);
+    applyView();
+    $("wb-status").textContent = "";
+    showError($("error"), err);
+  }
+}
+
+function drawMarks() {
+  const picks = current ? current.picks : [];
+  const first = $("pick-mark");
+  const marks = [first, ...document.querySelectorAll(".pick-mark.extra")];
+  while (marks.length < picks.length) {
+    const m = first.cloneNode(false);
+    m.removeAttribute("id");
+    m.classList.add("extra");
+    first.parentNode.insertBefore(m, first.nextSibling);
+    marks.push(m);
+  }
+  marks.forEach((m, i) => {
+    const p = picks[i];
+    m.hidden = !p;
+    if (p) {
+      m.style.left = `${view.tx + p.x * view.s}px`;
+      m.style.top = `${view.ty + p.y * view.s}px`;
+    }
+  });
 }
 
 function showNeutral(analysis) {
@@ -1224,7 +1308,7 @@ document.addEventListener("DOMContentLoaded", () => {
   $("run").addEventListener("click", run);
   wireViewer();
   $("neutral-clear").addEventListener("click", () => {
-    if (current) { current.neutral = null; current.pick = null; current.wb = {mode: "auto"}; run(); }
+    if (current) { current.neutral = null; current.picks = []; current.wb = {mode: "auto"}; run(); }
   });
   $("view-split").addEventListener("click", () => setMode("split"));
   $("view-before").addEventListener("click", () => setMode("before"));
