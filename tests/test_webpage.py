@@ -837,3 +837,29 @@ def test_several_picks_are_averaged(page, server, tmp_path):
     assert white == f"{round(t)}/{'+' if tint >= 0 else ''}{round(tint)}", (white, t, tint)
     assert page.get_attribute("#wb-custom", "aria-pressed") == "true"
     _screenshot(page, tmp_path, "wandell-webpage-picks.png")
+
+
+def test_ctrl_wheel_zooms_about_the_pointer(page, server, tmp_path):
+    """Ctrl + wheel (a trackpad's pinch) zooms by exp(-0.002 deltaY), the
+    picture's point under the pointer staying under it; never below Fit."""
+    _open(page, server, _dng(tmp_path / "scene.dng", "D50", 6))
+    page.locator("#viewer").scroll_into_view_if_needed()
+    v = page.locator("#viewer").bounding_box()
+    rect = "i => { const b = i.getBoundingClientRect(); return [b.left, b.top, b.width]; }"
+    x0, y0, w0 = page.eval_on_selector("#img-corrected", rect)
+    px, py = v["x"] + 0.3 * v["width"], v["y"] + 0.4 * v["height"]
+    page.mouse.move(px, py)
+    page.keyboard.down("Control")
+    page.mouse.wheel(0, -200)
+    page.keyboard.up("Control")
+    page.wait_for_selector("#viewer.zoomed")
+    x1, y1, w1 = page.eval_on_selector("#img-corrected", rect)
+    assert w1 / w0 == pytest.approx(np.exp(0.4), rel=1e-3)
+    # the same picture point under the pointer: (p - left) / width unchanged
+    assert (px - x1) / w1 == pytest.approx((px - x0) / w0, abs=0.5 / w1)
+    assert (py - y1) / w1 == pytest.approx((py - y0) / w0, abs=0.5 / w1)
+    page.keyboard.down("Control")
+    page.mouse.wheel(0, 2000)                  # far out: stops at Fit
+    page.keyboard.up("Control")
+    page.wait_for_selector("#zoom-fit[aria-pressed='true']")
+    assert page.eval_on_selector("#img-corrected", rect)[2] == pytest.approx(w0, rel=1e-6)

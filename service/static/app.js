@@ -673,7 +673,7 @@ async function rerenderAfter() {
     current.shown = shownWhite(white);
     $("wb-status").textContent = "";
     afterChanged();
-    if (view.zoom === "100") loadFull();
+    if (view.zoom !== "fit") loadFull();
   } catch (err) {
     if (current && current.seq === seq) {
       $("wb-status").textContent = "";
@@ -737,7 +737,7 @@ function applyView() {
   $("after-layer").style.clipPath = `inset(0 0 0 ${(100 * cut).toFixed(3)}%)`;
   $("img-original").hidden = view.mode === "after";
   drawMarks();
-  $("viewer").classList.toggle("zoomed", view.zoom === "100");
+  $("viewer").classList.toggle("zoomed", view.zoom !== "fit");
   for (const [id, m] of [["view-split", "split"], ["view-before", "before"], ["view-after", "after"]]) {
     $(id).setAttribute("aria-pressed", String(view.mode === m));
   }
@@ -768,6 +768,27 @@ function setZoom(zoom) {
   }
 }
 
+// Zoom to scale s (between Fit and 400 %) keeping the picture's point under (x, y) where it is.
+function zoomAt(s, x, y) {
+  if (!view.W) return;
+  const dpr = window.devicePixelRatio || 1, fit = fitScale();
+  s = Math.min(4 / dpr, Math.max(fit, s));
+  const px = (x - view.tx) / view.s, py = (y - view.ty) / view.s;
+  view.s = s;
+  view.tx = x - px * s;
+  view.ty = y - py * s;
+  view.zoom = Math.abs(s - fit) < 1e-3 * fit ? "fit" : Math.abs(s * dpr - 1) < 0.02 ? "100" : "free";
+  if (view.zoom === "100") view.s = 1 / dpr;
+  clampPan();
+  applyView();
+  if (view.zoom === "fit") $("zoom-note").textContent = "";
+  else loadFull();
+}
+
+function zoomWords() {
+  return `${Math.round(100 * view.s * (window.devicePixelRatio || 1))} %: full size`;
+}
+
 // The full-size images for 100 %: the download's own rendering (POST /v1/white-balance, JPEG).
 async function loadFull() {
   if (!current || !current.estimate) return;
@@ -777,7 +798,7 @@ async function loadFull() {
   const jobs = [];
   if (full.after !== want.after) jobs.push(["after", white]);
   if (current.hasAsShot && !full.before) jobs.push(["before", "as-shot"]);
-  if (!jobs.length) { $("zoom-note").textContent = "100 %: full size"; return; }
+  if (!jobs.length) { $("zoom-note").textContent = zoomWords(); return; }
   $("zoom-note").textContent = "Loading the full-size image…";
   try {
     const blobs = await Promise.all(jobs.map(([, w]) => post("/v1/white-balance",
@@ -790,7 +811,7 @@ async function loadFull() {
       view.full[which] = which === "after" ? want.after : true;
     }
     if (jobs.some(([w]) => w === "after")) afterChanged();
-    $("zoom-note").textContent = view.zoom === "100" ? "100 %: full size" : "";
+    $("zoom-note").textContent = view.zoom !== "fit" ? zoomWords() : "";
   } catch (err) {
     $("zoom-note").textContent = "";
     showError($("error"), err);
@@ -805,17 +826,33 @@ function viewerPoint(ev) {
 function wireViewer() {
   const v = $("viewer");
   let drag = null;
+  // two fingers: pinch to zoom about their midpoint (no pick, no pan)
+  const touches = new Map();
+  let pinch = null;
   v.addEventListener("pointerdown", (ev) => {
     if (ev.target.closest("#divider") || ev.button !== 0) return;
     const [x, y] = viewerPoint(ev);
+    touches.set(ev.pointerId, [x, y]);
+    if (touches.size === 2) {
+      const [a, b] = [...touches.values()];
+      pinch = {d: Math.hypot(a[0] - b[0], a[1] - b[1]) || 1, s: view.s};
+      drag = null;
+      return;
+    }
     drag = {x, y, tx: view.tx, ty: view.ty, moved: false, id: ev.pointerId};
-    if (view.zoom === "100") v.setPointerCapture(ev.pointerId);
+    if (view.zoom !== "fit") v.setPointerCapture(ev.pointerId);
   });
   v.addEventListener("pointermove", (ev) => {
+    if (touches.has(ev.pointerId)) touches.set(ev.pointerId, viewerPoint(ev));
+    if (pinch && touches.size === 2) {
+      const [a, b] = [...touches.values()];
+      zoomAt(pinch.s * Math.hypot(a[0] - b[0], a[1] - b[1]) / pinch.d, (a[0] + b[0]) / 2, (a[1] + b[1]) / 2);
+      return;
+    }
     if (!drag || drag.id !== ev.pointerId) return;
     const [x, y] = viewerPoint(ev);
     if (Math.hypot(x - drag.x, y - drag.y) > 4) drag.moved = true;
-    if (drag.moved && view.zoom === "100") {
+    if (drag.moved && view.zoom !== "fit") {
       v.classList.add("panning");
       view.tx = drag.tx + x - drag.x;
       view.ty = drag.ty + y - drag.y;
@@ -824,6 +861,8 @@ function wireViewer() {
     }
   });
   const end = (ev) => {
+    touches.delete(ev.pointerId);
+    if (touches.size < 2) pinch = null;
     if (!drag || drag.id !== ev.pointerId) return;
     const d = drag;
     drag = null;
@@ -852,13 +891,20 @@ function wireViewer() {
     applyView();
   });
   v.addEventListener("keydown", (ev) => {
-    if (ev.target !== v || view.zoom !== "100") return;
+    if (ev.target !== v || view.zoom === "fit") return;
     const d = {ArrowLeft: [40, 0], ArrowRight: [-40, 0], ArrowUp: [0, 40], ArrowDown: [0, -40]}[ev.key];
     if (!d) return;
     ev.preventDefault();
     view.tx += d[0]; view.ty += d[1];
     clampPan(); applyView();
   });
+  // Ctrl + wheel (and a trackpad's pinch, which browsers send so) zooms about the pointer
+  v.addEventListener("wheel", (ev) => {
+    if (!(ev.ctrlKey || ev.metaKey) || !view.W) return;
+    ev.preventDefault();
+    const [x, y] = viewerPoint(ev);
+    zoomAt(view.s * Math.exp(-ev.deltaY * 0.002), x, y);
+  }, {passive: false});
   window.addEventListener("resize", () => { if (view.W) layout(); });
 }
 
