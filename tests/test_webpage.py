@@ -770,6 +770,29 @@ def test_a_batch_cancelled_before_anything_ran_shows_an_empty_bar(page, server, 
     _screenshot(page, tmp_path, "wandell-webpage-batch-cancelled-early.png")
 
 
+def _lights_in(grid, apart=3.0) -> int:
+    """The lights of a light map as the page counts them: cells more than
+    ``apart`` degrees from every earlier group start a group; a group within
+    ``apart`` of a non-negative mixture of two others (light is additive)
+    is not a light of its own."""
+    from recovery import angular_error
+
+    cells = [np.asarray(c, float) for row in grid for c in row]
+    groups = []
+    for c in cells:
+        if not any(angular_error(g, c) <= apart for g in groups):
+            groups.append(c)
+
+    def mixed(g, a, b):
+        w, *_ = np.linalg.lstsq(np.stack([a, b], axis=1), g, rcond=None)
+        return bool(np.all(w >= 0)) and angular_error(g, np.stack([a, b], axis=1) @ w) <= apart
+
+    pure = [g for i, g in enumerate(groups)
+            if not any(mixed(g, a, b) for j, a in enumerate(groups) for k, b in enumerate(groups)
+                       if len({i, j, k}) == 3)]
+    return max(1, len(pure))
+
+
 def test_a_light_map_is_shown_as_lights_found_and_a_picture(page, server, tmp_path):
     """With "always map the light" the API answers a light map; the page
     counts its lights as the API's map says (regions more than 3 degrees
@@ -777,23 +800,17 @@ def test_a_light_map_is_shown_as_lights_found_and_a_picture(page, server, tmp_pa
     reason, and draws the map in the picture's proportions."""
     import httpx
 
-    from recovery import angular_error
-
     dng = _dng(tmp_path / "scene.dng", "D50", 12)
     page.select_option("#opt-spatial", "true")
     page.set_input_files("#file", str(dng))
     page.wait_for_selector("#status:has-text('Done')", timeout=120_000)
     est = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())},
                      data={"spatial": "true"}, timeout=60).json()
-    cells = [c for row in est["light_map"]["camera_rgb"] for c in row]
-    groups = []
-    for c in cells:
-        if not any(angular_error(np.array(g), np.array(c)) <= 3 for g in groups):
-            groups.append(c)
+    n = _lights_in(est["light_map"]["camera_rgb"])
     assert page.is_visible("#lights") and page.is_visible("#light-map")
-    assert page.get_attribute("#light-map", "data-lights") == str(len(groups))
+    assert page.get_attribute("#light-map", "data-lights") == str(n)
     title = page.text_content("#lights-title")
-    assert title.startswith(f"{len(groups)} lights found" if len(groups) > 1 else "One light, varying"), title
+    assert title.startswith(f"{n} lights found" if n > 1 else "One light, varying"), title
     assert page.text_content("#lights-reason") == est["diagnostics"]["spatial_reason"].replace(
         "spatial='map' asks for a light map", '"always map the light" under Options asks for a map')
     w, h = page.eval_on_selector("#light-map", "c => [c.width, c.height]")
@@ -863,3 +880,49 @@ def test_ctrl_wheel_zooms_about_the_pointer(page, server, tmp_path):
     page.keyboard.up("Control")
     page.wait_for_selector("#zoom-fit[aria-pressed='true']")
     assert page.eval_on_selector("#img-corrected", rect)[2] == pytest.approx(w0, rel=1e-6)
+
+
+def _two_light_dng(path: Path) -> Path:
+    """A Mondrian half under CIE A, half under D65 (24 degrees apart for the
+    Nikon 5100), :func:`testing.scenes.two_light_scene`, mosaicked into a
+    DNG of the measured camera."""
+    import cv2
+
+    from testing.dngwriter import CAMERA_MAKE_MODEL, cfa_colour_indices, color_matrix_for_camera, mosaic, write_dng
+    from testing.scenes import two_light_scene
+
+    img, _, sep = two_light_scene(np.random.default_rng(3), 24, "Nikon 5100 (NPL)", "A", "D65", "halves", 256)
+    assert sep > 20
+    cfa = mosaic(cv2.resize(img, (768, 512), interpolation=cv2.INTER_NEAREST))
+    make, model = CAMERA_MAKE_MODEL["Nikon 5100 (NPL)"]
+    write_dng(path, np.round(np.clip(cfa, 0, 1) * 16000).astype(np.uint16), pattern=cfa_colour_indices("RGGB"),
+              black_level=0, white_level=16383, color_matrix1=color_matrix_for_camera("Nikon 5100 (NPL)"),
+              make=make, model=model)
+    return path
+
+
+def test_two_lights_found_and_drawn_where_they_are(page, server, tmp_path):
+    """A scene lit half by a tungsten lamp and half by daylight: with the
+    default options the API maps the light, the page says "2 lights found"
+    with the API's reason, and its small picture is warmer where the API's
+    map has the warmer light."""
+    import httpx
+
+    dng = _two_light_dng(tmp_path / "two.dng")
+    _open(page, server, dng)
+    est = httpx.post(server + "/v1/analyze", files={"file": ("two.dng", dng.read_bytes())}, timeout=60).json()
+    lm = est.get("light_map")
+    assert lm is not None, est["diagnostics"].get("spatial_reason")
+    assert _lights_in(lm["camera_rgb"]) == 2
+    assert page.text_content("#lights-title").startswith("2 lights found"), page.text_content("#lights-title")
+    assert est["diagnostics"]["spatial_reason"] in page.text_content("#lights-reason")
+    # the warmest and coolest cells of the API's map, and the picture's colour there
+    cells = [(r, c, rgb) for r, row in enumerate(lm["camera_rgb"]) for c, rgb in enumerate(row)]
+    warm = max(cells, key=lambda t: t[2][0] / t[2][2])
+    cool = min(cells, key=lambda t: t[2][0] / t[2][2])
+    pixel = """(c, [fy, fx]) => Array.from(c.getContext("2d").getImageData(
+        Math.floor(fx * c.width), Math.floor(fy * c.height), 1, 1).data)"""
+    pw = page.eval_on_selector("#light-map", pixel, [lm["centres_row_fraction"][warm[0]], lm["centres_col_fraction"][warm[1]]])
+    pc = page.eval_on_selector("#light-map", pixel, [lm["centres_row_fraction"][cool[0]], lm["centres_col_fraction"][cool[1]]])
+    assert pw[0] - pw[2] > pc[0] - pc[2] + 30, (pw, pc)
+    _screenshot(page, tmp_path, "wandell-webpage-two-lights.png")

@@ -1095,6 +1095,17 @@ function angleDeg(a, b) {
   return Math.acos(Math.min(1, Math.max(-1, dot / n))) * 180 / Math.PI;
 }
 
+// The angle (degrees) from g to the nearest non-negative mixture of a and b (Infinity if none is near).
+function mixtureAngle(g, a, b) {
+  const dot = (u, v) => u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+  const aa = dot(a, a), ab = dot(a, b), bb = dot(b, b), ga = dot(g, a), gb = dot(g, b);
+  const det = aa * bb - ab * ab;
+  if (Math.abs(det) < 1e-12) return Infinity;
+  const al = (ga * bb - gb * ab) / det, be = (gb * aa - ga * ab) / det;
+  if (al < 0 || be < 0) return Infinity;
+  return angleDeg(g, [al * a[0] + be * b[0], al * a[1] + be * b[1], al * a[2] + be * b[2]]);
+}
+
 function showLights(analysis) {
   const lm = analysis.light_map, d = analysis.diagnostics || {};
   const box = $("lights"), canvas = $("light-map");
@@ -1108,12 +1119,16 @@ function showLights(analysis) {
   const rows = lm.camera_rgb, cells = rows.flat();
   const groups = [];
   for (const c of cells) if (!groups.some((g) => angleDeg(g, c) <= LIGHTS_APART_DEG)) groups.push(c);
+  // light is additive: a region lit by a mixture of two others' lights is not a light of its own
+  const pure = groups.filter((g) => !groups.some((a) => a !== g && groups.some((b) => b !== g && b !== a &&
+    mixtureAngle(g, a, b) <= LIGHTS_APART_DEG)));
+  const n = Math.max(1, pure.length);
   let spread = 0;
   for (const a of cells) for (const b of cells) spread = Math.max(spread, angleDeg(a, b));
-  $("lights-title").textContent = groups.length > 1
-    ? `${groups.length} lights found (they differ by up to ${fmt(spread, 1)}°)`
+  $("lights-title").textContent = n > 1
+    ? `${n} lights found${groups.length > n ? ", mixing in between" : ""} (they differ by up to ${fmt(spread, 1)}°)`
     : `One light, varying by ${fmt(spread, 1)}° over the picture`;
-  canvas.dataset.lights = String(groups.length);
+  canvas.dataset.lights = String(n);
   // each region coloured by its light relative to the light the picture is corrected for:
   // a region whose light is bluer than that shows blue (what is left on a white surface there)
   const ref = (analysis.illuminant || {}).camera_rgb || cells[0];
