@@ -698,11 +698,8 @@ function fitScale() {
 // Size the viewer to the picture (at most 75 % of the window's height) and place the stage.
 function layout(reset) {
   if (!view.W) return;
-  const v = $("viewer");
-  const vw = v.clientWidth;
-  const want = Math.round(Math.min(vw * view.H / view.W, 0.75 * window.innerHeight));
-  v.style.height = `${Math.max(160, want)}px`;
-  const [, vh] = viewerSize();
+  viewerHeight();
+  const [vw, vh] = viewerSize();
   if (view.zoom === "fit" || reset) {
     if (view.zoom === "fit") {
       view.s = fitScale();
@@ -712,6 +709,15 @@ function layout(reset) {
   }
   clampPan();
   applyView();
+}
+
+// The viewer is as tall as the picture at Fit (at most 75 % of the window);
+// zoomed in, at least 60 % of the window (a phone's fitted picture is a strip).
+function viewerHeight() {
+  const v = $("viewer");
+  let want = Math.min(v.clientWidth * view.H / view.W, 0.75 * window.innerHeight);
+  if (view.zoom !== "fit") want = Math.max(want, 0.6 * window.innerHeight);
+  v.style.height = `${Math.max(160, Math.round(want))}px`;
 }
 
 function clampPan() {
@@ -755,6 +761,7 @@ function setZoom(zoom) {
   const cx = last ? last.x : (vw / 2 - view.tx) / view.s;
   const cy = last ? last.y : (vh / 2 - view.ty) / view.s;
   view.zoom = zoom;
+  viewerHeight();
   if (zoom === "100") {
     view.s = 1 / (window.devicePixelRatio || 1);
     view.tx = vw / 2 - cx * view.s;
@@ -779,10 +786,15 @@ function zoomAt(s, x, y) {
   view.ty = y - py * s;
   view.zoom = Math.abs(s - fit) < 1e-3 * fit ? "fit" : Math.abs(s * dpr - 1) < 0.02 ? "100" : "free";
   if (view.zoom === "100") view.s = 1 / dpr;
+  viewerHeight();     // the viewer's top stays: the point under (x, y) too
+  if (view.zoom === "fit") {
+    layout();
+    $("zoom-note").textContent = "";
+    return;
+  }
   clampPan();
   applyView();
-  if (view.zoom === "fit") $("zoom-note").textContent = "";
-  else loadFull();
+  loadFull();
 }
 
 function zoomWords() {
@@ -1107,15 +1119,13 @@ function mixtureAngle(g, a, b) {
 }
 
 function showLights(analysis) {
+  // one light (the usual case) is said under Technical details only
   const lm = analysis.light_map, d = analysis.diagnostics || {};
   const box = $("lights"), canvas = $("light-map");
-  box.hidden = !(lm || d.spatial_decision);
+  box.hidden = !lm;
   canvas.hidden = !lm;
   $("lights-reason").textContent = pageWords(String(d.spatial_reason || ""));
-  if (!lm) {
-    $("lights-title").textContent = "One light over the whole picture";
-    return;
-  }
+  if (!lm) return;
   const rows = lm.camera_rgb, cells = rows.flat();
   const groups = [];
   for (const c of cells) if (!groups.some((g) => angleDeg(g, c) <= LIGHTS_APART_DEG)) groups.push(c);
