@@ -94,6 +94,65 @@ def test_every_element_the_script_uses_is_on_the_page():
 
 
 # ---------------------------------------------------------------------------
+# The API the page's white balance uses (no browser)
+# ---------------------------------------------------------------------------
+
+def _tiny_dng(illuminant="A", **kw) -> bytes:
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", illuminant, 120, 180, seed=4, **kw)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("source", ["synthetic DNG, measured camera", "the real CinemaDNG, its matrices"])
+def test_white_given_as_temperature_tint_renders_that_white(client, source):
+    """``white=T/tint`` on /v1/white-balance and /v1/preview: the light used
+    has that Temperature/Tint, and the estimate's own Temperature/Tint given
+    back renders the estimate's white. Bounds: the DNG SDK's conversions
+    (Robertson's table, interpolated one way in ``Get_xy_coord`` and the
+    other in ``Set_xy_coord``) are not exact inverses: measured 0.20 K and
+    0.0008 tint on both files, 0.0016 degrees of camera RGB for the measured
+    camera (3e-5 through the CinemaDNG's matrices); the bounds are 0.5 K,
+    0.05 and 0.05 degrees."""
+    from recovery import angular_error
+
+    from .conftest import shared_file
+
+    data = _tiny_dng("A") if source.startswith("synthetic") else shared_file("data/raw/Blackmagic.dng").read_bytes()
+    files = {"file": ("x.dng", data)}
+    est = client.post("/v1/analyze", files=files).json()
+    il = est["illuminant"]
+    for t, tint in ((3200, 0), (6500, 10), (9000, -20)):
+        got = client.post("/v1/white-balance", files=files,
+                          data={"white": f"{t}/{tint:+d}", "response": "json"}).json()["illuminant"]
+        assert got["temperature"] == pytest.approx(t, abs=0.5) and got["tint"] == pytest.approx(tint, abs=0.05)
+    back = client.post("/v1/white-balance", files=files, data={
+        "white": f"{il['temperature']:.4f}/{il['tint']:+.4f}", "response": "json"}).json()["illuminant"]
+    assert angular_error(np.array(back["camera_rgb"]), np.array(il["camera_rgb"])) < 0.05
+    r = client.post("/v1/preview", files=files, data={"wb": "corrected", "white": "5000/+5"})
+    assert r.status_code == 200 and json.loads(r.headers["X-Preview"])["white"] == "5000/+5"
+    # as-shot given as Temperature/Tint in /v1/analyze is the as-shot white's
+    shot = client.post("/v1/white-balance", files=files, data={"white": "as-shot", "response": "json"}).json()
+    assert est["as_shot"]["temperature"] == pytest.approx(shot["illuminant"]["temperature"], rel=1e-9)
+
+
+@pytest.mark.parametrize("white,words", [("hot", "estimate, as-shot or TEMPERATURE/TINT"),
+                                         ("1500/0", "2000..50000 K"), ("5000/+200", "tint in -150..+150"),
+                                         ("5000", "TEMPERATURE/TINT"), ("nan/0", "TEMPERATURE/TINT")])
+def test_a_bad_white_is_a_422_naming_the_forms(client, white, words):
+    files = {"file": ("x.dng", _tiny_dng())}
+    for path, extra in (("/v1/white-balance", {}), ("/v1/preview", {"wb": "corrected"})):
+        r = client.post(path, files=files, data={"white": white, **extra})
+        assert r.status_code == 422 and r.json()["error"] == "invalid_parameter", (path, r.text)
+        assert words in r.json()["detail"], r.json()["detail"]
+
+
+def test_preview_white_and_neutral_together_is_a_422(client):
+    r = client.post("/v1/preview", files={"file": ("x.dng", _tiny_dng())},
+                    data={"wb": "corrected", "white": "as-shot", "neutral": "[10, 10]"})
+    assert r.status_code == 422 and "neutral" in r.json()["detail"]
+
+
+# ---------------------------------------------------------------------------
 # A real server and a real browser
 # ---------------------------------------------------------------------------
 

@@ -213,7 +213,7 @@ RENDERING = {
 #: renders the file's own white for comparison.
 WHITE_BALANCE = {
     "white": Opt(str, "estimate", WHITE_HELP, examples=("estimate", "as-shot", "5200/+10"), check=check_white,
-                 summary="`estimate`, `as-shot` or TEMPERATURE/TINT on Camera Raw's scale (e.g. `5200/+10`)"),
+                 summary="estimate, as-shot, or TEMPERATURE/TINT on Camera Raw's scale (e.g. 5200/+10)"),
     "response": Opt(str, "image", "image, or json for the estimate and correction matrix only",
                     choices=("image", "json"), examples=("image",), check=_must_be("{name} must be image or json")),
 }
