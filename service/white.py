@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import re
 
-import numpy as np
-
-from .errors import ServiceError
+from .errors import ServiceError   # numpy only inside the functions: `wandell --help` imports this module
 
 __all__ = ["WHITE_HELP", "TEMPERATURE_RANGE", "TINT_RANGE", "parse_white", "check_white", "white_from_temperature_tint",
            "with_white", "as_shot_temperature_tint"]
@@ -65,9 +63,10 @@ def check_white(value, name, choices):
     return value
 
 
-def white_from_temperature_tint(decoded, run, temperature: float, tint: float) -> np.ndarray:
+def white_from_temperature_tint(decoded, run, temperature: float, tint: float):
     """The camera's response (C,) to the white of ``temperature``/``tint``
     (module docstring: the file's matrices, else the camera's sensitivities)."""
+    import numpy as np
     from recovery.dng_color import temperature_tint_to_xy, xy_to_xyz, xyz_to_camera
 
     from recovery.api import resolve_model
@@ -94,6 +93,8 @@ def with_white(decoded, run, white: str):
     or the user's neutral surface), the file's own as-shot white (422
     ``no_as_shot_white`` without one), or a Temperature/Tint
     (:func:`white_from_temperature_tint`)."""
+    import numpy as np
+
     from .pipeline import run_with_white
 
     w = parse_white(white)
@@ -114,6 +115,8 @@ def as_shot_temperature_tint(decoded, run) -> dict:
     """The file's as-shot white as Temperature/Tint (``{}`` when the file
     records none or it is far from the Planckian locus): the same
     conversion as the estimate's (:func:`service.pipeline.temperature_tint`)."""
+    import numpy as np
+
     from .pipeline import run_with_white, temperature_tint
 
     asn = decoded.as_shot_neutral

@@ -467,6 +467,7 @@ const view = {mode: "split", zoom: "fit", s: 1, tx: 0, ty: 0, split: 0.5, W: 0, 
 
 function chooseFile(file) {
   current = file ? {file, wb: {mode: "auto"}, seq: 0, picks: []} : null;
+  view.zoom = "fit";                       // a new picture starts whole
   $("file-name").textContent = file ? `${file.name} (${(file.size / 1e6).toFixed(2)} MB)` : "no file chosen";
   $("run").disabled = !file;
   if (file) run();
@@ -569,9 +570,11 @@ async function run() {
     current.shown = shownWhite(whiteField());
     layout(true);
     afterChanged();
+    if (view.zoom !== "fit") loadFull();   // zoomed in: the full-size images for the new settings
     $("status").textContent = `Done in ${((performance.now() - t0) / 1000).toFixed(1)} s.`;
   } catch (err) {
     $("status").textContent = "";
+    if (current && current.file === file && !current.estimate) $("result").hidden = true;   // nothing of this file to show
     showError($("error"), err);
   } finally {
     $("run").disabled = !current;
