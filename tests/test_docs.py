@@ -105,7 +105,6 @@ def test_no_example_becomes_a_value_in_try_it_out(spec):
     ("/v1/white-balance", "format", {"tiff", "png", "png16", "jpeg", "xmp"}),
     ("/v1/white-balance", "method", {"auto", "maloney-wandell", "gray-world"}),
     ("/v1/white-balance", "output", {"sRGB", "linear-sRGB", "Display P3"}),
-    ("/v1/white-balance", "white", {"estimate", "as-shot"}),
     ("/v1/preview", "wb", {"camera", "corrected"}),
     ("/v1/surfaces", "format", {"json", "csv"}),
 ])

@@ -25,6 +25,7 @@ from ..schemas import AnalyzeEstimation, Estimation, Input, Neutral, Regions, Wh
 from ..schemas.responses import AnalyzeResult, SurfacesResult, WhiteBalanceResult
 from ..schemas.forms import form
 from ..settings import Settings, get_settings
+from ..white import as_shot_temperature_tint, with_white
 from ..workers import run_heavy, work_slots
 
 router = APIRouter(prefix="/v1")
@@ -101,19 +102,18 @@ async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: Upl
     decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, est.camera, est.method, opts,
                                    settings, where, inp.display_referred, request=request)
     body = pipeline.analysis_json(run, decoded)
+    if "as_shot" in body:     # the camera's own white on the scale of the estimate's Temperature/Tint
+        body["as_shot"].update(as_shot_temperature_tint(decoded, run))
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     return JSONResponse(clean(body))
 
 
 def _with_white(decoded, run, white: str):
-    """The run whose light renders the image: the estimate (or the user's
-    neutral surface), or the file's own as-shot white (the same rendering,
-    for a side-by-side download)."""
-    if white == "estimate":
-        return run
-    if decoded.as_shot_neutral is None:
-        raise ServiceError(422, "no_as_shot_white", "white=as-shot: the file records no as-shot white balance")
-    return pipeline.run_with_white(run, decoded.as_shot_neutral, "as-shot")
+    """The run whose light renders the image (:func:`service.white.with_white`):
+    the estimate (or the user's neutral surface), the file's own as-shot
+    white (the same rendering, for a side-by-side download), or a white
+    given as Temperature/Tint."""
+    return with_white(decoded, run, white)
 
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,
@@ -254,7 +254,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     target, output, white, response, ev, where = (rend.target, rend.output, rend.white, rend.response,
                                                   rend.exposure, nt.neutral)
     fmt = FORMATS[rend.format]
-    if where is not None and white != "estimate":
+    if where is not None and white != "estimate":   # as-shot, or a Temperature/Tint
         raise ServiceError(422, "invalid_parameter", "neutral fixes the white from a surface; it cannot be "
                            f"combined with white={white!r}")
     data, sens = await _inputs(file, sensitivities, settings)

@@ -24,10 +24,11 @@ from ..deps import read_upload
 from ..errors import ServiceError
 from ..jsonsafe import clean
 from ..options import FORMATS, MEDIA_TYPES, PREVIEW_FORMATS
-from ..schemas import Estimation, Neutral, Preview, Rendering
+from ..schemas import Estimation, Neutral, Preview, Rendering, WhiteBalanceRendering
 from ..schemas.forms import form
 from ..schemas.options import PREVIEW_MAX_SIDE, PREVIEW_SIDE_RANGE  # noqa: F401 (the preview limits, named here too)
 from ..settings import Settings, get_settings
+from ..white import with_white
 from ..workers import run_heavy
 
 router = APIRouter()
@@ -43,6 +44,9 @@ _PREVIEW_ESTIMATION = form(Estimation, include=("camera", "method", "quality"), 
 _PREVIEW_RENDERING = form(Rendering, prefix="corrected only: ", lazy=("target",), choices={"format": PREVIEW_FORMATS},
                           defaults={"format": "jpeg"}, describe={"format": "jpeg or png (8-bit)"})
 _NEUTRAL = form(Neutral, prefix="corrected only: ")
+#: ``white`` as on ``/v1/white-balance`` (the estimate, as-shot, or a
+#: Temperature/Tint: the page's sliders re-render through it)
+_PREVIEW_WHITE = form(WhiteBalanceRendering, include=("white",), prefix="corrected only: ")
 
 #: The page's Content-Security-Policy: its own script and style sheet only (no
 #: inline script or style, nothing from another host), images also from the
@@ -195,7 +199,8 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
                                                            "16-bit TIFF/PNG"),
                   pv: Preview = Depends(_PREVIEW),
                   est: Estimation = Depends(_PREVIEW_ESTIMATION), rend: Rendering = Depends(_PREVIEW_RENDERING),
-                  nt: Neutral = Depends(_NEUTRAL), settings: Settings = Depends(get_settings)):
+                  nt: Neutral = Depends(_NEUTRAL), wh: WhiteBalanceRendering = Depends(_PREVIEW_WHITE),
+                  settings: Settings = Depends(get_settings)):
     """A small 8-bit preview for the web page: the original as the camera's
     white balance renders it (``wb=camera``) or the corrected image
     (``wb=corrected``), longest side at most ``max_side``."""
@@ -204,7 +209,10 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
     if wb == "corrected":
         rend.check("target")
     camera, method, opts = est.camera, est.method, est.estimate_kwargs()
-    target, output, ev, where = rend.target, rend.output, rend.exposure, nt.neutral
+    target, output, ev, where, white = rend.target, rend.output, rend.exposure, nt.neutral, wh.white
+    if wb == "corrected" and where is not None and white != "estimate":
+        raise ServiceError(422, "invalid_parameter", "neutral fixes the white from a surface; it cannot be "
+                           f"combined with white={white!r}")
     data = await read_upload(file, settings)
     name = file.filename
 
@@ -215,7 +223,9 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
         else:
             decoded, run = pipeline.analyze(data, name, settings, camera=camera, method=method, options=opts,
                                             neutral=where)
+            run = with_white(decoded, run, white)
             img, info = corrected_preview(decoded, run, target, output, opts.get("surface_basis"), max_side, ev)
+            info["white"] = "neutral" if where is not None else white
             info["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
         box = output_box(decoded)
         img = crop_preview(img, decoded.full_shape, box)

@@ -28,6 +28,7 @@ from recovery.methods import METHOD_NAMES, QUALITY_NAMES
 from .. import options as checks
 from ..errors import ServiceError
 from ..options import FORMATS, IMAGE_FORMATS, LIGHT_MODELS, OUTPUTS, SURFACE_MODELS
+from ..white import WHITE_HELP, check_white
 
 __all__ = ["Opt", "INPUT", "ESTIMATION", "SPATIAL", "RENDERING", "WHITE_BALANCE", "NEUTRAL", "REGIONS", "PREVIEW",
            "BATCH", "SIDECAR", "XMP_NAMES", "SPECTRAL", "LIGHTING", "CONCERNS", "PREVIEW_MAX_SIDE",
@@ -212,10 +213,8 @@ RENDERING = {
 #: ``/v1/white-balance`` also answers a Camera Raw sidecar or JSON, and
 #: renders the file's own white for comparison.
 WHITE_BALANCE = {
-    "white": Opt(str, "estimate", "estimate (this service's light, or neutral) or as-shot (the camera's own "
-                                  "white, rendered the same way, to compare)",
-                 choices=("estimate", "as-shot"), examples=("estimate",),
-                 check=_must_be("{name} must be estimate or as-shot, not {value!r}")),
+    "white": Opt(str, "estimate", WHITE_HELP, examples=("estimate", "as-shot", "5200/+10"), check=check_white,
+                 summary="estimate, as-shot, or TEMPERATURE/TINT on Camera Raw's scale (e.g. 5200/+10)"),
     "response": Opt(str, "image", "image, or json for the estimate and correction matrix only",
                     choices=("image", "json"), examples=("image",), check=_must_be("{name} must be image or json")),
 }
