@@ -841,13 +841,13 @@ class AnalysisResult:
 
         rho = np.atleast_2d(np.asarray(rho, float))
         if self.prior is None or not np.array_equal(self._prior_spectrum, self.illuminant.spectrum):
-            prepare_prior(self, self._prior_pixels)      # first use, or the light was replaced since
+            prepare_prior(self, self._prior_pixels, prior=self.prior)   # the light was replaced since
         if self.illuminant.light_map is not None:
             spd = self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
-            return surface_estimates_per_point(self.prior, rho, self.prior_sensitivities[0], spd,
+            return surface_estimates_per_point(self.prior, rho, self.camera.sensitivities, spd,
                                                self.camera.dlambda, self.prior_exposure)
         return surface_estimates(self.prior, rho, self.prior_sensitivities, self.prior_lights, self.camera.dlambda,
-                                 exposure=self.prior_exposure)
+                                 exposure=self.prior_exposure, nominal=True)
 
     def surface_estimates(self, points):
         """Estimates with bands at ``[(row, col), ...]``: a
@@ -913,48 +913,58 @@ def _light_radius(est: IlluminantEstimate) -> float:
     return r if np.isfinite(r) and r > 0 else 0.0
 
 
-def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFACE_SAMPLES) -> None:
+def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFACE_SAMPLES, *, prior=None,
+                  camera_exclude=()) -> None:
     """Set up the prior estimator of ``res``: the camera (or samples of it:
     matrix-derived and generic cameras, :func:`recovery.surface_prior.camera_posterior`),
     the light (or samples in its 90 % region), and the exposure from
     ``pixels`` ``(Q, C)`` of the scene. Records what entered in
-    ``res.diagnostics``."""
+    ``res.diagnostics``. ``prior`` (default :func:`recovery.surface_prior.default_prior`)
+    and ``camera_exclude`` (cameras left out of the camera prior) serve
+    cross-validation (``benchmarks.surfaces``)."""
     from . import surface_prior as sp
 
     cam = res.camera
     wl = cam.wavelengths
-    prior = sp.default_prior(wl)
+    prior = sp.default_prior(wl) if prior is None else prior
     est = res.illuminant
     notes = []
-    sens = cam.sensitivities[None]
+    nominal = cam.sensitivities
+    extra = None
     cam_unc = "none (measured or uploaded sensitivities taken as known)"
     if cam.channels == 3 and cam.source == "matrix-derived" and cam.color_matrix is not None:
         try:
-            mean, draws = sp.camera_posterior(cam.color_matrix, wl, n=samples)
+            _, extra = sp.camera_posterior(cam.color_matrix, wl, n=samples, exclude=camera_exclude)
         except (ValueError, np.linalg.LinAlgError) as e:
             notes.append(f"camera posterior unavailable ({e}); the matrix-derived sensitivities taken as known")
         else:
-            sens = draws
-            cam_unc = ("sensitivities behind the colour matrix: 47 measured cameras' Gaussian conditioned on "
-                       f"the matrix (tolerance {sp.MATRIX_TOLERANCE:.0%}), {samples} samples")
+            cam_unc = ("sensitivities behind the colour matrix: 47 measured cameras' Gaussian conditioned on the "
+                       f"matrix (tolerance {sp.MATRIX_TOLERANCE:.0%}, channel gains {sp.MATRIX_GAIN_TOLERANCE:.0%}), "
+                       f"{samples} samples widen the band")
     elif cam.channels == 3 and cam.source == "generic":
-        _, sens = sp.generic_camera_samples(wl, n=samples)
-        cam_unc = f"generic camera: the 47 measured cameras' Gaussian, {samples} samples"
+        mean47, extra = sp.generic_camera_samples(wl, n=samples, exclude=camera_exclude)
+        nominal = mean47
+        cam_unc = (f"generic camera: the mean of the 47 measured cameras, whose Gaussian's {samples} samples "
+                   "widen the band")
     radius = _light_radius(est) if est.light_map is None else 0.0
-    if radius > 0:
-        lights = np.stack([sp.light_samples(est.spectrum, s, cam.dlambda, radius, 1, seed=i)[0]
-                           for i, s in enumerate(np.broadcast_to(sens, (samples,) + sens.shape[1:]))])
-        if sens.shape[0] == 1:
-            sens = np.broadcast_to(sens, (samples,) + sens.shape[1:])
-        light_unc = f"lights in the estimate's 90 % region ({radius:.2f} deg), {samples} samples"
-    else:
-        lights = np.broadcast_to(est.spectrum, (sens.shape[0], est.spectrum.size))
-        light_unc = ("none (a light map: each pixel's light taken as known)" if est.light_map is not None
-                     else "none (the estimate gives no region)")
-    res.prior, res.prior_sensitivities, res.prior_lights = prior, np.asarray(sens), np.asarray(lights)
+    n_extra = samples if (extra is not None or radius > 0) else 0
+    rgb = np.asarray(est.rgb, float)
+    if extra is None:
+        extra = np.broadcast_to(nominal, (n_extra,) + nominal.shape)
+    # the light as the image gives it: its colour in the camera's own space (est.rgb), for every camera
+    # sample; its 90 % region sampled when there is one
+    dirs = sp.light_directions(rgb, radius, n_extra) if n_extra else np.zeros((0, rgb.size))
+    sens = np.concatenate([nominal[None], np.asarray(extra)[:n_extra]])
+    E0 = sp.fit_light(est.spectrum, nominal, cam.dlambda, rgb)
+    total = float((nominal.T @ (E0 * cam.dlambda)).sum())
+    lights = np.stack([E0] + [sp.fit_light(est.spectrum, s_, cam.dlambda, d_, total)
+                              for s_, d_ in zip(sens[1:], dirs)])
+    light_unc = (f"lights in the estimate's 90 % region ({radius:.2f} deg), {samples} samples widen the band"
+                 if radius > 0 else ("none (a light map: each pixel's light taken as known)"
+                                     if est.light_map is not None else "none (the estimate gives no region)"))
+    res.prior, res.prior_sensitivities, res.prior_lights = prior, sens, lights
     res._prior_spectrum, res._prior_pixels = np.array(est.spectrum, copy=True), pixels
-    nominal_sens = res.prior_sensitivities.mean(axis=0) if res.prior_sensitivities.shape[0] > 1 else sens[0]
-    A0 = sp.lighting_operator(nominal_sens, est.spectrum, cam.dlambda)
+    A0 = sp.lighting_operator(nominal, lights[0], cam.dlambda)
     px = pixels[np.all(np.isfinite(pixels), axis=1)] if pixels.size else pixels
     res.prior_exposure = sp.exposure_scale(prior, A0, px) if px.size else 1.0
     res.diagnostics.update({
@@ -974,7 +984,8 @@ def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFAC
 
 
 def surfaces_from_estimate(image, camera: Camera, est: IlluminantEstimate, surface_dim_render: int | None = None,
-                           synthesis_basis=None, surface_estimator: str | None = None) -> AnalysisResult:
+                           synthesis_basis=None, surface_estimator: str | None = None, *, prior=None,
+                           camera_exclude=()) -> AnalysisResult:
     """The surface half of :func:`analyze` for a light already estimated,
     e.g. on a reduced image (``surface_estimator``: see :func:`analyze`)."""
     img = np.asarray(image, dtype=np.float64)
@@ -1004,7 +1015,7 @@ def surfaces_from_estimate(image, camera: Camera, est: IlluminantEstimate, surfa
     if choice == "prior":
         res.surface_estimator = "prior"
         pix = img[ys, xs] if ys.size else np.zeros((0, camera.channels))
-        prepare_prior(res, pix)
+        prepare_prior(res, pix, prior=prior, camera_exclude=camera_exclude)
         refl = res.reflectance(np.stack([ys, xs], 1)) if ys.size else np.zeros((0, camera.wavelengths.size))
     res.diagnostics.update({
         "nonphysical_reflectance_fraction": float(np.mean(np.any((refl < -0.02) | (refl > 1.02), axis=1)))
