@@ -86,7 +86,7 @@ PRIOR_LENGTH_NM = 40.0
 PRIOR_NOISE = 0.01
 #: Factor on the prior covariance that makes the bands hold the truth at
 #: their stated rate on reflectance sets left out (same cross-validation).
-PRIOR_INFLATION = 1.5
+PRIOR_INFLATION = 2.0
 #: Kernel bandwidth ``h`` of the prior (components ``N(r_i, h^2 Sigma)``;
 #: ``None`` for one Gaussian); same cross-validation.
 PRIOR_BANDWIDTH = 0.3
