@@ -910,9 +910,11 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
 
     The cost is bounded whatever the rectangles: a rectangle's mean camera
     RGB comes from a summed-area table of the estimation image (built once,
-    four look-ups per rectangle), and for one light both estimators are
-    affine in the camera RGB (sigma = L^+ rho; mu + K (rho / k - A mu)), so
-    the reflectance of the mean RGB is the mean of the pixels' reflectances. All entries are then solved in one
+    four look-ups per rectangle), and a rectangle's reflectance is the
+    estimate of its mean RGB (for eq. 36, linear in the camera RGB, that is
+    also the mean of its pixels' reflectances; the prior's mixture posterior
+    is not linear: there it is the estimate of the surface the rectangle's
+    pixels average to). All entries are then solved in one
     vectorised step."""
     img = decoded.estimation
     h, w = img.shape[:2]
@@ -962,8 +964,7 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
         # the light at each entry's centre (one light: the same everywhere)
         rows_c, cols_c = (r0 + r1 - 1) / 2.0, (c0 + c1 - 1) / 2.0
         if res.surface_estimator == "prior":
-            # the posterior mean is affine in the camera RGB (mu + K (rho / k - A mu)), so a
-            # rectangle's estimate is still the mean of its pixels' estimates
+            # a rectangle: the estimate of its mean RGB (the mixture posterior is not linear in it)
             pe = res.estimates_from_responses(rho, rows_c, cols_c)
             refl, stds, ermse = pe.mean, pe.std, pe.expected_rmse
         else:
