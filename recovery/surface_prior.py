@@ -690,18 +690,38 @@ def surface_estimates(prior: SurfacePrior, rho, sensitivities, spectra, dlambda,
 
 
 def surface_estimates_per_point(prior: SurfacePrior, rho, sensitivities, spectra, dlambda, exposure: float,
-                                noise: float | None = None) -> SurfaceEstimates:
+                                noise: float | None = None, chunk: int = 64) -> SurfaceEstimates:
     """:func:`surface_estimates` with one light per surface (a light map):
-    ``spectra`` ``(P, N)`` and ``rho`` ``(P, C)``, one camera."""
+    ``spectra`` ``(P, N)`` and ``rho`` ``(P, C)``, one camera; the same
+    mixture posterior as :func:`_mixture_moments`, batched over points
+    (``chunk`` at a time, to bound the memory of the ``(chunk, M, N)``
+    component means)."""
     R = np.asarray(sensitivities, float)
     E = np.atleast_2d(np.asarray(spectra, float))
-    rho = np.atleast_2d(np.asarray(rho, float))
-    y = rho / float(exposure)
-    mean = np.zeros((y.shape[0], prior.mean.size))
-    var = np.zeros_like(mean)
-    for p in range(y.shape[0]):
-        A = lighting_operator(R, E[p], dlambda)
-        m, _, spread = _mixture_moments(prior, A, y[p:p + 1], noise)
-        mean[p], var[p] = m[0], np.diagonal(wiener_gain(prior, A, noise)[1]) + spread[0]
-    std = np.sqrt(var)
+    y_all = np.atleast_2d(np.asarray(rho, float)) / float(exposure)
+    P_n = y_all.shape[0]
+    N = prior.mean.size
+    mean = np.zeros((P_n, N))
+    var = np.zeros((P_n, N))
+    atoms = prior.atoms
+    for s0 in range(0, P_n, chunk):
+        y = y_all[s0:s0 + chunk]
+        A = lighting_operator(R, E[s0:s0 + chunk], dlambda)                        # (p, C, N)
+        SA = np.einsum("nm,pcm->pnc", prior.cov, A, optimize=True)                 # (p, N, C)
+        G = A @ SA + _noise_var(prior, A, noise)[:, None, None] * np.eye(A.shape[1])
+        Gi = np.linalg.inv(G)
+        K = SA @ Gi                                                                # (p, N, C)
+        Pd = np.diagonal(prior.cov)[None] - np.einsum("pnc,pnc->pn", K, SA)
+        AR = np.einsum("mn,pcn->pmc", atoms, A, optimize=True)                     # (p, M, C)
+        ll = (np.einsum("pc,pcd,pmd->pm", y, Gi, AR, optimize=True)
+              - 0.5 * np.einsum("pmc,pcd,pmd->pm", AR, Gi, AR, optimize=True))
+        ll -= ll.max(axis=1, keepdims=True)
+        W = np.exp(ll)
+        W /= W.sum(axis=1, keepdims=True)
+        c = atoms[None] - np.einsum("pmc,pnc->pmn", AR, K, optimize=True)          # (p, M, N)
+        Wc = np.einsum("pm,pmn->pn", W, c)
+        Wc2 = np.einsum("pm,pmn->pn", W, c * c)
+        mean[s0:s0 + chunk] = Wc + np.einsum("pnc,pc->pn", K, y)
+        var[s0:s0 + chunk] = Pd + np.clip(Wc2 - Wc * Wc, 0.0, None)
+    std = np.sqrt(np.clip(var, 0.0, None))
     return SurfaceEstimates(mean, std, np.sqrt(np.mean(std * std, axis=1)), float(exposure), 1)

@@ -187,3 +187,22 @@ def test_rest_surfaces_answer_has_bands_and_no_nan(client, tmp_path):
             assert np.all(np.isfinite(vals)) and min(s["reflectance_std"]) >= 0
         out[label] = np.median([s["expected_rmse"] / max(np.mean(s["reflectance"]), 1e-9) for s in body["surfaces"]])
     assert out["matrix"] > out["measured"], out
+
+
+def test_per_point_lights_give_the_one_light_answer_when_the_lights_agree():
+    """The batched light-map path (one light per point) with every point
+    under the same light is the one-light estimate (same formulas, batched:
+    1e-9 relative allows their different summation order)."""
+    prior = sp.default_prior(WL)
+    cam = Camera.named("Nikon 5100 (NPL)")
+    E = models.illuminant("FL2", WL)
+    E = E / E.mean()
+    from models.surface_data import surface_sets
+
+    R, _ = surface_sets(WL)
+    rho = R[::3] @ sp.lighting_operator(cam.sensitivities, E, DL).T
+    one = sp.surface_estimates(prior, rho, cam.sensitivities, E, DL, exposure=0.8)
+    per = sp.surface_estimates_per_point(prior, rho, cam.sensitivities, np.broadcast_to(E, (len(rho), E.size)), DL,
+                                         exposure=0.8, chunk=7)
+    np.testing.assert_allclose(per.mean, one.mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(per.std, one.std, rtol=1e-9, atol=1e-12)
