@@ -391,8 +391,8 @@ def main(argv=None) -> None:
     print(f"load average at start: {os.getloadavg()}")
     print(f"{len(R)} surfaces in sets {', '.join(f'{s} ({int((lab == s).sum())})' for s in SURFACE_SETS)}; "
           f"47 cameras; strict = {strict}")
-    hyper_all, cv_all = choose_hyper(R, lab, list(SURFACE_SETS), cv_cams, cv_lights, strict=False)
-    print(f"shipped prior (leave-one-set-out over all five sets): {hyper_all} {cv_all}")
+    hyper_all, cv_all = choose_hyper(R, lab, list(SURFACE_SETS), cv_cams, cv_lights, strict=strict)
+    print(f"shipped prior (leave-one-set-out over all five sets, strict = {strict}): {hyper_all} {cv_all}")
     if args.cv:
         return
     hypers = {}
