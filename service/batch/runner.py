@@ -31,6 +31,8 @@ class RunnerConfig:
     poll_s: float = 0.2
     #: seconds a finished or cancelled batch's uploaded inputs are kept (< 0: kept forever)
     input_retention_s: float = 24 * 3600.0
+    #: seconds a finished or cancelled batch (results and all) is kept; negative: for ever
+    result_retention_s: float = -1.0
     extra: dict = field(default_factory=dict)
 
 
@@ -177,11 +179,22 @@ class BatchRunner:
             shutil.rmtree(d, ignore_errors=True)
         return gone
 
+    def remove_expired_batches(self) -> list[str]:
+        """Delete the batches (results and all) finished or cancelled more than
+        ``result_retention_s`` ago (:meth:`JobStore.delete_batch`). Returns their ids."""
+        if self.config.result_retention_s < 0:
+            return []
+        return [bid for bid in self.store.expired_batches(self.config.result_retention_s)
+                if self.store.delete_batch(bid) is not None]
+
     def _tick(self) -> None:
         now = time.monotonic()
         if now >= self._next_cleanup:  # at most every 30 s (sooner for a short retention)
-            self._next_cleanup = now + min(30.0, max(self.config.poll_s, self.config.input_retention_s / 4))
+            shortest = min(r for r in (self.config.input_retention_s, self.config.result_retention_s, 120.0)
+                           if r >= 0)
+            self._next_cleanup = now + min(30.0, max(self.config.poll_s, shortest / 4))
             self.remove_expired_inputs()
+            self.remove_expired_batches()
         active = self.store.active_batches()[: max(1, self.config.max_concurrent_batches)]
         for bid in active:
             self.store.start_batch(bid)
