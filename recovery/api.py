@@ -907,13 +907,24 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
 # --------------------------------------------------------------------------- analyze
 @dataclass
 class AnalysisResult:
-    """Light (or light map) and surfaces of an image (eq. 26-36).
+    """Light (or light map) and surfaces of an image.
 
-    Surfaces use a model with as many terms as sensors once the light is
-    known (DESIGN.md), ``surface_model``. Reflectances are relative: scaled
-    so that the 99th percentile of the per-pixel maximum reflectance is 1
-    (the data fix reflectance only up to the light's scale, eq. 27-28);
-    ``reflectance_scale`` holds the factor.
+    Two surface estimators (``surface_estimator``):
+
+    * ``"prior"`` (the default): the posterior mean under a Gaussian prior
+      learnt from 274 measured reflectances (:mod:`recovery.surface_prior`;
+      Brainard & Freeman 1997, Shimano 2006), with a band per wavelength
+      (posterior standard deviation) and the expected RMS error per surface
+      (:meth:`surface_estimates`); the light's 90 % region and, for a camera
+      known by its colour matrix or not at all, the spread of 47 measured
+      cameras enter by sampling. Reflectances are absolute up to the
+      exposure, which is chosen by maximum marginal likelihood under the
+      prior (``prior_exposure``).
+    * ``"pinv"``: Wandell's eq. 36, the pseudo-inverse in a model with as
+      many terms as sensors (``surface_model``). Reflectances are relative:
+      scaled so that the 99th percentile of the per-pixel maximum
+      reflectance is 1 (the data fix reflectance only up to the light's
+      scale, eq. 27-28); ``reflectance_scale`` holds the factor.
     """
 
     illuminant: IlluminantEstimate
@@ -922,6 +933,13 @@ class AnalysisResult:
     image: np.ndarray
     reflectance_scale: float
     diagnostics: dict = field(default_factory=dict)
+    surface_estimator: str = "pinv"
+    prior: object = None
+    prior_exposure: float = 1.0
+    prior_sensitivities: np.ndarray | None = None      # (S, N, C) camera samples, or (1, N, C)
+    prior_lights: np.ndarray | None = None             # (S, N) light samples, or (1, N)
+    _prior_spectrum: np.ndarray | None = field(default=None, repr=False)
+    _prior_pixels: np.ndarray | None = field(default=None, repr=False)
 
     def _lighting(self, rows, cols):
         if self.illuminant.light_map is not None:
@@ -931,8 +949,7 @@ class AnalysisResult:
         return lighting_matrix_from_spectrum(spd, self.surface_model.basis, self.camera.sensitivities,
                                              self.camera.dlambda)
 
-    def surface_weights(self, points) -> np.ndarray:
-        """Surface weights at ``[(row, col), ...]``, ``(P, D)``."""
+    def _points(self, points):
         pts = np.asarray(points, dtype=int).reshape(-1, 2)
         h, w = self.image.shape[:2]
         if np.any(pts < 0) or np.any(pts[:, 0] >= h) or np.any(pts[:, 1] >= w):
@@ -941,21 +958,65 @@ class AnalysisResult:
         bad = ~np.all(np.isfinite(rho), axis=1)
         if bad.any():
             raise InputError(f"non-finite pixel values at points {pts[bad].tolist()[:10]}: no reflectance there")
+        return pts, rho
+
+    def surface_weights(self, points) -> np.ndarray:
+        """Surface weights of eq. 36 (the literal method) at ``[(row, col), ...]``, ``(P, D)``."""
+        pts, rho = self._points(points)
         L = self._lighting(pts[:, 0].astype(float), pts[:, 1].astype(float))
         return np.einsum("pjk,pk->pj", np.linalg.pinv(L), rho) * self.reflectance_scale
 
+    def estimates_from_responses(self, rho, rows, cols):
+        """:class:`recovery.surface_prior.SurfaceEstimates` of camera
+        responses ``rho`` ``(P, C)`` seen at pixel coordinates ``rows``,
+        ``cols`` (the light there); the prior estimator."""
+        from .surface_prior import surface_estimates, surface_estimates_per_point
+
+        rho = np.atleast_2d(np.asarray(rho, float))
+        if self.prior is None or not np.array_equal(self._prior_spectrum, self.illuminant.spectrum):
+            prepare_prior(self, self._prior_pixels, prior=self.prior)   # the light was replaced since
+        if self.illuminant.light_map is not None:
+            spd = self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
+            return surface_estimates_per_point(self.prior, rho, self.camera.sensitivities, spd,
+                                               self.camera.dlambda, self.prior_exposure)
+        return surface_estimates(self.prior, rho, self.prior_sensitivities, self.prior_lights, self.camera.dlambda,
+                                 exposure=self.prior_exposure, nominal=True)
+
+    def surface_estimates(self, points):
+        """Estimates with bands at ``[(row, col), ...]``: a
+        :class:`recovery.surface_prior.SurfaceEstimates` (``mean``, ``std``
+        ``(P, N)``, ``expected_rmse`` ``(P,)``). With ``surface_estimator =
+        "pinv"`` the mean is eq. 36's and the band is not defined (``None``)."""
+        from .surface_prior import SurfaceEstimates
+
+        if self.surface_estimator == "pinv":
+            return SurfaceEstimates(self.reflectance(points), None, None, self.reflectance_scale, 1)
+        pts, rho = self._points(points)
+        return self.estimates_from_responses(rho, pts[:, 0], pts[:, 1])
+
     def reflectance(self, points) -> np.ndarray:
         """Reflectance spectra at ``[(row, col), ...]``, ``(P, N)`` on
-        ``camera.wavelengths`` (eq. 36, then eq. 11)."""
+        ``camera.wavelengths``: the prior's posterior mean, or eq. 36 then
+        eq. 11 with ``surface_estimator="pinv"``."""
+        if self.surface_estimator == "prior":
+            return self.surface_estimates(points).mean
         return self.surface_weights(points) @ self.surface_model.basis.T
 
 
+#: Lights x cameras drawn for the bands when the light or the camera is uncertain.
+SURFACE_SAMPLES = 32
+
+
 def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str = "auto",
-            surface_dim_render: int | None = None, synthesis_basis=None, **kwargs) -> AnalysisResult:
+            surface_dim_render: int | None = None, synthesis_basis=None, surface_estimator: str | None = None,
+            **kwargs) -> AnalysisResult:
     """Light (or light map with ``spatial=True``, or when ``spatial="auto"``
     finds the light varies) and surfaces together.
 
-    Once the light is known the surfaces use a model with as many terms as
+    Surfaces (:class:`AnalysisResult`): ``surface_estimator="prior"`` (the
+    default) or ``"pinv"`` (eq. 36, the literal method; the default when a
+    ``synthesis_basis`` is given, since a user's surface model says the
+    surfaces lie in it). The literal method uses a model with as many terms as
     sensors (``surface_dim_render``, default C) of ``synthesis_basis``
     (a model name or an (N, D) array; default PCA of the shipped
     reflectances). Other keyword arguments go to :func:`estimate_illuminant`.
@@ -970,7 +1031,89 @@ def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str 
     (1, 31)
     """
     est = estimate_illuminant(image, camera, method, spatial=spatial, **kwargs)
-    return surfaces_from_estimate(image, camera, est, surface_dim_render, synthesis_basis)
+    return surfaces_from_estimate(image, camera, est, surface_dim_render, synthesis_basis, surface_estimator)
+
+
+def _light_radius(est: IlluminantEstimate) -> float:
+    d = est.diagnostics
+    r = d.get("region90_deg")
+    if r is None and d.get("posterior_spread_deg") is not None:
+        r = float(d["posterior_spread_deg"]) * float(np.sqrt(-2 * np.log(0.1)))
+    try:
+        r = float(r) if r is not None else 0.0
+    except (TypeError, ValueError):
+        r = 0.0
+    return r if np.isfinite(r) and r > 0 else 0.0
+
+
+def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFACE_SAMPLES, *, prior=None,
+                  camera_exclude=()) -> None:
+    """Set up the prior estimator of ``res``: the camera (or samples of it:
+    matrix-derived and generic cameras, :func:`recovery.surface_prior.camera_posterior`),
+    the light (or samples in its 90 % region), and the exposure from
+    ``pixels`` ``(Q, C)`` of the scene. Records what entered in
+    ``res.diagnostics``. ``prior`` (default :func:`recovery.surface_prior.default_prior`)
+    and ``camera_exclude`` (cameras left out of the camera prior) serve
+    cross-validation (``benchmarks.surfaces``)."""
+    from . import surface_prior as sp
+
+    cam = res.camera
+    wl = cam.wavelengths
+    prior = sp.default_prior(wl) if prior is None else prior
+    est = res.illuminant
+    notes = []
+    nominal = cam.sensitivities
+    extra = None
+    cam_unc = "none (measured or uploaded sensitivities taken as known)"
+    if cam.channels == 3 and cam.source == "matrix-derived" and cam.color_matrix is not None:
+        try:
+            _, extra = sp.camera_posterior(cam.color_matrix, wl, n=samples, exclude=camera_exclude)
+        except (ValueError, np.linalg.LinAlgError) as e:
+            notes.append(f"camera posterior unavailable ({e}); the matrix-derived sensitivities taken as known")
+        else:
+            cam_unc = ("sensitivities behind the colour matrix: 47 measured cameras' Gaussian conditioned on the "
+                       f"matrix (tolerance {sp.MATRIX_TOLERANCE:.0%}, channel gains {sp.MATRIX_GAIN_TOLERANCE:.0%}), "
+                       f"{samples} samples widen the band")
+    elif cam.channels == 3 and cam.source == "generic":
+        mean47, extra = sp.generic_camera_samples(wl, n=samples, exclude=camera_exclude)
+        nominal = mean47
+        cam_unc = (f"generic camera: the mean of the 47 measured cameras, whose Gaussian's {samples} samples "
+                   "widen the band")
+    radius = _light_radius(est) if est.light_map is None else 0.0
+    n_extra = samples if (extra is not None or radius > 0) else 0
+    rgb = np.asarray(est.rgb, float)
+    if extra is None:
+        extra = np.broadcast_to(nominal, (n_extra,) + nominal.shape)
+    # the light as the image gives it: its colour in the camera's own space (est.rgb), for every camera
+    # sample; its 90 % region sampled when there is one
+    dirs = sp.light_directions(rgb, radius, n_extra) if n_extra else np.zeros((0, rgb.size))
+    sens = np.concatenate([nominal[None], np.asarray(extra)[:n_extra]])
+    E0 = sp.fit_light(est.spectrum, nominal, cam.dlambda, rgb)
+    total = float((nominal.T @ (E0 * cam.dlambda)).sum())
+    lights = np.stack([E0] + [sp.fit_light(est.spectrum, s_, cam.dlambda, d_, total)
+                              for s_, d_ in zip(sens[1:], dirs)])
+    light_unc = (f"lights in the estimate's 90 % region ({radius:.2f} deg), {samples} samples widen the band"
+                 if radius > 0 else ("none (a light map: each pixel's light taken as known)"
+                                     if est.light_map is not None else "none (the estimate gives no region)"))
+    res.prior, res.prior_sensitivities, res.prior_lights = prior, sens, lights
+    res._prior_spectrum, res._prior_pixels = np.array(est.spectrum, copy=True), pixels
+    A0 = sp.lighting_operator(nominal, lights[0], cam.dlambda)
+    px = pixels[np.all(np.isfinite(pixels), axis=1)] if pixels.size else pixels
+    res.prior_exposure = sp.exposure_scale(prior, A0, px) if px.size else 1.0
+    res.diagnostics.update({
+        "surface_estimator": "prior",
+        "surface_prior": prior.name,
+        "surface_prior_noise": prior.noise,
+        "surface_band": "posterior standard deviation per wavelength (reflectance_std); expected_rmse = "
+                        "sqrt(mean of its square)",
+        "surface_band_light_uncertainty": light_unc,
+        "surface_band_camera_uncertainty": cam_unc,
+        "surface_exposure": res.prior_exposure,
+        "reflectance_scale_convention": "absolute up to the exposure, chosen by maximum marginal likelihood "
+                                        "under the prior",
+    })
+    if notes:
+        res.diagnostics["surface_notes"] = notes
 
 
 def _every_kth_finite(img: np.ndarray, n: int, strip: int = 256) -> tuple[np.ndarray, np.ndarray]:
@@ -997,12 +1140,16 @@ def _every_kth_finite(img: np.ndarray, n: int, strip: int = 256) -> tuple[np.nda
 
 
 def surfaces_from_estimate(image, camera: Camera, est: IlluminantEstimate, surface_dim_render: int | None = None,
-                           synthesis_basis=None) -> AnalysisResult:
-    """The surface half of :func:`analyze` for a light already estimated
-    (eq. 36 with a C-term surface model), e.g. on a reduced image."""
+                           synthesis_basis=None, surface_estimator: str | None = None, *, prior=None,
+                           camera_exclude=()) -> AnalysisResult:
+    """The surface half of :func:`analyze` for a light already estimated,
+    e.g. on a reduced image (``surface_estimator``: see :func:`analyze`)."""
     img = np.asarray(image)
     if img.dtype.kind != "f":                  # a float image is read as it is (values cast where used)
         img = img.astype(np.float64)
+    choice = surface_estimator or ("pinv" if synthesis_basis is not None else "prior")
+    if choice not in ("prior", "pinv"):
+        raise InputError(f"unknown surface estimator {surface_estimator!r}; accepted: prior, pinv")
     d = surface_dim_render or camera.channels
     S = resolve_model(synthesis_basis, "surface", None if isinstance(synthesis_basis, np.ndarray) else d,
                       camera.wavelengths)
@@ -1015,13 +1162,21 @@ def surfaces_from_estimate(image, camera: Camera, est: IlluminantEstimate, surfa
     L = lighting_matrix_from_spectrum(est.spectrum, S.basis, camera.sensitivities, camera.dlambda)
     _, cond = surface_weights(L, np.zeros((1, camera.channels)))
     res.diagnostics = {
+        "surface_estimator": "pinv",
         "surface_model": S.name,
         "lighting_condition": cond,
+        "reflectance_scale_convention": "99th percentile of per-pixel peak reflectance = 1",
+    }
+    if choice == "prior":
+        res.surface_estimator = "prior"
+        pix = np.asarray(img[ys, xs], np.float64) if ys.size else np.zeros((0, camera.channels))
+        prepare_prior(res, pix, prior=prior, camera_exclude=camera_exclude)
+        refl = res.reflectance(np.stack([ys, xs], 1)) if ys.size else np.zeros((0, camera.wavelengths.size))
+    res.diagnostics.update({
         "nonphysical_reflectance_fraction": float(np.mean(np.any((refl < -0.02) | (refl > 1.02), axis=1)))
         if refl.size else 0.0,
         "negative_reflectance_fraction": float(np.mean(np.any(refl < -0.02, axis=1))) if refl.size else 0.0,
-        "reflectance_scale_convention": "99th percentile of per-pixel peak reflectance = 1",
-    }
+    })
     return res
 
 

@@ -1,6 +1,7 @@
-"""Reflectance spectra at points, rectangles or a grid of an image under
-its estimated light (``/v1/surfaces``; :mod:`service.pipeline` re-exports
-:func:`surfaces_at`)."""
+"""Reflectance spectra with error bars at points, rectangles or a grid of an
+image under its estimated light (``/v1/surfaces``; :mod:`service.pipeline`
+re-exports :func:`surfaces_at`; the estimator is :mod:`recovery.surface_prior`,
+issue 31)."""
 
 from __future__ import annotations
 
@@ -72,14 +73,18 @@ def box_sums_streamed(layers, h: int, w: int, r0, c0, r1, c1, strip: int = BOX_S
 
 
 def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -> dict:
-    """Reflectance spectra (eq. 36 with a C-term surface model) at full-
-    resolution pixel points, rectangle means, or a coarse grid.
+    """Reflectance spectra at full-resolution pixel points, rectangle means,
+    or a coarse grid: the prior's posterior mean with a band per wavelength
+    and an expected RMS error (:mod:`recovery.surface_prior`), or eq. 36 with
+    a C-term surface model when the request names a surface model.
 
     The cost is bounded whatever the rectangles: a rectangle's mean camera
     RGB comes from a summed-area table of the estimation image (built once,
-    four look-ups per rectangle), and for one light eq. 36 is linear in the
-    camera RGB (sigma = L^+ rho), so the reflectance of the mean RGB is the
-    mean of the pixels' reflectances. All entries are then solved in one
+    four look-ups per rectangle), and a rectangle's reflectance is the
+    estimate of its mean RGB (for eq. 36, linear in the camera RGB, that is
+    also the mean of its pixels' reflectances; the prior's mixture posterior
+    is not linear: there it is the estimate of the surface the rectangle's
+    pixels average to). All entries are then solved in one
     vectorised step."""
     img = decoded.estimation
     h, w = img.shape[:2]
@@ -139,11 +144,18 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
                            "no reflectance there")
         sat = sums[:, C + 1] > 0
         # the light at each entry's centre (one light: the same everywhere)
-        L = res._lighting((r0 + r1 - 1) / 2.0, (c0 + c1 - 1) / 2.0)
-        weights = np.einsum("pjk,pk->pj", np.linalg.pinv(L), rho) * res.reflectance_scale
-        refl = weights @ res.surface_model.basis.T
+        rows_c, cols_c = (r0 + r1 - 1) / 2.0, (c0 + c1 - 1) / 2.0
+        if res.surface_estimator == "prior":
+            # a rectangle: the estimate of its mean RGB (the mixture posterior is not linear in it)
+            pe = res.estimates_from_responses(rho, rows_c, cols_c)
+            refl, stds, ermse = pe.mean, pe.std, pe.expected_rmse
+        else:
+            L = res._lighting(rows_c, cols_c)
+            weights = np.einsum("pjk,pk->pj", np.linalg.pinv(L), rho) * res.reflectance_scale
+            refl = weights @ res.surface_model.basis.T
+            stds, ermse = [None] * len(kinds), [None] * len(kinds)
         fit = res.illuminant.diagnostics.get("subspace_fit_ratio")
-        for kind, where, r, s_ in zip(kinds, wheres, refl, sat):
+        for kind, where, r, s_, sd, er in zip(kinds, wheres, refl, sat, stds, ermse):
             warns = []
             if np.any(r < -0.02):
                 warns.append(f"non-physical: reflectance below 0 (min {r.min():.3f})")
@@ -153,8 +165,18 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
                 warns.append("saturated pixels: the estimate is clipped")
             if fit is not None and fit > 0.1:
                 warns.append("poor subspace fit for the scene (see diagnostics)")
-            entries.append({"kind": kind, "where": where, "reflectance": r.tolist(), "warnings": warns})
+            entries.append({"kind": kind, "where": where, "reflectance": r.tolist(), "warnings": warns,
+                            "reflectance_std": None if sd is None else sd.tolist(),
+                            "expected_rmse": None if er is None else float(er)})
     return {"wavelengths": run.camera.wavelengths.tolist(), "surfaces": entries,
+            "surface_estimator": res.surface_estimator,
+            "band": ("reflectance_std: posterior standard deviation per wavelength; the stated band is "
+                     "reflectance +- 1.645 reflectance_std, a 90 % band (cross-validated on reflectance sets "
+                     "left out, measured in benchmarks.surfaces and docs/surfaces.md; +- 1 std holds about 75-80 %, "
+                     "the posterior being heavier-tailed than a Gaussian); expected_rmse: the RMS error the "
+                     "model expects for the surface"
+                     if res.surface_estimator == "prior" else
+                     "none: the literal method (eq. 36, pseudo-inverse in the surface model) has no band"),
             "surface_model": res.diagnostics.get("surface_model"),
             "reflectance_scale_convention": res.diagnostics.get("reflectance_scale_convention"),
             "diagnostics": res.diagnostics}

@@ -43,26 +43,36 @@ def _dng(h=240, w=360, seed=3) -> bytes:
 # /v1/surfaces
 # ---------------------------------------------------------------------------
 
-def test_rectangle_means_from_the_summed_area_table_equal_the_pixel_mean():
-    """For one light eq. 36 is linear in camera RGB, so the reflectance of a
-    rectangle's mean RGB (summed-area table) must equal the mean of its
-    pixels' reflectances computed one by one (the old way, unsampled), to
-    float64 round-off of the cumulative sums (1e-9 relative)."""
-    opts = estimate_options("gray-world", None, None, None, False)
+@pytest.mark.parametrize("surface_model", [None, "pca"], ids=["prior", "pinv"])
+def test_rectangle_means_from_the_summed_area_table_equal_the_pixel_mean(surface_model):
+    """A rectangle's camera RGB is its pixels' mean from a summed-area table:
+    it must equal the mean computed pixel by pixel, to float64 round-off of
+    the cumulative sums (1e-9 relative). With a surface model named (eq. 36,
+    linear in the camera RGB: sigma = L^+ rho) the rectangle's reflectance is
+    then also the mean of its pixels' reflectances computed one by one (the
+    old way, unsampled). The prior's estimate is not linear in the RGB (a
+    mixture posterior, issue 31): its rectangle is the estimate of the mean
+    RGB, checked against that computed directly."""
+    opts = estimate_options("gray-world", None, None, None, False, surface_model=surface_model)
     decoded, run = analysis.analyze_upload(_dng(), "a.dng", None, None, "gray-world", opts, get_settings())
     H, W = decoded.full_shape
     h, w = decoded.estimation.shape[:2]
     rects = [[0, 0, H, W], [10, 20, 11, 21], [H // 3, W // 4, H // 2, W - 1], [H - 2, W - 2, H, W]]
     points = [[0, 0], [H - 1, W - 1], [H // 2, W // 3]]
     out = pipeline.surfaces_at(decoded, run, points, rects, (2, 3), opts)
-    res = surfaces_from_estimate(decoded.estimation, run.camera, run.estimate)
+    res = surfaces_from_estimate(decoded.estimation, run.camera, run.estimate, synthesis_basis=opts.get("surface_basis"))
+    assert res.surface_estimator == ("prior" if surface_model is None else "pinv") == out["surface_estimator"]
     got = {(e["kind"], tuple(e["where"])): np.array(e["reflectance"]) for e in out["surfaces"]}
     assert len(got) == len(rects) + len(points) + 6
     for r0, c0, r1, c1 in rects:
         a0, b0 = int(r0 * h / H), int(c0 * w / W)
         a1, b1 = min(int((r1 - 1) * h / H), h - 1), min(int((c1 - 1) * w / W), w - 1)
         rr, cc = np.mgrid[a0:a1 + 1, b0:b1 + 1]
-        want = res.reflectance(np.stack([rr.ravel(), cc.ravel()], 1)).mean(axis=0)
+        if surface_model is None:
+            rgb = decoded.estimation[rr.ravel(), cc.ravel()].astype(np.float64).mean(axis=0)
+            want = res.estimates_from_responses(rgb[None], [(a0 + a1) / 2.0], [(b0 + b1) / 2.0]).mean[0]
+        else:
+            want = res.reflectance(np.stack([rr.ravel(), cc.ravel()], 1)).mean(axis=0)
         np.testing.assert_allclose(got[("rect", (r0, c0, r1, c1))], want, rtol=1e-9, atol=1e-12)
     for r, c in points:
         want = res.reflectance([(min(int(r * h / H), h - 1), min(int(c * w / W), w - 1))])[0]

@@ -188,7 +188,10 @@ ESTIMATION = {
                      examples=("3", "auto"), check=_dim),
     "region_size": Opt(int | None, None, "region side in pixels for a light map, 8..100000 (default: a quarter "
                                          "of the shorter side)", examples=(64,), check=_region_size),
-    "surface_model": Opt(str | None, None, "surface reflectance basis", choices=SURFACE_MODELS, examples=("pca",)),
+    "surface_model": Opt(str | None, None, "surface reflectance basis; on /v1/surfaces naming one selects the "
+                                           "literal method (eq. 36, pseudo-inverse in that basis, no band) instead "
+                                           "of the prior over measured surfaces", choices=SURFACE_MODELS,
+                         examples=("pca",)),
     "light_model": Opt(str | None, None, "light spectrum basis", choices=LIGHT_MODELS, examples=("daylight",)),
 }
 #: ``/v1/analyze`` also decides between one light and a light map.

@@ -136,14 +136,23 @@ class WhiteBalanceResult(AnalyzeResult):
 class Surface(_Answer):
     kind: str = Field(description="`point`, `rect` or `grid`")
     where: list[int]
-    reflectance: list[float]
+    reflectance: list[float] = Field(description="the estimate: the posterior mean under the prior over measured "
+                                                 "surfaces, or eq. 36 when a surface model is named")
     warnings: list[str]
+    reflectance_std: list[float] | None = Field(None, description="the band: posterior standard deviation per "
+                                                                  "wavelength (reflectance +- 1.645 std is a 90 % "
+                                                                  "band); null for eq. 36")
+    expected_rmse: float | None = Field(None, description="one number for the surface: the RMS error the model "
+                                                          "expects (the band's RMS); null for eq. 36")
 
 
 class SurfacesResult(_Answer):
     """``POST /v1/surfaces`` (``format=json``)."""
     wavelengths: list[float]
     surfaces: list[Surface]
+    surface_estimator: str = Field(description="`prior` (issue 31: a prior over measured surfaces, with bands) or "
+                                               "`pinv` (eq. 36, when a surface model is named)")
+    band: str = Field(description="what reflectance_std and expected_rmse mean")
     surface_model: str
     reflectance_scale_convention: str
     diagnostics: dict[str, Any]

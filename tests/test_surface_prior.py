@@ -1,0 +1,208 @@
+"""Surface estimates from a prior over measured surfaces, with bands (issue 31)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+import models
+from recovery import Camera, analyze
+from recovery import surface_prior as sp
+from service.app import app
+from testing.dngwriter import scene_dng
+
+WL = models.DEFAULT_WAVELENGTHS
+DL = models.wavelength_step(WL)
+
+
+def _small_case(seed=0, N=6, C=2):
+    rng = np.random.default_rng(seed)
+    wl = np.linspace(400, 700, N)
+    X = rng.uniform(0, 1, (40, N))
+    prior = sp.learn_prior(X, wl, bandwidth=None, noise=0.05)
+    A = rng.uniform(0, 1, (C, N))
+    y = rng.uniform(0, 1, (5, C))
+    return prior, A, y
+
+
+def test_wiener_estimate_equals_the_closed_form_on_a_small_case():
+    """The gain form mu + Sigma A'(A Sigma A' + N)^-1 (y - A mu) against the
+    information form P (Sigma^-1 mu + A' N^-1 y), P = (Sigma^-1 + A' N^-1 A)^-1
+    (Woodbury: identical in exact arithmetic; 1e-10 allows float64 round-off
+    of two 6 x 6 inversions of condition below 1e4)."""
+    prior, A, y = _small_case()
+    mean, P = sp.wiener_estimate(prior, A, y)
+    Am = A @ prior.mean
+    nvar = prior.noise ** 2 * (Am @ Am) / A.shape[0]
+    Si = np.linalg.inv(prior.cov)
+    Pi = np.linalg.inv(Si + A.T @ A / nvar)
+    want = (Pi @ (Si @ prior.mean[:, None] + A.T @ y.T / nvar)).T
+    assert np.linalg.cond(Si + A.T @ A / nvar) < 1e4
+    np.testing.assert_allclose(mean, want, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(P, Pi, rtol=1e-10, atol=1e-12)
+    # the mixture code path with one atom is the same estimate
+    ones = np.ones(A.shape[1])          # A = R' diag(E dl) with R = A', E = dl = 1
+    est = sp.surface_estimates(prior, y, A.T, ones, ones, exposure=1.0)
+    np.testing.assert_allclose(est.mean, want, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(est.std ** 2, np.broadcast_to(np.diag(Pi), est.std.shape), rtol=1e-9, atol=1e-13)
+
+
+def test_wiener_tends_to_the_pseudo_inverse_as_the_prior_flattens():
+    """mu = B a inside a C-term model B and Sigma = s^2 B B': with L = A B,
+    K = B L'(L L' + n/s^2)^-1 -> B L^-1, so the estimate tends to eq. 36,
+    B L^-1 y, and the difference is first order in n / s^2: ten times s,
+    a hundred times smaller (the ratio is 100 up to O(1/s^2))."""
+    B = models.surface_pca_model(3, WL).basis
+    cam = Camera.named("Nikon 5100 (NPL)")
+    A = sp.lighting_operator(cam.sensitivities, models.illuminant("A", WL), DL)
+    rng = np.random.default_rng(3)
+    y = (rng.uniform(0, 1, (10, WL.size)) @ A.T)
+    lit = sp.pinv_estimate(A, B, y)
+    mu = B @ np.array([0.5, 0.1, -0.05])
+    errs = []
+    for s in (10.0, 100.0, 1000.0):
+        prior = sp.gaussian_prior(mu, s * s * (B @ B.T), WL, noise=0.05)
+        mean, _ = sp.wiener_estimate(prior, A, y)
+        errs.append(np.abs(mean - lit).max())
+    assert errs[2] < 1e-6 * np.abs(lit).max()
+    assert 90 < errs[0] / errs[1] < 110 and 90 < errs[1] / errs[2] < 110, errs
+
+
+def test_bands_hold_their_rate_on_draws_from_the_prior_itself():
+    """Surfaces drawn from a Gaussian prior and seen through a measured
+    camera with the prior's noise: the posterior is exactly Gaussian, so
+    mean +- 1.645 std holds the truth 90 % of the time at every wavelength.
+    With 3,000 independent draws a wavelength's rate has binomial standard
+    deviation sqrt(0.9 * 0.1 / 3000) = 0.0055; 4.5 of them (0.025) bound all
+    31 wavelengths together with probability > 0.9998."""
+    from models.surface_data import surface_sets
+
+    R, _ = surface_sets(WL)
+    prior = sp.learn_prior(R, WL, bandwidth=None)
+    cam = Camera.named("Canon EOS 5D Mark II")
+    E = models.illuminant("D65", WL)
+    A = sp.lighting_operator(cam.sensitivities, E / E.mean(), DL)
+    rng = np.random.default_rng(7)
+    n = 3000
+    r = rng.multivariate_normal(prior.mean, prior.cov, n)
+    Am = A @ prior.mean
+    y = r @ A.T + rng.standard_normal((n, 3)) * prior.noise * np.sqrt(Am @ Am / 3)
+    est = sp.surface_estimates(prior, y, cam.sensitivities, E / E.mean(), DL, exposure=1.0)
+    inside = np.abs(r - est.mean) <= 1.6448536269514722 * est.std
+    rate = inside.mean(axis=0)
+    assert np.all(np.abs(rate - 0.90) < 4.5 * np.sqrt(0.9 * 0.1 / n)), rate
+
+
+def test_mixture_posterior_variance_is_the_mean_squared_error_of_its_mean():
+    """For any prior, the exact posterior mean m and variance v satisfy
+    E[(r - m)^2] = E[v] (law of total variance). Draws from the shipped
+    kernel prior through a measured camera: the mean of (r - m)^2 - v is zero
+    within 4.5 of its own standard errors at every wavelength."""
+    prior = sp.default_prior(WL)
+    cam = Camera.named("Sigma SDMerill (NPL)")
+    E = models.illuminant("A", WL)
+    E = E / E.mean()
+    A = sp.lighting_operator(cam.sensitivities, E, DL)
+    rng = np.random.default_rng(11)
+    n = 3000
+    idx = rng.integers(0, prior.atoms.shape[0], n)
+    r = prior.atoms[idx] + rng.multivariate_normal(np.zeros(WL.size), prior.cov, n)
+    Am = A @ prior.mean
+    y = r @ A.T + rng.standard_normal((n, 3)) * prior.noise * np.sqrt(Am @ Am / 3)
+    est = sp.surface_estimates(prior, y, cam.sensitivities, E, DL, exposure=1.0)
+    d = (r - est.mean) ** 2 - est.std ** 2
+    se = d.std(axis=0, ddof=1) / np.sqrt(n)
+    assert np.all(np.abs(d.mean(axis=0)) < 4.5 * se), d.mean(axis=0) / se
+
+
+def test_exposure_is_scale_equivariant_and_maximises_the_likelihood():
+    """exposure_scale(c rho) = c exposure_scale(rho) (to round-off), and the
+    log-likelihood at the returned k is above its value 1 % either side."""
+    prior = sp.default_prior(WL)
+    cam = Camera.named("Nikon 5100 (NPL)")
+    E = models.illuminant("D65", WL)
+    A = sp.lighting_operator(cam.sensitivities, E / E.mean(), DL)
+    from models.surface_data import surface_sets
+
+    R, _ = surface_sets(WL)
+    rho = 0.37 * R[:50] @ A.T
+    k = sp.exposure_scale(prior, A, rho)
+    for c in (1e-200, 1e-3, 1e5, 1e200):
+        assert sp.exposure_scale(prior, A, c * rho) == pytest.approx(c * k, rel=1e-12)
+    G = A @ prior.marginal_cov @ A.T + prior.noise ** 2 * np.sum((A @ prior.mean) ** 2) / 3 * np.eye(3)
+    Gi = np.linalg.inv(G)
+
+    def ll(kk):
+        d = rho / kk - A @ prior.mean
+        return -rho.size * np.log(kk) - 0.5 * np.einsum("pi,ij,pj->", d, Gi, d)
+
+    assert ll(k) > ll(1.01 * k) and ll(k) > ll(0.99 * k)
+
+
+def test_analyze_gives_bands_and_keeps_the_literal_method():
+    cam = Camera.named("Nikon 5100 (NPL)")
+    refl = models.reflectance_set("colorchecker")
+    E = models.illuminant("D65", WL)
+    img = cam.response(refl * E).reshape(4, 6, 3)
+    res = analyze(img, cam, method="gray-world")
+    pts = [(r, c) for r in range(4) for c in range(6)]
+    pe = res.surface_estimates(pts)
+    assert res.surface_estimator == "prior" and pe.std.shape == (24, WL.size)
+    assert np.all(np.isfinite(pe.mean)) and np.all(pe.std > 0) and np.all(np.isfinite(pe.expected_rmse))
+    np.testing.assert_allclose(res.reflectance(pts), pe.mean)
+    lit = analyze(img, cam, method="gray-world", surface_estimator="pinv")
+    assert lit.surface_estimator == "pinv" and lit.surface_estimates(pts).std is None
+
+
+@pytest.fixture(scope="module")
+def client():
+    with TestClient(app) as c:
+        yield c
+
+
+def test_rest_surfaces_answer_has_bands_and_no_nan(client, tmp_path):
+    """/v1/surfaces keeps its fields and adds reflectance_std and
+    expected_rmse per surface; every number finite; a camera known only by
+    its colour matrix (an unknown make/model) gets wider bands than the same
+    scene through its measured camera."""
+    out = {}
+    for label, kw in (("measured", {}), ("matrix", {"make": "Foo", "model": "Bar 1"})):
+        scene_dng(tmp_path / f"{label}.dng", "Nikon 5100 (NPL)", "D65", 64, 96, seed=5, **kw)
+        data = (tmp_path / f"{label}.dng").read_bytes()
+        r = client.post("/v1/surfaces", files={"file": ("s.dng", data, "application/octet-stream")},
+                        data={"points": json.dumps([[10, 10], [40, 60]]), "rects": json.dumps([[0, 0, 20, 30]]),
+                              "grid": "2x3"})
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert body["surface_estimator"] == "prior" and "band" in body
+        assert body["camera"]["source"] == ("measured" if label == "measured" else "matrix-derived")
+        n = len(body["wavelengths"])
+        for s in body["surfaces"]:
+            assert {"kind", "where", "reflectance", "warnings", "reflectance_std", "expected_rmse"} <= set(s)
+            assert len(s["reflectance"]) == n and len(s["reflectance_std"]) == n
+            vals = np.array(s["reflectance"] + s["reflectance_std"] + [s["expected_rmse"]], float)
+            assert np.all(np.isfinite(vals)) and min(s["reflectance_std"]) >= 0
+        out[label] = np.median([s["expected_rmse"] / max(np.mean(s["reflectance"]), 1e-9) for s in body["surfaces"]])
+    assert out["matrix"] > out["measured"], out
+
+
+def test_per_point_lights_give_the_one_light_answer_when_the_lights_agree():
+    """The batched light-map path (one light per point) with every point
+    under the same light is the one-light estimate (same formulas, batched:
+    1e-9 relative allows their different summation order)."""
+    prior = sp.default_prior(WL)
+    cam = Camera.named("Nikon 5100 (NPL)")
+    E = models.illuminant("FL2", WL)
+    E = E / E.mean()
+    from models.surface_data import surface_sets
+
+    R, _ = surface_sets(WL)
+    rho = R[::3] @ sp.lighting_operator(cam.sensitivities, E, DL).T
+    one = sp.surface_estimates(prior, rho, cam.sensitivities, E, DL, exposure=0.8)
+    per = sp.surface_estimates_per_point(prior, rho, cam.sensitivities, np.broadcast_to(E, (len(rho), E.size)), DL,
+                                         exposure=0.8, chunk=7)
+    np.testing.assert_allclose(per.mean, one.mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(per.std, one.std, rtol=1e-9, atol=1e-12)
