@@ -72,6 +72,9 @@ class AsShot(_Answer):
     """The camera's own (as-shot) white."""
     camera_rgb: list[float]
     angle_to_estimate_deg: float = Field(description="angle between the as-shot white and the estimate, degrees")
+    temperature: float | None = Field(None, description="the as-shot white as Camera Raw's Temperature (K)")
+    tint: float | None = Field(None, description="and Tint")
+    xy: list[float] | None = Field(None, description="its CIE 1931 chromaticity")
 
 
 class LightMap(_Answer):
