@@ -406,7 +406,8 @@ def _stop_now(executor) -> None:
 
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
               dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
-              quiet: bool = False, recursive: bool = False, xmp: dict | None = None) -> list[dict]:
+              quiet: bool = False, recursive: bool = False, xmp: dict | None = None,
+              info: dict | None = None) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
     ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
@@ -425,7 +426,13 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     the same executor (:func:`_sidecar_job`): beside the RAW, or in
     ``folder`` (the relative tree kept), into ``out_dir`` when the RAW's
     folder is not writable; rows get ``xmp`` (the path written) and a
-    ``note`` when it went elsewhere, was kept or could not be made."""
+    ``note`` when it went elsewhere, was kept or could not be made. Each
+    image's sidecar is made as soon as the image is finished, so a Ctrl-C
+    leaves every finished image with its sidecar (those still being made
+    are written before the command exits) and no ``.lock`` file behind.
+
+    ``info`` (a dict, filled in): ``shared_light``, the light of a shared
+    batch (its ``warnings`` say when the images disagree)."""
     import io
 
     stream = io.StringIO() if quiet else (stream or sys.stderr)
@@ -459,12 +466,15 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     bar.update(**count)
     own = executor is None and bool(todo)
     interrupted = False
+    sidecars: dict = {}   # name -> future of its XMP sidecar
     ctrl_c = _CtrlC().__enter__()
     try:
         if own:
             executor = ctrl_c.executor = jobs.make_executor(workers or None, dask_scheduler or None)
         if todo and options.lighting == "shared":
             light = _shared_light(tasks, options, out_dir, executor, rows, count, force)
+            if info is not None:
+                info["shared_light"] = light
             todo = [t for t in todo if rows[t.name]["status"] == "pending"]
             todo = [dataclasses.replace(t, light=light) for t in todo] if light else []
             for t in tasks:
@@ -480,12 +490,15 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
                 res = fut.result()
             except BaseException as e:  # a worker lost
                 res = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
+            res.pop("retry", None)
             rows[t.name].update(res)
             rows[t.name].pop("adopted", None)
             count["done" if res["status"] == "done" else "failed"] += 1
             bar.update(**count)
+            if xmp is not None and res["status"] == "done":   # its sidecar now, not after the whole batch
+                sidecars[t.name] = _submit_sidecar(t, rows[t.name], options, out_dir, executor, xmp)
         if xmp is not None:
-            _batch_sidecars(tasks, rows, options, out_dir, executor, xmp)
+            _batch_sidecars(tasks, rows, options, out_dir, executor, xmp, sidecars)
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -507,47 +520,89 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
                 with contextlib.suppress(OSError, ValueError):
                     with open(jobs.meta_path(t.out, ".json")) as f:
                         r.update(status="done", illuminant=json.load(f).get("illuminant"))
+        for t in tasks:   # a worker ended mid-item leaves its lock file: gone once nobody holds the lock
+            jobs.remove_stale_lock(t.out)
+        if xmp is not None:   # every finished image gets its sidecar before the command exits
+            with contextlib.suppress(KeyboardInterrupt):
+                _finish_sidecars(tasks, rows, options, out_dir, xmp, sidecars)
         raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
 
 
-def _batch_sidecars(tasks, rows, options, out_dir: str, executor, xmp: dict) -> None:
-    """The sidecars of a batch's finished items (:func:`run_batch`'s ``xmp``)."""
-    futs = []
+def _sidecar_args(t, r, options, out_dir: str, xmp: dict) -> tuple:
+    """The arguments of :func:`_sidecar_job` for task ``t`` (row ``r``)."""
+    rel_dir = os.path.dirname(t.name)
+    target = (sidecar_path(os.path.join(xmp["folder"], t.name), xmp["name"]) if xmp.get("folder")
+              else sidecar_path(t.src, xmp["name"]))
+    fallback = None if xmp.get("folder") else os.path.join(out_dir, rel_dir)
+    if xmp.get("folder"):
+        os.makedirs(os.path.dirname(target), exist_ok=True)      # --xmp DIR: the relative tree kept
+    return (t.src, r["illuminant"], options, target, fallback, bool(xmp.get("overwrite")))
+
+
+def _submit_sidecar(t, r, options, out_dir: str, executor, xmp: dict):
+    """A finished image's sidecar, on the executor (or here when there is none)."""
+    args = _sidecar_args(t, r, options, out_dir, xmp)
+    if executor is None:            # every item already finished: no pool was started
+        from concurrent.futures import Future
+
+        f: Future = Future()
+        try:
+            f.set_result(_sidecar_job(*args))
+        except Exception as e:  # noqa: BLE001 - reported below as a worker's would be
+            f.set_exception(e)
+        return f
+    return executor.submit(_sidecar_job, *args)
+
+
+def _apply_sidecar(r: dict, res: dict) -> None:
+    if res.get("xmp"):
+        r["xmp"] = res["xmp"]
+    if res.get("kept"):
+        r["xmp_kept"] = res["kept"]
+    if res.get("note"):
+        r["note"] = "; ".join(n for n in (r.get("note"), res["note"]) if n)
+
+
+def _finish_sidecars(tasks, rows, options, out_dir: str, xmp: dict, sidecars: dict) -> None:
+    """After a Ctrl-C (the pool ended): the sidecars that finished are
+    recorded, and every finished image whose sidecar was not made (its job
+    dropped with the pool) gets it here, in this process."""
     for t in tasks:
         r = rows[t.name]
-        if r["status"] not in ("done", "skipped") or not r.get("illuminant"):
+        if r["status"] not in ("done", "skipped") or not r.get("illuminant") or r.get("xmp") or r.get("xmp_kept"):
             continue
-        rel_dir = os.path.dirname(t.name)
-        target = (sidecar_path(os.path.join(xmp["folder"], t.name), xmp["name"]) if xmp.get("folder")
-                  else sidecar_path(t.src, xmp["name"]))
-        fallback = None if xmp.get("folder") else os.path.join(out_dir, rel_dir)
-        if xmp.get("folder"):
-            os.makedirs(os.path.dirname(target), exist_ok=True)      # --xmp DIR: the relative tree kept
-        args = (t.src, r["illuminant"], options, target, fallback, bool(xmp.get("overwrite")))
-        if executor is None:            # every item already finished: no pool was started
-            from concurrent.futures import Future
-
-            f: Future = Future()
+        f = sidecars.get(t.name)
+        res = None
+        if f is not None and f.done() and not f.cancelled():
+            with contextlib.suppress(BaseException):
+                res = f.result()
+        if res is None:
             try:
-                f.set_result(_sidecar_job(*args))
-            except Exception as e:  # noqa: BLE001 - reported below as a worker's would be
-                f.set_exception(e)
-            futs.append((t, f))
-        else:
-            futs.append((t, executor.submit(_sidecar_job, *args)))
-    for t, f in futs:
+                res = _sidecar_job(*_sidecar_args(t, r, options, out_dir, xmp))
+            except Exception as e:  # noqa: BLE001 - the image is done; say why its sidecar is not
+                res = {"xmp": None, "note": f"no XMP sidecar: {type(e).__name__}: {e}"}
+        _apply_sidecar(r, res)
+
+
+def _batch_sidecars(tasks, rows, options, out_dir: str, executor, xmp: dict, sidecars: dict | None = None) -> None:
+    """The sidecars of a batch's finished items (:func:`run_batch`'s ``xmp``):
+    those already submitted (``sidecars``, name -> future) and the others."""
+    sidecars = sidecars if sidecars is not None else {}
+    for t in tasks:
+        r = rows[t.name]
+        if r["status"] not in ("done", "skipped") or not r.get("illuminant") or t.name in sidecars:
+            continue
+        sidecars[t.name] = _submit_sidecar(t, r, options, out_dir, executor, xmp)
+    for t in tasks:
+        f = sidecars.get(t.name)
+        if f is None:
+            continue
         try:
             res = f.result()
         except Exception as e:  # noqa: BLE001 - a worker lost: the image is done, say why the sidecar is not
             res = {"xmp": None, "note": f"no XMP sidecar: {type(e).__name__}: {e}"}
-        r = rows[t.name]
-        if res.get("xmp"):
-            r["xmp"] = res["xmp"]
-        if res.get("kept"):
-            r["xmp_kept"] = res["kept"]
-        if res.get("note"):
-            r["note"] = "; ".join(n for n in (r.get("note"), res["note"]) if n)
+        _apply_sidecar(rows[t.name], res)
 
 
 def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = False) -> dict | None:
@@ -596,9 +651,11 @@ def _cmd_batch(args) -> int:
     try:
         xmp = None if args.xmp is None else {"folder": args.xmp or None, "name": args.xmp_name,
                                              "overwrite": args.xmp_overwrite}
+        info: dict = {}
         rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
-                         quiet=args.quiet, recursive=args.recursive, xmp=xmp)
+                         quiet=args.quiet, recursive=args.recursive, xmp=xmp, info=info)
     except BatchInterrupted as e:
+        _print_light_warnings(info.get("shared_light"))
         if threading.current_thread() is threading.main_thread():
             import signal
 
@@ -612,6 +669,7 @@ def _cmd_batch(args) -> int:
                          f"(finished outputs are skipped):\n  {cmd}\n")
         return 130
     _summary(rows, sys.stdout, args.quiet)
+    _print_light_warnings(info.get("shared_light"))
     if args.xmp is not None and not args.quiet:
         written = [r["xmp"] for r in rows if r.get("xmp")]
         beside = sum(os.path.dirname(p) == os.path.dirname(os.path.abspath(os.path.join(args.in_dir, r["name"])))
@@ -622,6 +680,18 @@ def _cmd_batch(args) -> int:
     if ignored:
         (sys.stderr if args.quiet else sys.stdout).write(_ignored_text(ignored))
     return 1 if any(r["status"] == "failed" for r in rows) else 0
+
+
+def _print_light_warnings(light: dict | None) -> None:
+    """``--lighting shared``: the shared light's warnings (the images'
+    own lights disagree: they may not all be under one light), with its
+    confidence, on stderr (as the batch's JSON ``warnings``)."""
+    if not light:
+        return
+    from .batch.store import shared_light_warnings
+
+    for w in shared_light_warnings(light):
+        sys.stderr.write(f"warning: {term_safe(w)}\n")
 
 
 #: Output file extensions and the formats they mean (white-balance OUT).

@@ -52,6 +52,19 @@ class LocalExecutor:
     def submit(self, fn, *args) -> Future:
         return self._pool.submit(fn, *args)
 
+    @property
+    def broken(self) -> str | None:
+        """Why the pool can run nothing more (a worker died abruptly, e.g.
+        killed by the OOM killer: ``concurrent.futures`` then fails every
+        future of the pool and refuses every submit), or None. The runner
+        replaces a broken pool (:meth:`BatchRunner._replace_broken_executor`)."""
+        b = getattr(self._pool, "_broken", False)
+        if b:
+            return f"process pool broken: {b}"
+        if getattr(self._pool, "_shutdown_thread", False):
+            return "process pool shut down"
+        return None
+
     def shutdown(self, wait: bool = True) -> None:
         self._pool.shutdown(wait=wait, cancel_futures=True)
 
@@ -102,17 +115,47 @@ def _dask_call(fn, *args):
 class DaskExecutor:
     """Items submitted to a Dask distributed cluster (``scheduler`` address,
     or a ``distributed.Client`` given). The workers need this project
-    installed and the data directory (or batch root) at the same path."""
+    installed and the data directory (or batch root) at the same path.
+
+    :attr:`workers` follows the cluster: the threads of the workers connected
+    now (asked of the scheduler at most every ``refresh_s`` seconds), so
+    workers that join later are used and a cluster with no worker left gives
+    0 (the runner then hands out nothing and says it is waiting). A client
+    that closed itself (the scheduler away longer than its reconnection
+    timeout) is :attr:`broken`: the runner makes a new one."""
 
     kind = "dask"
 
-    def __init__(self, scheduler=None, client=None, timeout: float = 20.0):
+    def __init__(self, scheduler=None, client=None, timeout: float = 20.0, refresh_s: float = 1.0):
         from distributed import Client
 
         self._own = client is None
+        self.address = scheduler
         self.client = client if client is not None else Client(scheduler, timeout=f"{timeout}s")
-        self.workers = max(1, sum(w.get("nthreads", 1)
-                                  for w in self.client.scheduler_info().get("workers", {}).values()))
+        self.refresh_s = float(refresh_s)
+        self._workers, self._asked = 0, float("-inf")
+        self.workers_error: str | None = None
+
+    @property
+    def workers(self) -> int:
+        """Threads of the workers connected now (0: none)."""
+        now = time.monotonic()
+        if now - self._asked >= self.refresh_s:
+            self._asked = now
+            try:
+                info = self.client.scheduler_info()   # every worker, asked now (a synchronous client)
+                self._workers = sum(int(w.get("nthreads", 1) or 1) for w in info.get("workers", {}).values())
+                self.workers_error = None
+            except Exception as e:  # the scheduler does not answer: count nothing, say why
+                self._workers, self.workers_error = 0, f"{type(e).__name__}: {e}"
+        return self._workers
+
+    @property
+    def broken(self) -> str | None:
+        status = str(getattr(self.client, "status", "running"))
+        if status in ("closed", "closing", "failed"):
+            return f"Dask client {status} (the scheduler was unreachable longer than its reconnection timeout)"
+        return None
 
     def submit(self, fn, *args) -> Future:
         fut: Future = Future()
@@ -121,7 +164,7 @@ class DaskExecutor:
         def done(df):
             try:
                 fut.set_result(df.result())
-            except BaseException as e:  # a lost worker, a cancelled task
+            except BaseException as e:  # a lost worker, a cancelled task, a closed client
                 fut.set_exception(e)
 
         fut.set_running_or_notify_cancel()
@@ -130,7 +173,8 @@ class DaskExecutor:
 
     def shutdown(self, wait: bool = True) -> None:
         if self._own:
-            self.client.close()
+            with contextlib.suppress(Exception):
+                self.client.close(timeout=5)
 
 
 def make_executor(workers: int | None = None, scheduler: str | None = None, timeout: float = 20.0):
