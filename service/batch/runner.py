@@ -91,6 +91,8 @@ class BatchRunner:
         self.executor_rebuilds = 0
         #: store transitions that failed (disk full, store locked), retried at each step
         self._unrecorded: list = []
+        #: batches whose creation found the store busy, registered from their manifest (:meth:`defer`)
+        self._deferred: set = set()
         self._paused_until = 0.0
         self._next_connect = 0.0
         self._next_idle_check = 0.0
@@ -104,7 +106,15 @@ class BatchRunner:
                                            self.config.dask_timeout)
         return self._executor
 
+    def defer(self, batch_id: str) -> None:
+        """A batch made while the store was busy (its manifest on disk):
+        registered at the runner's next step that finds the store free."""
+        self.store.defer(batch_id)
+        self._deferred.add(batch_id)
+        self._wake.set()
+
     def start(self) -> int:
+        self._deferred.update(self.store.unregistered())
         n = self.store.resume()
         self._thread = threading.Thread(target=self._loop, name="batch-runner", daemon=True)
         self._thread.start()
@@ -312,6 +322,10 @@ class BatchRunner:
 
     def _tick(self) -> None:
         self._flush_unrecorded()
+        for bid in sorted(self._deferred):   # made while the store was busy: register them now
+            if self.store.adopt_batch(bid):
+                log.info("batch %s registered (its creation found the store busy)", bid)
+            self._deferred.discard(bid)
         now = time.monotonic()
         if now >= self._next_cleanup:  # at most every 30 s (sooner for a short retention)
             self._next_cleanup = now + min(30.0, max(self.config.poll_s, self.config.input_retention_s / 4))
@@ -557,7 +571,7 @@ def scan_folder(root: str, folder: str, limit: int | None = None) -> tuple[list[
             name.encode("utf-8")
             real.encode("utf-8")
         except UnicodeEncodeError:   # os.listdir's surrogate escapes: the name's bytes are not UTF-8
-            shown = os.fsencode(name).decode("utf-8", "backslashreplace")
+            shown = os.fsencode(name).decode("utf-8", "replace")   # U+FFFD for the odd bytes
             refused[i] = (f"invalid_name: the file name {os.fsencode(name)!r} is not UTF-8, so it cannot be "
                           "recorded; rename it (e.g. with convmv) and submit it again")
             out.append((shown, ""))

@@ -84,6 +84,9 @@ def safe_name(name: str) -> str:
 #: from which a damaged job store is rebuilt.
 MANIFEST = "batch.json"
 JOURNAL = "states.jsonl"
+#: Marker of a batch whose folder and manifest were written while the store
+#: was busy (locked): the runner registers it from the manifest when it can.
+UNREGISTERED = "unregistered"
 
 
 def _read_sidecar(out: str) -> dict | None:
@@ -227,40 +230,85 @@ class JobStore:
         still there. Batches from before the manifest are rebuilt from their
         inputs' names (:meth:`_legacy_rows`). Returns how many batches."""
         root = os.path.join(self.data_dir, "batches")
-        n = 0
-        for bid in sorted(os.listdir(root)):
-            bdir = os.path.join(root, bid)
-            if not os.path.isdir(bdir) or self.batch(bid) is not None:
-                continue
-            try:
-                with open(os.path.join(bdir, MANIFEST)) as f:
-                    manifest = json.load(f)
-                options = BatchOptions(**manifest["options"])
-                items = [(int(it["index"]), str(it["name"]), str(it["src"]), str(it["out"]))
-                         for it in manifest["items"]]
-            except (OSError, ValueError, TypeError, KeyError):
-                manifest = None
-            if manifest is None:
-                rows, options = self._legacy_rows(bdir)
-                status, created, light = "done", os.path.getmtime(bdir), (None, None)
-            else:
-                rows, status, light = self._manifest_rows(bdir, items)
-                created = float(manifest.get("created") or os.path.getmtime(bdir))
-            if not rows:
-                continue
-            now = time.time()
-            with self._tx() as db:
-                db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir, light, "
-                           "light_error) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                           (bid, created, None if status == "queued" else now,
-                            None if status == "queued" else now, status, (options or BatchOptions()).to_json(),
-                            bdir, *light))
-                db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, illuminant, "
-                               "completions, finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                               [(bid, *r, int(r[4] == "done"), None if r[4] == "pending" else now)
-                                for r in rows])
-            n += 1
-        return n
+        return sum(self.adopt_batch(bid) for bid in sorted(os.listdir(root)))
+
+    def adopt_batch(self, bid: str) -> bool:
+        """Register one batch folder the store does not know (see
+        :meth:`adopt_from_disk`); True if it was registered now. A batch
+        whose registration was deferred (the store was busy when it was
+        made: the ``unregistered`` marker) loses its marker."""
+        bdir = self.batch_dir(bid)
+        if not os.path.isdir(bdir) or self.batch(bid) is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(os.path.join(bdir, UNREGISTERED))
+            return False
+        try:
+            with open(os.path.join(bdir, MANIFEST)) as f:
+                manifest = json.load(f)
+            options = BatchOptions(**manifest["options"])
+            items = [(int(it["index"]), str(it["name"]), str(it["src"]), str(it["out"]))
+                     for it in manifest["items"]]
+        except (OSError, ValueError, TypeError, KeyError):
+            manifest = None
+        if manifest is None:
+            rows, options = self._legacy_rows(bdir)
+            status, created, light = "done", os.path.getmtime(bdir), (None, None)
+        else:
+            rows, status, light = self._manifest_rows(bdir, items)
+            created = float(manifest.get("created") or os.path.getmtime(bdir))
+        if not rows:
+            return False
+        now = time.time()
+        with self._tx() as db:
+            db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir, light, "
+                       "light_error) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                       (bid, created, None if status == "queued" else now,
+                        None if status == "queued" else now, status, (options or BatchOptions()).to_json(),
+                        bdir, *light))
+            db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, illuminant, "
+                           "completions, finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                           [(bid, *r, int(r[4] == "done"), None if r[4] == "pending" else now)
+                            for r in rows])
+        with contextlib.suppress(OSError):
+            os.unlink(os.path.join(bdir, UNREGISTERED))
+        return True
+
+    def unregistered(self) -> list[str]:
+        """Batches made while the store was busy (their folder and manifest
+        written, the store's rows not): registered by the runner
+        (:meth:`adopt_batch`) as soon as the store can take them."""
+        root = os.path.join(self.data_dir, "batches")
+        try:
+            return sorted(b for b in os.listdir(root) if os.path.exists(os.path.join(root, b, UNREGISTERED)))
+        except OSError:
+            return []
+
+    def defer(self, batch_id: str) -> None:
+        """Mark a batch whose manifest is written but whose rows could not be
+        (the store busy): :meth:`unregistered` lists it until it is adopted."""
+        write_text(os.path.join(self.batch_dir(batch_id), UNREGISTERED), f"{time.time()}\n")
+
+    def manifest_progress(self, batch_id: str) -> dict | None:
+        """The progress document of a deferred batch (not yet in the store)
+        from its manifest: every item pending."""
+        bdir = self.batch_dir(batch_id)
+        if not os.path.exists(os.path.join(bdir, UNREGISTERED)):
+            return None
+        try:
+            with open(os.path.join(bdir, MANIFEST)) as f:
+                m = json.load(f)
+            items = [{"index": int(it["index"]), "name": str(it["name"]), "status": "pending", "output": None}
+                     for it in m["items"]]
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        n = len(items)
+        return {"id": batch_id, "status": "queued", "settled": False, "lighting": m["options"].get("lighting"),
+                "options": m["options"], "counts": {"done": 0, "failed": 0, "pending": n, "running": 0,
+                                                    "cancelled": 0, "total": n},
+                "rate_per_minute": None, "time_left_s": None, "elapsed_s": 0.0, "rate": None, "eta_s": None,
+                "created": m.get("created"), "items": items,
+                "registration": "deferred: the job store was busy when the batch was made; it is kept on disk "
+                                "and registered as soon as the store is free"}
 
     def _manifest_rows(self, bdir: str, items: list) -> tuple[list, str, tuple]:
         """Rows ``(idx, name, src, out, status, error, illuminant)`` of a

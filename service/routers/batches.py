@@ -205,7 +205,13 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
         bid = await run_in_threadpool(store.new_batch_id)
         if sources is None:
             sources = await _save_uploads(files, os.path.join(store.batch_dir(bid), "in"), settings)
-        await _in_thread(store.create_batch, bid, opts, sources, refused)
+        try:
+            await _in_thread(store.create_batch, bid, opts, sources, refused)
+        except StoreBusy as busy:   # the manifest is on disk: accepted, registered when the store is free
+            await run_in_threadpool(runner.defer, bid)
+            deferred = busy.detail
+        else:
+            deferred = None
     except BaseException as e:
         if bid is not None:
             await run_in_threadpool(shutil.rmtree, store.batch_dir(bid), True)
@@ -220,7 +226,15 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
                "lighting": opts.lighting, "url": f"/v1/batches/{bid}"}
     if runner.executor_error:   # accepted, but nothing can run now: say why (no scheduler, no worker, disk full)
         content["runner_error"] = runner.executor_error
+    if deferred:
+        content["registration"] = (f"deferred: {deferred}; the batch is kept on disk and registered (then run) "
+                                   "as soon as the store is free")
     return JSONResponse(status_code=202, content=clean(content))
+
+
+def _valid_id(bid: str) -> bool:
+    """A batch id as :meth:`JobStore.new_batch_id` makes them (never a path)."""
+    return len(bid) == 16 and all(c in "0123456789abcdef" for c in bid)
 
 
 def _size(path: str) -> int:
@@ -241,6 +255,8 @@ def _progress(bid: str) -> dict:
     runner = get_runner()
     with store_errors():
         doc = runner.store.progress(bid)
+    if doc is None and _valid_id(bid):
+        doc = runner.store.manifest_progress(bid)   # made while the store was busy, not yet registered
     if doc is None:
         raise ServiceError(404, "not_found", f"no batch {bid!r}")
     if runner.executor_error and doc["status"] in ("queued", "running"):
