@@ -274,3 +274,29 @@ def test_busy_store_is_a_503_with_retry_after_not_a_blocked_server(tmp_path):
     store.defer(bid)
     assert store.unregistered() == [bid] and store.manifest_progress(bid)["status"] == "queued"
     assert store.adopt_batch(bid) and store.unregistered() == []
+
+
+def test_scheduler_that_never_answers_is_said_not_hidden(tmp_path, dngs):
+    """A listener that accepts connections and never speaks (a hung
+    scheduler): the items wait, the runner says why (progress, /health),
+    and it tries again later instead of blocking at every step."""
+    pytest.importorskip("distributed")
+    import socket
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(16)
+    try:
+        runner = jobs.BatchRunner(jobs.RunnerConfig(str(tmp_path / "data"), dask_timeout=2,
+                                                    dask_scheduler=f"tcp://127.0.0.1:{srv.getsockname()[1]}"))
+        bid = _batch(runner.store, dngs, n=1)
+        t0 = time.monotonic()
+        runner._tick()
+        assert runner.executor_error.startswith("executor_unavailable"), runner.executor_error
+        assert runner.health()["status"] == "degraded"
+        runner._tick()                       # within reconnect_s: no second 2 s wait
+        assert time.monotonic() - t0 < 2 * 2 + 10
+        assert runner.store.counts(bid)["pending"] == 1
+        runner.stop()
+    finally:
+        srv.close()

@@ -133,17 +133,22 @@ class DaskExecutor:
         self.address = scheduler
         self.client = client if client is not None else Client(scheduler, timeout=f"{timeout}s")
         self.refresh_s = float(refresh_s)
+        self.answer_s = max(1.0, float(timeout))
         self._workers, self._asked = 0, float("-inf")
+        self._asking = Bounded("Dask scheduler info")
         self.workers_error: str | None = None
 
     @property
     def workers(self) -> int:
-        """Threads of the workers connected now (0: none)."""
+        """Threads of the workers connected now (0: none, or a scheduler that
+        did not answer within ``answer_s``: then :attr:`workers_error`)."""
         now = time.monotonic()
         if now - self._asked >= self.refresh_s:
             self._asked = now
             try:
-                info = self.client.scheduler_info()   # every worker, asked now (a synchronous client)
+                # every worker, asked now (a synchronous client); a hung scheduler never answers, so
+                # the question runs on a thread of its own and is waited for a bounded time
+                info = self._asking.call(self.client.scheduler_info, self.answer_s)
                 self._workers = sum(int(w.get("nthreads", 1) or 1) for w in info.get("workers", {}).values())
                 self.workers_error = None
             except Exception as e:  # the scheduler does not answer: count nothing, say why
@@ -177,8 +182,53 @@ class DaskExecutor:
                 self.client.close(timeout=5)
 
 
+class Bounded:
+    """A blocking call waited for at most a given time, on a daemon thread
+    of its own; one at a time: while an earlier call is still hanging (a
+    Dask scheduler that accepted the connection and never answers: the
+    ``distributed`` handshake has no deadline), a new one is not started
+    (no pile of stuck threads); its result is used once it comes."""
+
+    def __init__(self, what: str):
+        self.what = what
+        self._pending: Future | None = None
+        self._lock = threading.Lock()
+
+    def call(self, fn, timeout: float):
+        with self._lock:
+            fut = self._pending
+            if fut is None:
+                fut = self._pending = Future()
+
+                def run():
+                    try:
+                        fut.set_result(fn())
+                    except BaseException as e:  # noqa: BLE001 - handed to the caller
+                        fut.set_exception(e)
+
+                threading.Thread(target=run, name=f"bounded: {self.what}", daemon=True).start()
+        try:
+            result = fut.result(timeout)
+        except TimeoutError:
+            raise TimeoutError(f"{self.what}: no answer within {timeout:g} s (the other side accepted the "
+                               "connection but does not answer)") from None
+        except BaseException:
+            with self._lock:
+                self._pending = None
+            raise
+        with self._lock:
+            self._pending = None
+        return result
+
+
+_CONNECTING: dict = {}
+
+
 def make_executor(workers: int | None = None, scheduler: str | None = None, timeout: float = 20.0):
-    """Dask when a scheduler address is given, else the local pool."""
+    """Dask when a scheduler address is given, else the local pool. The
+    connection to a scheduler is waited for at most ``timeout`` + 5 s even
+    when the scheduler accepts it and never answers (:class:`Bounded`)."""
     if scheduler:
-        return DaskExecutor(scheduler, timeout=timeout)
+        b = _CONNECTING.setdefault(scheduler, Bounded(f"Dask scheduler {scheduler}"))
+        return b.call(lambda: DaskExecutor(scheduler, timeout=timeout), timeout + 5.0)
     return LocalExecutor(workers or default_workers())
