@@ -17,7 +17,10 @@ waits up to 180 s for the batch to settle. Counted per run:
 - **duplicated**: outputs renamed into place more than once (the batch's
   ``writes.log``, one line per rename);
 - **lock files left** in ``out/.wandell`` and **re-queued**: how often an item went
-  back to pending (the journal ``states.jsonl``): the fault did hit items in flight.
+  back to pending (the journal ``states.jsonl``);
+- **the fault reached items**: runs in which it did (an item re-queued; for
+  ``disk_full`` and ``store_locked``, where the journal itself may miss the
+  line, the runner seen keeping a state change for later or pausing for space).
 
 Faults: ``stop`` (graceful stop mid-batch: SIGTERM/Ctrl-C's path, then a
 restart), ``kill9`` (the runner's process and its pool killed with SIGKILL,
@@ -114,6 +117,16 @@ def _count(store, bid: str) -> dict:
             "requeued": requeued}
 
 
+def _watch(runner, seconds: float, seen) -> bool:
+    """Whether ``seen(runner)`` held at some moment of the next ``seconds``
+    (the fault reached the runner: a state change kept for later, a pause)."""
+    t_end, hit = time.monotonic() + seconds, False
+    while time.monotonic() < t_end:
+        hit = hit or bool(seen(runner))
+        time.sleep(0.05)
+    return hit
+
+
 def _child_runner(data: str) -> None:  # the process killed by the kill9 fault
     r = _runner(data)
     r.start()
@@ -132,6 +145,7 @@ def run_once(fault: str, work: str, srcs: list, dask: dict | None = None) -> dic
                                  capture_output=True).returncode == 0
         if not mounted:
             raise PermissionError("disk_full needs root (mount -t tmpfs)")
+    hit = None
     try:
         store = jobs.JobStore(data)
         bid = store.new_batch_id()
@@ -171,7 +185,7 @@ def run_once(fault: str, work: str, srcs: list, dask: dict | None = None) -> dic
             elif fault == "store_locked":
                 db = sqlite3.connect(store.path, isolation_level=None)
                 db.execute("BEGIN IMMEDIATE")
-                time.sleep(8)
+                hit = _watch(runner, 8.0, lambda r: bool(r._unrecorded))
                 db.execute("ROLLBACK")
                 db.close()
             elif fault == "disk_full":
@@ -183,10 +197,12 @@ def run_once(fault: str, work: str, srcs: list, dask: dict | None = None) -> dic
                             f.flush()
                     except OSError:
                         pass
-                time.sleep(6)
+                hit = _watch(runner, 6.0, lambda r: bool(r._unrecorded) or (r.executor_error or "").startswith(
+                    "insufficient_storage"))
                 os.unlink(filler)
         _settle(runner.store, bid)
         got = _count(runner.store, bid)
+        got["hit"] = int(hit if hit is not None else got["requeued"] > 0)
         runner.stop()
         return got
     finally:
@@ -236,7 +252,7 @@ def main(argv=None) -> int:
     try:
         for fault in faults:
             runs = args.dask_runs if fault == "scheduler_lost" and args.dask_runs is not None else args.runs
-            total = {"done": 0, "failed": 0, "stuck": 0, "duplicated": 0, "locks_left": 0, "requeued": 0}
+            total = {"done": 0, "failed": 0, "stuck": 0, "duplicated": 0, "locks_left": 0, "requeued": 0, "hit": 0}
             dask = _dask_cluster(base) if fault == "scheduler_lost" else None
             t0 = time.monotonic()
             try:
@@ -256,7 +272,8 @@ def main(argv=None) -> int:
                     n = runs * len(srcs)
                     print(f"{fault:15s} {runs} runs x {len(srcs)} items: done {total['done']}/{n}, failed "
                           f"{total['failed']}, stuck {total['stuck']}, duplicated {total['duplicated']}, lock files "
-                          f"left {total['locks_left']}, re-queued {total['requeued']} times  "
+                          f"left {total['locks_left']}, re-queued {total['requeued']} times, the fault reached items in "
+                          f"{total['hit']} of {runs} runs  "
                           f"({time.monotonic() - t0:.0f} s)", flush=True)
                     bad |= bool(total["stuck"] or total["duplicated"] or total["failed"])
             finally:

@@ -203,8 +203,15 @@ class BatchRunner:
     def _task(self, row, options: BatchOptions, light: dict | None) -> ItemTask:
         bdir = self.store.batch_dir(row["batch_id"])
         src = row["src"]
-        # uploads are read under their batch's folder; folder batches under the batch root (or refused)
-        root = bdir if src.startswith(os.path.abspath(bdir) + os.sep) else (self.config.batch_root or os.sep)
+        # uploads are read under their batch's folder, folder batches under the batch root, anything
+        # else (stored as a resolved path) from "/": in every case no symbolic link on the way is followed
+        broot = os.path.realpath(self.config.batch_root) if self.config.batch_root else None
+        if src.startswith(os.path.abspath(bdir) + os.sep):
+            root = bdir
+        elif broot and src.startswith(broot + os.sep):
+            root = broot
+        else:
+            root = os.sep
         return ItemTask(src=src, out=row["out"], name=row["name"], options=options, index=row["idx"],
                         max_pixels=self.config.max_pixels, estimation_pixels=self.config.estimation_pixels,
                         light=light, write_log=os.path.join(bdir, "writes.log"),
