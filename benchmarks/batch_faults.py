@@ -20,15 +20,19 @@ waits up to 180 s for the batch to settle. Counted per run:
   back to pending (the journal ``states.jsonl``);
 - **the fault reached items**: runs in which it did (an item re-queued; for
   ``disk_full`` and ``store_locked``, where the journal itself may miss the
-  line, the runner seen keeping a state change for later or pausing for space).
+  line: the runner kept a state change for later, or re-queued an item whose
+  output could not be written, :attr:`BatchRunner.records_deferred` /
+  ``disk_full_retries``).
 
 Faults: ``stop`` (graceful stop mid-batch: SIGTERM/Ctrl-C's path, then a
 restart), ``kill9`` (the runner's process and its pool killed with SIGKILL,
 then a restart), ``worker_killed`` (one pool worker SIGKILLed, as by the OOM
 killer; no restart), ``store_lost`` (a stop, ``jobs.sqlite`` deleted, a
 restart), ``store_locked`` (another connection holds the store's write lock
-for 8 s mid-batch), ``disk_full`` (root only: the data directory a 200 MB
-tmpfs, filled for 6 s mid-batch, then freed), ``scheduler_lost`` (the Dask
+mid-batch until an item's end has met it, and 2 s more; at most 60 s),
+``disk_full`` (root only: the data directory a 200 MB tmpfs, filled
+mid-batch until an item's output or state change has met it, and 2 s more;
+at most 60 s, then freed), ``scheduler_lost`` (the Dask
 scheduler and worker killed, back after 25 s: longer than the client's
 20 s reconnection timeout).
 
@@ -117,14 +121,14 @@ def _count(store, bid: str) -> dict:
             "requeued": requeued}
 
 
-def _watch(runner, seconds: float, seen) -> bool:
-    """Whether ``seen(runner)`` held at some moment of the next ``seconds``
-    (the fault reached the runner: a state change kept for later, a pause)."""
-    t_end, hit = time.monotonic() + seconds, False
+def _until(cond, timeout: float) -> bool:
+    """Wait until ``cond()`` (True) or ``timeout`` seconds (False)."""
+    t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
-        hit = hit or bool(seen(runner))
+        if cond():
+            return True
         time.sleep(0.05)
-    return hit
+    return False
 
 
 def _child_runner(data: str) -> None:  # the process killed by the kill9 fault
@@ -185,7 +189,8 @@ def run_once(fault: str, work: str, srcs: list, dask: dict | None = None) -> dic
             elif fault == "store_locked":
                 db = sqlite3.connect(store.path, isolation_level=None)
                 db.execute("BEGIN IMMEDIATE")
-                hit = _watch(runner, 8.0, lambda r: bool(r._unrecorded))
+                hit = _until(lambda: runner.records_deferred > 0, 60.0)   # held until an item's end meets it
+                time.sleep(2)
                 db.execute("ROLLBACK")
                 db.close()
             elif fault == "disk_full":
@@ -197,8 +202,8 @@ def run_once(fault: str, work: str, srcs: list, dask: dict | None = None) -> dic
                             f.flush()
                     except OSError:
                         pass
-                hit = _watch(runner, 6.0, lambda r: bool(r._unrecorded) or (r.executor_error or "").startswith(
-                    "insufficient_storage"))
+                hit = _until(lambda: runner.records_deferred > 0 or runner.disk_full_retries > 0, 60.0)
+                time.sleep(2)
                 os.unlink(filler)
         _settle(runner.store, bid)
         got = _count(runner.store, bid)

@@ -91,6 +91,10 @@ class BatchRunner:
         self.executor_rebuilds = 0
         #: store transitions that failed (disk full, store locked), retried at each step
         self._unrecorded: list = []
+        #: state changes the store could not take at once (kept, recorded later), since start
+        self.records_deferred = 0
+        #: outputs that could not be written for want of space (their items re-queued), since start
+        self.disk_full_retries = 0
         #: batches whose creation found the store busy, registered from their manifest (:meth:`defer`)
         self._deferred: set = set()
         self._paused_until = 0.0
@@ -193,7 +197,8 @@ class BatchRunner:
         doc = {"status": "degraded" if self.executor_error else "ok",
                "executor": getattr(self._executor, "kind", None) or ("dask" if self.config.dask_scheduler
                                                                       else "local"),
-               "executor_rebuilds": self.executor_rebuilds, "unrecorded_results": len(self._unrecorded)}
+               "executor_rebuilds": self.executor_rebuilds, "unrecorded_results": len(self._unrecorded),
+               "records_deferred": self.records_deferred, "disk_full_retries": self.disk_full_retries}
         if self.executor_error:
             doc["runner_error"] = self.executor_error
             doc["since"] = self.error_since
@@ -390,6 +395,7 @@ class BatchRunner:
         except Exception as e:
             with self._lock:
                 self._unrecorded.append((fn, args))
+                self.records_deferred += 1
             self._log_once(f"record:{type(e).__name__}", f"a batch item's state could not be recorded "
                            f"({type(e).__name__}: {e}); kept, recorded when the store can take it")
 
@@ -432,6 +438,7 @@ class BatchRunner:
         if result.get("status") == "cancelled":  # stopped by the batch's cancel, nothing written
             self._record(self.store.cancel_item, bid, idx)
         elif result.get("retry"):  # the output could not be written for want of space: pending again, pause
+            self.disk_full_retries += 1
             self._paused_until = time.monotonic() + self.config.disk_full_pause_s
             self._set_error(f"insufficient_storage: an output could not be written ({result.get('error')}); "
                             f"items wait {self.config.disk_full_pause_s:g} s between tries")
