@@ -5,7 +5,8 @@ shipped file against colour-science entry by entry.
 
     python -m benchmarks.build_colour_cache [RAW ...]
 
-Besides the defaults of :func:`models._colour.build`, every call the CLI's
+Besides the defaults of :func:`models._colour.build` and what ``recovery``
+and ``service`` call on every image (:func:`_record_above_models`), every call the CLI's
 ``analyze`` and ``white-balance`` (TIFF, PNG, JPEG) make on each RAW is
 recorded (default: the real CinemaDNG of ``shared/data/raw``), so the
 arguments are exactly those of the hot path.
@@ -35,10 +36,30 @@ def _run_cli(raws):
                 assert cli.main(["white-balance", raw, os.path.join(tmp, f"out.{ext}"), "--quiet"]) == 0, raw
 
 
+def _record_above_models() -> None:
+    """What the packages above :mod:`models` call on every image: the light
+    posterior's default candidates and both loci of its plausible spectrum
+    (Planckian: 480 blackbodies), and the service's display-encoding tables.
+    (Moved here from ``models._colour``, which imports neither ``recovery``
+    nor ``service``: issue 29.)"""
+    from models import DEFAULT_WAVELENGTHS
+    from recovery.bayes import _locus
+    from recovery.illuminant_prior import default_candidates
+    from service import correction
+
+    default_candidates()
+    _locus.cache_clear()
+    for kind in ("daylight", "planckian"):
+        _locus(kind, tuple(DEFAULT_WAVELENGTHS.tolist()))
+    for bits in (8, 16):
+        for curve in (None, "libraw"):
+            correction._encoding_lut("sRGB", bits, curve)
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     raws = argv or [next((p for p in DEFAULT_RAWS if os.path.exists(p)), DEFAULT_RAWS[-1])]
-    rec = _colour.build(extra=lambda: _run_cli(raws))
+    rec = _colour.build(extra=lambda: (_record_above_models(), _run_cli(raws)))
     print(f"{_colour.CACHE_FILE}: {len(rec)} entries, {_colour.CACHE_FILE.stat().st_size} bytes")
     return 0
 

@@ -74,7 +74,7 @@ alone in brackets: NUS 8-camera 2.75 / 2.09 (2.81 / 2.14), Cube+ 2.03 /
 unpreconditioned fit stopped at 200 L-BFGS iterations): pooled 3.51 / 2.02 (NUS 3.60 / 2.40, Cube+ 4.19 / 1.86,
 INTEL-TAU 3.18 / 1.91): sharp where right (best 25 % 0.48-0.85) and far
 off elsewhere. 0.02 degrees pooled is within the spread of every other
-change tried (README Status) and costs a 20-minute training, a 200 KB
+change tried (docs/accuracy.md) and costs a 20-minute training, a 200 KB
 model and 15 more minutes of tests, so it is not shipped.
 
 Deterministic and the same on any machine: float64 throughout, the random

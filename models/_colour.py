@@ -3,7 +3,8 @@ the shipped cache of what the hot path takes from colour-science.
 
 Importing colour-science costs about 0.6 s (it also imports Matplotlib when
 installed), more than the whole analysis of a photograph (issue 19). The
-functions of :mod:`models` (and the encoding LUT of :mod:`service.pipeline`)
+functions of :mod:`models` (and the encoding LUT of :mod:`service.correction`, which
+registers itself here when imported)
 that the CLI and the service call with the same arguments every time are
 wrapped in :func:`cached`: their results for those arguments ship in
 ``models/data/colour_cache.npz``, computed by colour-science itself
@@ -228,8 +229,12 @@ def _modules():
 
 
 def _record_defaults() -> None:
-    """Call what the CLI and the service call on every image, so that
-    :data:`_recording` holds those results."""
+    """Call what every caller of :mod:`models` takes on every image, so that
+    :data:`_recording` holds those results. What only the packages above
+    call (the light posterior's candidates and loci, the service's encoding
+    tables) is recorded by ``benchmarks.build_colour_cache``, which passes it
+    as ``extra`` to :func:`build`: ``models`` imports neither ``recovery``
+    nor ``service`` (issue 29)."""
     displays, illuminants, observers, reflectances, cameras = _modules()
 
     illuminants.illuminants()
@@ -241,21 +246,8 @@ def _record_defaults() -> None:
     reflectances.reflectance_set("all")
     for d in ("sRGB",):
         displays.display(d)
-    from recovery.illuminant_prior import default_candidates
-
-    default_candidates()
     for name in cameras.camera_names():      # the measured cameras a RAW's make/model selects
         cameras.camera_sensitivities(name, DEFAULT_WAVELENGTHS)
-    from recovery.bayes import _locus
-
-    _locus.cache_clear()                     # both loci of the plausible spectrum (Planckian: 480 blackbodies)
-    for kind in ("daylight", "planckian"):
-        _locus(kind, tuple(DEFAULT_WAVELENGTHS.tolist()))
-    from service import pipeline
-
-    for bits in (8, 16):
-        for curve in (None, "libraw"):
-            pipeline._encoding_lut("sRGB", bits, curve)
 
 
 def _encode(v) -> tuple[int, list]:
@@ -299,16 +291,21 @@ def build(path: Path = CACHE_FILE, extra=None) -> dict:
 
 
 def recompute(key: str):
-    """``key``'s value computed now by colour-science (the uncached function)."""
+    """``key``'s value computed now by colour-science (the uncached function).
+
+    The functions of :mod:`models` register themselves here; a key of a
+    package above (``service.pipeline._encoding_lut``, defined in
+    :mod:`service.correction`) needs that module imported by the caller,
+    since :mod:`models` never imports upwards."""
     import ast
 
     if key == _OHNO_KEY:
         return _ohno_table_from_colour()
     name, _, rest = key.partition("(")
     args = ast.literal_eval("(" + rest)
-    if name.startswith("service."):
-        import service.pipeline  # noqa: F401 - registers its functions
     _modules()
+    if name not in _REGISTRY:   # a function of a package above (e.g. service.correction): import it first
+        raise KeyError(f"{name} is not registered: import the module that defines it before recompute()")
     fn = _REGISTRY[name]
     args = tuple(np.asarray(a, float) if isinstance(a, tuple) else a for a in args)
     return fn(*args)

@@ -101,6 +101,80 @@ def _run_bayes(img, m, camera, diag, warns, run_peer):
     return _finish(rgb, spd, None, camera, None, "bayes", d, list(warns))
 
 
+def _window_decision(img, m, camera, est):
+    """:func:`recovery.light_mixture.decide` on the image, about the level
+    ``est.rgb``: ``(field or None, evidence, window evidence, K, usable
+    cells, level uv)``, or None when the learnt estimator cannot read this
+    camera or image."""
+    from .learned import camera_color_matrix, canonical_analysis, load_model, rgb_to_uv
+    from .light_mixture import decide, window_evidence
+
+    if camera.channels != 3:
+        return None
+    model = load_model()
+    try:
+        cm = camera_color_matrix(camera)
+        can, ok, K, gam = canonical_analysis(img, m, cm, model.canonical)
+    except InputError:
+        return None
+    if bool(model.outside(gam)[0]):
+        return None
+    uv0 = rgb_to_uv(np.clip(K @ np.asarray(est.rgb, float), 1e-9, None))
+    ev = window_evidence(can, ok, model, gam)
+    fld, evd = decide(ev, uv0, K)
+    return fld, evd, ev, K, ok, uv0
+
+
+def _learned_light_map(img, m, camera, est, mode: str):
+    """One light or a light map from the learnt estimator's evidence on
+    overlapping windows (:mod:`recovery.light_mixture`): the decision of
+    :func:`recovery.light_mixture.decide`, the map's level the estimate
+    ``est`` itself (whatever method made it), its variation the windows'.
+    ``mode="map"`` always gives the map. Returns the estimate with
+    ``light_map`` and the diagnostics ``spatial_decision``,
+    ``spatial_reason``, ``spatial_test``; None when the learnt estimator
+    cannot read this camera or image (not 3 channels, no colour matrix, the
+    colour matrix outside its training range)."""
+    from .bayes import modulated_spectrum
+    from .learned import uv_to_rgb
+    from .light_mixture import light_field
+
+    got = _window_decision(img, m, camera, est)
+    if got is None:
+        return None
+    fld, evd, ev, K, ok, uv0 = got
+    reason = evd.pop("reason")
+    if fld is None and mode == "map":
+        fld = light_field(uv0, ev)
+        reason = "a light map was asked for (spatial=true); the evidence alone says: " + reason
+    d = est.diagnostics
+    d["spatial_mode"] = mode
+    d["spatial_test"] = {**evd, "evidence": "the learnt estimator on overlapping windows (recovery.light_mixture)"}
+    if fld is None:
+        d["spatial_decision"], d["spatial_reason"] = "one light", reason
+        d["lights_found"] = 1
+        est.light_map = None
+        return est
+    h, w = img.shape[:2]
+    gh, gw = ok.shape
+    cr = (np.unique(ev.centres[:, 0]) + 0.5) * (h / gh) - 0.5
+    cc = (np.unique(ev.centres[:, 1]) + 0.5) * (w / gw) - 0.5
+    cam = np.linalg.solve(K, uv_to_rgb(fld.reshape(-1, 2)).T).T
+    cam = np.clip(cam, 1e-9, None)
+    cam = cam / cam.sum(axis=1, keepdims=True)
+    spd0 = np.asarray(est.spectrum, float)
+    spectra = np.array([modulated_spectrum(spd0, camera, c * (camera.response(spd0).sum() / 1.0)) for c in cam])
+    spectra = spectra / np.where(spectra.mean(axis=1, keepdims=True) > 0, spectra.mean(axis=1, keepdims=True), 1.0)
+    gr, gc = fld.shape[:2]
+    n = spd0.size
+    est.light_map = LightMap(cr, cc, spectra.reshape(gr, gc, n), np.ones((gr, gc), bool),
+                             np.full((gr, gc), np.nan), np.full((gr, gc), np.nan), np.eye(n))
+    d["spatial_decision"], d["spatial_reason"] = "light map", reason
+    d["lights_found"] = 2
+    d["light_map_range_deg"] = float(evd["map_range_deg"])
+    return est
+
+
 def _maybe_light_map(img, m, camera, est, mode: str, region_size: int | None = None):
     """One light or a light map (:func:`recovery.spatial.choose_light_model`):
     a chromaticity trend inside surfaces (smooth light changes) or regions
@@ -431,6 +505,20 @@ def _estimate_posterior(run: EstimatorInput) -> IlluminantEstimate:
     est = _run_bayes(img, m, camera, run.diag, run.warns, run.run_peer)
     if spatial_mode != "uniform" and est.method == "bayes":
         est = _maybe_light_map(img, m, camera, est, spatial_mode, run.region_size)
+        if est.light_map is not None and spatial_mode == "auto":
+            # the posterior's regions and trend are right on scenes its models
+            # describe and see a change of light in almost every real
+            # photograph (issue 27); the learnt windows, validated on real
+            # photographs (benchmarks.mixed_light), must agree
+            got = _window_decision(img, m, camera, est)
+            if got is not None and got[0] is None:
+                d = est.diagnostics
+                d["spatial_test"]["learnt_windows"] = {k: v for k, v in got[1].items() if k != "reason"}
+                d["spatial_reason"] = (f"{got[1]['reason']}; the light posterior alone saw a change "
+                                       f"({d['spatial_reason']}), which on real photographs is no evidence")
+                d["spatial_decision"] = "one light"
+                est.light_map = None
+        est.diagnostics["lights_found"] = 2 if est.light_map is not None else 1
     else:
         est.diagnostics["spatial_decision"] = "one light"
         est.diagnostics["spatial_reason"] = ("requested (spatial=False or quality='fast'; the default "
@@ -558,11 +646,19 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
         warns.append(f"low confidence in the light estimate ({res.confidence:.0%}): its 90 % region has a "
                      f"radius of {res.radius90_deg:.1f} degrees; check it or give a neutral point")
     est = _finish(res.rgb, spd, None, camera, None, "learned", d, warns)
-    if run.spatial_mode == "map":
-        return _maybe_light_map(img, m, camera, est, "map", run.region_size)
+    if run.spatial_mode != "uniform" and not d["outside_training_range"]:
+        if run.region_size and run.spatial_mode == "map":     # regions of a size asked for: the posterior's map
+            return _maybe_light_map(img, m, camera, est, "map", run.region_size)
+        mapped = _learned_light_map(img, m, camera, est, run.spatial_mode)
+        if mapped is not None:
+            return mapped
     est.diagnostics["spatial_decision"] = "one light"
-    est.diagnostics["spatial_reason"] = ("the learnt estimator gives one light for the scene; spatial='map' "
-                                         "asks for a light map (from the light posterior)")
+    est.diagnostics["lights_found"] = 1
+    est.diagnostics["spatial_reason"] = (
+        "requested (spatial=false or quality='fast'; the default spatial='auto' decides from the image)"
+        if run.spatial_mode == "uniform" else
+        "one light: the colour matrix sends the image outside the learnt estimator's training range, so its "
+        "windows cannot tell whether the light varies")
     return est
 
 

@@ -58,7 +58,7 @@ METHODS = {
 METHOD_NAMES = tuple(METHODS)
 
 #: The ``quality`` presets: points of the measured speed/accuracy trade
-#: (``python -m benchmarks.tradeoff``; figures in the README). Each sets the
+#: (``python -m benchmarks.tradeoff``; figures in docs/accuracy.md). Each sets the
 #: analysis resolution (block-averaged pixels) and the wavelength grid.
 QUALITY_PRESETS = {
     # fast pins one light: the light-map test costs more than its estimate

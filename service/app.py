@@ -3,14 +3,33 @@
 
 from __future__ import annotations
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 
-from . import __doc__ as _doc
 from .errors import install_error_handlers
 from .routers import analysis, batches, info, render, web
+from .schemas.forms import reject_unknown_fields
 
-app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=_doc,
-              lifespan=batches.lifespan, docs_url=None, redoc_url=None)
+#: The API's description on /docs (Markdown, as Swagger UI renders it).
+DESCRIPTION = """\
+Estimate the **light** of a photograph and the **reflectances** of its surfaces from camera RAW data
+(Wandell 1985; Maloney & Wandell), and render a white-balanced image.
+
+* `POST /v1/analyze`: the light (camera RGB, multipliers, spectrum, CCT/Duv, Camera Raw Temperature/Tint).
+* `POST /v1/white-balance`: the corrected image (TIFF, PNG, JPEG) or an XMP sidecar; the estimate in the
+  `X-Illuminant` header, or the estimate alone with `response=json`.
+* `POST /v1/surfaces`: reflectance spectra at points, rectangles or a grid.
+* `POST /v1/batches`: many files at once; follow `GET /v1/batches/{id}`, download the results, `DELETE` to
+  cancel and then remove.
+* `POST /v1/render`, `GET /v1/sampling`: spectral data rendered with a chosen wavelength sampling.
+
+Uploads are the multipart field `file`; options are form fields. Every error is JSON
+`{"error": code, "detail": text}`: 413 over a limit, 415 not a format the service reads, 422 a bad or
+unknown option (named in the detail). The limits are in `GET /health`.
+"""
+
+app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=DESCRIPTION,
+              lifespan=batches.lifespan, docs_url=None, redoc_url=None,
+              dependencies=[Depends(reject_unknown_fields)])
 install_error_handlers(app)
 # /docs offline: Swagger UI's assets from a package, served here; the OpenAPI completed
 from .openapi_docs import install as _install_docs  # noqa: E402

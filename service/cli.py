@@ -18,9 +18,9 @@ Options are those of the API, generated from the same declarations
 ``--camera``, ``--method``, ``--quality``, ``--surface-dim``,
 ``--light-dim``, ``--region-size``, ``--surface-model``, ``--light-model``,
 ``--target``, ``--output``, ``--format``, ``--exposure``, ``--lighting``
-(per-image or shared), ``--xmp [PATH]``, ``--xmp-name stem|full`` and
+(per-image or shared), ``--xmp`` (a flag), ``--xmp-dir DIR``, ``--xmp-name stem|full`` and
 ``--xmp-overwrite`` (Camera Raw sidecars beside the RAWs, :func:`sidecar_path`,
-:func:`_sidecar_job`); plus ``--force`` (batch: compute finished outputs
+:func:`service.sidecars._sidecar_job`); plus ``--force`` (batch: compute finished outputs
 again), ``--quiet`` (no progress bar or table; failures and warnings still
 on stderr) and ``--version``. ``white-balance`` takes the format from OUT's extension
 (.tif/.tiff, .png, .jpg/.jpeg); ``--format`` must agree with it. A batch
@@ -49,7 +49,7 @@ import threading
 
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
-from .schemas.fields import BATCH, ESTIMATION, RENDERING, SIDECAR
+from .schemas.fields import BATCH, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
 
 
 def _lazy_module(name: str):
@@ -69,6 +69,8 @@ def _lazy_module(name: str):
 
 
 jobs = _lazy_module("service.jobs")
+sidecars = _lazy_module("service.sidecars")
+batch_xmp = _lazy_module("service.batch.xmp")
 
 #: Never written raw to a terminal: C0 controls (ESC, BEL, CR, LF, ...), DEL,
 #: C1 controls (CSI U+009B ...), the bidirectional overrides and isolates
@@ -144,12 +146,13 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
                              "OUT_DIR (default: subfolders are listed as not processed)")
         ap.add_argument("--dask-scheduler", default=os.environ.get("WANDELL_DASK_SCHEDULER", ""),
                         help="run on this Dask cluster (tcp://host:8786) instead of the local pool")
-    add_options(ap, SIDECAR, describe={"xmp": (
-        "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) for every RAW, beside it "
-        "(IMG_0001.dng -> IMG_0001.xmp; into OUT_DIR when the RAW's folder is not writable); PATH: a folder "
-        "to write them into instead" if batch else
-        "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) beside the RAW (IMG_0001.dng "
-        "-> IMG_0001.xmp; beside OUT when the RAW's folder is not writable); PATH: write it there instead")})
+    add_options(ap, SIDECAR, describe={
+        "xmp": "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) for every RAW, beside it "
+               "(IMG_0001.dng -> IMG_0001.xmp; into OUT_DIR when the RAW's folder is not writable)" if batch else
+               "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) beside the RAW (IMG_0001.dng "
+               "-> IMG_0001.xmp; beside OUT when the RAW's folder is not writable)",
+        "xmp_dir": "write the sidecars into DIR instead (the subfolders of IN_DIR kept; implies --xmp)" if batch else
+                   "write the sidecar into DIR instead of beside the RAW (implies --xmp)"})
 
 
 def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
@@ -423,7 +426,7 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
 
     ``xmp`` (``{"folder", "name", "overwrite"}``, ``wandell batch --xmp``):
     then a Camera Raw sidecar for every finished item (done or skipped), on
-    the same executor (:func:`_sidecar_job`): beside the RAW, or in
+    the same executor (:func:`service.sidecars._sidecar_job`): beside the RAW, or in
     ``folder`` (the relative tree kept), into ``out_dir`` when the RAW's
     folder is not writable; rows get ``xmp`` (the path written) and a
     ``note`` when it went elsewhere, was kept or could not be made. Each
@@ -466,7 +469,7 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     bar.update(**count)
     own = executor is None and bool(todo)
     interrupted = False
-    sidecars: dict = {}   # name -> future of its XMP sidecar
+    xmp_jobs: dict = {}   # name -> future of its XMP sidecar
     ctrl_c = _CtrlC().__enter__()
     try:
         if own:
@@ -496,9 +499,10 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
             count["done" if res["status"] == "done" else "failed"] += 1
             bar.update(**count)
             if xmp is not None and res["status"] == "done":   # its sidecar now, not after the whole batch
-                sidecars[t.name] = _submit_sidecar(t, rows[t.name], options, out_dir, executor, xmp)
+                xmp_jobs[t.name] = batch_xmp.submit_sidecar(t, rows[t.name], options, out_dir, executor, xmp,
+                                                            _settings())
         if xmp is not None:
-            _batch_sidecars(tasks, rows, options, out_dir, executor, xmp, sidecars)
+            batch_xmp.batch_sidecars(tasks, rows, options, out_dir, executor, xmp, xmp_jobs, _settings())
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -524,85 +528,9 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
             jobs.remove_stale_lock(t.out)
         if xmp is not None:   # every finished image gets its sidecar before the command exits
             with contextlib.suppress(KeyboardInterrupt):
-                _finish_sidecars(tasks, rows, options, out_dir, xmp, sidecars)
+                batch_xmp.finish_sidecars(tasks, rows, options, out_dir, xmp, xmp_jobs, _settings())
         raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
-
-
-def _sidecar_args(t, r, options, out_dir: str, xmp: dict) -> tuple:
-    """The arguments of :func:`_sidecar_job` for task ``t`` (row ``r``)."""
-    rel_dir = os.path.dirname(t.name)
-    target = (sidecar_path(os.path.join(xmp["folder"], t.name), xmp["name"]) if xmp.get("folder")
-              else sidecar_path(t.src, xmp["name"]))
-    fallback = None if xmp.get("folder") else os.path.join(out_dir, rel_dir)
-    if xmp.get("folder"):
-        os.makedirs(os.path.dirname(target), exist_ok=True)      # --xmp DIR: the relative tree kept
-    return (t.src, r["illuminant"], options, target, fallback, bool(xmp.get("overwrite")))
-
-
-def _submit_sidecar(t, r, options, out_dir: str, executor, xmp: dict):
-    """A finished image's sidecar, on the executor (or here when there is none)."""
-    args = _sidecar_args(t, r, options, out_dir, xmp)
-    if executor is None:            # every item already finished: no pool was started
-        from concurrent.futures import Future
-
-        f: Future = Future()
-        try:
-            f.set_result(_sidecar_job(*args))
-        except Exception as e:  # noqa: BLE001 - reported below as a worker's would be
-            f.set_exception(e)
-        return f
-    return executor.submit(_sidecar_job, *args)
-
-
-def _apply_sidecar(r: dict, res: dict) -> None:
-    if res.get("xmp"):
-        r["xmp"] = res["xmp"]
-    if res.get("kept"):
-        r["xmp_kept"] = res["kept"]
-    if res.get("note"):
-        r["note"] = "; ".join(n for n in (r.get("note"), res["note"]) if n)
-
-
-def _finish_sidecars(tasks, rows, options, out_dir: str, xmp: dict, sidecars: dict) -> None:
-    """After a Ctrl-C (the pool ended): the sidecars that finished are
-    recorded, and every finished image whose sidecar was not made (its job
-    dropped with the pool) gets it here, in this process."""
-    for t in tasks:
-        r = rows[t.name]
-        if r["status"] not in ("done", "skipped") or not r.get("illuminant") or r.get("xmp") or r.get("xmp_kept"):
-            continue
-        f = sidecars.get(t.name)
-        res = None
-        if f is not None and f.done() and not f.cancelled():
-            with contextlib.suppress(BaseException):
-                res = f.result()
-        if res is None:
-            try:
-                res = _sidecar_job(*_sidecar_args(t, r, options, out_dir, xmp))
-            except Exception as e:  # noqa: BLE001 - the image is done; say why its sidecar is not
-                res = {"xmp": None, "note": f"no XMP sidecar: {type(e).__name__}: {e}"}
-        _apply_sidecar(r, res)
-
-
-def _batch_sidecars(tasks, rows, options, out_dir: str, executor, xmp: dict, sidecars: dict | None = None) -> None:
-    """The sidecars of a batch's finished items (:func:`run_batch`'s ``xmp``):
-    those already submitted (``sidecars``, name -> future) and the others."""
-    sidecars = sidecars if sidecars is not None else {}
-    for t in tasks:
-        r = rows[t.name]
-        if r["status"] not in ("done", "skipped") or not r.get("illuminant") or t.name in sidecars:
-            continue
-        sidecars[t.name] = _submit_sidecar(t, r, options, out_dir, executor, xmp)
-    for t in tasks:
-        f = sidecars.get(t.name)
-        if f is None:
-            continue
-        try:
-            res = f.result()
-        except Exception as e:  # noqa: BLE001 - a worker lost: the image is done, say why the sidecar is not
-            res = {"xmp": None, "note": f"no XMP sidecar: {type(e).__name__}: {e}"}
-        _apply_sidecar(rows[t.name], res)
 
 
 def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = False) -> dict | None:
@@ -649,8 +577,8 @@ def _cmd_batch(args) -> int:
                            + (" or its subfolders" if args.recursive else "")
                            + ("; " + _ignored_text(ignored).strip().replace("\n", "; ") if ignored else ""))
     try:
-        xmp = None if args.xmp is None else {"folder": args.xmp or None, "name": args.xmp_name,
-                                             "overwrite": args.xmp_overwrite}
+        xmp = None if not (args.xmp or args.xmp_dir) else {"folder": args.xmp_dir or None, "name": args.xmp_name,
+                                                            "overwrite": args.xmp_overwrite}
         info: dict = {}
         rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
                          quiet=args.quiet, recursive=args.recursive, xmp=xmp, info=info)
@@ -670,7 +598,7 @@ def _cmd_batch(args) -> int:
         return 130
     _summary(rows, sys.stdout, args.quiet)
     _print_light_warnings(info.get("shared_light"))
-    if args.xmp is not None and not args.quiet:
+    if (args.xmp or args.xmp_dir) and not args.quiet:
         written = [r["xmp"] for r in rows if r.get("xmp")]
         beside = sum(os.path.dirname(p) == os.path.dirname(os.path.abspath(os.path.join(args.in_dir, r["name"])))
                      for r, p in ((r, r["xmp"]) for r in rows if r.get("xmp")))
@@ -743,10 +671,13 @@ def _cmd_white_balance(args) -> int:
                          exactly_once=False)
     res = jobs.process_item(task)
     res["name"] = task.name
-    if res["status"] == "done" and args.xmp is not None:
-        target = args.xmp or sidecar_path(args.file, args.xmp_name)
-        fallback = None if args.xmp else os.path.dirname(os.path.abspath(args.out))
-        sc = _sidecar_job(args.file, res["illuminant"], opts, target, fallback, args.xmp_overwrite)
+    if res["status"] == "done" and (args.xmp or args.xmp_dir):
+        target = sidecars.sidecar_path(args.file, args.xmp_name)
+        if args.xmp_dir:
+            os.makedirs(args.xmp_dir, exist_ok=True)
+            target = os.path.join(args.xmp_dir, os.path.basename(target))
+        fallback = None if args.xmp_dir else os.path.dirname(os.path.abspath(args.out))
+        sc = sidecars._sidecar_job(args.file, res["illuminant"], opts, target, fallback, args.xmp_overwrite, _settings())
         if sc.get("error"):
             res["status"] = "failed"
             res["error"] = f"xmp: {sc['error']}"
@@ -763,88 +694,8 @@ def _cmd_white_balance(args) -> int:
 
 
 def sidecar_path(raw: str, name: str = "stem") -> str:
-    """Where editors look for a RAW's XMP sidecar: beside it, named
-    ``IMG_0001.xmp`` (``stem``: Adobe's convention, Lightroom and Camera Raw)
-    or ``IMG_0001.dng.xmp`` (``full``: darktable's and digiKam's)."""
-    base = os.path.basename(raw)
-    return os.path.join(os.path.dirname(os.path.abspath(raw)),
-                        (os.path.splitext(base)[0] if name == "stem" else base) + ".xmp")
-
-
-def _sidecar_text(src: str, illuminant: dict, opts) -> tuple[str, dict]:
-    """The Camera Raw sidecar of a finished item (its estimated light's
-    camera RGB through the file's colour matrices, pipeline.xmp_sidecar)."""
-    from . import pipeline
-
-    with open(src, "rb") as f:
-        decoded, cam, warns, _ = pipeline.open_image(f.read(), os.path.basename(src), _settings(), opts.camera)
-    run = pipeline.EstimateRun(jobs._estimate_from_json(illuminant, cam), cam, warns)  # the item's own light
-    text, tt, _ = pipeline.xmp_sidecar(decoded, run)
-    return text, tt
-
-
-def _write_sidecar(path: str, text: str, overwrite: bool) -> None:
-    """``text`` to ``path``: a new file only (``FileExistsError`` if one is
-    there: never a sidecar an editor wrote) unless ``overwrite``, then
-    replaced whole (a temporary renamed into place)."""
-    if not overwrite:
-        with open(path, "x", encoding="utf-8") as f:
-            f.write(text)
-        return
-    jobs.atomic_write(path, lambda p: jobs.write_text(p, text))
-
-
-#: errno values that mean "this folder cannot be written" (permission, read-only file system).
-_NOT_WRITABLE = (1, 13, 30)
-
-
-def _sidecar_job(src: str, illuminant: dict, opts, target: str, fallback: str | None, overwrite: bool) -> dict:
-    """Write one RAW's sidecar to ``target``; when its folder cannot be
-    written, to ``fallback`` (a folder) if given. An existing sidecar is
-    kept unless ``overwrite``. Returns ``xmp`` (the path written, or
-    ``None``), ``kept`` (an existing one left alone), ``note`` (in words,
-    when it went elsewhere or was kept), ``error`` (why there is none),
-    ``temperature``/``tint``. Runs in a batch's workers."""
-    def exists(p):
-        return os.path.lexists(p) and not overwrite
-
-    out: dict = {"xmp": None}
-    if exists(target):
-        return {**out, "kept": target, "note": f"XMP sidecar {target} exists: kept as it is (--xmp-overwrite "
-                                               "replaces it)"}
-    try:
-        text, tt = _sidecar_text(src, illuminant, opts)
-    except Exception as e:  # noqa: BLE001 - the image is written; say why the sidecar is not
-        return {**out, "error": str(getattr(e, "detail", e)), "note": f"no XMP sidecar: {getattr(e, 'detail', e)}"}
-    out.update(temperature=tt["temperature"], tint=tt["tint"])
-    folder = os.path.dirname(os.path.abspath(target))
-    try:
-        if not os.access(folder, os.W_OK):
-            raise PermissionError(13, "permission denied", folder)
-        _write_sidecar(target, text, overwrite)
-        return {**out, "xmp": target}
-    except FileExistsError:
-        return {**out, "kept": target, "note": f"XMP sidecar {target} exists: kept as it is (--xmp-overwrite "
-                                               "replaces it)"}
-    except OSError as e:
-        if fallback is None or e.errno not in _NOT_WRITABLE:
-            return {**out, "error": f"cannot write {target}: {e.strerror or e}",
-                    "note": f"no XMP sidecar: cannot write {target}: {e.strerror or e}"}
-        reason = e.strerror or str(e)
-    alt = os.path.join(fallback, os.path.basename(target))
-    why = f"the RAW's folder {folder} is not writable ({reason})"
-    if exists(alt):
-        return {**out, "kept": alt, "note": f"{why}, and {alt} exists: kept as it is (--xmp-overwrite replaces it)"}
-    try:
-        os.makedirs(fallback, exist_ok=True)
-        _write_sidecar(alt, text, overwrite)
-    except FileExistsError:
-        return {**out, "kept": alt, "note": f"{why}, and {alt} exists: kept as it is (--xmp-overwrite replaces it)"}
-    except OSError as e:
-        return {**out, "error": f"{why}, nor {fallback} ({e.strerror or e})",
-                "note": f"no XMP sidecar: {why}, nor {fallback} ({e.strerror or e})"}
-    return {**out, "xmp": alt, "note": f"{why}: XMP sidecar written to {alt} instead; editors look for it beside "
-                                       "the RAW, so move it there"}
+    """:func:`service.sidecars.sidecar_path` (importing it costs ``--help`` nothing)."""
+    return sidecars.sidecar_path(raw, name)
 
 
 def _cmd_analyze(args) -> int:
@@ -896,6 +747,46 @@ def _model_disk_cache() -> None:
     os.environ.setdefault("WANDELL_MODEL_CACHE", "1")
 
 
+def _cmd_batches(args) -> int:
+    """``wandell batches``: the batches the server keeps under
+    ``WANDELL_DATA_DIR`` (default ``~/.cache/wandell``), and their removal
+    (the same as ``DELETE /v1/batches/{id}`` of a settled batch)."""
+    import datetime
+
+    data_dir = os.environ.get("WANDELL_DATA_DIR") or jobs.default_data_dir()
+    if not os.path.exists(os.path.join(data_dir, "jobs.sqlite")):
+        print(f"no batches under {data_dir}")
+        return 0
+    store = jobs.JobStore(data_dir)
+    ids = list(args.remove)
+    if args.older_than is not None:
+        if not args.older_than >= 0:
+            raise ServiceError(422, "invalid_parameter", f"--older-than: a number of days >= 0, not {args.older_than}")
+        ids += store.expired_batches(args.older_than * 86400.0)
+    rc = 0
+    for bid in dict.fromkeys(ids):
+        if store.batch(bid) is None:
+            print(f"error: not_found: no batch {bid!r} under {data_dir}", file=sys.stderr)
+            rc = 1
+            continue
+        freed = store.delete_batch(bid)
+        if freed is None:
+            print(f"error: batch_running: {bid} is still queued or running: cancel it first "
+                  f"(POST /v1/batches/{bid}/cancel)", file=sys.stderr)
+            rc = 1
+        else:
+            print(f"removed {bid} ({freed / 1e6:.1f} MB)")
+    if ids:
+        return rc
+    rows = store.summaries()
+    print(f"{len(rows)} batches under {data_dir}, {sum(r['bytes'] for r in rows) / 1e6:.1f} MB")
+    for r in rows:
+        when = datetime.datetime.fromtimestamp(r["created"]).strftime("%Y-%m-%d %H:%M")
+        c = r["counts"]
+        print(f"{r['id']}  {when}  {r['status']:<9}  {c['done']}/{c['total']} done  {r['bytes'] / 1e6:9.1f} MB")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = _ArgumentParser(prog="wandell", description="White balance and illuminant estimation of RAW "
                                  "files (Wandell 1985; Maloney & Wandell)")
@@ -912,16 +803,26 @@ def main(argv=None) -> int:
     w.add_argument("file")
     w.add_argument("out")
     _add_options(w, False)
+    k = sub.add_parser("batches", help="list the server's stored batches (WANDELL_DATA_DIR) or remove them")
+    k.add_argument("--remove", nargs="+", metavar="ID", default=[], help="remove these batches (files and all); "
+                   "a batch still running is refused")
+    k.add_argument("--older-than", type=float, metavar="DAYS", help="remove every finished or cancelled batch "
+                   "that finished more than DAYS days ago")
     out, err = sys.stdout, sys.stderr
     sys.stdout, sys.stderr = _SafeStream(out), _SafeStream(err)  # also what libraries and warnings print
     try:
         args = ap.parse_args(argv)
+        if getattr(args, "xmp_name", "stem") not in XMP_NAMES:   # a CLI-only option: no model checks it
+            raise ServiceError(422, "invalid_parameter", f"--xmp-name {args.xmp_name!r} unknown; accepted: "
+                               + ", ".join(XMP_NAMES))
         _model_disk_cache()
         args.argv = sys.argv[1:] if argv is None else list(argv)
         if args.command == "batch":
             return _cmd_batch(args)
         if args.command == "analyze":
             return _cmd_analyze(args)
+        if args.command == "batches":
+            return _cmd_batches(args)
         return _cmd_white_balance(args)
     except KeyboardInterrupt:  # Ctrl-C outside a batch's items (or while printing): no traceback
         sys.stderr.write("\ninterrupted\n")

@@ -188,7 +188,8 @@ def enrich(spec: dict) -> dict:
                          "image/png": {"schema": {"type": "string", "format": "binary"}},
                          "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
                          "application/rdf+xml": {"schema": {"type": "string"}},
-                         "application/json": {"schema": {"type": "object"}}}
+                         "application/json": ok.get("content", {}).get("application/json")
+                         or {"schema": {"type": "object"}}}   # WhiteBalanceResult, declared by the router
         ok["headers"] = {"X-Illuminant": {"description": X_ILLUMINANT, "schema": {"type": "string"}}}
     return spec
 

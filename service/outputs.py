@@ -226,7 +226,8 @@ _WANDELL_FIELDS = {
     "wb_multipliers": ("WBMultipliers", "seq"), "xy": ("LightXY", "seq"), "cct": ("CCT", "real"),
     "duv": ("Duv", "real"), "confidence": ("Confidence", "real"), "temperature": ("Temperature", "real"),
     "tint": ("Tint", "real"), "white": ("White", "text"), "target": ("Target", "text"),
-    "output": ("Output", "text"),
+    "output": ("Output", "text"), "lights": ("Lights", "text"), "lights_reason": ("LightsReason", "text"),
+    "light_held": ("LightHeld", "text"),
 }
 
 

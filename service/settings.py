@@ -57,6 +57,8 @@ class Settings(BaseSettings):
     body_timeout: float = 30.0
     #: seconds the uploaded inputs of a finished or cancelled batch are kept (results are kept)
     batch_input_retention: float = 24 * 3600.0
+    #: seconds a finished or cancelled batch is kept with its results before it is deleted (negative: for ever)
+    batch_result_retention: float = 7 * 24 * 3600.0
 
 
 @lru_cache

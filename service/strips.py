@@ -63,6 +63,20 @@ class MosaicRows:
         return rgb[a0 - s0:a1 - s0, self.c0:self.c1]
 
 
+class FieldRows:
+    """Rows of a :class:`MosaicRows` multiplied by a light map's per-pixel
+    gains (:class:`service.light_field.GainField`), in the full image's
+    coordinates (the crop's offset added)."""
+
+    def __init__(self, source: MosaicRows, field):
+        self.source, self.field = source, field
+        self.shape = source.shape
+
+    def __call__(self, r0: int, r1: int) -> np.ndarray:
+        rows = np.ascontiguousarray(self.source(r0, r1))
+        return self.field.apply(rows, self.source.r0 + r0, self.source.c0)
+
+
 def mosaic_rows(decoded, bounds_of) -> MosaicRows | None:
     """A :class:`MosaicRows` of ``decoded`` taking its kept mosaic (which
     the whole-image path can then no longer use), or ``None`` when there is

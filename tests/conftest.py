@@ -29,6 +29,17 @@ if "WANDELL_MODEL_CACHE_DIR" not in os.environ:
     os.environ["WANDELL_MODEL_CACHE_DIR"] = _model_cache = tempfile.mkdtemp(prefix="wandell-test-cache-")
     atexit.register(shutil.rmtree, _model_cache, True)
 
+# Batches keep their store, inputs and results under WANDELL_DATA_DIR (default
+# ~/.cache/wandell): every test and every server a test starts (they inherit
+# the environment) writes into a folder of this session instead, never into
+# the user's store (issue 29, item 6). Tests that need their own set it.
+if "WANDELL_DATA_DIR" not in os.environ:
+    import atexit
+    import shutil
+
+    os.environ["WANDELL_DATA_DIR"] = _data_dir = tempfile.mkdtemp(prefix="wandell-test-data-")
+    atexit.register(shutil.rmtree, _data_dir, True)
+
 from models import DEFAULT_WAVELENGTHS
 
 #: The shared folder next to the project (real camera files, reproductions).

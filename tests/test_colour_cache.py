@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from models import _colour
+import service.correction  # noqa: F401 - registers service.pipeline._encoding_lut for recompute()
 
 RAW = "/work/shared/data/raw/Blackmagic.dng"
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

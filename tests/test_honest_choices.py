@@ -70,13 +70,15 @@ def test_generic_cross_check_lowers_confidence_by_the_disagreement():
         est.warnings = []
         import recovery.cameras as cameras
 
-        orig = (cameras.resolve_camera, pipeline.estimate_illuminant)
+        from service import estimation
+
+        orig = (cameras.resolve_camera, estimation.estimate_illuminant)
         try:
             cameras.resolve_camera = lambda d, c: (types.SimpleNamespace(source="matrix-derived", channels=3), [])
-            pipeline.estimate_illuminant = lambda *a, **k: ref
+            estimation.estimate_illuminant = lambda *a, **k: ref
             pipeline.generic_cross_check(None, run, None, None, "auto", {})
         finally:
-            cameras.resolve_camera, pipeline.estimate_illuminant = orig
+            cameras.resolve_camera, estimation.estimate_illuminant = orig
         assert est.diagnostics["generic_vs_matrix_deg"] == pytest.approx(ang, abs=1e-6)
         assert est.diagnostics["confidence"] == pytest.approx(want, rel=1e-6)
     assert Camera is not None

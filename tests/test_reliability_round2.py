@@ -159,15 +159,15 @@ def test_temperature_targets_inside_their_range_render(client, target):
 
 
 def test_a_correction_that_is_not_finite_is_never_a_success(client, monkeypatch):
-    from service import pipeline
+    from service import rendering
 
-    real = pipeline._recovery_correction_matrix
+    real = rendering._recovery_correction_matrix
 
     def nan_matrix(*a, **kw):
         M, info = real(*a, **kw)
         return np.full_like(M, np.nan), info
 
-    monkeypatch.setattr(pipeline, "_recovery_correction_matrix", nan_matrix)
+    monkeypatch.setattr(rendering, "_recovery_correction_matrix", nan_matrix)
     for fields in ({"format": "png"}, {"response": "json"}):
         r = client.post("/v1/white-balance", data=fields, files={"file": ("s.dng", _dng())})
         assert r.status_code == 422 and r.json()["error"] == "unrenderable", r.text

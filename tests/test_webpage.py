@@ -116,9 +116,11 @@ def server():
 
     port = _free_port()
     log = tempfile.TemporaryFile()
+    data = tempfile.mkdtemp(prefix="wandell-webpage-data-")    # never the user's ~/.cache/wandell (issue 29)
     proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1",
                              "--port", str(port), "--log-level", "warning"],
-                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                            env={**os.environ, "WANDELL_DATA_DIR": data})
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 60
@@ -143,6 +145,7 @@ def server():
             proc.kill()
             proc.wait()
         log.close()
+        shutil.rmtree(data, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")

@@ -75,6 +75,31 @@ def test_white_balance_xmp_goes_beside_the_raw_and_is_never_overwritten(shoot):
     assert rc == 0 and (raw / "IMG_0001.dng.xmp").read_text(encoding="utf-8") == text
 
 
+def test_xmp_is_a_flag_that_never_takes_the_raw_as_its_value(shoot):
+    """Issue 29, item 5: ``wandell white-balance --xmp IMG.dng out.tif`` took
+    the RAW as the sidecar's path and then said "arguments are required:
+    out". ``--xmp`` is a flag; ``--xmp-dir DIR`` puts the sidecar elsewhere
+    (the sidecar's name still follows the RAW's)."""
+    raw, out = shoot
+    src = raw / "IMG_0001.dng"
+    rc, stdout, stderr = _run("white-balance", "--xmp", str(src), str(out / "IMG_0001.png"))
+    assert rc == 0, stderr
+    assert (out / "IMG_0001.png").stat().st_size > 0 and (raw / "IMG_0001.xmp").exists()
+    side_dir = out / "sidecars"
+    rc, stdout, stderr = _run("white-balance", "--xmp-dir", str(side_dir), str(src), str(out / "IMG_0001.jpg"))
+    assert rc == 0, stderr
+    assert (side_dir / "IMG_0001.xmp").read_text(encoding="utf-8") == (raw / "IMG_0001.xmp").read_text(encoding="utf-8")
+    # a misused sidecar option is named, exit 2
+    with contextlib.redirect_stderr(io.StringIO()) as err:
+        assert cli.main(["white-balance", str(src), str(out / "x.png"), "--xmp", "--xmp-name", "ful"]) == 2
+    assert "--xmp-name 'ful' unknown; accepted: stem, full" in err.getvalue()
+    assert not (out / "x.png").exists()
+    # a value after the flag is not its argument: it is a (surplus) positional, and argparse says so
+    with pytest.raises(SystemExit) as e, contextlib.redirect_stderr(io.StringIO()) as err:
+        cli.main(["white-balance", str(src), str(out / "x.png"), "--xmp", "elsewhere.xmp"])
+    assert e.value.code == 2 and "unrecognized arguments: elsewhere.xmp" in err.getvalue()
+
+
 def test_white_balance_xmp_falls_back_beside_out_when_the_raw_folder_is_read_only(shoot, monkeypatch):
     raw, out = shoot
     real_access = os.access

@@ -61,6 +61,8 @@ class RunnerConfig:
     disk_full_pause_s: float = 10.0
     #: seconds between two attempts to connect to an unreachable Dask scheduler
     reconnect_s: float = 5.0
+    #: seconds a finished or cancelled batch (results and all) is kept; negative: for ever
+    result_retention_s: float = -1.0
     extra: dict = field(default_factory=dict)
 
 
@@ -283,6 +285,14 @@ class BatchRunner:
             shutil.rmtree(d, ignore_errors=True)
         return gone
 
+    def remove_expired_batches(self) -> list[str]:
+        """Delete the batches (results and all) finished or cancelled more than
+        ``result_retention_s`` ago (:meth:`JobStore.delete_batch`). Returns their ids."""
+        if self.config.result_retention_s < 0:
+            return []
+        return [bid for bid in self.store.expired_batches(self.config.result_retention_s)
+                if self.store.delete_batch(bid) is not None]
+
     def _set_error(self, text: str | None) -> None:
         if text is None:
             self.executor_error = self.error_since = None
@@ -340,10 +350,13 @@ class BatchRunner:
             self._deferred.discard(bid)
         now = time.monotonic()
         if now >= self._next_cleanup:  # at most every 30 s (sooner for a short retention)
-            self._next_cleanup = now + min(30.0, max(self.config.poll_s, self.config.input_retention_s / 4))
+            shortest = min(r for r in (self.config.input_retention_s, self.config.result_retention_s, 120.0)
+                           if r >= 0)
+            self._next_cleanup = now + min(30.0, max(self.config.poll_s, shortest / 4))
             if self.store.check_file():
                 log.error("the job store file was lost while running; batches rebuilt from their folders")
             self.remove_expired_inputs()
+            self.remove_expired_batches()
         self._replace_broken_executor()
         active = self.store.active_batches()[: max(1, self.config.max_concurrent_batches)]
         for bid in active:

@@ -9,6 +9,7 @@ import contextlib
 import json
 import os
 import re
+import shutil
 import sqlite3
 import threading
 import time
@@ -727,6 +728,62 @@ class JobStore:
         if b["light_error"]:
             doc["shared_light_error"] = b["light_error"]
         return doc
+
+
+    # -- removal (issue 29, item 6: disk the user controls) -------------------
+    def disk_bytes(self, batch_id: str) -> int:
+        """Bytes of the batch's folder (its uploaded inputs and results)."""
+        return _tree_bytes(self.batch_dir(batch_id))
+
+    def summaries(self) -> list[dict]:
+        """Every batch, newest first: id, status, times, counts, disk bytes."""
+        out = []
+        for b in self._db().execute("SELECT id, status, created, finished FROM batches ORDER BY created DESC"):
+            c = self.counts(b["id"])
+            out.append({"id": b["id"], "status": b["status"], "created": b["created"], "finished": b["finished"],
+                        "counts": {"done": c["done"], "failed": c["failed"], "pending": c["pending"],
+                                   "running": c["running"], "cancelled": c["cancelled"], "total": sum(c.values())},
+                        "bytes": self.disk_bytes(b["id"])})
+        return out
+
+    def delete_batch(self, batch_id: str) -> int | None:
+        """Remove a settled batch (done or cancelled, nothing pending or
+        running) with its folder: its records go in one transaction, then its
+        folder, first renamed out of ``batches/`` (so a store rebuilt from the
+        folders never brings it back) and then deleted. Returns the bytes
+        freed; ``None`` when the batch is not settled (nothing removed)."""
+        bdir = self.batch_dir(batch_id)
+        size = self.disk_bytes(batch_id)
+        trash = os.path.join(self.data_dir, f".deleting-{batch_id}")
+        with self._tx() as db:
+            b = db.execute("SELECT status FROM batches WHERE id = ?", (batch_id,)).fetchone()
+            busy = db.execute("SELECT COUNT(*) FROM items WHERE batch_id = ? AND status IN ('pending', 'running')",
+                              (batch_id,)).fetchone()[0]
+            if b is None or b["status"] not in ("done", "cancelled") or busy:
+                return None
+            db.execute("DELETE FROM items WHERE batch_id = ?", (batch_id,))
+            db.execute("DELETE FROM batches WHERE id = ?", (batch_id,))
+            if os.path.isdir(bdir):
+                os.replace(bdir, trash)     # a failure here rolls the records back
+        shutil.rmtree(trash, ignore_errors=True)
+        return size
+
+    def expired_batches(self, retention_s: float) -> list[str]:
+        """Batches finished or cancelled more than ``retention_s`` seconds ago
+        with nothing pending or running (``WANDELL_BATCH_RESULT_RETENTION``)."""
+        return [r["id"] for r in self._db().execute(
+            "SELECT id FROM batches WHERE status IN ('done', 'cancelled') AND finished IS NOT NULL "
+            "AND finished <= ? AND id NOT IN (SELECT batch_id FROM items WHERE status IN ('pending', 'running'))",
+            (time.time() - retention_s,))]
+
+
+def _tree_bytes(path: str) -> int:
+    total = 0
+    for root, _, files in os.walk(path):
+        for f in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(root, f)).st_size
+    return total
 
 
 def shared_light_warnings(light: dict) -> list[str]:

@@ -23,6 +23,7 @@ from ..headers import content_disposition, download_name
 from ..jsonsafe import clean
 from ..options import FORMATS, MEDIA_TYPES
 from ..schemas import AnalyzeEstimation, Estimation, Input, Neutral, Regions, WhiteBalanceRendering
+from ..schemas.responses import AnalyzeResult, SurfacesResult, WhiteBalanceResult
 from ..schemas.forms import form
 from ..settings import Settings, get_settings
 from ..workers import run_heavy, work_slots
@@ -43,7 +44,7 @@ class LargeChunkFileResponse(FileResponse):
 #: The form fields of each endpoint, from the option models (service.schemas).
 _ANALYZE = form(AnalyzeEstimation)
 _NEUTRAL = form(Neutral)
-_WB_ESTIMATION = form(Estimation)
+_WB_ESTIMATION = form(AnalyzeEstimation)
 _WB_RENDERING = form(WhiteBalanceRendering, choices={"format": tuple(FORMATS)},
                      describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg, or xmp: a Camera Raw sidecar "
                                          "(crs:WhiteBalance=Custom, Temperature, Tint) to apply the estimate to "
@@ -71,7 +72,7 @@ def analyze_upload(data, filename, sens, camera, method, opts, settings, neutral
                             options=opts, neutral=neutral, display_referred=display_referred, keep_mosaic=render)
 
 
-@router.post("/analyze")
+@router.post("/analyze", response_model=AnalyzeResult)
 async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                   est: AnalyzeEstimation = Depends(_ANALYZE), nt: Neutral = Depends(_NEUTRAL),
                   inp: Input = Depends(_INPUT), settings: Settings = Depends(get_settings)):
@@ -226,9 +227,9 @@ def temp_output(**kw):
         raise
 
 
-@router.post("/white-balance")
+@router.post("/white-balance", responses={200: {"model": WhiteBalanceResult}})
 async def white_balance(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
-                        est: Estimation = Depends(_WB_ESTIMATION), rend: WhiteBalanceRendering = Depends(_WB_RENDERING),
+                        est: AnalyzeEstimation = Depends(_WB_ESTIMATION), rend: WhiteBalanceRendering = Depends(_WB_RENDERING),
                         nt: Neutral = Depends(_NEUTRAL), inp: Input = Depends(_INPUT),
                         settings: Settings = Depends(get_settings)):
     """The corrected image at full resolution (one 3x3 matrix per pixel
@@ -273,6 +274,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     header["correction_matrix"] = M.tolist()
     header["rendering"] = pipeline.rendering_json(info)
     header["white"] = "neutral" if where is not None else white
+    header["lights"] = body["lights"]
     if "neutral" in body:
         header["neutral"] = body["neutral"]
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
@@ -289,7 +291,10 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                                   background=BackgroundTask(os.unlink, path))
 
 
-@router.post("/surfaces")
+@router.post("/surfaces", response_model=SurfacesResult,
+             responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}},
+                              "description": "JSON (format=json), or CSV (format=csv): kind, where, warnings, then "
+                                             "one column per wavelength"}})
 async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                    est: Estimation = Depends(_SURFACES_ESTIMATION), regions: Regions = Depends(_REGIONS),
                    inp: Input = Depends(_INPUT), settings: Settings = Depends(get_settings)):

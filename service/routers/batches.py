@@ -29,6 +29,7 @@ from ..headers import content_disposition
 from ..jsonsafe import clean
 from ..schemas import BatchOptions
 from ..schemas.forms import form
+from ..schemas.responses import BatchCreated, BatchDeleted, BatchList, BatchProgress
 from ..settings import Settings, get_settings
 
 router = APIRouter(prefix="/v1", tags=["batches"])
@@ -36,6 +37,15 @@ router = APIRouter(prefix="/v1", tags=["batches"])
 #: The batch options as form fields (service.schemas.BatchOptions, as the CLI's flags).
 _OPTIONS = form(BatchOptions)
 log = logging.getLogger("service")
+
+#: What a result download is (the batch's format decides which), and the zip.
+_BINARY = {"schema": {"type": "string", "format": "binary"}}
+_ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16-bit TIFF, PNG or JPEG",
+                    "content": {"image/tiff": _BINARY, "image/png": _BINARY, "image/jpeg": _BINARY}},
+              404: {"description": "no such batch or item"}, 409: {"description": "not finished, or ambiguous"}}
+_ZIP = {200: {"description": "every finished result (with FAILURES.txt and manifest.json when items are missing)",
+              "content": {"application/zip": _BINARY}},
+        404: {"description": "no such batch"}, 409: {"description": "nothing finished yet"}}
 
 _runner: jobs.BatchRunner | None = None
 _runner_lock = threading.Lock()
@@ -50,7 +60,8 @@ def get_runner(settings: Settings | None = None) -> jobs.BatchRunner:
             cfg = jobs.RunnerConfig(data_dir=s.data_dir or jobs.default_data_dir(), workers=s.batch_workers,
                                     max_concurrent_batches=s.max_concurrent_batches, max_pixels=s.max_pixels,
                                     estimation_pixels=s.estimation_pixels, dask_scheduler=s.dask_scheduler or None,
-                                    input_retention_s=s.batch_input_retention, batch_root=s.batch_root,
+                                    input_retention_s=s.batch_input_retention,
+                                    result_retention_s=s.batch_result_retention, batch_root=s.batch_root,
                                     max_input_bytes=s.max_upload_bytes)
             try:
                 runner = jobs.BatchRunner(cfg)
@@ -166,7 +177,7 @@ async def _save_uploads(files: list[UploadFile], dest: str, settings: Settings) 
     return out
 
 
-@router.post("/batches", status_code=202)
+@router.post("/batches", status_code=202, response_model=BatchCreated)
 async def create_batch(files: list[UploadFile] | None = File(None, description="RAW files (repeat the field)"),
                        folder: str | None = Form(None, description="folder relative to WANDELL_BATCH_ROOT"),
                        opts: BatchOptions = Depends(_OPTIONS),
@@ -270,7 +281,7 @@ def _progress(bid: str) -> dict:
     return doc
 
 
-@router.get("/batches/{batch_id}")
+@router.get("/batches/{batch_id}", response_model=BatchProgress)
 def batch_status(batch_id: str):
     """Progress (done, failed, pending, rate per minute, time left) and
     each item's status with its estimate or error; ``settled`` is true once
@@ -278,7 +289,7 @@ def batch_status(batch_id: str):
     return JSONResponse(clean(_progress(batch_id)))
 
 
-@router.get("/batches/{batch_id}/items/by-index/{index}")
+@router.get("/batches/{batch_id}/items/by-index/{index}", response_class=FileResponse, responses=_ITEM_FILE)
 def batch_item_by_index(batch_id: str, index: str = Path(description="the item's index in the batch (0-based), "
                                                                        "as its url in the progress document",
                                                            examples=["0"])):
@@ -288,7 +299,7 @@ def batch_item_by_index(batch_id: str, index: str = Path(description="the item's
     return _item_file(store, batch_id, store.item_by_index(batch_id, index), index, "index")
 
 
-@router.get("/batches/{batch_id}/items/by-name/{name}")
+@router.get("/batches/{batch_id}/items/by-name/{name}", response_class=FileResponse, responses=_ITEM_FILE)
 def batch_item_by_name(batch_id: str, name: str = Path(description="the item's name as the progress document "
                                                                     "lists it (URL-encoded)",
                                                         examples=["a.dng"])):
@@ -298,7 +309,7 @@ def batch_item_by_name(batch_id: str, name: str = Path(description="the item's n
     return _item_file(store, batch_id, store.item_by_name(batch_id, name), name, "name")
 
 
-@router.get("/batches/{batch_id}/items/{item}")
+@router.get("/batches/{batch_id}/items/{item}", response_class=FileResponse, responses=_ITEM_FILE)
 def batch_item(batch_id: str, item: str):
     """Download one result, by item name or index; a key that is the name of
     one item and the index of another is refused (409 ``ambiguous_item``):
@@ -389,7 +400,7 @@ def zip_texts(batch_id: str, rows: list[dict], zipped: dict) -> list[tuple[str, 
             ("manifest.json", json.dumps({"batch": batch_id, "counts": counts, "items": items}, indent=1) + "\n")]
 
 
-@router.get("/batches/{batch_id}/zip")
+@router.get("/batches/{batch_id}/zip", response_class=StreamingResponse, responses=_ZIP)
 def batch_zip(batch_id: str):
     """Every finished result in one zip, streamed (not built in memory)."""
     store = get_runner().store
@@ -405,15 +416,52 @@ def batch_zip(batch_id: str):
                              headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
 
 
-@router.delete("/batches/{batch_id}")
-def cancel_batch(batch_id: str):
-    """Cancel: pending items are dropped, running ones stop at their next
-    step without writing (``cancelled``); results finished before are kept.
-    The answer is the progress document: ``settled`` turns true once every
-    running item has answered and the counts are final."""
+@router.get("/batches", response_model=BatchList)
+def list_batches():
+    """Every batch the service keeps, newest first, with its status, counts
+    and disk space; the retention settings say when they go by themselves."""
+    runner = get_runner()
+    rows = runner.store.summaries()
+    for r in rows:
+        r["url"] = f"/v1/batches/{r['id']}"
+    return JSONResponse(clean({"batches": rows, "bytes": sum(r["bytes"] for r in rows),
+                               "result_retention_s": runner.config.result_retention_s,
+                               "input_retention_s": runner.config.input_retention_s}))
+
+
+@router.post("/batches/{batch_id}/cancel", response_model=BatchProgress)
+def cancel_batch_only(batch_id: str):
+    """Cancel, never delete: pending items are dropped, running ones stop at
+    their next step without writing; results finished before are kept. The
+    answer is the progress document (``settled`` once the counts are final)."""
     runner = get_runner()
     with store_errors():
         if runner.store.batch(batch_id) is None:
             raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
         runner.cancel(batch_id)
     return JSONResponse(clean(_progress(batch_id)))
+
+
+@router.delete("/batches/{batch_id}", response_model=BatchDeleted | BatchProgress,
+               responses={409: {"description": "cancelled, but running items have not stopped yet: try again"}})
+def delete_batch(batch_id: str):
+    """Remove a batch and its files (inputs and results): a batch that is
+    over (done, or cancelled and settled) is deleted and the answer says how
+    many bytes were freed; its URLs are 404 from then on. A batch still
+    queued or running is cancelled first, as ``POST .../cancel`` does (the
+    answer is its progress document with ``deleted: false``): send the
+    DELETE again once it is ``settled``; until then it is a 409
+    ``not_settled``."""
+    runner = get_runner()
+    b = runner.store.batch(batch_id)
+    if b is None:
+        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
+    if b["status"] in ("queued", "running"):
+        runner.cancel(batch_id)
+        return JSONResponse(clean({**_progress(batch_id), "deleted": False}))
+    freed = runner.store.delete_batch(batch_id)
+    if freed is None:
+        raise ServiceError(409, "not_settled", f"batch {batch_id!r} is cancelled but its running items have not "
+                           "stopped yet; DELETE it again when GET /v1/batches/{id} says settled: true")
+    log.info("batch %s deleted (%d bytes)", batch_id, freed)
+    return JSONResponse({"id": batch_id, "deleted": True, "freed_bytes": freed})

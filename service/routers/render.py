@@ -23,6 +23,7 @@ from ..jsonsafe import clean
 from ..options import FORMATS, MAX_N, MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, parse_wavelengths, rule_options
 from ..schemas import Sampling, SpectralRendering
 from ..schemas.forms import form, query
+from ..schemas.responses import RenderReport
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -137,7 +138,12 @@ def _is_npy(data: bytes, filename: str | None) -> bool:
 # --- endpoints --------------------------------------------------------------------
 
 
-@router.post("/render")
+@router.post("/render", responses={200: {
+    "model": RenderReport,
+    "content": {"image/tiff": {"schema": {"type": "string", "format": "binary"}},
+                "image/png": {"schema": {"type": "string", "format": "binary"}}},
+    "description": "the rendered image (format tiff, png or png16; the report in the X-Render-Report header), "
+                   "or the report alone as JSON (response=json)"}})
 async def render(request: Request, file: UploadFile = File(..., description=".npy reflectance cube H x W x N (or M x N), or CSV: "
                                           "first column wavelength (nm), one spectrum per further column, "
                                           "optional header row"),

@@ -321,9 +321,11 @@ XMP_NAMES = ("stem", "full")
 #: ``wandell white-balance`` and ``wandell batch``: Camera Raw XMP sidecars
 #: beside the RAWs (no model: the server never writes beside an upload).
 SIDECAR = {
-    "xmp": Opt(str | None, None, "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) beside "
-                                 "the RAW, where editors look for it; PATH: write it there instead",
-               const="", metavar="PATH", summary="also write a Camera Raw XMP sidecar beside each RAW"),
+    "xmp": Opt(bool, False, "also write a Camera Raw XMP sidecar (the estimate as Temperature/Tint) beside "
+                            "the RAW, where editors look for it",
+               summary="also write a Camera Raw XMP sidecar beside each RAW"),
+    "xmp_dir": Opt(str | None, None, "write the XMP sidecars into DIR instead of beside the RAW (implies --xmp)",
+                   metavar="DIR"),
     "xmp_name": Opt(str, "stem", "sidecar name: stem (IMG_0001.xmp, what Lightroom/Camera Raw read) or full "
                                  "(IMG_0001.dng.xmp, what darktable and digiKam read)",
                     choices=XMP_NAMES, examples=("stem",)),

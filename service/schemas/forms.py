@@ -17,13 +17,15 @@ field's ``enum`` on the right branch and moves examples into descriptions.
 
 from __future__ import annotations
 
+import difflib
 import inspect
 
-from fastapi import Form, Query
+from fastapi import Form, Query, Request
 
+from ..errors import ServiceError
 from .options import option_fields
 
-__all__ = ["form", "query"]
+__all__ = ["form", "query", "reject_unknown_fields"]
 
 
 def form(model, *, include=None, exclude=(), choices=None, defaults=None, prefix: str = "", fixed=None,
@@ -68,3 +70,55 @@ def _dependency(param, kind, model, include, exclude, choices, defaults, prefix,
     dependency.__signature__ = inspect.Signature(params)
     dependency.__name__ = f"{model.__name__}_{kind}"
     return dependency
+
+
+def _declared(dependant, query: set, body: set) -> None:
+    """The query and body (form) field names a route's dependency tree declares."""
+    query.update(f.alias for f in dependant.query_params)
+    body.update(f.alias for f in dependant.body_params)
+    for sub in dependant.dependencies:
+        _declared(sub, query, body)
+
+
+_ACCEPTED: dict = {}   # route -> (query names, form names)
+
+
+def _accepted(route) -> tuple[set, set]:
+    got = _ACCEPTED.get(id(route))
+    if got is None or got[0] is not route:
+        query, body = set(), set()
+        _declared(route.dependant, query, body)
+        got = _ACCEPTED[id(route)] = (route, query, body)
+    return got[1], got[2]
+
+
+def _unknown_text(where: str, names: list[str], accepted: set) -> str:
+    parts = []
+    for n in names:
+        close = difflib.get_close_matches(n, sorted(accepted), n=1)
+        parts.append(repr(n) + (f" (did you mean {close[0]!r}?)" if close else ""))
+    ok = ", ".join(sorted(accepted)) or "none"
+    return f"unknown {where} field{'s' if len(names) > 1 else ''} {', '.join(parts)}; this endpoint accepts: {ok}"
+
+
+async def reject_unknown_fields(request: Request) -> None:
+    """A dependency of every documented route (issue 29, item 4): a query
+    parameter or form field the route does not declare is a 422
+    ``unknown_field`` naming it (and the closest accepted name) and listing
+    the accepted ones, instead of being ignored (``taget=A`` rendered D65
+    with a 200). The form is the one FastAPI has parsed already (Starlette
+    keeps it on the request), so nothing is read twice. Routes left out of
+    the OpenAPI document (the web page, its assets) are not checked."""
+    route = request.scope.get("route")
+    if route is None or not getattr(route, "include_in_schema", False) or not hasattr(route, "dependant"):
+        return
+    query, body = _accepted(route)
+    unknown = sorted({k for k in request.query_params.keys() if k not in query})
+    if unknown:
+        raise ServiceError(422, "unknown_field", _unknown_text("query", unknown, query))
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if body and ctype in ("multipart/form-data", "application/x-www-form-urlencoded"):
+        form_data = await request.form()
+        unknown = sorted({k for k in form_data.keys() if k not in body})
+        if unknown:
+            raise ServiceError(422, "unknown_field", _unknown_text("form", unknown, body))

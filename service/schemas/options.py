@@ -77,9 +77,10 @@ def _model(name: str, base, doc: str, *groups):
 class _Estimating(OptionModel):
     def estimate_kwargs(self) -> dict:
         """Keyword options of :func:`recovery.estimate_illuminant`: one light
-        (``spatial=False``) unless the model has ``spatial``."""
+        or a light map decided from the image (``spatial="auto"``) unless the
+        model has ``spatial``."""
         return checks.estimate_options(self.method, self.surface_dim, self.light_dim, self.region_size,
-                                       getattr(self, "spatial", False), self.surface_model, self.light_model,
+                                       getattr(self, "spatial", "auto"), self.surface_model, self.light_model,
                                        self.quality)
 
 
@@ -100,7 +101,7 @@ class _Batch(_Estimating):
 Input = _model("Input", OptionModel, "What is done with a display-referred upload (service.decode.icc).", INPUT)
 Estimation = _model("Estimation", _Estimating, "How the light is estimated (every endpoint that estimates, batches, "
                     "the CLI).", ESTIMATION)
-AnalyzeEstimation = _model("AnalyzeEstimation", Estimation, "``/v1/analyze``: the estimation options and one "
+AnalyzeEstimation = _model("AnalyzeEstimation", Estimation, "``/v1/analyze`` and ``/v1/white-balance``: the estimation options and one "
                            "light or a light map.", SPATIAL)
 Rendering = _model("Rendering", OptionModel, "How the corrected image is rendered and written.", RENDERING)
 WhiteBalanceRendering = _model("WhiteBalanceRendering", Rendering, "``/v1/white-balance``: also the white "

@@ -1,0 +1,251 @@
+"""Two lights in one photograph: a light map from the learnt estimator's
+evidence on overlapping regions, and the one-or-several decision.
+
+Wandell (1985, 'A condition on spatial variation') analyses an image in
+overlapping regions, the light constant within each and varying slowly
+across the image. Here each region is read by the estimator that works on
+real photographs, the learnt one (:mod:`recovery.learned`): the classical
+estimates of a window of the analysis grid, corrected by the learnt model,
+give that window's light in canonical log-chroma. Three things make a map
+of them:
+
+1. **The level from the whole image.** A window sees a quarter of the
+   scene, so its estimate is noisier than the whole image's; its errors
+   share the scene's bias. The map keeps the whole-image estimate as its
+   level and takes from the windows only how the light *varies*: the
+   windows' estimates minus their mean.
+2. **Two lights lie on a line.** Where two lights mix, every window's light
+   lies between them: in log-chroma, close to the segment joining them. The
+   variation is projected on the windows' principal direction (weighted by
+   each window's precision), which removes the noise across it.
+3. **Shrunk where the evidence is weak, stretched where it is averaged.** A
+   window averages the lights over its area, so the windows' spread is
+   smaller than the light's; noise makes it larger. The variation is
+   multiplied by a gain chosen by cross-validation on relit real
+   photographs (:mod:`benchmarks.mixed_light`), and the field is smooth:
+   bilinear between window centres, constant beyond the outer ones.
+
+The decision: the windows' variation along the principal direction against
+their own calibrated uncertainty (the learnt uncertainty law,
+:func:`recovery.learned.variance_from_spread`),
+
+.. math:: T = \\sum_w \\frac{(p_w - \\bar p)^2}{s^2_w}
+
+where :math:`p_w` is window ``w``'s estimate projected on the principal
+direction and :math:`s^2_w` its variance. Windows of one scene share much of
+their evidence, so :math:`T` does not follow a chi-square law; its threshold
+is chosen by cross-validation on relit photographs of benchmarks the model
+did not see, scored on two-light and single-light photographs together.
+A map is given only when :math:`T` passes it and the principal direction's
+range across the frame exceeds :data:`MIN_RANGE_DEG`.
+
+References
+----------
+Wandell (1985) [docs/references.md#seed-002], Fig. 1 and 'A condition on
+spatial variation'. Gijsenij, Lu & Gevers (2012), Color constancy for
+multiple light sources, IEEE TIP 21(2) (estimates on patches, combined).
+Bianco & Schettini (2014), Adaptive color constancy using faces (local
+estimates, smoothed). Hussain & Akbari (2018), Color constancy for uniform
+and non-uniform illuminant using image texture (two-light benchmarks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InsufficientSurfaceVariation
+from .learned import (REFERENCE, LearnedModel, _angle, _spread, features, rgb_to_uv, uv_to_rgb,
+                      variance_from_spread)
+
+__all__ = ["WINDOW", "STEP", "MixtureSettings", "DEFAULT_SETTINGS", "WindowEvidence", "window_evidence",
+           "mixture_statistic", "light_field", "decide", "MIN_RANGE_DEG"]
+
+#: Windows of this many analysis cells (of the 64 x 64 grid the learnt model
+#: reads a whole image at) ...
+WINDOW = 32
+#: ... every this many cells: 3 x 3 windows, each overlapping its neighbours by half.
+STEP = 16
+#: A map only when the light it gives changes by more than this across the
+#: frame (degrees): below it one light is within half of it everywhere, under
+#: the learnt estimator's own median error on real photographs.
+MIN_RANGE_DEG = 2.0
+#: A window needs this many usable cells (of WINDOW**2) to count.
+MIN_WINDOW_CELLS = 64
+
+
+@dataclass(frozen=True)
+class MixtureSettings:
+    """What the light map and its decision depend on, chosen by
+    cross-validation on relit development photographs
+    (``python -m benchmarks.mixed_light``, inner leave-one-benchmark-out)."""
+
+    threshold: float = 8.0      #: the decision's threshold on T (module docstring)
+    gain: float = 1.0           #: multiplies the windows' variation (item 3 of the module docstring)
+    project: bool = True        #: project the variation on the principal direction (two lights)
+
+
+#: The shipped settings (benchmarks.mixed_light prints how they were chosen).
+DEFAULT_SETTINGS = MixtureSettings()
+
+
+@dataclass
+class WindowEvidence:
+    """The learnt estimator on the overlapping windows of an analysis grid.
+
+    Attributes
+    ----------
+    uv : (n, 2) each window's light, canonical log-chroma (NaN where unusable)
+    var : (n,) its variance (log-chroma^2) from the learnt uncertainty law
+    centres : (n, 2) window centres (row, col) in analysis cells
+    valid : (n,) bool, windows with enough usable cells and surface variation
+    shape : (rows, cols) of the analysis grid
+    """
+
+    uv: np.ndarray
+    var: np.ndarray
+    centres: np.ndarray
+    valid: np.ndarray
+    shape: tuple
+    grid: tuple = field(default=(0, 0))
+
+
+def _starts(n: int, size: int, step: int) -> list[int]:
+    if n <= size:
+        return [0]
+    s = list(range(0, n - size + 1, step))
+    if s[-1] != n - size:
+        s.append(n - size)
+    return s
+
+
+def window_evidence(can: np.ndarray, ok: np.ndarray, model: LearnedModel, gamut_fraction: float = 0.0,
+                    window: int = WINDOW, step: int = STEP) -> WindowEvidence:
+    """Each overlapping window's light by the learnt model.
+
+    Parameters
+    ----------
+    can : (h, w, 3) canonical-space analysis cells
+        (:func:`recovery.learned.canonical_analysis`)
+    ok : (h, w) usable cells
+    model : the learnt model
+    gamut_fraction : the whole image's out-of-gamut fraction (beyond the
+        model's limit the reference estimate stands, as for the whole image)
+    """
+    h, w = ok.shape
+    rs, cs = _starts(h, window, step), _starts(w, window, step)
+    n = len(rs) * len(cs)
+    uv = np.full((n, 2), np.nan)
+    var = np.full(n, np.nan)
+    centres = np.zeros((n, 2))
+    valid = np.zeros(n, bool)
+    feats = []
+    idx = []
+    k = 0
+    for r in rs:
+        for c in cs:
+            sl = (slice(r, min(h, r + window)), slice(c, min(w, c + window)))
+            centres[k] = ((sl[0].start + sl[0].stop - 1) / 2.0, (sl[1].start + sl[1].stop - 1) / 2.0)
+            o = ok[sl]
+            if int(o.sum()) >= MIN_WINDOW_CELLS:
+                try:
+                    feats.append(features(can[sl], o))
+                    idx.append(k)
+                except InsufficientSurfaceVariation:
+                    pass
+            k += 1
+    if idx:
+        f = np.asarray(feats)
+        gam = np.full(len(idx), float(gamut_fraction))
+        u = model.predict(model.inputs(f), gam) + f[:, REFERENCE]
+        uv[idx] = u
+        var[idx] = variance_from_spread(_spread(f, u), model.sigma)
+        valid[idx] = True
+    return WindowEvidence(uv, var, centres, valid, (h, w), (len(rs), len(cs)))
+
+
+def _principal(uv: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean and unit principal direction of points ``uv``."""
+    m = (wts[:, None] * uv).sum(axis=0) / wts.sum()
+    d = uv - m
+    S = (wts[:, None, None] * d[:, :, None] * d[:, None, :]).sum(axis=0)
+    vals, vecs = np.linalg.eigh(S)
+    return m, vecs[:, -1]
+
+
+def mixture_statistic(ev: WindowEvidence) -> float:
+    """:math:`T` of the module docstring (0 with fewer than two usable windows)."""
+    v = ev.valid
+    if v.sum() < 2:
+        return 0.0
+    uv, s2 = ev.uv[v], ev.var[v]
+    m, d = _principal(uv, 1.0 / s2)
+    p = (uv - m) @ d
+    pbar = float((p / s2).sum() / (1.0 / s2).sum())
+    return float(((p - pbar) ** 2 / s2).sum())
+
+
+def light_field(uv0: np.ndarray, ev: WindowEvidence, settings: MixtureSettings = DEFAULT_SETTINGS) -> np.ndarray:
+    """(gr, gc, 2) the light at the window centres (canonical log-chroma):
+    the whole image's ``uv0`` plus the windows' variation about their
+    precision-weighted mean, projected on their principal direction and
+    multiplied by the gain (module docstring). Unusable windows get the
+    level ``uv0``."""
+    gr, gc = ev.grid
+    out = np.tile(np.asarray(uv0, float), (gr * gc, 1))
+    v = ev.valid
+    if v.sum() >= 2:
+        uv, s2 = ev.uv[v], ev.var[v]
+        m, d = _principal(uv, 1.0 / s2)
+        dev = uv - m
+        if settings.project:
+            dev = (dev @ d)[:, None] * d[None, :]
+        out[v] = uv0 + settings.gain * dev
+    return out.reshape(gr, gc, 2)
+
+
+def field_range_deg(field_uv: np.ndarray, K: np.ndarray) -> float:
+    """Largest angle (degrees, camera RGB) between two lights of a field."""
+    f = field_uv.reshape(-1, 2)
+    cam = np.linalg.solve(K, uv_to_rgb(f).T).T
+    best = 0.0
+    for i in range(len(cam)):
+        for j in range(i + 1, len(cam)):
+            best = max(best, _angle(cam[i], cam[j]))
+    return best
+
+
+def decide(ev: WindowEvidence, uv0: np.ndarray, K: np.ndarray,
+           settings: MixtureSettings = DEFAULT_SETTINGS) -> tuple[np.ndarray | None, dict]:
+    """One light or a map.
+
+    Returns
+    -------
+    (field or None, evidence) : the (gr, gc, 2) field of :func:`light_field`
+    when the map is chosen; the evidence holds ``T``, its threshold, the
+    field's range across the frame and the reason, in words.
+    """
+    T = mixture_statistic(ev)
+    fld = light_field(uv0, ev, settings)
+    rng = field_range_deg(fld, K) if ev.valid.sum() >= 2 else 0.0
+    nv = int(ev.valid.sum())
+    evidence = {"mixture_T": T, "mixture_threshold": settings.threshold, "map_range_deg": rng,
+                "map_range_threshold_deg": MIN_RANGE_DEG, "windows_used": nv, "windows": int(ev.valid.size),
+                "window_cells": WINDOW, "gain": settings.gain}
+    if nv < 2:
+        evidence["reason"] = (f"one light: only {nv} of {ev.valid.size} windows have enough surfaces to read "
+                              "a light from, so a change of light across the frame cannot be seen")
+        return None, evidence
+    if T > settings.threshold and rng > MIN_RANGE_DEG:
+        evidence["reason"] = (f"several lights: the {nv} overlapping windows disagree about the light along one "
+                              f"direction far beyond their own uncertainty (T = {T:.1f} > {settings.threshold:g}), "
+                              f"and the light changes by {rng:.1f} degrees across the frame")
+        return fld, evidence
+    if T <= settings.threshold:
+        evidence["reason"] = (f"one light: the {nv} overlapping windows agree about the light within their own "
+                              f"uncertainty (T = {T:.1f}, a map needs > {settings.threshold:g})")
+    else:
+        evidence["reason"] = (f"one light: the windows disagree (T = {T:.1f}) but the light they give changes by "
+                              f"only {rng:.1f} degrees across the frame (a map needs > {MIN_RANGE_DEG:g})")
+    return None, evidence

@@ -1,0 +1,128 @@
+"""The output follows the light map: a smooth field of per-pixel white
+balances applied before the one correction matrix.
+
+When the estimate carries a light map (:mod:`recovery.light_mixture`,
+``spatial="auto"`` decided several lights, or ``spatial=true``), each pixel
+is white-balanced by the light where it is, not by the scene's one light.
+The correction of a pixel at ``x`` is the image's matrix ``M`` (made for the
+scene's light ``l0``: DNG matrices, highlights, exposure, tone) times the
+diagonal von Kries change from the light there to ``l0``,
+
+.. math:: M(x) = M \\, \\mathrm{diag}(l_0 / l(x)),
+
+a field of correction matrices (the design's "smooth field of matrices"),
+each the product of the image's matrix and a diagonal that changes smoothly:
+the gains are bilinear between the map's centres, constant beyond the outer
+ones, so there are no seams between cells and no halos at them. The gains
+are normalised so the green channel's is 1 (the exposure is the image's).
+Applied to the 16-bit linear camera image in place, rows at a time (the
+strip path of :mod:`service.strips` included), with saturation at 65535.
+
+References
+----------
+Wandell (1985) [docs/references.md#seed-002], 'A condition on spatial
+variation' (the light varies slowly across the image). von Kries (1902),
+chromatic adaptation as channel gains; Finlayson, Drew & Funt (1994),
+Spectral sharpening (the diagonal model in a camera's space).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["GainField", "gain_field"]
+
+
+class GainField:
+    """Per-channel gains at the map's centres, in full-image pixels.
+
+    Parameters
+    ----------
+    gains : (gr, gc, 3) gains at the centres (green 1)
+    centres_r, centres_c : (gr,), (gc,) centre rows and columns in the full
+        (uncropped, oriented) image's pixels
+    """
+
+    def __init__(self, gains: np.ndarray, centres_r: np.ndarray, centres_c: np.ndarray):
+        self.gains = np.asarray(gains, np.float32)
+        self.cr = np.asarray(centres_r, float)
+        self.cc = np.asarray(centres_c, float)
+        self._cols = {}
+
+    @property
+    def range(self) -> tuple[float, float]:
+        """The smallest and largest gain of the field."""
+        return float(self.gains.min()), float(self.gains.max())
+
+    def _columns(self, c0: int, W: int) -> np.ndarray:
+        """(gr, W, 3) the gains interpolated along each centre row at columns
+        ``c0 .. c0 + W - 1``."""
+        key = (c0, W)
+        if key not in self._cols:
+            cols = np.arange(c0, c0 + W, dtype=float)
+            gr, gc = self.gains.shape[:2]
+            fc = np.interp(cols, self.cc, np.arange(gc, dtype=float))
+            j0 = np.floor(fc).astype(int)
+            j1 = np.minimum(j0 + 1, gc - 1)
+            t = (fc - j0)[None, :, None].astype(np.float32)
+            self._cols[key] = np.ascontiguousarray((1 - t) * self.gains[:, j0] + t * self.gains[:, j1])
+        return self._cols[key]
+
+    def rows(self, r0: int, r1: int, c0: int, W: int) -> np.ndarray:
+        """(r1 - r0, W, 3) float32 gains of image rows ``r0 .. r1 - 1`` and
+        columns ``c0 .. c0 + W - 1``."""
+        colg = self._columns(c0, W)
+        gr = colg.shape[0]
+        fr = np.interp(np.arange(r0, r1, dtype=float), self.cr, np.arange(gr, dtype=float))
+        i0 = np.floor(fr).astype(int)
+        i1 = np.minimum(i0 + 1, gr - 1)
+        t = (fr - i0)[:, None, None].astype(np.float32)
+        return (1 - t) * colg[i0] + t * colg[i1]
+
+    def apply(self, rgb16: np.ndarray, r0: int = 0, c0: int = 0, block: int = 256) -> np.ndarray:
+        """Multiply ``rgb16`` (h, W, 3) uint16, rows ``r0 ..`` and columns
+        ``c0 ..`` of the full image, by the gains, in place (saturating at
+        65535), ``block`` rows at a time."""
+        import cv2
+
+        h, W = rgb16.shape[:2]
+        for a in range(0, h, block):
+            b = min(h, a + block)
+            part = rgb16[a:b]
+            g = self.rows(r0 + a, r0 + b, c0, W)
+            if part.flags.c_contiguous:
+                cv2.multiply(part, g, dst=part, dtype=cv2.CV_16U)
+            else:
+                part[...] = cv2.multiply(np.ascontiguousarray(part), g, dtype=cv2.CV_16U)
+        return rgb16
+
+
+def gain_field(estimate, camera, factor: float, analysis_shape, full_shape) -> GainField | None:
+    """The :class:`GainField` of an estimate's light map (None without one).
+
+    Parameters
+    ----------
+    estimate : :class:`recovery.IlluminantEstimate` (``light_map``, ``rgb``)
+    camera : the camera the estimate's spectra respond through
+    factor : the analysis image's block factor (analysis pixel -> ``factor``
+        full pixels)
+    analysis_shape, full_shape : (rows, cols) of the analysis and full images
+    """
+    lm = getattr(estimate, "light_map", None)
+    if lm is None:
+        return None
+    rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
+    rgb = np.asarray(camera.response(lm.spectra_at(rr.ravel(), cc.ravel())), float)
+    if rgb.ndim != 2 or rgb.shape[1] != 3 or not np.all(np.isfinite(rgb)) or not np.all(rgb > 0):
+        return None
+    l0 = np.asarray(estimate.rgb, float)
+    g = (l0[None, :] / rgb)
+    g = g / g[:, 1:2]                                    # green 1: the exposure stays the image's
+    if not np.all(np.isfinite(g)):
+        return None
+    eh, ew = analysis_shape[:2]
+    H, W = full_shape[:2]
+    # analysis pixel centre -> fraction of the image -> full-image pixel
+    r_full = (lm.centres_r + 0.5) * factor / eh * H - 0.5
+    c_full = (lm.centres_c + 0.5) * factor / ew * W - 0.5
+    return GainField(g.reshape(rr.shape + (3,)), r_full, c_full)

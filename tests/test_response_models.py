@@ -1,0 +1,184 @@
+"""Issue 29, item 4: the REST API describes itself. The JSON answers have
+response models (``service.schemas.responses``) that ``/openapi.json``
+shows, every key a real answer carries is declared there, downloads are
+declared with the media types they send, the description is Markdown
+without Sphinx roles, and an unknown form or query field is a 422 naming it
+(the web page's own forms still pass)."""
+
+from __future__ import annotations
+
+import io
+import re
+import time
+import typing
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from pydantic import BaseModel
+
+from service.schemas import responses as R
+from testing.dngwriter import scene_dng
+
+
+@pytest.fixture(scope="module")
+def dng() -> bytes:
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 96, 128, seed=1)
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    mp.setenv("WANDELL_DATA_DIR", str(tmp_path_factory.mktemp("store")))
+    from service.app import app
+    from service.routers import batches
+    from service.settings import get_settings
+
+    get_settings.cache_clear()
+    batches.stop_runner()
+    with TestClient(app) as c:
+        yield c
+    batches.stop_runner()
+    mp.undo()
+    get_settings.cache_clear()
+
+
+def _model_of(annotation):
+    """The BaseModel inside an annotation (``X | None``, ``list[X]``), if any."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for a in typing.get_args(annotation):
+        m = _model_of(a)
+        if m is not None:
+            return m
+    return None
+
+
+def undeclared(model: type[BaseModel], doc, where: str = "") -> list[str]:
+    """Keys of ``doc`` (recursively, into nested models and lists of them)
+    that ``model`` does not declare."""
+    if isinstance(doc, list):
+        return [k for i, d in enumerate(doc) for k in undeclared(model, d, f"{where}[{i}]")]
+    out = []
+    for k, v in doc.items():
+        f = model.model_fields.get(k)
+        if f is None:
+            out.append(f"{where}.{k}")
+            continue
+        sub = _model_of(f.annotation)
+        if sub is not None and isinstance(v, (dict, list)):
+            out += undeclared(sub, v, f"{where}.{k}")
+    return out
+
+
+def _check(model, doc):
+    assert undeclared(model, doc) == []
+    model.model_validate(doc)   # the declared types hold too
+
+
+def test_undeclared_finds_a_missing_key():
+    """The check is not blind: a key the model does not declare, nested too."""
+    assert undeclared(R.CameraInfo, {"name": "x", "source": "generic", "channels": 3, "approximate": True,
+                                     "notes": [], "lens": "?"}) == [".lens"]
+    assert undeclared(R.BatchProgress, {"items": [{"index": 0, "colour": 1}]}) == [".items[0].colour"]
+
+
+def test_analyze_white_balance_and_surfaces_answers_are_their_models(client, dng):
+    f = {"file": ("a.dng", dng)}
+    r = client.post("/v1/analyze", files=f, data={"method": "bayes", "spatial": "true", "region_size": "32"})
+    assert r.status_code == 200, r.text
+    assert "light_map" in r.json()
+    _check(R.AnalyzeResult, r.json())
+    r = client.post("/v1/analyze", files=f, data={"neutral": "[10, 10, 40, 40]"})
+    assert r.status_code == 200 and "neutral" in r.json(), r.text
+    _check(R.AnalyzeResult, r.json())
+    r = client.post("/v1/white-balance", files=f, data={"response": "json"})
+    assert r.status_code == 200, r.text
+    _check(R.WhiteBalanceResult, r.json())
+    r = client.post("/v1/surfaces", files=f, data={"points": "[[10, 10]]", "rects": "[[0, 0, 10, 10]]",
+                                                   "grid": "2x2"})
+    assert r.status_code == 200, r.text
+    _check(R.SurfacesResult, r.json())
+
+
+def test_render_report_is_its_model(client):
+    buf = io.BytesIO()
+    np.save(buf, np.random.default_rng(0).uniform(0.05, 0.9, (4, 5, 31)))
+    r = client.post("/v1/render", files={"file": ("c.npy", buf.getvalue())},
+                    data={"wavelengths": ",".join(str(x) for x in range(400, 710, 10)), "illuminant": "FL11",
+                          "response": "json"})
+    assert r.status_code == 200, r.text
+    _check(R.RenderReport, r.json())
+
+
+def test_batch_answers_are_their_models(client, dng):
+    r = client.post("/v1/batches", files=[("files", ("a.dng", dng)), ("files", ("b.dng", b"not a raw"))],
+                    data={"format": "png"})
+    assert r.status_code == 202, r.text
+    _check(R.BatchCreated, r.json())
+    bid = r.json()["id"]
+    t_end = time.monotonic() + 120
+    while not (doc := client.get(f"/v1/batches/{bid}").json())["settled"] and time.monotonic() < t_end:
+        time.sleep(0.2)
+    assert doc["settled"] and doc["counts"]["done"] == 1 and doc["counts"]["failed"] == 1, doc
+    _check(R.BatchProgress, doc)
+    d = client.get(doc["items"][0]["url"])
+    assert d.status_code == 200 and d.headers["content-type"] == "image/png"
+
+
+def test_openapi_shows_fields_media_types_and_markdown(client):
+    spec = client.get("/openapi.json").json()
+    comps = spec["components"]["schemas"]
+
+    def json_schema(path, method="post"):
+        c = spec["paths"][path][method]["responses"]
+        ok = c.get("200") or c.get("202")
+        ref = ok["content"]["application/json"]["schema"]["$ref"].split("/")[-1]
+        return comps[ref]
+
+    for path, method, fields in (("/v1/analyze", "post", {"illuminant", "camera", "diagnostics", "as_shot"}),
+                                 ("/v1/white-balance", "post", {"correction_matrix", "illuminant"}),
+                                 ("/v1/surfaces", "post", {"surfaces", "wavelengths"}),
+                                 ("/v1/render", "post", {"nodes_nm", "error", "bands_read"}),
+                                 ("/v1/batches", "post", {"id", "url", "counts"}),
+                                 ("/v1/batches/{batch_id}", "get", {"settled", "items", "counts"})):
+        assert fields <= set(json_schema(path, method)["properties"]), path
+    ill = comps["Illuminant"]["properties"]
+    assert "description" in ill["cct"] and "Ohno" in ill["cct"]["description"]
+    for path in ("/v1/batches/{batch_id}/items/by-index/{index}", "/v1/batches/{batch_id}/items/by-name/{name}",
+                 "/v1/batches/{batch_id}/items/{item}"):
+        content = spec["paths"][path]["get"]["responses"]["200"]["content"]
+        assert set(content) == {"image/tiff", "image/png", "image/jpeg"}, (path, content)
+    assert set(spec["paths"]["/v1/batches/{batch_id}/zip"]["get"]["responses"]["200"]["content"]) == {
+        "application/zip"}
+    text = spec["info"]["description"] + "".join(
+        op.get("description", "") for ops in spec["paths"].values() for op in ops.values())
+    assert not re.search(r":(func|mod|class|data|attr|meth):`", text), "Sphinx roles in the API description"
+
+
+def test_a_misspelled_form_field_is_a_422_naming_it(client, dng):
+    r = client.post("/v1/white-balance", files={"file": ("a.dng", dng)}, data={"taget": "A"})
+    assert r.status_code == 422, r.text
+    body = r.json()
+    assert body["error"] == "unknown_field" and "'taget'" in body["detail"] and "did you mean 'target'" in body["detail"]
+    assert "accepts:" in body["detail"] and "exposure" in body["detail"]
+    r = client.get("/v1/sampling", params={"strategy": "uniform", "n": 4, "chanel": "XYZ"})
+    assert r.status_code == 422 and "'chanel'" in r.json()["detail"] and "'channel'" in r.json()["detail"]
+
+
+def test_the_web_pages_own_forms_still_pass(client, dng):
+    """The fields service/static/app.js sends on each endpoint are accepted."""
+    f = {"file": ("a.dng", dng)}
+    opts = {"camera": "", "method": "auto", "quality": "fast"}
+    assert client.post("/v1/analyze", files=f, data={**opts, "neutral": "[10, 10]"}).status_code == 200
+    for wb in ({"wb": "camera", "format": "jpeg", "max_side": "1024"},
+               {**opts, "wb": "corrected", "target": "D65", "format": "jpeg", "max_side": "1024"}):
+        assert client.post("/v1/preview", files=f, data=wb).status_code == 200
+    r = client.post("/v1/white-balance", files=f, data={**opts, "format": "xmp", "white": "estimate",
+                                                        "target": "D65"})
+    assert r.status_code == 200, r.text
+    r = client.post("/v1/batches", files=[("files", ("a.dng", dng))],
+                    data={**opts, "format": "jpeg", "target": "D65", "lighting": "per-image"})
+    assert r.status_code == 202, r.text
