@@ -38,6 +38,12 @@ LANES = (
 SCRIPTS = tuple(s for lane in LANES for s in lane)
 #: Scripts that mount a tmpfs (root only).
 NEEDS_ROOT = {"diskfull_item_stuck"}
+#: Scripts written against an API that has changed since, and why (strict: a
+#: script fixed in the shared folder makes its case pass, and this must go).
+STALE = {"diskfull_item_stuck": "the script ends with DELETE /v1/batches/{id} meaning 'cancel'; since issue 29 a "
+                                "DELETE of a settled batch removes it, so its last GET is a 404 and it crashes "
+                                "(KeyError 'settled') after its check held; the same script with POST "
+                                ".../cancel prints FIXED (docs/reliability.md)"}
 
 
 def _free_port() -> int:
@@ -82,7 +88,8 @@ def outcomes():
     return results
 
 
-@pytest.mark.parametrize("name", SCRIPTS)
+@pytest.mark.parametrize("name", [pytest.param(s, marks=pytest.mark.xfail(strict=True, reason=STALE[s]))
+                                  if s in STALE else s for s in SCRIPTS])
 def test_round3_batch_reproduction_is_fixed(outcomes, name):
     if name in NEEDS_ROOT and not _is_root():
         pytest.skip(f"{name} mounts a tmpfs as the data directory: it needs root")
