@@ -70,6 +70,7 @@ def _lazy_module(name: str):
 
 jobs = _lazy_module("service.jobs")
 sidecars = _lazy_module("service.sidecars")
+batch_xmp = _lazy_module("service.batch.xmp")
 
 #: Never written raw to a terminal: C0 controls (ESC, BEL, CR, LF, ...), DEL,
 #: C1 controls (CSI U+009B ...), the bidirectional overrides and isolates
@@ -412,7 +413,8 @@ def _stop_now(executor) -> None:
 
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
               dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
-              quiet: bool = False, recursive: bool = False, xmp: dict | None = None) -> list[dict]:
+              quiet: bool = False, recursive: bool = False, xmp: dict | None = None,
+              info: dict | None = None) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
     ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
@@ -431,7 +433,13 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     the same executor (:func:`service.sidecars._sidecar_job`): beside the RAW, or in
     ``folder`` (the relative tree kept), into ``out_dir`` when the RAW's
     folder is not writable; rows get ``xmp`` (the path written) and a
-    ``note`` when it went elsewhere, was kept or could not be made."""
+    ``note`` when it went elsewhere, was kept or could not be made. Each
+    image's sidecar is made as soon as the image is finished, so a Ctrl-C
+    leaves every finished image with its sidecar (those still being made
+    are written before the command exits) and no ``.lock`` file behind.
+
+    ``info`` (a dict, filled in): ``shared_light``, the light of a shared
+    batch (its ``warnings`` say when the images disagree)."""
     import io
 
     stream = io.StringIO() if quiet else (stream or sys.stderr)
@@ -465,12 +473,15 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     bar.update(**count)
     own = executor is None and bool(todo)
     interrupted = False
+    xmp_jobs: dict = {}   # name -> future of its XMP sidecar
     ctrl_c = _CtrlC().__enter__()
     try:
         if own:
             executor = ctrl_c.executor = jobs.make_executor(workers or None, dask_scheduler or None)
         if todo and options.lighting == "shared":
             light = _shared_light(tasks, options, out_dir, executor, rows, count, force)
+            if info is not None:
+                info["shared_light"] = light
             todo = [t for t in todo if rows[t.name]["status"] == "pending"]
             todo = [dataclasses.replace(t, light=light) for t in todo] if light else []
             for t in tasks:
@@ -486,12 +497,16 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
                 res = fut.result()
             except BaseException as e:  # a worker lost
                 res = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
+            res.pop("retry", None)
             rows[t.name].update(res)
             rows[t.name].pop("adopted", None)
             count["done" if res["status"] == "done" else "failed"] += 1
             bar.update(**count)
+            if xmp is not None and res["status"] == "done":   # its sidecar now, not after the whole batch
+                xmp_jobs[t.name] = batch_xmp.submit_sidecar(t, rows[t.name], options, out_dir, executor, xmp,
+                                                            _settings())
         if xmp is not None:
-            _batch_sidecars(tasks, rows, options, out_dir, executor, xmp)
+            batch_xmp.batch_sidecars(tasks, rows, options, out_dir, executor, xmp, xmp_jobs, _settings())
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -513,53 +528,13 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
                 with contextlib.suppress(OSError, ValueError):
                     with open(jobs.meta_path(t.out, ".json")) as f:
                         r.update(status="done", illuminant=json.load(f).get("illuminant"))
+        for t in tasks:   # a worker ended mid-item leaves its lock file: gone once nobody holds the lock
+            jobs.remove_stale_lock(t.out)
+        if xmp is not None:   # every finished image gets its sidecar before the command exits
+            with contextlib.suppress(KeyboardInterrupt):
+                batch_xmp.finish_sidecars(tasks, rows, options, out_dir, xmp, xmp_jobs, _settings())
         raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
-
-
-def _batch_sidecars(tasks, rows, options, out_dir: str, executor, xmp: dict) -> None:
-    """The sidecars of a batch's finished items (:func:`run_batch`'s ``xmp``)."""
-    futs = []
-    for t in tasks:
-        r = rows[t.name]
-        if r["status"] not in ("done", "skipped") or not r.get("illuminant"):
-            continue
-        rel_dir = os.path.dirname(t.name)
-        target = (sidecars.sidecar_path(os.path.join(xmp["folder"], t.name), xmp["name"]) if xmp.get("folder")
-                  else sidecars.sidecar_path(t.src, xmp["name"]))
-        fallback = None if xmp.get("folder") else os.path.join(out_dir, rel_dir)
-        if xmp.get("folder"):
-            os.makedirs(os.path.dirname(target), exist_ok=True)      # --xmp DIR: the relative tree kept
-        args = (t.src, r["illuminant"], options, target, fallback, bool(xmp.get("overwrite")), _settings())
-        if executor is None:            # every item already finished: no pool was started
-            from concurrent.futures import Future
-
-            f: Future = Future()
-            try:
-                f.set_result(sidecars._sidecar_job(*args))
-            except Exception as e:  # noqa: BLE001 - reported below as a worker's would be
-                f.set_exception(e)
-            futs.append((t, f))
-        else:
-            futs.append((t, executor.submit(sidecars._sidecar_job, *args)))
-    for t, f in futs:
-        try:
-            res = f.result()
-        except Exception as e:  # noqa: BLE001 - a worker lost: the image is done, say why the sidecar is not
-            res = {"xmp": None, "note": f"no XMP sidecar: {type(e).__name__}: {e}"}
-        r = rows[t.name]
-        if res.get("xmp"):
-            r["xmp"] = res["xmp"]
-        if res.get("kept"):
-            r["xmp_kept"] = res["kept"]
-        for key in ("dng", "dng_kept"):                 # a DNG's copy with the white balance inside
-            if res.get(key):
-                r[key] = res[key]
-        notes = [res.get("note"), res.get("dng_error")]
-        if res.get("dng_kept"):
-            notes.append(f"DNG copy {res['dng_kept']} exists: kept as it is (--xmp-overwrite replaces it)")
-        if any(notes):
-            r["note"] = "; ".join(n for n in (r.get("note"), *notes) if n)
 
 
 def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = False) -> dict | None:
@@ -608,9 +583,11 @@ def _cmd_batch(args) -> int:
     try:
         xmp = None if not (args.xmp or args.xmp_dir) else {"folder": args.xmp_dir or None, "name": args.xmp_name,
                                                             "overwrite": args.xmp_overwrite}
+        info: dict = {}
         rows = run_batch(args.in_dir, args.out_dir, opts, args.workers, args.dask_scheduler, force=args.force,
-                         quiet=args.quiet, recursive=args.recursive, xmp=xmp)
+                         quiet=args.quiet, recursive=args.recursive, xmp=xmp, info=info)
     except BatchInterrupted as e:
+        _print_light_warnings(info.get("shared_light"))
         if threading.current_thread() is threading.main_thread():
             import signal
 
@@ -624,6 +601,7 @@ def _cmd_batch(args) -> int:
                          f"(finished outputs are skipped):\n  {cmd}\n")
         return 130
     _summary(rows, sys.stdout, args.quiet)
+    _print_light_warnings(info.get("shared_light"))
     if (args.xmp or args.xmp_dir) and not args.quiet:
         written = [r["xmp"] for r in rows if r.get("xmp")]
         beside = sum(os.path.dirname(p) == os.path.dirname(os.path.abspath(os.path.join(args.in_dir, r["name"])))
@@ -634,6 +612,18 @@ def _cmd_batch(args) -> int:
     if ignored:
         (sys.stderr if args.quiet else sys.stdout).write(_ignored_text(ignored))
     return 1 if any(r["status"] == "failed" for r in rows) else 0
+
+
+def _print_light_warnings(light: dict | None) -> None:
+    """``--lighting shared``: the shared light's warnings (the images'
+    own lights disagree: they may not all be under one light), with its
+    confidence, on stderr (as the batch's JSON ``warnings``)."""
+    if not light:
+        return
+    from .batch.store import shared_light_warnings
+
+    for w in shared_light_warnings(light):
+        sys.stderr.write(f"warning: {term_safe(w)}\n")
 
 
 #: Output file extensions and the formats they mean (white-balance OUT).
@@ -701,15 +691,9 @@ def _cmd_white_balance(args) -> int:
                 if not args.quiet:
                     print(f"XMP sidecar: {term_safe(sc['xmp'])} (Temperature {sc['temperature']:.0f} K, "
                           f"Tint {sc['tint']:+.0f})")
-            for key in ("dng", "dng_kept", "dng_error"):
-                if sc.get(key):
-                    res[key] = sc[key]
-            if sc.get("dng") and not args.quiet:
-                print(f"DNG with the white balance inside (for Lightroom): {term_safe(sc['dng'])}")
-            elif sc.get("dng_kept") and not args.quiet:
-                print(f"DNG copy {term_safe(sc['dng_kept'])} exists: kept as it is (--xmp-overwrite replaces it)")
-            elif sc.get("dng_error") and not args.quiet:
-                print(term_safe(sc["dng_error"]), file=sys.stderr)
+            res.update({k: sc[k] for k in ("dng", "dng_kept", "dng_error") if sc.get(k)})
+            if not args.quiet and (sc.get("dng") or sc.get("dng_kept") or sc.get("dng_error")):
+                print(term_safe(sidecars.dng_copy_message(sc)), file=sys.stderr if sc.get("dng_error") else sys.stdout)
             if sc.get("note"):
                 res["note"] = sc["note"]
     _summary([res], sys.stdout, args.quiet)

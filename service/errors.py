@@ -147,7 +147,7 @@ def install_error_handlers(app) -> None:
     @app.exception_handler(RecoveryError)
     async def _service(_: Request, exc: Exception):
         err = service_error(exc)
-        return error_response(err.status, err.code, err.detail)
+        return error_response(err.status, err.code, err.detail, getattr(err, "headers", None))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError):

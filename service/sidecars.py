@@ -33,6 +33,15 @@ def _sidecar_text(src: str, illuminant: dict, opts, limits) -> tuple[str, dict]:
     return text, {**tt, "camera_rgb": summary["camera_rgb"]}
 
 
+def dng_copy_message(sc: dict) -> str:
+    """What the command line says of a DNG's copy (``dng``, ``dng_kept`` or ``dng_error``)."""
+    if sc.get("dng"):
+        return f"DNG with the white balance inside (for Lightroom): {sc['dng']}"
+    if sc.get("dng_kept"):
+        return f"DNG copy {sc['dng_kept']} exists: kept as it is (--xmp-overwrite replaces it)"
+    return str(sc.get("dng_error", ""))
+
+
 def dng_copy_path(sidecar: str, src: str) -> str:
     """Where a DNG's copy with the white balance inside goes: beside its
     sidecar, ``IMG_0001.wandell.dng`` (never the original's name)."""

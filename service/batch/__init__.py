@@ -31,7 +31,10 @@ place first) and adopts it. Every rename appends one line to the batch's
 One concept a module: :mod:`~service.batch.options` (a batch's validated
 options), :mod:`~service.batch.items` (one item, exactly once),
 :mod:`~service.batch.executors` (local pool or Dask),
-:mod:`~service.batch.store` (the SQLite job store) and
-:mod:`~service.batch.runner` (the runner). Nothing is imported here, so a
+:mod:`~service.batch.store` (the SQLite job store),
+:mod:`~service.batch.runner` (the runner) and :mod:`~service.batch.xmp` (the
+XMP sidecars of a CLI batch). What each fault (a stop, a killed worker, a lost
+scheduler, a full disk, a locked or lost store) does to the items:
+``docs/reliability.md``. Nothing is imported here, so a
 worker loading :mod:`~service.batch.items` loads no more than it needs.
 """

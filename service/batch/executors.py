@@ -52,6 +52,19 @@ class LocalExecutor:
     def submit(self, fn, *args) -> Future:
         return self._pool.submit(fn, *args)
 
+    @property
+    def broken(self) -> str | None:
+        """Why the pool can run nothing more (a worker died abruptly, e.g.
+        killed by the OOM killer: ``concurrent.futures`` then fails every
+        future of the pool and refuses every submit), or None. The runner
+        replaces a broken pool (:meth:`BatchRunner._replace_broken_executor`)."""
+        b = getattr(self._pool, "_broken", False)
+        if b:
+            return f"process pool broken: {b}"
+        if getattr(self._pool, "_shutdown_thread", False):
+            return "process pool shut down"
+        return None
+
     def shutdown(self, wait: bool = True) -> None:
         self._pool.shutdown(wait=wait, cancel_futures=True)
 
@@ -102,17 +115,52 @@ def _dask_call(fn, *args):
 class DaskExecutor:
     """Items submitted to a Dask distributed cluster (``scheduler`` address,
     or a ``distributed.Client`` given). The workers need this project
-    installed and the data directory (or batch root) at the same path."""
+    installed and the data directory (or batch root) at the same path.
+
+    :attr:`workers` follows the cluster: the threads of the workers connected
+    now (asked of the scheduler at most every ``refresh_s`` seconds), so
+    workers that join later are used and a cluster with no worker left gives
+    0 (the runner then hands out nothing and says it is waiting). A client
+    that closed itself (the scheduler away longer than its reconnection
+    timeout) is :attr:`broken`: the runner makes a new one."""
 
     kind = "dask"
 
-    def __init__(self, scheduler=None, client=None, timeout: float = 20.0):
+    def __init__(self, scheduler=None, client=None, timeout: float = 20.0, refresh_s: float = 1.0):
         from distributed import Client
 
         self._own = client is None
+        self.address = scheduler
         self.client = client if client is not None else Client(scheduler, timeout=f"{timeout}s")
-        self.workers = max(1, sum(w.get("nthreads", 1)
-                                  for w in self.client.scheduler_info().get("workers", {}).values()))
+        self.refresh_s = float(refresh_s)
+        self.answer_s = max(1.0, float(timeout))
+        self._workers, self._asked = 0, float("-inf")
+        self._asking = Bounded("Dask scheduler info")
+        self.workers_error: str | None = None
+
+    @property
+    def workers(self) -> int:
+        """Threads of the workers connected now (0: none, or a scheduler that
+        did not answer within ``answer_s``: then :attr:`workers_error`)."""
+        now = time.monotonic()
+        if now - self._asked >= self.refresh_s:
+            self._asked = now
+            try:
+                # every worker, asked now (a synchronous client); a hung scheduler never answers, so
+                # the question runs on a thread of its own and is waited for a bounded time
+                info = self._asking.call(self.client.scheduler_info, self.answer_s)
+                self._workers = sum(int(w.get("nthreads", 1) or 1) for w in info.get("workers", {}).values())
+                self.workers_error = None
+            except Exception as e:  # the scheduler does not answer: count nothing, say why
+                self._workers, self.workers_error = 0, f"{type(e).__name__}: {e}"
+        return self._workers
+
+    @property
+    def broken(self) -> str | None:
+        status = str(getattr(self.client, "status", "running"))
+        if status in ("closed", "closing", "failed"):
+            return f"Dask client {status} (the scheduler was unreachable longer than its reconnection timeout)"
+        return None
 
     def submit(self, fn, *args) -> Future:
         fut: Future = Future()
@@ -121,7 +169,7 @@ class DaskExecutor:
         def done(df):
             try:
                 fut.set_result(df.result())
-            except BaseException as e:  # a lost worker, a cancelled task
+            except BaseException as e:  # a lost worker, a cancelled task, a closed client
                 fut.set_exception(e)
 
         fut.set_running_or_notify_cancel()
@@ -130,11 +178,57 @@ class DaskExecutor:
 
     def shutdown(self, wait: bool = True) -> None:
         if self._own:
-            self.client.close()
+            with contextlib.suppress(Exception):
+                self.client.close(timeout=5)
+
+
+class Bounded:
+    """A blocking call waited for at most a given time, on a daemon thread
+    of its own; one at a time: while an earlier call is still hanging (a
+    Dask scheduler that accepted the connection and never answers: the
+    ``distributed`` handshake has no deadline), a new one is not started
+    (no pile of stuck threads); its result is used once it comes."""
+
+    def __init__(self, what: str):
+        self.what = what
+        self._pending: Future | None = None
+        self._lock = threading.Lock()
+
+    def call(self, fn, timeout: float):
+        with self._lock:
+            fut = self._pending
+            if fut is None:
+                fut = self._pending = Future()
+
+                def run():
+                    try:
+                        fut.set_result(fn())
+                    except BaseException as e:  # noqa: BLE001 - handed to the caller
+                        fut.set_exception(e)
+
+                threading.Thread(target=run, name=f"bounded: {self.what}", daemon=True).start()
+        try:
+            result = fut.result(timeout)
+        except TimeoutError:
+            raise TimeoutError(f"{self.what}: no answer within {timeout:g} s (the other side accepted the "
+                               "connection but does not answer)") from None
+        except BaseException:
+            with self._lock:
+                self._pending = None
+            raise
+        with self._lock:
+            self._pending = None
+        return result
+
+
+_CONNECTING: dict = {}
 
 
 def make_executor(workers: int | None = None, scheduler: str | None = None, timeout: float = 20.0):
-    """Dask when a scheduler address is given, else the local pool."""
+    """Dask when a scheduler address is given, else the local pool. The
+    connection to a scheduler is waited for at most ``timeout`` + 5 s even
+    when the scheduler accepts it and never answers (:class:`Bounded`)."""
     if scheduler:
-        return DaskExecutor(scheduler, timeout=timeout)
+        b = _CONNECTING.setdefault(scheduler, Bounded(f"Dask scheduler {scheduler}"))
+        return b.call(lambda: DaskExecutor(scheduler, timeout=timeout), timeout + 5.0)
     return LocalExecutor(workers or default_workers())

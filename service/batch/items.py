@@ -78,13 +78,43 @@ def _pool_worker_init() -> None:
 #: Temporary files this process is writing (:func:`atomic_write`), removed
 #: when a pool worker is terminated.
 _PARTS: set = set()
+#: Item lock files this process holds (:func:`_item_lock`), removed with them
+#: when a pool worker is terminated (a graceful stop leaves no ``.lock``).
+_LOCKS: set = set()
 
 
 def _exit_on_term(signum, frame) -> None:  # pragma: no cover - runs in a pool worker
-    for p in list(_PARTS):
+    for p in list(_PARTS) + list(_LOCKS):   # a held lock's file: nobody else owns this name now
         with contextlib.suppress(OSError):
             os.unlink(p)
     os._exit(128 + signum)
+
+
+def remove_stale_lock(out: str) -> bool:
+    """Remove ``out``'s lock file if no process holds its lock (a writer that
+    was killed, SIGKILL, leaves its file but not its lock); True if removed.
+    A writer still at work holds the lock, so its file stays."""
+    import fcntl
+
+    path = meta_path(out, ".lock")
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return False
+    try:
+        if os.stat(path).st_ino != os.fstat(fd).st_ino:
+            return False
+        os.unlink(path)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
 
 
 @dataclass(frozen=True)
@@ -109,6 +139,12 @@ class ItemTask:
     cancel_file: str | None = None
     #: the item's index in its batch (recorded in the sidecar; None: the CLI)
     index: int | None = None
+    #: the folder ``src`` must be read from (folder batches: the batch root;
+    #: uploads: the batch's folder): opened component by component from it,
+    #: no symbolic link followed (:func:`open_under`); None: opened as given
+    root: str | None = None
+    #: the largest file read (the upload limit, checked on the open file); None: no limit
+    max_bytes: int | None = None
 
 
 class ItemCancelled(Exception):
@@ -160,13 +196,77 @@ def _open(task: "ItemTask", prefetch: bool = False, render: bool = False) -> tup
     ``render``: the render follows, later (the RAW's mosaic is kept for it))."""
     from .. import pipeline
 
-    with open(task.src, "rb") as f:
-        data = f.read()
+    data = read_source(task)
     decoded, cam, warns, _ = pipeline.open_image(data, task.name or os.path.basename(task.src), task,
                                                  task.options.camera, prefetch=prefetch,
                                                  keep_mosaic=prefetch or render,
                                                  quality=getattr(task.options, "quality", None))
     return decoded, cam, warns
+
+
+def open_under(root: str, path: str) -> int:
+    """A read-only descriptor of ``path``, which must lie under ``root``,
+    opened one component at a time from ``root`` (``openat``) with
+    ``O_NOFOLLOW``: no symbolic link on the way is followed, so a folder
+    swapped for a link to somewhere else after the batch was made is refused
+    at open time, not only when the batch was checked.
+
+    Raises :class:`~service.errors.ServiceError` 403 ``path_outside_root``."""
+    from ..errors import ServiceError
+
+    rootr = os.path.realpath(root)
+    for base in (os.path.abspath(root), rootr):   # the path as stored: under the root as given or resolved
+        rel = os.path.relpath(os.path.abspath(path), base)
+        if not rel.startswith(".."):
+            break
+    parts = rel.split(os.sep)
+    if rel in (".", "") or os.path.isabs(rel) or ".." in parts:
+        raise ServiceError(403, "path_outside_root", f"{path!r} is not under {root!r}")
+    nofollow = os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+    fd = os.open(rootr, os.O_RDONLY | os.O_DIRECTORY | nofollow)
+    try:
+        for i, part in enumerate(parts):
+            last = i == len(parts) - 1
+            flags = os.O_RDONLY | nofollow | (0 if last else os.O_DIRECTORY)
+            try:
+                nxt = os.open(part, flags, dir_fd=fd)
+            except OSError as e:
+                import errno
+
+                if e.errno in (errno.ELOOP, errno.ENOTDIR, errno.EMLINK):
+                    raise ServiceError(403, "path_outside_root", f"{'/'.join(parts[:i + 1])!r} under the batch "
+                                       "root is now a symbolic link (or not a folder): it is not followed") from None
+                raise
+            os.close(fd)
+            fd = nxt
+        return fd
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_source(task: "ItemTask") -> bytes:
+    """The bytes of the item's input: opened under ``task.root`` with no
+    symbolic link followed (:func:`open_under`) when a root is given, a
+    regular file, at most ``task.max_bytes`` bytes (checked on the open file,
+    so a file that grew after the batch was made is refused too)."""
+    import stat
+
+    from ..errors import ServiceError
+
+    fd = open_under(task.root, task.src) if task.root else os.open(task.src, os.O_RDONLY)
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(f.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise ServiceError(422, "not_a_file", f"{task.name!r} is not a regular file")
+        if task.max_bytes is not None and st.st_size > task.max_bytes:
+            raise ServiceError(413, "file_too_large", f"{task.name!r} is {st.st_size} bytes, above the upload "
+                               f"limit of {task.max_bytes} bytes")
+        data = f.read() if task.max_bytes is None else f.read(task.max_bytes + 1)
+    if task.max_bytes is not None and len(data) > task.max_bytes:
+        raise ServiceError(413, "file_too_large", f"{task.name!r} grew above the upload limit of "
+                           f"{task.max_bytes} bytes while it was read")
+    return data
 
 
 def _error_text(exc: BaseException) -> str:
@@ -209,11 +309,13 @@ def _item_lock(out: str):
         if same:
             break
         os.close(fd)  # the holder before us removed it: lock the current one
+    _LOCKS.add(path)
     try:
         yield
     finally:
         with contextlib.suppress(OSError):
             os.unlink(path)  # still holding the lock: nobody else owns this name now
+        _LOCKS.discard(path)
         os.close(fd)  # closing releases the lock
 
 
@@ -384,6 +486,12 @@ def process_item(task: ItemTask) -> dict:
     except MemoryError:
         return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
     except Exception as exc:
+        from ..errors import disk_full
+
+        if disk_full(exc):  # nothing of the item was kept; it can run again once space is freed
+            return {"status": "failed", "retry": True,
+                    "error": f"insufficient_storage: the output folder is full, nothing was written "
+                             f"({type(exc).__name__}: {exc})"}
         return {"status": "failed", "error": _error_text(exc)}
 
 
@@ -414,12 +522,16 @@ def estimation_sample(task: ItemTask, pixels: int | None = None) -> dict:
     from .. import pipeline
 
     try:
+        _check_cancel(task)
         decoded, cam, warns = _open(task)
+        _check_cancel(task)
         run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method,
                                     options=task.options.estimate_kwargs())
         profile = pipeline.profile_of(decoded)
         return {"status": "ok", "estimate": _clean(_estimate_json(run.estimate, cam, profile)),
                 "warnings": list(run.estimate.warnings), "camera": cam, "profile": profile}
+    except ItemCancelled:
+        return {"status": "cancelled", "error": "cancelled: the batch was cancelled"}
     except MemoryError:
         return {"status": "failed", "error": "too_many_pixels: not enough memory for this image"}
     except Exception as exc:

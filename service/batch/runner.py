@@ -1,12 +1,29 @@
 """The batch runner (:class:`BatchRunner`): claims queued items of the active batches, runs them
 on an executor, the shared light first in ``shared`` mode, cancels, resumes after a restart,
-removes stale temporaries and expired inputs; :func:`folder_sources` for a folder batch.
+removes stale temporaries and expired inputs; :func:`scan_folder` for a folder batch.
+
+Every item ends exactly once whatever happens to the process that runs it
+(issue 28; the state machine is in ``docs/reliability.md``):
+
+- a graceful stop (SIGTERM, Ctrl-C: :meth:`BatchRunner.stop`) puts the items
+  in flight back to ``pending`` (journalled), run again after the restart;
+- a worker lost (a pool worker killed, a Dask worker or client lost) puts
+  its item back to ``pending``, at most :data:`~service.batch.store.MAX_ATTEMPTS`
+  runs, then ``failed`` with the reason; a broken pool or a closed Dask
+  client is replaced at the next step;
+- a result that cannot be recorded (the store's disk full, the store
+  locked) is kept and recorded at a later step, so no item stays
+  ``running``; an item whose output could not be written for want of space
+  is ``pending`` again and the runner pauses;
+- no Dask worker, or no scheduler, is said in :attr:`BatchRunner.executor_error`
+  (the progress document's ``runner_error``, ``/health``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import threading
 import time
@@ -15,8 +32,11 @@ from dataclasses import dataclass, field
 from ..errors import ServiceError
 from ..schemas.options import BatchOptions
 from .executors import make_executor
-from .items import ItemTask, RAW_SUFFIXES, _error_text, estimation_sample, process_item, remove_stale_temporaries, shared_light
-from .store import JobStore
+from .items import (ItemTask, RAW_SUFFIXES, _error_text, estimation_sample, process_item, remove_stale_lock,
+                    remove_stale_temporaries, shared_light)
+from .store import MAX_ATTEMPTS, JobStore
+
+log = logging.getLogger("service.jobs")
 
 
 @dataclass
@@ -31,6 +51,16 @@ class RunnerConfig:
     poll_s: float = 0.2
     #: seconds a finished or cancelled batch's uploaded inputs are kept (< 0: kept forever)
     input_retention_s: float = 24 * 3600.0
+    #: folder batches' root (their items are opened under it, no symlink followed); "" = none
+    batch_root: str = ""
+    #: the largest input an item reads (the upload limit; checked on the open file); None = no limit
+    max_input_bytes: int | None = None
+    #: runs of an item whose worker was lost before it is failed for good
+    max_attempts: int = MAX_ATTEMPTS
+    #: seconds the runner hands out no item after an output could not be written for want of space
+    disk_full_pause_s: float = 10.0
+    #: seconds between two attempts to connect to an unreachable Dask scheduler
+    reconnect_s: float = 5.0
     #: seconds a finished or cancelled batch (results and all) is kept; negative: for ever
     result_retention_s: float = -1.0
     extra: dict = field(default_factory=dict)
@@ -54,10 +84,26 @@ class BatchRunner:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._light_jobs: dict = {}        # batch -> Future of the shared light
-        #: why items are not running (e.g. no Dask scheduler), shown in progress
+        self._light_jobs: dict = {}        # batch -> (estimation futures, light future)
+        #: why items are not running (e.g. no Dask scheduler, no worker), shown in progress and /health
         self.executor_error: str | None = None
+        #: since when (epoch seconds) the cause in :attr:`executor_error` holds
+        self.error_since: float | None = None
+        #: executors replaced because they broke (a killed pool worker, a closed Dask client)
+        self.executor_rebuilds = 0
+        #: store transitions that failed (disk full, store locked), retried at each step
+        self._unrecorded: list = []
+        #: state changes the store could not take at once (kept, recorded later), since start
+        self.records_deferred = 0
+        #: outputs that could not be written for want of space (their items re-queued), since start
+        self.disk_full_retries = 0
+        #: batches whose creation found the store busy, registered from their manifest (:meth:`defer`)
+        self._deferred: set = set()
+        self._paused_until = 0.0
+        self._next_connect = 0.0
+        self._next_idle_check = 0.0
         self._next_cleanup = 0.0
+        self._last_log: dict = {}
 
     @property
     def executor(self):
@@ -66,24 +112,44 @@ class BatchRunner:
                                            self.config.dask_timeout)
         return self._executor
 
+    def defer(self, batch_id: str) -> None:
+        """A batch made while the store was busy (its manifest on disk):
+        registered at the runner's next step that finds the store free."""
+        self.store.defer(batch_id)
+        self._deferred.add(batch_id)
+        self._wake.set()
+
     def start(self) -> int:
+        self._deferred.update(self.store.unregistered())
         n = self.store.resume()
         self._thread = threading.Thread(target=self._loop, name="batch-runner", daemon=True)
         self._thread.start()
         return n
 
     def stop(self, wait: bool = True) -> None:
+        """Stop the runner. ``wait``: let the items in flight finish (and be
+        recorded). Otherwise (the server is going away: SIGTERM, Ctrl-C) the
+        pool is ended at once and every item in flight goes back to
+        ``pending`` (journalled): the restart runs it again; nothing it had
+        half-written keeps a final name, and its lock file is removed."""
         self._stop.set()
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=30)
+        with self._lock:
+            keys = list(self._inflight)
         if self._executor is not None:
             if not wait and hasattr(self._executor, "terminate"):
-                # the server is going away: items in flight are run again after
-                # the restart (resume); never wait for them
-                self._executor.terminate()
+                self._executor.terminate()   # the futures' callbacks requeue their items (_done)
             else:
                 self._executor.shutdown(wait=wait)
+        with self._lock:
+            left = list(self._inflight)
+            self._inflight.clear()
+        for bid, idx in left:   # a Dask task left on the cluster, or a callback not yet run: requeue now
+            self._record(self.store.requeue_item, bid, idx, "stopped: the server stopped while it ran")
+        self._flush_unrecorded()
+        self._remove_stale_locks(keys)
 
     def wake(self) -> None:
         self._wake.set()
@@ -98,7 +164,9 @@ class BatchRunner:
         their first step, running ones stop at their next step without
         writing (the marker file :meth:`cancel_file`, which workers on any
         executor see) and become ``cancelled``; results finished before are
-        kept. The progress document says ``settled`` once all have answered."""
+        kept. In shared mode the light's estimation jobs are dropped or
+        stopped the same way. The progress document says ``settled`` once
+        all have answered."""
         ok = self.store.cancel(batch_id)
         if ok:
             with contextlib.suppress(OSError):
@@ -106,6 +174,10 @@ class BatchRunner:
                     f.write(f"{time.time()}\n")
         with self._lock:
             futs = [fut for (b, _), fut in self._inflight.items() if b == batch_id]
+            light = self._light_jobs.pop(batch_id, None)
+        if light is not None:
+            est, light_fut = light
+            futs += [f for _, f in est] + ([light_fut] if light_fut is not None else [])
         for fut in futs:  # outside the lock: cancel() runs the done callback at once
             fut.cancel()  # not yet started: dropped; started: stops at its next step
         self._wake.set()
@@ -121,12 +193,37 @@ class BatchRunner:
             time.sleep(0.1)
         raise TimeoutError(f"batch {batch_id} still running after {timeout} s")
 
+    def health(self) -> dict:
+        """The runner's state for ``/health``: ``ok``, or ``degraded`` with
+        why items are not running (``runner_error``) and since when."""
+        doc = {"status": "degraded" if self.executor_error else "ok",
+               "executor": getattr(self._executor, "kind", None) or ("dask" if self.config.dask_scheduler
+                                                                      else "local"),
+               "executor_rebuilds": self.executor_rebuilds, "unrecorded_results": len(self._unrecorded),
+               "records_deferred": self.records_deferred, "disk_full_retries": self.disk_full_retries}
+        if self.executor_error:
+            doc["runner_error"] = self.executor_error
+            doc["since"] = self.error_since
+        return doc
+
     # -- internals -----------------------------------------------------------
     def _task(self, row, options: BatchOptions, light: dict | None) -> ItemTask:
-        return ItemTask(src=row["src"], out=row["out"], name=row["name"], options=options, index=row["idx"],
+        bdir = self.store.batch_dir(row["batch_id"])
+        src = row["src"]
+        # uploads are read under their batch's folder, folder batches under the batch root, anything
+        # else (stored as a resolved path) from "/": in every case no symbolic link on the way is followed
+        broot = os.path.realpath(self.config.batch_root) if self.config.batch_root else None
+        if src.startswith(os.path.abspath(bdir) + os.sep):
+            root = bdir
+        elif broot and src.startswith(broot + os.sep):
+            root = broot
+        else:
+            root = os.sep
+        return ItemTask(src=src, out=row["out"], name=row["name"], options=options, index=row["idx"],
                         max_pixels=self.config.max_pixels, estimation_pixels=self.config.estimation_pixels,
-                        light=light, write_log=os.path.join(self.store.batch_dir(row["batch_id"]), "writes.log"),
-                        cancel_file=self.cancel_file(row["batch_id"]))
+                        light=light, write_log=os.path.join(bdir, "writes.log"),
+                        cancel_file=self.cancel_file(row["batch_id"]), root=root,
+                        max_bytes=self.config.max_input_bytes)
 
     def remove_stale_temporaries(self, batch_id: str | None = None) -> list[str]:
         """The temporaries a killed writer left in one batch's ``out/``, or
@@ -140,30 +237,39 @@ class BatchRunner:
         for bid in ids:
             gone += remove_stale_temporaries(os.path.join(root, bid, "out"))
         if gone:
-            import logging
-
-            logging.getLogger("service.jobs").info("removed %d stale temporary file(s): %s", len(gone), gone[:5])
+            log.info("removed %d stale temporary file(s): %s", len(gone), gone[:5])
         return gone
+
+    def _remove_stale_locks(self, keys) -> None:
+        for bid, idx in keys:
+            with contextlib.suppress(Exception):
+                row = self.store.item_by_index(bid, idx)
+                if row is not None:
+                    remove_stale_lock(row["out"])
 
     def _finish(self, batch_id: str) -> None:
         """Mark the batch done if nothing is left; then clear its temporaries."""
         if self.store.maybe_finish(batch_id):
             self.remove_stale_temporaries(batch_id)
 
+    def _log_once(self, key: str, text: str, every_s: float = 30.0) -> None:
+        """Log ``text`` at most every ``every_s`` seconds per ``key`` (a
+        fault that lasts, e.g. a full disk, must not flood the log)."""
+        now = time.monotonic()
+        if now - self._last_log.get(key, float("-inf")) >= every_s:
+            self._last_log[key] = now
+            log.error("%s", text)
+
     def _loop(self) -> None:
         try:  # what a killed server left being written (its writers hold their locks if still alive)
             self.remove_stale_temporaries()
         except Exception:
-            import logging
-
-            logging.getLogger("service.jobs").exception("removing stale temporaries failed")
+            log.exception("removing stale temporaries failed")
         while not self._stop.is_set():
             try:
                 self._tick()
-            except Exception:  # keep the runner alive; the error is logged
-                import logging
-
-                logging.getLogger("service.jobs").exception("batch runner step failed")
+            except Exception as e:  # keep the runner alive; the error is logged (rate-limited)
+                self._log_once(f"tick:{type(e).__name__}", f"batch runner step failed: {type(e).__name__}: {e}")
             self._wake.wait(self.config.poll_s)
             self._wake.clear()
 
@@ -187,24 +293,85 @@ class BatchRunner:
         return [bid for bid in self.store.expired_batches(self.config.result_retention_s)
                 if self.store.delete_batch(bid) is not None]
 
+    def _set_error(self, text: str | None) -> None:
+        if text is None:
+            self.executor_error = self.error_since = None
+        elif self.executor_error is None or text.split(":")[0] != self.executor_error.split(":")[0]:
+            self.executor_error, self.error_since = text, time.time()
+        else:
+            self.executor_error = text
+
+    def _replace_broken_executor(self) -> None:
+        """A pool one of whose workers died, or a Dask client that closed
+        itself, runs nothing more: end it and make a new one at the next use.
+        Its items in flight come back through their futures (requeued)."""
+        ex = self._executor
+        why = getattr(ex, "broken", None) if ex is not None else None
+        if not why:
+            return
+        log.error("the batch executor is broken (%s): replacing it", why)
+        self._executor = None
+        self.executor_rebuilds += 1
+        with contextlib.suppress(Exception):
+            if hasattr(ex, "terminate"):
+                ex.terminate(grace_s=1.0)
+            else:
+                ex.shutdown(wait=False)
+
+    def _capacity(self) -> int | None:
+        """Items that may be in flight now, or None when there is nowhere to
+        run them (the reason in :attr:`executor_error`)."""
+        now = time.monotonic()
+        if self._executor is None and now < self._next_connect:
+            return None
+        try:
+            ex = self.executor
+        except Exception as e:  # e.g. the Dask scheduler is unreachable: items wait, the error is shown
+            self._next_connect = time.monotonic() + self.config.reconnect_s
+            self._set_error(f"executor_unavailable: {type(e).__name__}: {e}; items wait and the runner "
+                            f"tries again every {self.config.reconnect_s:g} s")
+            return None
+        workers = ex.workers
+        if workers <= 0:
+            why = getattr(ex, "workers_error", None)
+            self._set_error(f"waiting_for_workers: the Dask cluster at {self.config.dask_scheduler} "
+                            + (f"does not answer ({why})" if why else "has no worker") + "; items wait")
+            return None
+        if now < self._paused_until:   # an output could not be written for want of space: wait a little
+            return None
+        self._set_error(None)
+        return 2 * workers
+
     def _tick(self) -> None:
+        self._flush_unrecorded()
+        for bid in sorted(self._deferred):   # made while the store was busy: register them now
+            if self.store.adopt_batch(bid):
+                log.info("batch %s registered (its creation found the store busy)", bid)
+            self._deferred.discard(bid)
         now = time.monotonic()
         if now >= self._next_cleanup:  # at most every 30 s (sooner for a short retention)
             shortest = min(r for r in (self.config.input_retention_s, self.config.result_retention_s, 120.0)
                            if r >= 0)
             self._next_cleanup = now + min(30.0, max(self.config.poll_s, shortest / 4))
+            if self.store.check_file():
+                log.error("the job store file was lost while running; batches rebuilt from their folders")
             self.remove_expired_inputs()
             self.remove_expired_batches()
+        self._replace_broken_executor()
         active = self.store.active_batches()[: max(1, self.config.max_concurrent_batches)]
         for bid in active:
             self.store.start_batch(bid)
         if not active:
+            if self.config.dask_scheduler and self._executor is None or self._executor is not None \
+                    and getattr(self._executor, "kind", "") == "dask":
+                if now >= self._next_idle_check:   # a cluster: say now if it cannot run anything
+                    self._next_idle_check = now + self.config.reconnect_s
+                    self._capacity()
+            elif now >= self._paused_until:
+                self._set_error(None)
             return
-        try:
-            capacity = 2 * self.executor.workers
-            self.executor_error = None
-        except Exception as e:  # e.g. the Dask scheduler is unreachable: items wait, the error is shown
-            self.executor_error = f"executor_unavailable: {type(e).__name__}: {e}"
+        capacity = self._capacity()
+        if capacity is None:
             return
         for bid in active:
             b = self.store.batch(bid)
@@ -223,60 +390,114 @@ class BatchRunner:
                 for row in self.store.claim(bid, room):
                     try:
                         fut = self.executor.submit(process_item, self._task(row, options, light))
-                    except Exception as e:  # a broken pool: fail the item, never leave it running
-                        self.store.fail_item(bid, row["idx"], f"executor_error: {type(e).__name__}: {e}")
+                    except Exception as e:  # a broken pool or closed client: back to pending, replaced next step
+                        self._record(self.store.requeue_item, bid, row["idx"],
+                                     f"executor_error: {type(e).__name__}: {e}")
+                        self._log_once("submit", f"submit failed ({type(e).__name__}: {e}); item re-queued")
                         continue
                     with self._lock:
                         self._inflight[(bid, row["idx"])] = fut
                     fut.add_done_callback(lambda f, k=(bid, row["idx"]): self._done(k, f))
             self._finish(bid)
 
+    def _record(self, fn, *args) -> None:
+        """A store transition now, or, if the store cannot take it (disk
+        full, locked), at a later step (:meth:`_flush_unrecorded`): never lost."""
+        try:
+            fn(*args)
+        except Exception as e:
+            with self._lock:
+                self._unrecorded.append((fn, args))
+                self.records_deferred += 1
+            self._log_once(f"record:{type(e).__name__}", f"a batch item's state could not be recorded "
+                           f"({type(e).__name__}: {e}); kept, recorded when the store can take it")
+
+    def _flush_unrecorded(self) -> None:
+        with self._lock:
+            todo, self._unrecorded = self._unrecorded, []
+        for i, (fn, args) in enumerate(todo):
+            try:
+                fn(*args)
+            except Exception:
+                with self._lock:
+                    self._unrecorded[:0] = todo[i:]
+                return
+            with contextlib.suppress(Exception):
+                self._finish(args[0])
+
     def _done(self, key, fut) -> None:
         bid, idx = key
         with self._lock:
             self._inflight.pop(key, None)
+        stopping = self._stop.is_set()
         if fut.cancelled():  # dropped before it started
-            self.store.cancel_item(bid, idx)
-            self._finish(bid)
+            if stopping:
+                self._record(self.store.requeue_item, bid, idx, "stopped: the server stopped before it ran")
+            else:
+                self._record(self.store.cancel_item, bid, idx)
+                self._record(self._finish, bid)
             return
         try:
             result = fut.result()
-        except BaseException as e:  # the worker died (e.g. killed by the OOM killer)
-            result = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
+        except BaseException as e:  # the worker died (a stop, the OOM killer, a lost Dask worker or client)
+            reason = f"worker_lost: {type(e).__name__}: {e}"
+            if stopping:
+                self._record(self.store.requeue_item, bid, idx, reason)
+            else:
+                self._record(self.store.requeue_item, bid, idx, reason, self.config.max_attempts)
+                self._record(self._finish, bid)
+                self._wake.set()
+            return
         if result.get("status") == "cancelled":  # stopped by the batch's cancel, nothing written
-            self.store.cancel_item(bid, idx)
+            self._record(self.store.cancel_item, bid, idx)
+        elif result.get("retry"):  # the output could not be written for want of space: pending again, pause
+            self.disk_full_retries += 1
+            self._paused_until = time.monotonic() + self.config.disk_full_pause_s
+            self._set_error(f"insufficient_storage: an output could not be written ({result.get('error')}); "
+                            f"items wait {self.config.disk_full_pause_s:g} s between tries")
+            self._record(self.store.requeue_item, bid, idx, str(result.get("error")))
         else:
-            self.store.finish_item(bid, idx, result)
-        self._finish(bid)
+            self._record(self.store.finish_item, bid, idx, result)
+        self._record(self._finish, bid)
         self._wake.set()
 
     def _shared_light_step(self, bid: str, options: BatchOptions) -> None:
         """Shared mode: estimate every pending/running image's own light (in
         the pool), combine them into one light (:func:`shared_light`), store it. Items whose file
         cannot be read fail here, with their error."""
-        fut = self._light_jobs.get(bid)
+        with self._lock:
+            fut = self._light_jobs.get(bid)
         if fut is None:
             rows = [r for r in self.store.items(bid) if r["status"] in ("pending", "running", "done")]
             futs = [(r, self.executor.submit(estimation_sample, self._task(r, options, None))) for r in rows]
-            self._light_jobs[bid] = (futs, None)
+            with self._lock:
+                self._light_jobs[bid] = (futs, None)
             return
         futs, light_fut = fut
         if light_fut is None:
             if not all(f.done() for _, f in futs):
                 return
-            samples, cams = [], {}
+            samples, cams, lost = [], {}, None
             for r, f in futs:
                 try:
                     s = f.result()
                 except BaseException as e:
-                    s = {"status": "failed", "error": f"worker_lost: {e}"}
+                    lost = e
+                    break
                 if s["status"] != "ok":
                     self.store.fail_item(bid, r["idx"], s["error"])
                     continue
                 cams.setdefault(s["camera"].name, []).append((r, s))
+            if lost is not None:   # a worker lost (or a stop): estimate the light again at the next step
+                with self._lock:
+                    self._light_jobs.pop(bid, None)
+                self._log_once("light", f"shared light of batch {bid}: a worker was lost "
+                               f"({type(lost).__name__}: {lost}); estimating again")
+                return
             if not cams:
                 self.store.set_light(bid, None, "no image of the batch could be read")
-                self._light_jobs.pop(bid, None)
+                with self._lock:
+                    self._light_jobs.pop(bid, None)
                 self._finish(bid)
                 return
             main = max(cams, key=lambda k: len(cams[k]))
@@ -286,15 +507,22 @@ class BatchRunner:
                         self.store.fail_item(bid, r["idx"], f"camera_mismatch: shared lighting pools images of "
                                              f"one camera; this image is from {name!r}, the batch from {main!r}")
             light_fut = self.executor.submit(shared_light, [s for _, s in cams[main]], options)
-            self._light_jobs[bid] = (futs, light_fut)
+            with self._lock:
+                if bid in self._light_jobs:
+                    self._light_jobs[bid] = (futs, light_fut)
             return
         if not light_fut.done():
             return
-        self._light_jobs.pop(bid, None)
+        with self._lock:
+            self._light_jobs.pop(bid, None)
         try:
             light = light_fut.result()
             self.store.set_light(bid, light)
-        except Exception as e:
+        except BaseException as e:
+            if _worker_lost(e):   # not the light's fault: estimate it again at the next step
+                self._log_once("light", f"shared light of batch {bid}: a worker was lost ({type(e).__name__}); "
+                               "estimating again")
+                return
             err = _error_text(e)
             self.store.set_light(bid, None, err)
             for r in self.store.items(bid):
@@ -304,10 +532,28 @@ class BatchRunner:
         self._wake.set()
 
 
-def folder_sources(root: str, folder: str) -> list[tuple[str, str]]:
-    """The RAW files directly in ``folder`` (relative to ``root``), refusing
-    anything that resolves outside the root (``..``, absolute paths,
-    symlinks leading out)."""
+def _worker_lost(e: BaseException) -> bool:
+    """Whether a future's exception says its worker went away (a broken or
+    stopped pool, a cancelled future, a lost Dask worker, scheduler or
+    client) rather than that the work itself failed."""
+    from concurrent.futures import BrokenExecutor, CancelledError
+
+    return isinstance(e, (BrokenExecutor, CancelledError)) or type(e).__name__ in (
+        "FutureCancelledError", "KilledWorker", "CommClosedError", "ClosedClientError", "CancelledError")
+
+
+def scan_folder(root: str, folder: str, limit: int | None = None) -> tuple[list[tuple[str, str]], dict]:
+    """The RAW files directly in ``folder`` (relative to ``root``) as
+    ``(name, real path)``, refusing anything that resolves outside the root
+    (``..``, absolute paths, symlinks leading out), and ``refused``: index ->
+    error for files kept as failed items (a name that is not UTF-8: it is
+    listed, by its bytes, and fails, the rest of the folder runs).
+
+    The folder is read entry by entry (``os.scandir``) and the scan stops as
+    soon as more than ``limit`` files would be items: 413 ``too_many_items``
+    after ``limit + 1`` entries, whatever the folder's size. (Items are read
+    at run time under the root with no symlink followed:
+    :func:`~service.batch.items.open_under`.)"""
     if not root:
         raise ServiceError(403, "folder_mode_disabled", "folder batches need a server-side root: set "
                            "WANDELL_BATCH_ROOT; upload the files instead")
@@ -319,15 +565,49 @@ def folder_sources(root: str, folder: str) -> list[tuple[str, str]]:
         raise ServiceError(403, "path_outside_root", f"folder {folder!r} is outside the batch root")
     if not os.path.isdir(target):
         raise ServiceError(404, "folder_not_found", f"folder {folder!r} does not exist under the batch root")
-    out = []
-    for entry in sorted(os.listdir(target)):
-        p = os.path.join(target, entry)
-        real = os.path.realpath(p)
-        if os.path.commonpath([rootr, real]) != rootr:
-            continue  # a symlink leading out of the root is never read
-        if os.path.isfile(real) and entry.lower().endswith(RAW_SUFFIXES) and not entry.startswith("."):
-            out.append((entry, real))
-    if not out:
+    found = []
+    with os.scandir(target) as it:
+        for entry in it:
+            name = entry.name
+            if name.startswith(".") or not name.lower().endswith(RAW_SUFFIXES):
+                continue
+            try:
+                if entry.is_symlink():
+                    real = os.path.realpath(entry.path)
+                    if os.path.commonpath([rootr, real]) != rootr:
+                        continue  # a symlink leading out of the root is never read
+                    if not os.path.isfile(real):
+                        continue
+                elif entry.is_file():
+                    real = entry.path
+                else:
+                    continue
+            except OSError:
+                continue
+            found.append((name, real))
+            if limit is not None and len(found) > limit:
+                raise ServiceError(413, "too_many_items", f"folder {folder!r} holds more than {limit} RAW/TIFF/PNG "
+                                   f"files, the batch limit (WANDELL_MAX_BATCH_ITEMS); split it into subfolders")
+    if not found:
         raise ServiceError(422, "empty_folder", f"folder {folder!r} holds no RAW/TIFF/PNG files "
                            f"({', '.join(RAW_SUFFIXES[:6])}, ...)")
-    return out
+    found.sort(key=lambda p: os.fsencode(p[0]))
+    out, refused = [], {}
+    for i, (name, real) in enumerate(found):
+        try:
+            name.encode("utf-8")
+            real.encode("utf-8")
+        except UnicodeEncodeError:   # os.listdir's surrogate escapes: the name's bytes are not UTF-8
+            shown = os.fsencode(name).decode("utf-8", "replace")   # U+FFFD for the odd bytes
+            refused[i] = (f"invalid_name: the file name {os.fsencode(name)!r} is not UTF-8, so it cannot be "
+                          "recorded; rename it (e.g. with convmv) and submit it again")
+            out.append((shown, ""))
+            continue
+        out.append((name, real))
+    return out, refused
+
+
+def folder_sources(root: str, folder: str, limit: int | None = None) -> list[tuple[str, str]]:
+    """The readable items of :func:`scan_folder` (names that are not UTF-8 left out)."""
+    out, refused = scan_folder(root, folder, limit)
+    return [s for i, s in enumerate(out) if i not in refused]

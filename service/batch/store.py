@@ -85,6 +85,9 @@ def safe_name(name: str) -> str:
 #: from which a damaged job store is rebuilt.
 MANIFEST = "batch.json"
 JOURNAL = "states.jsonl"
+#: Marker of a batch whose folder and manifest were written while the store
+#: was busy (locked): the runner registers it from the manifest when it can.
+UNREGISTERED = "unregistered"
 
 
 def _read_sidecar(out: str) -> dict | None:
@@ -99,6 +102,17 @@ def _read_sidecar(out: str) -> dict | None:
     return side if isinstance(side, dict) else None
 
 
+#: Seconds a store call waits for another connection's write lock (a second
+#: server on the same data directory, a backup, an ``sqlite3`` shell) before
+#: it gives up with "database is locked": the HTTP layer answers 503 with
+#: ``Retry-After``, the runner tries again at its next step.
+BUSY_TIMEOUT_S = 5.0
+
+#: How many times an item is run before a lost worker fails it for good
+#: (a worker killed, e.g. by the OOM killer, or a Dask worker lost).
+MAX_ATTEMPTS = 3
+
+
 #: An item index in a URL: ASCII digits only (``str.isdigit`` also accepts
 #: ``²`` and other digits ``int`` refuses), at most 18 of them (64-bit).
 _INDEX_TEXT = re.compile(r"[0-9]{1,18}")
@@ -108,18 +122,69 @@ class JobStore:
     """Batches and items in SQLite (WAL), every state change one atomic
     ``UPDATE ... WHERE status = <expected>`` inside a transaction."""
 
-    def __init__(self, data_dir: str):
+    def __init__(self, data_dir: str, busy_timeout: float = BUSY_TIMEOUT_S):
         self.data_dir = os.path.abspath(data_dir)
         os.makedirs(os.path.join(self.data_dir, "batches"), exist_ok=True)
         self.path = os.path.join(self.data_dir, "jobs.sqlite")
+        self.busy_timeout = float(busy_timeout)
         self._local = threading.local()
+        #: bumped when the store file was found gone and reopened: every
+        #: thread's connection to the old file is then replaced
+        self._generation = 0
         #: where a damaged store was moved at start-up, and the batches whose
         #: results were re-registered from disk (None: it opened cleanly)
         self.recovered: dict | None = None
+        lost = self._lost_reason()
         try:
             self._open_checked()
         except sqlite3.DatabaseError as e:
             self._recover(e)
+        else:
+            self._rebuild_if_lost(lost)
+
+    def _lost_reason(self) -> str | None:
+        """Why the store file cannot hold the batches that are on disk:
+        ``missing`` or ``empty`` (0 bytes: SQLite opens both as a valid,
+        empty database), None when it is there."""
+        try:
+            size = os.path.getsize(self.path)
+        except OSError:
+            return "missing"
+        return "empty" if size == 0 else None
+
+    def _rebuild_if_lost(self, lost: str | None) -> int:
+        """A store that is gone (deleted, truncated) while batch folders
+        remain is rebuilt from them (:meth:`adopt_from_disk`, as a damaged
+        one), and :attr:`recovered` says so (``/health``)."""
+        if lost is None:
+            return 0
+        n = self.adopt_from_disk()
+        if n:
+            import logging
+
+            logging.getLogger("service.jobs").error(
+                "the job store %s was %s while %d batch folder(s) remained; rebuilt them from their manifests and "
+                "journals", self.path, lost, n)
+            self.recovered = {"damaged_copy": None, "error": f"store_lost: jobs.sqlite was {lost}",
+                              "batches_recovered": n}
+        return n
+
+    def check_file(self) -> int:
+        """While running: if ``jobs.sqlite`` was deleted or replaced since it
+        was opened (a cache cleaner, by hand), open the file now at its path
+        and rebuild the batches from their folders. Returns how many."""
+        try:
+            st = os.stat(self.path)
+            ident = (st.st_dev, st.st_ino)
+            lost = "empty" if st.st_size == 0 else None
+        except OSError:
+            ident, lost = None, "missing"
+        if ident is not None and ident == getattr(self, "_ident", ident) and lost is None:
+            return 0
+        self._generation += 1
+        self._local = threading.local()
+        self._open_checked()
+        return self._rebuild_if_lost(lost or "replaced")
 
     def _open_checked(self) -> None:
         db = self._db()
@@ -127,6 +192,9 @@ class JobStore:
         if check != "ok":
             raise sqlite3.DatabaseError(f"quick_check: {check}")
         db.executescript(_SCHEMA)
+        with contextlib.suppress(OSError):
+            st = os.stat(self.path)
+            self._ident = (st.st_dev, st.st_ino)
 
     def _recover(self, error: Exception) -> None:
         """A damaged ``jobs.sqlite`` (and its WAL) is moved aside, kept for
@@ -163,40 +231,85 @@ class JobStore:
         still there. Batches from before the manifest are rebuilt from their
         inputs' names (:meth:`_legacy_rows`). Returns how many batches."""
         root = os.path.join(self.data_dir, "batches")
-        n = 0
-        for bid in sorted(os.listdir(root)):
-            bdir = os.path.join(root, bid)
-            if not os.path.isdir(bdir) or self.batch(bid) is not None:
-                continue
-            try:
-                with open(os.path.join(bdir, MANIFEST)) as f:
-                    manifest = json.load(f)
-                options = BatchOptions(**manifest["options"])
-                items = [(int(it["index"]), str(it["name"]), str(it["src"]), str(it["out"]))
-                         for it in manifest["items"]]
-            except (OSError, ValueError, TypeError, KeyError):
-                manifest = None
-            if manifest is None:
-                rows, options = self._legacy_rows(bdir)
-                status, created, light = "done", os.path.getmtime(bdir), (None, None)
-            else:
-                rows, status, light = self._manifest_rows(bdir, items)
-                created = float(manifest.get("created") or os.path.getmtime(bdir))
-            if not rows:
-                continue
-            now = time.time()
-            with self._tx() as db:
-                db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir, light, "
-                           "light_error) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                           (bid, created, None if status == "queued" else now,
-                            None if status == "queued" else now, status, (options or BatchOptions()).to_json(),
-                            bdir, *light))
-                db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, illuminant, "
-                               "completions, finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                               [(bid, *r, int(r[4] == "done"), None if r[4] == "pending" else now)
-                                for r in rows])
-            n += 1
-        return n
+        return sum(self.adopt_batch(bid) for bid in sorted(os.listdir(root)))
+
+    def adopt_batch(self, bid: str) -> bool:
+        """Register one batch folder the store does not know (see
+        :meth:`adopt_from_disk`); True if it was registered now. A batch
+        whose registration was deferred (the store was busy when it was
+        made: the ``unregistered`` marker) loses its marker."""
+        bdir = self.batch_dir(bid)
+        if not os.path.isdir(bdir) or self.batch(bid) is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(os.path.join(bdir, UNREGISTERED))
+            return False
+        try:
+            with open(os.path.join(bdir, MANIFEST)) as f:
+                manifest = json.load(f)
+            options = BatchOptions(**manifest["options"])
+            items = [(int(it["index"]), str(it["name"]), str(it["src"]), str(it["out"]))
+                     for it in manifest["items"]]
+        except (OSError, ValueError, TypeError, KeyError):
+            manifest = None
+        if manifest is None:
+            rows, options = self._legacy_rows(bdir)
+            status, created, light = "done", os.path.getmtime(bdir), (None, None)
+        else:
+            rows, status, light = self._manifest_rows(bdir, items)
+            created = float(manifest.get("created") or os.path.getmtime(bdir))
+        if not rows:
+            return False
+        now = time.time()
+        with self._tx() as db:
+            db.execute("INSERT INTO batches (id, created, started, finished, status, options, dir, light, "
+                       "light_error) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                       (bid, created, None if status == "queued" else now,
+                        None if status == "queued" else now, status, (options or BatchOptions()).to_json(),
+                        bdir, *light))
+            db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, illuminant, "
+                           "completions, finished) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                           [(bid, *r, int(r[4] == "done"), None if r[4] == "pending" else now)
+                            for r in rows])
+        with contextlib.suppress(OSError):
+            os.unlink(os.path.join(bdir, UNREGISTERED))
+        return True
+
+    def unregistered(self) -> list[str]:
+        """Batches made while the store was busy (their folder and manifest
+        written, the store's rows not): registered by the runner
+        (:meth:`adopt_batch`) as soon as the store can take them."""
+        root = os.path.join(self.data_dir, "batches")
+        try:
+            return sorted(b for b in os.listdir(root) if os.path.exists(os.path.join(root, b, UNREGISTERED)))
+        except OSError:
+            return []
+
+    def defer(self, batch_id: str) -> None:
+        """Mark a batch whose manifest is written but whose rows could not be
+        (the store busy): :meth:`unregistered` lists it until it is adopted."""
+        write_text(os.path.join(self.batch_dir(batch_id), UNREGISTERED), f"{time.time()}\n")
+
+    def manifest_progress(self, batch_id: str) -> dict | None:
+        """The progress document of a deferred batch (not yet in the store)
+        from its manifest: every item pending."""
+        bdir = self.batch_dir(batch_id)
+        if not os.path.exists(os.path.join(bdir, UNREGISTERED)):
+            return None
+        try:
+            with open(os.path.join(bdir, MANIFEST)) as f:
+                m = json.load(f)
+            items = [{"index": int(it["index"]), "name": str(it["name"]), "status": "pending", "output": None}
+                     for it in m["items"]]
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        n = len(items)
+        return {"id": batch_id, "status": "queued", "settled": False, "lighting": m["options"].get("lighting"),
+                "options": m["options"], "counts": {"done": 0, "failed": 0, "pending": n, "running": 0,
+                                                    "cancelled": 0, "total": n},
+                "rate_per_minute": None, "time_left_s": None, "elapsed_s": 0.0, "rate": None, "eta_s": None,
+                "created": m.get("created"), "items": items,
+                "registration": "deferred: the job store was busy when the batch was made; it is kept on disk "
+                                "and registered as soon as the store is free"}
 
     def _manifest_rows(self, bdir: str, items: list) -> tuple[list, str, tuple]:
         """Rows ``(idx, name, src, out, status, error, illuminant)`` of a
@@ -290,25 +403,50 @@ class JobStore:
                 f.write(line)
 
     def _db(self) -> sqlite3.Connection:
-        db = getattr(self._local, "db", None)
+        local = self._local
+        db = getattr(local, "db", None)
         if db is None:
-            db = sqlite3.connect(self.path, timeout=30, isolation_level=None)
+            db = sqlite3.connect(self.path, timeout=self.busy_timeout, isolation_level=None)
             db.row_factory = sqlite3.Row
             db.execute("PRAGMA journal_mode=WAL")
             db.execute("PRAGMA synchronous=NORMAL")
-            self._local.db = db
+            local.db = db
         return db
+
+    def _drop_connection(self) -> None:
+        """Forget this thread's connection (after an error that may have left
+        it inside a transaction, e.g. a full disk): the next call opens a new one."""
+        db = getattr(self._local, "db", None)
+        self._local.db = None
+        if db is not None:
+            with contextlib.suppress(Exception):
+                db.close()
 
     @contextlib.contextmanager
     def _tx(self):
         db = self._db()
-        db.execute("BEGIN IMMEDIATE")
+        try:
+            db.execute("BEGIN IMMEDIATE")
+        except sqlite3.Error:
+            if db.in_transaction:
+                self._drop_connection()
+            raise
         try:
             yield db
         except BaseException:
-            db.execute("ROLLBACK")
+            try:
+                db.execute("ROLLBACK")
+            except sqlite3.Error:
+                self._drop_connection()
             raise
-        db.execute("COMMIT")
+        try:
+            db.execute("COMMIT")
+        except sqlite3.Error:
+            with contextlib.suppress(sqlite3.Error):
+                db.execute("ROLLBACK")
+            if db.in_transaction:
+                self._drop_connection()
+            raise
 
     # -- creation ----------------------------------------------------------
     def batch_dir(self, batch_id: str) -> str:
@@ -320,10 +458,14 @@ class JobStore:
         os.makedirs(os.path.join(self.batch_dir(bid), "out"), exist_ok=True)
         return bid
 
-    def create_batch(self, batch_id: str, options: BatchOptions, sources: list[tuple[str, str]]) -> None:
-        """Register a batch of ``(name, source path)`` items, all pending.
-        Names are made unique (``a.dng``, ``a (2).dng``); output names are
-        ``<stem>.<ext>``, made unique the same way."""
+    def create_batch(self, batch_id: str, options: BatchOptions, sources: list[tuple[str, str]],
+                     refused: dict | None = None) -> None:
+        """Register a batch of ``(name, source path)`` items, all pending
+        except those in ``refused`` (index -> error: recorded ``failed`` at
+        once, e.g. a folder file whose name is not UTF-8). Names are made
+        unique (``a.dng``, ``a (2).dng``); output names are ``<stem>.<ext>``,
+        made unique the same way."""
+        refused = refused or {}
         seen, outs, rows = set(), set(), []
         out_dir = os.path.join(self.batch_dir(batch_id), "out")
         for i, (name, src) in enumerate(sources):
@@ -331,7 +473,8 @@ class JobStore:
             stem = os.path.splitext(nm)[0]
             # the output's name on disk stays short enough for its temporaries and sidecars
             out = unique(clip_name(f"{stem}.{options.extension}", DISK_NAME_BYTES - 12), outs)
-            rows.append((batch_id, i, nm, os.path.abspath(src), os.path.join(out_dir, out)))
+            src = "" if i in refused else os.path.abspath(src)
+            rows.append((batch_id, i, nm, src, os.path.join(out_dir, out)))
         bdir, created = self.batch_dir(batch_id), time.time()
         manifest = {"id": batch_id, "created": created, "options": options.as_dict(),
                     "items": [{"index": r[1], "name": r[2], "out": os.path.basename(r[4]),
@@ -342,8 +485,12 @@ class JobStore:
         with self._tx() as db:
             db.execute("INSERT INTO batches (id, created, status, options, dir) VALUES (?, ?, 'queued', ?, ?)",
                        (batch_id, created, options.to_json(), bdir))
-            db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status) "
-                           "VALUES (?, ?, ?, ?, ?, 'pending')", rows)
+            db.executemany("INSERT INTO items (batch_id, idx, name, src, out, status, error, finished) "
+                           "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                           [(*r, "failed" if r[1] in refused else "pending", refused.get(r[1]),
+                             created if r[1] in refused else None) for r in rows])
+        for idx, err in sorted(refused.items()):
+            self._journal(batch_id, idx=idx, status="failed", error=err)
 
     # -- reading -------------------------------------------------------------
     def batch(self, batch_id: str):
@@ -439,6 +586,36 @@ class JobStore:
             self._journal(batch_id, idx=idx, status="done" if ok else "failed",
                           error=None if ok else str(result.get("error")))
         return n == 1
+
+    def requeue_item(self, batch_id: str, idx: int, reason: str, max_attempts: int | None = None) -> str | None:
+        """``running`` -> ``pending`` again: its worker went away before it
+        answered (a graceful stop, a killed pool worker, a lost Dask worker
+        or client). With ``max_attempts``, an item already run that many
+        times is ``failed`` instead, with ``reason`` and the count. Returns
+        the new status (None: the item was no longer running). Journalled,
+        so a store rebuilt from the folders finds it pending too."""
+        with self._tx() as db:
+            row = db.execute("SELECT attempts FROM items WHERE batch_id = ? AND idx = ? AND status = 'running'",
+                             (batch_id, idx)).fetchone()
+            if row is None:
+                return None
+            cancelled = db.execute("SELECT status FROM batches WHERE id = ?", (batch_id,)).fetchone()
+            if cancelled is not None and cancelled["status"] == "cancelled":   # nothing to run it for
+                db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
+                           "AND status = 'running'", (time.time(), batch_id, idx))
+                err, status = None, "cancelled"
+            elif max_attempts is not None and row["attempts"] >= max_attempts:
+                err = f"{reason} (run {row['attempts']} times, each time its worker was lost)"
+                db.execute("UPDATE items SET status = 'failed', error = ?, finished = ? WHERE batch_id = ? "
+                           "AND idx = ? AND status = 'running'", (err, time.time(), batch_id, idx))
+                status = "failed"
+            else:
+                err = None
+                db.execute("UPDATE items SET status = 'pending', started = NULL WHERE batch_id = ? AND idx = ? "
+                           "AND status = 'running'", (batch_id, idx))
+                status = "pending"
+        self._journal(batch_id, idx=idx, status=status, error=err, requeued=reason)
+        return status
 
     def fail_item(self, batch_id: str, idx: int, error: str) -> None:
         with self._tx() as db:
@@ -547,6 +724,7 @@ class JobStore:
             doc["phase"] = "estimating the shared light from all images"
         if b["light"]:
             doc["shared_light"] = json.loads(b["light"])
+            doc["warnings"] = shared_light_warnings(doc["shared_light"])
         if b["light_error"]:
             doc["shared_light_error"] = b["light_error"]
         return doc
@@ -606,6 +784,20 @@ def _tree_bytes(path: str) -> int:
             with contextlib.suppress(OSError):
                 total += os.lstat(os.path.join(root, f)).st_size
     return total
+
+
+def shared_light_warnings(light: dict) -> list[str]:
+    """The batch-level warnings of a shared light (what ``wandell batch
+    --lighting shared`` prints and the page shows): each of its warnings
+    (e.g. the images' own lights disagree: "they may not all be under one
+    light") with its confidence, and a low confidence said as such."""
+    conf = light.get("confidence")
+    tail = f" (shared light confidence {conf:.2f})" if isinstance(conf, (int, float)) else ""
+    out = [f"shared light: {w}{tail}" for w in light.get("warnings") or []]
+    if light.get("low_confidence") and not out:
+        out.append(f"shared light: low confidence{tail}: check the white balance of these images")
+    return out
+
 
 def unique(name: str, seen: set) -> str:
     """``name``, or ``stem (k).ext`` with the smallest free k."""

@@ -61,7 +61,8 @@ def get_runner(settings: Settings | None = None) -> jobs.BatchRunner:
                                     max_concurrent_batches=s.max_concurrent_batches, max_pixels=s.max_pixels,
                                     estimation_pixels=s.estimation_pixels, dask_scheduler=s.dask_scheduler or None,
                                     input_retention_s=s.batch_input_retention,
-                                    result_retention_s=s.batch_result_retention)
+                                    result_retention_s=s.batch_result_retention, batch_root=s.batch_root,
+                                    max_input_bytes=s.max_upload_bytes)
             try:
                 runner = jobs.BatchRunner(cfg)
                 runner.start()
@@ -81,6 +82,53 @@ def store_health() -> dict:
     if runner.store.recovered:
         return {"status": "recovered", **runner.store.recovered}
     return {"status": "ok"}
+
+
+def runner_health() -> dict:
+    """The batch runner's state for ``/health``: ``ok``, ``degraded`` (items
+    cannot run now: no Dask scheduler or worker, a full disk; the reason in
+    ``runner_error``, since when in ``since``) or ``not_started``."""
+    runner = _runner
+    if runner is None:
+        return {"status": "not_started"}
+    return runner.health()
+
+
+class StoreBusy(ServiceError):
+    """The job store is write-locked by another connection (a second server
+    on the same data directory, a backup, an ``sqlite3`` shell) for longer
+    than :data:`~service.batch.store.BUSY_TIMEOUT_S`: 503 with ``Retry-After``."""
+
+    def __init__(self, detail: str):
+        super().__init__(503, "job_store_busy", detail)
+        self.headers = {"Retry-After": "5"}
+
+
+@contextlib.contextmanager
+def store_errors():
+    """The job store's operational errors as answers: locked or busy -> 503
+    ``job_store_busy`` with ``Retry-After`` (after a bounded wait, never
+    30 s of a blocked server), full -> 507 ``insufficient_storage``."""
+    try:
+        yield
+    except sqlite3.OperationalError as e:
+        text = str(e).lower()
+        if "locked" in text or "busy" in text:
+            raise StoreBusy(f"the batch job store is locked by another process ({e}); nothing was changed, "
+                            f"try again in a few seconds") from None
+        if "full" in text:
+            raise ServiceError(507, "insufficient_storage", f"the service's data directory is full ({e}); "
+                               "nothing was changed, try again when space is freed") from None
+        raise
+
+
+async def _in_thread(fn, *args):
+    """``fn(*args)`` off the event loop, its store errors mapped (:func:`store_errors`)."""
+    def call():
+        with store_errors():
+            return fn(*args)
+
+    return await run_in_threadpool(call)
 
 
 def stop_runner() -> None:
@@ -141,7 +189,12 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
     if bool(files) == bool(folder):
         raise ServiceError(422, "invalid_parameter", "give either files (one or more 'files' fields) or folder")
     opts = jobs.batch_options(**opts.as_dict())   # the batch's own checks too (the camera name)
-    sources = jobs.folder_sources(settings.batch_root, folder) if folder else None
+    refused: dict = {}
+    if folder:   # off the event loop, stopping at the item limit
+        sources, refused = await run_in_threadpool(jobs.scan_folder, settings.batch_root, folder,
+                                                   settings.max_batch_items)
+    else:
+        sources = None
     n = len(sources) if sources is not None else len(files)
     if n > settings.max_batch_items:
         raise ServiceError(413, "too_many_items", f"{n} items exceed the batch limit of {settings.max_batch_items}")
@@ -150,31 +203,56 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
         if len(base.encode("utf-8", "surrogatepass")) > jobs.MAX_NAME_BYTES:
             raise ServiceError(422, "name_too_long", f"file name {base[:60]!r}... is {len(base.encode('utf-8', 'surrogatepass'))} "
                            f"bytes; at most {jobs.MAX_NAME_BYTES} (UTF-8)")
-    if sources is not None:  # folder mode: the same per-file limit as an upload
-        big = [name for name, path in sources if os.path.getsize(path) > settings.max_upload_bytes]
+    if sources is not None:  # folder mode: the same per-file limit as an upload (again when each is read)
+        big = await run_in_threadpool(lambda: [name for i, (name, path) in enumerate(sources)
+                                               if i not in refused and _size(path) > settings.max_upload_bytes])
         if big:
             raise ServiceError(413, "file_too_large", f"{len(big)} file(s) in the folder exceed the upload limit of "
                            f"{settings.max_upload_bytes} bytes: {', '.join(map(repr, big[:5]))}")
-    runner = get_runner(settings)
+    runner = await run_in_threadpool(get_runner, settings)
     store = runner.store
     bid = None
     try:
-        bid = store.new_batch_id()
+        bid = await run_in_threadpool(store.new_batch_id)
         if sources is None:
             sources = await _save_uploads(files, os.path.join(store.batch_dir(bid), "in"), settings)
-        store.create_batch(bid, opts, sources)
+        try:
+            await _in_thread(store.create_batch, bid, opts, sources, refused)
+        except StoreBusy as busy:   # the manifest is on disk: accepted, registered when the store is free
+            await run_in_threadpool(runner.defer, bid)
+            deferred = busy.detail
+        else:
+            deferred = None
     except BaseException as e:
         if bid is not None:
-            shutil.rmtree(store.batch_dir(bid), ignore_errors=True)
-        if _disk_full(e):
+            await run_in_threadpool(shutil.rmtree, store.batch_dir(bid), True)
+        if _disk_full(e) and not isinstance(e, ServiceError):
             log.error("batch not created, the data directory is full: %s", e)
             raise ServiceError(507, "insufficient_storage", f"the service's data directory is full ({e}); nothing "
                            "was kept of this batch, try again when space is freed") from None
         raise
     runner.wake()
-    return JSONResponse(status_code=202, content={"id": bid, "status": "queued",
-                                                  "counts": {"done": 0, "failed": 0, "pending": n},
-                                                  "lighting": opts.lighting, "url": f"/v1/batches/{bid}"})
+    content = {"id": bid, "status": "queued", "counts": {"done": 0, "failed": len(refused),
+                                                         "pending": n - len(refused)},
+               "lighting": opts.lighting, "url": f"/v1/batches/{bid}"}
+    if runner.executor_error:   # accepted, but nothing can run now: say why (no scheduler, no worker, disk full)
+        content["runner_error"] = runner.executor_error
+    if deferred:
+        content["registration"] = (f"deferred: {deferred}; the batch is kept on disk and registered (then run) "
+                                   "as soon as the store is free")
+    return JSONResponse(status_code=202, content=clean(content))
+
+
+def _valid_id(bid: str) -> bool:
+    """A batch id as :meth:`JobStore.new_batch_id` makes them (never a path)."""
+    return len(bid) == 16 and all(c in "0123456789abcdef" for c in bid)
+
+
+def _size(path: str) -> int:
+    try:
+        return os.path.getsize(path)
+    except OSError:
+        return 0
 
 
 def _disk_full(e: BaseException) -> bool:
@@ -186,11 +264,17 @@ def _disk_full(e: BaseException) -> bool:
 
 def _progress(bid: str) -> dict:
     runner = get_runner()
-    doc = runner.store.progress(bid)
+    with store_errors():
+        doc = runner.store.progress(bid)
+    if doc is None and _valid_id(bid):
+        doc = runner.store.manifest_progress(bid)   # made while the store was busy, not yet registered
     if doc is None:
         raise ServiceError(404, "not_found", f"no batch {bid!r}")
     if runner.executor_error and doc["status"] in ("queued", "running"):
+        # nothing runs now: say why and since when, and promise no time left
         doc["runner_error"] = runner.executor_error
+        doc["runner_error_since"] = runner.error_since
+        doc["time_left_s"] = doc["eta_s"] = None
     for it in doc["items"]:
         if it["status"] == "done":
             it["url"] = f"/v1/batches/{bid}/items/by-index/{it['index']}"  # never taken for a name
@@ -236,7 +320,9 @@ def batch_item(batch_id: str, item: str):
 
 def _store_of(batch_id: str) -> jobs.JobStore:
     store = get_runner().store
-    if store.batch(batch_id) is None:
+    with store_errors():
+        known = store.batch(batch_id) is not None
+    if not known:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     return store
 
@@ -349,9 +435,10 @@ def cancel_batch_only(batch_id: str):
     their next step without writing; results finished before are kept. The
     answer is the progress document (``settled`` once the counts are final)."""
     runner = get_runner()
-    if runner.store.batch(batch_id) is None:
-        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
-    runner.cancel(batch_id)
+    with store_errors():
+        if runner.store.batch(batch_id) is None:
+            raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
+        runner.cancel(batch_id)
     return JSONResponse(clean(_progress(batch_id)))
 
 

@@ -206,6 +206,10 @@ class BatchCreated(_Answer):
     counts: BatchCounts
     lighting: str
     url: str = Field(description="the progress document")
+    runner_error: str | None = Field(None, description="accepted, but no item can run now, and why (no Dask "
+                                                       "scheduler or worker, a full disk): docs/reliability.md")
+    registration: str | None = Field(None, description="deferred: the job store was busy; the batch is kept on "
+                                                       "disk and registered as soon as the store is free")
 
 
 class BatchItem(_Answer):
@@ -237,7 +241,14 @@ class BatchProgress(_Answer):
     phase: str | None = None
     shared_light: dict[str, Any] | None = None
     shared_light_error: str | None = None
-    runner_error: str | None = None
+    runner_error: str | None = Field(None, description="why no item runs now (`executor_unavailable`, "
+                                                       "`waiting_for_workers`, `insufficient_storage`); "
+                                                       "time_left_s is then null")
+    runner_error_since: float | None = Field(None, description="since when (epoch seconds) runner_error holds")
+    warnings: list[str] | None = Field(None, description="the batch's own warnings: a shared light over images "
+                                                         "that were not all under one light, with its confidence")
+    registration: str | None = Field(None, description="deferred: made while the job store was busy, not yet "
+                                                       "registered (every item pending)")
     deleted: bool | None = Field(None, description="false: a DELETE of an unfinished batch cancels it; "
                                                    "DELETE again once settled to remove it")
 

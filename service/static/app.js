@@ -1245,6 +1245,8 @@ function renderBatch(j) {
   } else if (settled && typeof j.elapsed_s === "number") {
     s += ` Took ${fmt(j.elapsed_s, j.elapsed_s < 10 ? 1 : 0)} s.`;
   }
+  if (j.runner_error) s += ` Waiting: ${j.runner_error}.`;
+  for (const w of j.warnings || []) s += ` Warning: ${pageWords(String(w))}.`;
   $("batch-status").textContent = s;
   const tbody = $("batch-table").tBodies[0];
   tbody.textContent = "";

@@ -1,0 +1,74 @@
+"""Issue 28, part A, what the new user met with ``wandell batch``: a shared
+light over images that were not under one light says so (CLI and the
+batch's JSON), and Ctrl-C during ``--xmp`` leaves every finished image with
+its sidecar and no ``.lock`` file behind. Real ``python -m service.cli``
+subprocesses on DNGs written by testing.dngwriter; SIGINT to the whole
+process group, as a terminal's Ctrl-C."""
+
+from __future__ import annotations
+
+import glob
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from service import jobs
+from testing.dngwriter import scene_dng
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_shared_light_over_two_lights_warns_in_the_cli_and_the_batch_json(tmp_path):
+    d = tmp_path / "shoot"
+    d.mkdir()
+    scene_dng(d / "day.dng", "Nikon 5100 (NPL)", "D65", 200, 300, seed=1)
+    scene_dng(d / "tungsten.dng", "Nikon 5100 (NPL)", "A", 200, 300, seed=2)
+    r = subprocess.run([sys.executable, "-m", "service.cli", "batch", str(d), str(tmp_path / "out"), "--workers",
+                        "1", "--format", "png", "--lighting", "shared"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "warning: shared light: the images' own lights are up to" in r.stderr, r.stderr
+    assert "may not all be under one light" in r.stderr and "confidence" in r.stderr, r.stderr
+    # the same words in the batch's JSON (what the page shows under its progress bar)
+    store = jobs.JobStore(str(tmp_path / "data"))
+    bid = store.new_batch_id()
+    store.create_batch(bid, jobs.batch_options(lighting="shared"), [("a.dng", str(d / "day.dng"))])
+    light = {"warnings": ["the images' own lights are up to 13.2 degrees from the shared light (RMS 9.0): "
+                          "they may not all be under one light"], "confidence": 0.08, "low_confidence": True}
+    store.set_light(bid, light)
+    doc = store.progress(bid)
+    assert doc["warnings"] == [f"shared light: {light['warnings'][0]} (shared light confidence 0.08)"]
+
+
+def test_ctrl_c_during_xmp_batch_leaves_sidecars_of_finished_images_and_no_locks(tmp_path):
+    d = tmp_path / "shoot"
+    d.mkdir()
+    for i in range(8):
+        scene_dng(d / f"im{i}.dng", "Nikon 5100 (NPL)", "D4000", 800, 1200, seed=i)
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "batch", str(d), str(out), "--workers", "2",
+                             "--format", "png", "--xmp"], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        t_end = time.monotonic() + 180
+        while not glob.glob(str(out / "*.png")):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < t_end, "no output within 180 s"
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=300)   # sidecars of finished images are made before it exits
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, (stdout, stderr)
+    assert "Traceback" not in stdout + stderr, stderr
+    done = {p.stem for p in out.glob("*.png")}
+    assert done and len(done) < 8, "every image finished before the Ctrl-C: the test proves nothing"
+    sidecars = {p.stem for p in d.glob("*.xmp")}
+    assert done <= sidecars, f"finished without a sidecar: {done - sidecars}"
+    assert not list(out.rglob("*.lock")), list(out.rglob("*.lock"))
+    assert not list(out.rglob("*.part")), list(out.rglob("*.part"))
