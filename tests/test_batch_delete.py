@@ -82,13 +82,17 @@ def test_delete_removes_a_finished_batch_and_its_files(app_with):
     assert listed["bytes"] >= mine["bytes"] and listed["result_retention_s"] == 7 * 24 * 3600
     folder = data / "batches" / bid
     assert folder.is_dir()
+    # a plain DELETE (a cancel) of a batch that is over deletes nothing
     r = client.delete(f"/v1/batches/{bid}")
+    assert r.status_code == 200 and r.json()["deleted"] is False and "remove=true" in r.json()["note"], r.text
+    assert folder.is_dir() and client.get(f"/v1/batches/{bid}/items/by-index/0").status_code == 200
+    r = client.delete(f"/v1/batches/{bid}?remove=true")
     assert r.status_code == 200, r.text
     assert r.json() == {"id": bid, "deleted": True, "freed_bytes": mine["bytes"]}
     assert not folder.exists() and not any(p.name.endswith(bid) for p in data.iterdir())
     for url in (f"/v1/batches/{bid}", f"/v1/batches/{bid}/items/by-index/0", f"/v1/batches/{bid}/zip"):
         assert client.get(url).status_code == 404, url
-    assert client.delete(f"/v1/batches/{bid}").status_code == 404
+    assert client.delete(f"/v1/batches/{bid}?remove=true").status_code == 404
     assert bid not in [b["id"] for b in client.get("/v1/batches").json()["batches"]]
 
 
@@ -100,7 +104,7 @@ def test_delete_of_a_running_batch_cancels_it_first(app_with):
     assert (data / "batches" / bid).is_dir()          # cancelled, nothing removed yet
     t_end, answers = time.monotonic() + 120, set()
     while time.monotonic() < t_end:
-        r = client.delete(f"/v1/batches/{bid}")
+        r = client.delete(f"/v1/batches/{bid}?remove=true")
         answers.add(r.status_code)
         if r.status_code == 200:
             break

@@ -40,10 +40,9 @@ SCRIPTS = tuple(s for lane in LANES for s in lane)
 NEEDS_ROOT = {"diskfull_item_stuck"}
 #: Scripts written against an API that has changed since, and why (strict: a
 #: script fixed in the shared folder makes its case pass, and this must go).
-STALE = {"diskfull_item_stuck": "the script ends with DELETE /v1/batches/{id} meaning 'cancel'; since issue 29 a "
-                                "DELETE of a settled batch removes it, so its last GET is a 404 and it crashes "
-                                "(KeyError 'settled') after its check held; the same script with POST "
-                                ".../cancel prints FIXED (docs/reliability.md)"}
+#: scripts whose own last steps no longer fit the service (none: a plain DELETE only cancels again,
+#: ``?remove=true`` removes, so ``diskfull_item_stuck``'s closing cancel keeps its batch)
+STALE: dict = {}
 
 
 def _free_port() -> int:

@@ -444,14 +444,16 @@ def cancel_batch_only(batch_id: str):
 
 @router.delete("/batches/{batch_id}", response_model=BatchDeleted | BatchProgress,
                responses={409: {"description": "cancelled, but running items have not stopped yet: try again"}})
-def delete_batch(batch_id: str):
-    """Remove a batch and its files (inputs and results): a batch that is
-    over (done, or cancelled and settled) is deleted and the answer says how
-    many bytes were freed; its URLs are 404 from then on. A batch still
-    queued or running is cancelled first, as ``POST .../cancel`` does (the
-    answer is its progress document with ``deleted: false``): send the
-    DELETE again once it is ``settled``; until then it is a 409
-    ``not_settled``."""
+def delete_batch(batch_id: str, remove: bool = False):
+    """Cancel a batch, as it always did; with ``remove=true``, also remove
+    it and its files (inputs and results). Without ``remove`` nothing is
+    deleted: the answer is the progress document with ``deleted: false``
+    (a client that cancels a batch which has just finished keeps its
+    results). With ``remove=true`` a batch that is over (done, or cancelled
+    and settled) is deleted and the answer says how many bytes were freed;
+    its URLs are 404 from then on; a batch still queued or running is
+    cancelled first (``deleted: false``): send it again once ``settled``;
+    until then it is a 409 ``not_settled``."""
     runner = get_runner()
     b = runner.store.batch(batch_id)
     if b is None:
@@ -459,9 +461,14 @@ def delete_batch(batch_id: str):
     if b["status"] in ("queued", "running"):
         runner.cancel(batch_id)
         return JSONResponse(clean({**_progress(batch_id), "deleted": False}))
+    if not remove:
+        return JSONResponse(clean({**_progress(batch_id), "deleted": False,
+                                   "note": "over already: nothing to cancel; DELETE with ?remove=true removes the "
+                                           "batch and its files"}))
     freed = runner.store.delete_batch(batch_id)
     if freed is None:
         raise ServiceError(409, "not_settled", f"batch {batch_id!r} is cancelled but its running items have not "
-                           "stopped yet; DELETE it again when GET /v1/batches/{id} says settled: true")
+                           "stopped yet; DELETE it again with ?remove=true when GET /v1/batches/{id} says "
+                           "settled: true")
     log.info("batch %s deleted (%d bytes)", batch_id, freed)
     return JSONResponse({"id": batch_id, "deleted": True, "freed_bytes": freed})
