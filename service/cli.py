@@ -757,7 +757,7 @@ def _model_disk_cache() -> None:
 def _cmd_batches(args) -> int:
     """``wandell batches``: the batches the server keeps under
     ``WANDELL_DATA_DIR`` (default ``~/.cache/wandell``), and their removal
-    (the same as ``DELETE /v1/batches/{id}`` of a settled batch)."""
+    (the same as ``DELETE /v1/batches/{id}?remove=true`` of a settled batch)."""
     import datetime
 
     data_dir = os.environ.get("WANDELL_DATA_DIR") or jobs.default_data_dir()
