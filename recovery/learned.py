@@ -376,6 +376,9 @@ class LearnedModel:
     hist_bias: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     hist_var_scale: np.ndarray = field(default_factory=lambda: np.array([1.0]))
     info: dict = field(default_factory=dict, compare=False)
+    #: the confidence and flag fitted with the model (:class:`recovery.confidence.FlagModel`;
+    #: not in the ``.npz``: the shipped one is ``recovery/data/learned_confidence.json``)
+    flag: object = field(default=None, compare=False, repr=False)
 
     _ARRAYS = ("canonical", "mean", "scale", "expansion", "coef", "locus_uv", "locus_mired", "sigma",
                "confidence_coef", "gamut_limit", "outside_calibration", "hist_grid", "hist_filters", "hist_bias",
@@ -536,7 +539,31 @@ class LearnedResult:
     diagnostics: dict = field(default_factory=dict)
 
 
-def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = None) -> LearnedResult:
+def region_estimates(model: LearnedModel, can: np.ndarray, ok: np.ndarray, gamut: float) -> np.ndarray:
+    """(4, 2) the model's first-stage estimates on the four quadrants of the
+    canonical analysis image (NaN for a quadrant with too little evidence):
+    the region-wise evidence of :mod:`recovery.confidence`."""
+    from .confidence import quadrants
+
+    out = np.full((4, 2), np.nan)
+    for q, sl in enumerate(quadrants(ok.shape)):
+        try:
+            fq = features(can[sl], ok[sl])
+        except InsufficientSurfaceVariation:
+            continue
+        out[q] = model.predict(model.inputs(fq), np.array([gamut]))[0] + fq[REFERENCE]
+    return out
+
+
+def input_distance(model: LearnedModel, feats: np.ndarray) -> np.ndarray:
+    """(N,) mean squared standardised model input (the model's own
+    standardisation of its training photographs): how far outside its
+    training an image's evidence lies."""
+    z = (model.inputs(np.asarray(feats, float).reshape(-1, len(FEATURE_NAMES), 2)) - model.mean) / model.scale
+    return np.mean(z ** 2, axis=1)
+
+
+def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = None, flag=None) -> LearnedResult:
     """Estimate the light of a linear camera image with the learnt model.
 
     Parameters
@@ -545,6 +572,9 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     mask : (H, W) bool usable pixels (not saturated, not dark), or None
     color_matrix : (3, 3) XYZ -> camera (:func:`camera_color_matrix`)
     model : default the shipped one
+    flag : :class:`recovery.confidence.FlagModel`, default the shipped one;
+        the confidence is its calibrated P(error < 3 deg) (without one: the
+        model's own law of the 90 % radius) and ``low_confidence`` its flag
 
     Raises
     ------
@@ -575,8 +605,20 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     else:
         radius = radius90(uv, var, K)
         conf = confidence(radius, model.confidence_coef)
+    patches = uniform_patch_fraction(can @ np.linalg.inv(K).T, ok)
+    from .confidence import confidence_inputs, load_flag_model
+
+    flag = (model.flag or load_flag_model()) if flag is None else flag
+    flag_info = {"radius_confidence": conf}
+    if flag is not None:
+        cells = int(np.prod(ok.shape))
+        x = confidence_inputs(f[None], first[None], region_estimates(model, can, ok, gamut)[None],
+                              input_distance(model, f), [gamut], [ok.sum() / max(cells, 1)], [patches], REFERENCE)
+        conf = float(flag.confidence(x)[0])
+        flag_info.update({"flag_threshold": flag.threshold,
+                          "flag_inputs": {n: float(v) for n, v in zip(flag.names, x[0])}})
     return LearnedResult(cam, uv, cov, float(radius), conf, int(ok.sum()),
-                         {"evidence_spread": spread, "uniform_patch_fraction": uniform_patch_fraction(can @ np.linalg.inv(K).T, ok),
+                         {**flag_info, "evidence_spread": spread, "uniform_patch_fraction": patches,
                           "out_of_gamut_fraction": gamut, "outside_training_range": outside,
                           "histogram_shift_deg": (_angle(cam, np.linalg.solve(K, uv_to_rgb(first)))
                                                   if model.has_histogram and not outside else None),
