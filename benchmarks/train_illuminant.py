@@ -177,13 +177,20 @@ def dataset_features(rs, canonical=L.BRADFORD):
     return feats, tuv, Ks, gam
 
 
-def dataset_regions(rs, canonical=L.BRADFORD) -> dict:
+def dataset_regions(rs, canonical=L.BRADFORD, cache=None) -> dict:
     """The evidence of the confidence (:mod:`recovery.confidence`) that
     :func:`dataset_features` does not hold: ``region_feats`` (N, 4, F, 2)
     the classical estimates of each image's four quadrants (NaN where one
     has too few usable cells), ``usable`` (N,) the share of usable analysis
     cells, ``patch`` (N,) the uniform-patch fraction. About 5 minutes on
-    the 2-core machine (four more feature extractions per image)."""
+    the 2-core machine (four more feature extractions per image); with
+    ``cache`` (a path) kept there and read back when the images' digest
+    matches (delete it when the feature code changes)."""
+    digest = hashlib.sha256(np.ascontiguousarray(rs.images).tobytes()).hexdigest()[:16]
+    if cache is not None and Path(cache).is_file():
+        with np.load(cache) as z:
+            if str(z["digest"]) == digest:
+                return {k: z[k] for k in ("region_feats", "usable", "patch")}
     n = len(rs.truth)
     reg = np.full((n, 4, len(L.FEATURE_NAMES), 2), np.nan)
     use, patch = np.zeros(n), np.zeros(n)
@@ -196,7 +203,11 @@ def dataset_regions(rs, canonical=L.BRADFORD) -> dict:
                 reg[i, q] = L.features(can[sl], ok[sl])
             except L.InsufficientSurfaceVariation:
                 pass
-    return {"region_feats": reg, "usable": use, "patch": patch}
+    out = {"region_feats": reg, "usable": use, "patch": patch}
+    if cache is not None:
+        Path(cache).parent.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, digest=digest, **out)
+    return out
 
 
 def flag_inputs(model, feats, uv, gam, regions, rows) -> np.ndarray:
@@ -831,6 +842,8 @@ def _main(argv=None) -> int:
     ap.add_argument("--histogram-stage", action="store_true",
                     help="add the histogram stage (recovery.chroma_histogram; its settings chosen by inner "
                          "leave-one-benchmark-out): not in the shipped model (the module's docstring says why)")
+    ap.add_argument("--regions-cache", default="out/regions_cache.npz",
+                    help="where the quadrant features are kept between runs (recomputed when the data differ)")
     ap.add_argument("--flag-only", action="store_true",
                     help="write only the confidence and flag (the shipped model's file left as it is)")
     ap.add_argument("--flag-out", default=str(C.DEFAULT_FLAG_PATH),
@@ -840,7 +853,7 @@ def _main(argv=None) -> int:
     rs = load_real(a.data)
     feats, tuv, Ks, gam = dataset_features(rs)
     hist = dataset_histograms(rs) if a.histogram_stage else None
-    regions = dataset_regions(rs)
+    regions = dataset_regions(rs, cache=a.regions_cache)
     peers = peer_confidences(rs)
     print(f"features of {len(rs.truth)} images from {len(rs.cameras)} cameras, {len(rs.datasets)} benchmarks: "
           f"{time.perf_counter() - t0:.1f} s")
