@@ -207,7 +207,7 @@ def main(argv=None) -> int:
     hist = dataset_histograms(rs) if a.histogram_stage else None
     t_feat = (time.perf_counter() - t0) / n
     t0 = time.perf_counter()
-    regions = dataset_regions(rs, cache=Path(a.out) / "regions_cache.npz")
+    regions = dataset_regions(rs)
     t_reg = (time.perf_counter() - t0) / n
     with single_threaded():
         lodo = leave_one_benchmark_out(rs, feats, tuv, Ks, sog=errs[SOG], gam=gam, hist=hist, regions=regions)

@@ -177,52 +177,32 @@ def dataset_features(rs, canonical=L.BRADFORD):
     return feats, tuv, Ks, gam
 
 
-def dataset_regions(rs, canonical=L.BRADFORD, cache=None) -> dict:
+def dataset_regions(rs, canonical=L.BRADFORD) -> dict:
     """The evidence of the confidence (:mod:`recovery.confidence`) that
-    :func:`dataset_features` does not hold: ``region_feats`` (N, 4, F, 2)
-    the classical estimates of each image's four quadrants (NaN where one
-    has too few usable cells), ``usable`` (N,) the share of usable analysis
-    cells, ``patch`` (N,) the uniform-patch fraction. About 5 minutes on
-    the 2-core machine (four more feature extractions per image); with
-    ``cache`` (a path) kept there and read back when the images' digest
-    matches (delete it when the feature code changes)."""
-    digest = hashlib.sha256(np.ascontiguousarray(rs.images).tobytes()).hexdigest()[:16]
-    if cache is not None and Path(cache).is_file():
-        with np.load(cache) as z:
-            if str(z["digest"]) == digest:
-                return {k: z[k] for k in ("region_feats", "usable", "patch")}
+    :func:`dataset_features` does not hold: ``region`` (N, 4, 2, 2) the
+    gray-world and bright-pixel estimates of each image's four quadrants
+    (:func:`recovery.confidence.region_estimates`), ``usable`` (N,) the
+    share of usable analysis cells, ``patch`` (N,) the uniform-patch
+    fraction."""
     n = len(rs.truth)
-    reg = np.full((n, 4, len(L.FEATURE_NAMES), 2), np.nan)
+    reg = np.full((n, 4, 2, 2), np.nan)
     use, patch = np.zeros(n), np.zeros(n)
     for i, (img, cam) in enumerate(zip(rs.images, rs.camera)):
         can, ok, K, _ = L.canonical_analysis(img, usable_mask(img), rs.matrices[cam], canonical)
         use[i] = ok.sum() / ok.size
         patch[i] = L.uniform_patch_fraction(can @ np.linalg.inv(K).T, ok)
-        for q, sl in enumerate(C.quadrants(ok.shape)):
-            try:
-                reg[i, q] = L.features(can[sl], ok[sl])
-            except L.InsufficientSurfaceVariation:
-                pass
-    out = {"region_feats": reg, "usable": use, "patch": patch}
-    if cache is not None:
-        Path(cache).parent.mkdir(parents=True, exist_ok=True)
-        np.savez(cache, digest=digest, **out)
-    return out
+        reg[i] = C.region_estimates(can, ok)
+    return {"region": reg, "usable": use, "patch": patch}
 
 
 def flag_inputs(model, feats, uv, gam, regions, rows) -> np.ndarray:
     """(len(rows), k) the confidence's inputs (:func:`recovery.confidence.confidence_inputs`)
     of images ``rows`` for ``model``'s first-stage estimates ``uv``, as
     :func:`recovery.learned.estimate_learned` makes them for one image."""
-    rf = regions["region_feats"][rows]
-    ru = np.full((len(rows), 4, 2), np.nan)
     g = np.zeros(len(rows)) if gam is None else gam[rows]
-    for q in range(4):
-        okq = np.all(np.isfinite(rf[:, q]), axis=(1, 2))
-        if okq.any():
-            ru[okq, q] = predict(model, rf[okq, q], g[okq])
-    return C.confidence_inputs(feats[rows], uv, ru, L.input_distance(model, feats[rows]), g,
-                             regions["usable"][rows], regions["patch"][rows], L.REFERENCE)
+    return C.confidence_inputs(feats[rows], uv, regions["region"][rows], L.input_distance(model, feats[rows]), g,
+                               regions["usable"][rows], regions["patch"][rows], L.REFERENCE, model.locus_uv,
+                               model.locus_mired)
 
 
 def dataset_histograms(rs, canonical=L.BRADFORD, grid=CH.DEFAULT_GRID) -> np.ndarray:
@@ -842,8 +822,6 @@ def _main(argv=None) -> int:
     ap.add_argument("--histogram-stage", action="store_true",
                     help="add the histogram stage (recovery.chroma_histogram; its settings chosen by inner "
                          "leave-one-benchmark-out): not in the shipped model (the module's docstring says why)")
-    ap.add_argument("--regions-cache", default="out/regions_cache.npz",
-                    help="where the quadrant features are kept between runs (recomputed when the data differ)")
     ap.add_argument("--flag-only", action="store_true",
                     help="write only the confidence and flag (the shipped model's file left as it is)")
     ap.add_argument("--flag-out", default=str(C.DEFAULT_FLAG_PATH),
@@ -853,7 +831,7 @@ def _main(argv=None) -> int:
     rs = load_real(a.data)
     feats, tuv, Ks, gam = dataset_features(rs)
     hist = dataset_histograms(rs) if a.histogram_stage else None
-    regions = dataset_regions(rs, cache=a.regions_cache)
+    regions = dataset_regions(rs)
     peers = peer_confidences(rs)
     print(f"features of {len(rs.truth)} images from {len(rs.cameras)} cameras, {len(rs.datasets)} benchmarks: "
           f"{time.perf_counter() - t0:.1f} s")

@@ -12,17 +12,24 @@ image alone:
   (what the region uses);
 * ``log_correction``: how far the learnt model moved the answer from its
   reference (bright pixels): a large correction is an extrapolation;
-* ``log_region_spread``: the RMS distance of the learnt estimates made on
-  the image's four quadrants from the whole image's (a scene whose parts
-  point at different lights: two lights, or evidence that depends on which
-  surfaces happen to be in view);
 * ``log_input_distance``: the mean squared standardised distance of the
   model's inputs from the training photographs' mean (the model's own
   standardisation): how far outside its training the image lies;
 * ``gamut_fraction``: the share of cells the colour matrix sends out of the
   canonical gamut;
 * ``usable_fraction``: the share of analysis cells that could be used;
-* ``patch_fraction``: the share of cells inside uniform patches.
+* ``patch_fraction``: the share of cells inside uniform patches;
+* ``off_locus``, ``mired``: where the estimate sits among the physical
+  lights (its distance off the Planckian locus, and the reciprocal colour
+  temperature of the nearest locus point, in 100 mired): a light far off
+  the locus, or at an end of it, is suspect;
+* ``log_region_reference_spread``, ``log_region_gray_world_spread``: how
+  much the bright-pixel and gray-world estimates of the four quadrants
+  differ from the whole image's (a scene whose parts point at different
+  lights: two lights, or evidence that depends on which surfaces happen to
+  be in view). The learnt estimator run on each quadrant was tried too; it
+  added nothing the inner cross-validation could see and cost four more
+  feature extractions per estimate.
 
 ``P(error < 3 degrees)`` is a logistic regression on these (standardised;
 Newton's method from zero with a small ridge: deterministic), fitted on the
@@ -52,12 +59,17 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["INPUT_NAMES", "FlagModel", "confidence_inputs", "fit_logistic", "choose_threshold", "auroc",
-           "load_flag_model", "DEFAULT_FLAG_PATH", "quadrants"]
+           "load_flag_model", "DEFAULT_FLAG_PATH", "quadrants", "region_estimates"]
 
 DEFAULT_FLAG_PATH = Path(__file__).with_name("data") / "learned_confidence.json"
 
-INPUT_NAMES = ("log_spread", "log_correction", "log_region_spread", "log_input_distance", "gamut_fraction",
-               "usable_fraction", "patch_fraction")
+INPUT_NAMES = ("log_spread", "log_correction", "log_input_distance", "gamut_fraction",
+               "usable_fraction", "patch_fraction", "off_locus", "mired", "log_region_reference_spread",
+               "log_region_gray_world_spread")
+
+#: Usable cells a quadrant needs for its estimates (as the whole image needs
+#: for :func:`recovery.learned.features`).
+MIN_REGION_CELLS = 16
 
 #: Floor of the log-chroma distances before their logarithm (0.1 degree or so).
 _FLOOR = 2e-3
@@ -69,34 +81,72 @@ def quadrants(shape) -> list[tuple[slice, slice]]:
     return [(slice(a * h // 2, (a + 1) * h // 2), slice(b * w // 2, (b + 1) * w // 2)) for a in (0, 1) for b in (0, 1)]
 
 
-def confidence_inputs(feats, uv, region_uv, input_z2, gamut_fraction, usable_fraction, patch_fraction,
-                      reference: int) -> np.ndarray:
+def _region_rms(region, whole) -> np.ndarray:
+    """(N,) RMS distance of the quadrants' (N, 4, 2) values from the whole
+    image's (N, 2), over the quadrants that have one; NaN with fewer than two."""
+    d2 = np.sum((np.asarray(region, float) - np.asarray(whole, float)[:, None, :]) ** 2, axis=-1)
+    good = np.isfinite(d2)
+    n = good.sum(axis=1)
+    rms = np.sqrt(np.where(good, d2, 0.0).sum(axis=1) / np.maximum(n, 1))
+    return np.where(n >= 2, rms, np.nan)
+
+
+def region_estimates(cells, ok) -> np.ndarray:
+    """(4, 2, 2) the gray-world and bright-pixel (top 1 %) estimates'
+    log-chroma on the four quadrants of an analysis image (``cells`` clipped
+    at 1e-6, usable ``ok``, as :func:`recovery.learned.features` reads the
+    whole image); NaN for a quadrant with fewer than
+    :data:`MIN_REGION_CELLS` usable cells. Cheap (two statistics, no
+    filters), so the confidence adds little to an estimate's cost."""
+    from .estimators import bright_pixels, gray_world
+    from .learned import rgb_to_uv
+
+    img = np.clip(np.asarray(cells, float), 1e-6, None)
+    out = np.full((4, 2, 2), np.nan)
+    for q, sl in enumerate(quadrants(ok.shape)):
+        px = img[sl][ok[sl]]
+        if px.shape[0] >= MIN_REGION_CELLS:
+            est = np.array([gray_world(px), bright_pixels(px, None, 0.01)])
+            if np.all(np.isfinite(est) & (est > 0)):
+                out[q] = rgb_to_uv(est)
+    return out
+
+
+def confidence_inputs(feats, uv, region, input_z2, gamut_fraction, usable_fraction, patch_fraction,
+                      reference: int, locus_uv, locus_mired) -> np.ndarray:
     """(N, len(INPUT_NAMES)) the evidence for :class:`FlagModel`.
 
     Parameters
     ----------
-    feats : (N, F, 2) the classical estimates' log-chroma
+    feats : (N, F, 2) the classical estimates' log-chroma (gray world first)
     uv : (N, 2) the learnt estimate (the first stage's)
-    region_uv : (N, 4, 2) the learnt estimates of the quadrants (NaN where a
-        quadrant had too few usable cells)
+    region : (N, 4, 2, 2) the quadrants' gray-world and bright-pixel
+        estimates (:func:`region_estimates`; NaN where a quadrant had too
+        few usable cells)
     input_z2 : (N,) mean squared standardised model input
     gamut_fraction, usable_fraction, patch_fraction : (N,)
-    reference : index of the reference estimate in ``feats``
+    reference : index of the reference (bright-pixel) estimate in ``feats``
+    locus_uv, locus_mired : the model's Planckian locus
+        (:func:`recovery.learned.locus_coordinates`): where the estimate sits
+        among physical lights (a light far off the locus is suspect)
     """
+    from .learned import locus_coordinates
+
     f = np.asarray(feats, float)
     uv = np.asarray(uv, float)
+    rg = np.asarray(region, float)
     spread = np.sqrt(np.mean(np.sum((f - uv[:, None, :]) ** 2, axis=-1), axis=-1))
     corr = np.linalg.norm(uv - f[:, reference], axis=-1)
-    ru = np.asarray(region_uv, float)
-    d2 = np.sum((ru - uv[:, None, :]) ** 2, axis=-1)
-    good = np.isfinite(d2)
-    n = good.sum(axis=1)
-    rs = np.sqrt(np.where(good, d2, 0.0).sum(axis=1) / np.maximum(n, 1))
     # fewer than two quadrants to compare: as spread out as the classical estimates are
-    rs = np.where(n >= 2, rs, spread)
-    return np.stack([np.log(spread + _FLOOR), np.log(corr + _FLOOR), np.log(rs + _FLOOR),
+    rr = _region_rms(rg[:, :, 1], f[:, reference])
+    rr = np.where(np.isfinite(rr), rr, spread)
+    rw = _region_rms(rg[:, :, 0], f[:, 0])
+    rw = np.where(np.isfinite(rw), rw, spread)
+    lc = locus_coordinates(uv, np.asarray(locus_uv, float), np.asarray(locus_mired, float))
+    return np.stack([np.log(spread + _FLOOR), np.log(corr + _FLOOR),
                      np.log(np.asarray(input_z2, float) + 1e-3), np.asarray(gamut_fraction, float),
-                     np.asarray(usable_fraction, float), np.asarray(patch_fraction, float)], axis=1)
+                     np.asarray(usable_fraction, float), np.asarray(patch_fraction, float),
+                     np.abs(lc[:, 1]), lc[:, 0], np.log(rr + _FLOOR), np.log(rw + _FLOOR)], axis=1)
 
 
 def fit_logistic(x, y, weights=None, l2: float = 1e-3, iters: int = 100) -> np.ndarray:

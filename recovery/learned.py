@@ -539,22 +539,6 @@ class LearnedResult:
     diagnostics: dict = field(default_factory=dict)
 
 
-def region_estimates(model: LearnedModel, can: np.ndarray, ok: np.ndarray, gamut: float) -> np.ndarray:
-    """(4, 2) the model's first-stage estimates on the four quadrants of the
-    canonical analysis image (NaN for a quadrant with too little evidence):
-    the region-wise evidence of :mod:`recovery.confidence`."""
-    from .confidence import quadrants
-
-    out = np.full((4, 2), np.nan)
-    for q, sl in enumerate(quadrants(ok.shape)):
-        try:
-            fq = features(can[sl], ok[sl])
-        except InsufficientSurfaceVariation:
-            continue
-        out[q] = model.predict(model.inputs(fq), np.array([gamut]))[0] + fq[REFERENCE]
-    return out
-
-
 def input_distance(model: LearnedModel, feats: np.ndarray) -> np.ndarray:
     """(N,) mean squared standardised model input (the model's own
     standardisation of its training photographs): how far outside its
@@ -606,14 +590,15 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
         radius = radius90(uv, var, K)
         conf = confidence(radius, model.confidence_coef)
     patches = uniform_patch_fraction(can @ np.linalg.inv(K).T, ok)
-    from .confidence import confidence_inputs, load_flag_model
+    from .confidence import confidence_inputs, load_flag_model, region_estimates
 
     flag = (model.flag or load_flag_model()) if flag is None else flag
     flag_info = {"radius_confidence": conf}
     if flag is not None:
         cells = int(np.prod(ok.shape))
-        x = confidence_inputs(f[None], first[None], region_estimates(model, can, ok, gamut)[None],
-                              input_distance(model, f), [gamut], [ok.sum() / max(cells, 1)], [patches], REFERENCE)
+        x = confidence_inputs(f[None], first[None], region_estimates(can, ok)[None], input_distance(model, f),
+                              [gamut], [ok.sum() / max(cells, 1)], [patches], REFERENCE, model.locus_uv,
+                              model.locus_mired)
         conf = float(flag.confidence(x)[0])
         flag_info.update({"flag_threshold": flag.threshold,
                           "flag_inputs": {n: float(v) for n, v in zip(flag.names, x[0])}})
