@@ -93,3 +93,53 @@ def test_the_product_computes_the_inputs_the_training_computed():
         got = np.array([res.diagnostics["flag_inputs"][n] for n in fm.names])
         np.testing.assert_allclose(got, x[j], rtol=1e-9, atol=1e-9)
         assert res.confidence == pytest.approx(float(fm.confidence(x[j])[0]), abs=1e-9)
+
+
+def test_a_batch_lists_its_flagged_items_first_and_the_cli_names_them(tmp_path, monkeypatch):
+    """Issue 27, item 4: a batch of a chart scene and a DNG black but for one
+    2x2 cell (a fallback, flagged): ``GET /v1/batches/{id}`` lists the
+    flagged item first (keeping its index) and names it; the CLI's summary
+    names it too."""
+    import io
+    import time
+
+    from fastapi.testclient import TestClient
+
+    from service import cli
+    from service.settings import get_settings
+    from testing.dngwriter import scene_dng, write_dng
+
+    monkeypatch.setenv("WANDELL_DATA_DIR", str(tmp_path / "data"))
+    get_settings.cache_clear()
+    good = io.BytesIO()
+    scene_dng(good, "Nikon 5100 (NPL)", "D65", 96, 144, seed=1, layout="mondrian", surfaces="all")
+    cfa = np.zeros((64, 96), np.uint16)
+    cfa[30:32, 40:42] = [[40000, 9000], [9000, 3000]]
+    bad = io.BytesIO()
+    write_dng(bad, cfa)
+    from service.app import app
+
+    try:
+        with TestClient(app) as c:
+            r = c.post("/v1/batches", data={"format": "png"},
+                       files=[("files", ("chart.dng", good.getvalue())), ("files", ("onecell.dng", bad.getvalue()))])
+            assert r.status_code == 202, r.text
+            bid = r.json()["id"]
+            t_end = time.monotonic() + 180
+            while True:
+                doc = c.get(f"/v1/batches/{bid}").json()
+                if doc["status"] not in ("queued", "running") or time.monotonic() > t_end:
+                    break
+                time.sleep(0.2)
+    finally:
+        get_settings.cache_clear()
+    assert doc["status"] == "done", doc
+    items = doc["items"]
+    assert [it["name"] for it in items] == ["onecell.dng", "chart.dng"]
+    assert [it["index"] for it in items] == [1, 0]
+    assert items[0]["illuminant"]["low_confidence"] is True and items[1]["illuminant"]["low_confidence"] is False
+    assert doc["low_confidence"] == ["onecell.dng"]
+    out = io.StringIO()
+    cli._summary([{"name": it["name"], "status": it["status"], "illuminant": it["illuminant"]} for it in items], out)
+    text = out.getvalue()
+    assert "low confidence, check these white balances first (1):\n  onecell.dng\n" in text
