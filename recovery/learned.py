@@ -528,7 +528,10 @@ class LearnedResult:
     RGB (sum 1); ``uv`` its canonical log-chroma and ``cov`` the calibrated
     covariance; ``radius90_deg`` the angular radius of the reported 90 %
     region in camera RGB; ``confidence`` the probability of an error below
-    3 degrees under it."""
+    3 degrees: from the shipped confidence law (:mod:`recovery.confidence`,
+    ``diagnostics["flag_inputs"]`` its evidence, ``["flag_threshold"]`` the
+    flag's threshold) or, without one, from the 90 % radius
+    (``diagnostics["radius_confidence"]`` keeps that one either way)."""
 
     rgb: np.ndarray
     uv: np.ndarray
