@@ -376,6 +376,9 @@ class LearnedModel:
     hist_bias: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     hist_var_scale: np.ndarray = field(default_factory=lambda: np.array([1.0]))
     info: dict = field(default_factory=dict, compare=False)
+    #: the confidence and flag fitted with the model (:class:`recovery.confidence.FlagModel`;
+    #: not in the ``.npz``: the shipped one is ``recovery/data/learned_confidence.json``)
+    flag: object = field(default=None, compare=False, repr=False)
 
     _ARRAYS = ("canonical", "mean", "scale", "expansion", "coef", "locus_uv", "locus_mired", "sigma",
                "confidence_coef", "gamut_limit", "outside_calibration", "hist_grid", "hist_filters", "hist_bias",
@@ -525,7 +528,10 @@ class LearnedResult:
     RGB (sum 1); ``uv`` its canonical log-chroma and ``cov`` the calibrated
     covariance; ``radius90_deg`` the angular radius of the reported 90 %
     region in camera RGB; ``confidence`` the probability of an error below
-    3 degrees under it."""
+    3 degrees: from the shipped confidence law (:mod:`recovery.confidence`,
+    ``diagnostics["flag_inputs"]`` its evidence, ``["flag_threshold"]`` the
+    flag's threshold) or, without one, from the 90 % radius
+    (``diagnostics["radius_confidence"]`` keeps that one either way)."""
 
     rgb: np.ndarray
     uv: np.ndarray
@@ -536,7 +542,15 @@ class LearnedResult:
     diagnostics: dict = field(default_factory=dict)
 
 
-def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = None) -> LearnedResult:
+def input_distance(model: LearnedModel, feats: np.ndarray) -> np.ndarray:
+    """(N,) mean squared standardised model input (the model's own
+    standardisation of its training photographs): how far outside its
+    training an image's evidence lies."""
+    z = (model.inputs(np.asarray(feats, float).reshape(-1, len(FEATURE_NAMES), 2)) - model.mean) / model.scale
+    return np.mean(z ** 2, axis=1)
+
+
+def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = None, flag=None) -> LearnedResult:
     """Estimate the light of a linear camera image with the learnt model.
 
     Parameters
@@ -545,6 +559,9 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     mask : (H, W) bool usable pixels (not saturated, not dark), or None
     color_matrix : (3, 3) XYZ -> camera (:func:`camera_color_matrix`)
     model : default the shipped one
+    flag : :class:`recovery.confidence.FlagModel`, default the shipped one;
+        the confidence is its calibrated P(error < 3 deg) (without one: the
+        model's own law of the 90 % radius) and ``low_confidence`` its flag
 
     Raises
     ------
@@ -575,8 +592,21 @@ def estimate_learned(image, mask, color_matrix, model: LearnedModel | None = Non
     else:
         radius = radius90(uv, var, K)
         conf = confidence(radius, model.confidence_coef)
+    patches = uniform_patch_fraction(can @ np.linalg.inv(K).T, ok)
+    from .confidence import confidence_inputs, load_flag_model, region_estimates
+
+    flag = (model.flag or load_flag_model()) if flag is None else flag
+    flag_info = {"radius_confidence": conf}
+    if flag is not None:
+        cells = int(np.prod(ok.shape))
+        x = confidence_inputs(f[None], first[None], region_estimates(can, ok)[None], input_distance(model, f),
+                              [gamut], [ok.sum() / max(cells, 1)], [patches], REFERENCE, model.locus_uv,
+                              model.locus_mired)
+        conf = float(flag.confidence(x)[0])
+        flag_info.update({"flag_threshold": flag.threshold,
+                          "flag_inputs": {n: float(v) for n, v in zip(flag.names, x[0])}})
     return LearnedResult(cam, uv, cov, float(radius), conf, int(ok.sum()),
-                         {"evidence_spread": spread, "uniform_patch_fraction": uniform_patch_fraction(can @ np.linalg.inv(K).T, ok),
+                         {**flag_info, "evidence_spread": spread, "uniform_patch_fraction": patches,
                           "out_of_gamut_fraction": gamut, "outside_training_range": outside,
                           "histogram_shift_deg": (_angle(cam, np.linalg.solve(K, uv_to_rgb(first)))
                                                   if model.has_histogram and not outside else None),

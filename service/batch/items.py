@@ -163,8 +163,9 @@ def _estimate_json(est, camera, profile=None) -> dict:
 
     conf = est.diagnostics.get("confidence")
     conf = float(conf) if isinstance(conf, (int, float)) else None
+    low = est.diagnostics.get("low_confidence")          # the estimator's own flag (recovery.api.with_confidence)
     return dict(illuminant_json(est, profile, camera), method=est.method, camera=camera.name, confidence=conf,
-                low_confidence=conf is not None and conf < LOW_CONFIDENCE)
+                low_confidence=bool(low) if isinstance(low, bool) else (conf is not None and conf < LOW_CONFIDENCE))
 
 
 def _estimate_from_json(light: dict, camera):

@@ -709,6 +709,8 @@ class JobStore:
                                                             "method", "camera", "warnings", "confidence",
                                                             "low_confidence")}
             items.append(it)
+        # the estimates flagged low confidence first (each keeps its index), the rest in order
+        items.sort(key=lambda it: not (it.get("illuminant") or {}).get("low_confidence"))
         opts = json.loads(b["options"])
         # settled: the batch is over and every count final (a cancelled
         # batch's running items are still stopping until this is true)
@@ -719,7 +721,8 @@ class JobStore:
                           "cancelled": c["cancelled"], "total": len(rows)},
                "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
                "rate": rate, "eta_s": eta,  # short names the web page reads
-               "created": b["created"], "items": items}
+               "created": b["created"], "items": items,
+               "low_confidence": [it["name"] for it in items if (it.get("illuminant") or {}).get("low_confidence")]}
         if opts.get("lighting") == "shared" and not b["light"] and b["status"] == "running":
             doc["phase"] = "estimating the shared light from all images"
         if b["light"]:

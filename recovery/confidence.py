@@ -1,0 +1,275 @@
+"""How far to trust a light estimate: a calibrated probability of a small
+error and a flag on the estimates that are likely wrong.
+
+The learnt estimator's 90 % region (:mod:`recovery.learned`) grows with
+one number, the spread of the classical estimates about the answer; it is
+calibrated for coverage, but as a *ranking* of the failures it is weak
+(area under the ROC curve for errors above 6 degrees 0.68-0.77 on
+benchmarks never seen; with this module's evidence 0.75-0.79, ``python -m
+benchmarks.real_photos``, docs/confidence.md). This module
+adds the other evidence that an answer may be wrong, each read from the
+image alone:
+
+* ``log_spread``: the classical estimates' RMS distance from the answer
+  (what the region uses);
+* ``log_correction``: how far the learnt model moved the answer from its
+  reference (bright pixels): a large correction is an extrapolation;
+* ``log_input_distance``: the mean squared standardised distance of the
+  model's inputs from the training photographs' mean (the model's own
+  standardisation): how far outside its training the image lies;
+* ``gamut_fraction``: the share of cells the colour matrix sends out of the
+  canonical gamut;
+* ``usable_fraction``: the share of analysis cells that could be used;
+* ``patch_fraction``: the share of cells inside uniform patches;
+* ``off_locus``, ``mired``: where the estimate sits among the physical
+  lights (its distance off the Planckian locus, and the reciprocal colour
+  temperature of the nearest locus point, in 100 mired): a light far off
+  the locus, or at an end of it, is suspect;
+* ``log_region_reference_spread``, ``log_region_gray_world_spread``: how
+  much the bright-pixel and gray-world estimates of the four quadrants
+  differ from the whole image's (a scene whose parts point at different
+  lights: two lights, or evidence that depends on which surfaces happen to
+  be in view). The learnt estimator run on each quadrant was tried too; it
+  added nothing the inner cross-validation could see and cost four more
+  feature extractions per estimate.
+
+``P(error < 3 degrees)`` is a logistic regression on these (standardised;
+Newton's method from zero with a small ridge: deterministic), fitted on the
+*out-of-fold* predictions of the training procedure's inner
+leave-one-benchmark-out (each benchmark predicted by a model that never saw
+it), so the probability is calibrated for photographs of benchmarks never
+seen. ``low_confidence`` is ``confidence < threshold``, the threshold chosen
+on the same out-of-fold predictions (:func:`choose_threshold`). Both ship in
+``recovery/data/learned_confidence.json``, built by ``python -m
+benchmarks.train_illuminant --flag-only`` (the learnt model's own file left
+as it is).
+
+References
+----------
+Cox (1958), The regression analysis of binary sequences, JRSS B (logistic
+regression). Platt (1999), Probabilistic outputs for support vector
+machines (calibrated probabilities from held-out scores). Fawcett (2006),
+An introduction to ROC analysis, Pattern Recognition Letters 27.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["INPUT_NAMES", "FlagModel", "confidence_inputs", "fit_logistic", "choose_threshold", "auroc",
+           "load_flag_model", "DEFAULT_FLAG_PATH", "quadrants", "region_estimates"]
+
+DEFAULT_FLAG_PATH = Path(__file__).with_name("data") / "learned_confidence.json"
+
+INPUT_NAMES = ("log_spread", "log_correction", "log_input_distance", "gamut_fraction",
+               "usable_fraction", "patch_fraction", "off_locus", "mired", "log_region_reference_spread",
+               "log_region_gray_world_spread")
+
+#: Usable cells a quadrant needs for its estimates (as the whole image needs
+#: for :func:`recovery.learned.features`).
+MIN_REGION_CELLS = 16
+
+#: Floor of the log-chroma distances before their logarithm (0.1 degree or so).
+_FLOOR = 2e-3
+
+
+def quadrants(shape) -> list[tuple[slice, slice]]:
+    """The four quadrants of an analysis image of ``shape`` (h, w)."""
+    h, w = shape[:2]
+    return [(slice(a * h // 2, (a + 1) * h // 2), slice(b * w // 2, (b + 1) * w // 2)) for a in (0, 1) for b in (0, 1)]
+
+
+def _region_rms(region, whole) -> np.ndarray:
+    """(N,) RMS distance of the quadrants' (N, 4, 2) values from the whole
+    image's (N, 2), over the quadrants that have one; NaN with fewer than two."""
+    d2 = np.sum((np.asarray(region, float) - np.asarray(whole, float)[:, None, :]) ** 2, axis=-1)
+    good = np.isfinite(d2)
+    n = good.sum(axis=1)
+    rms = np.sqrt(np.where(good, d2, 0.0).sum(axis=1) / np.maximum(n, 1))
+    return np.where(n >= 2, rms, np.nan)
+
+
+def region_estimates(cells, ok) -> np.ndarray:
+    """(4, 2, 2) the gray-world and bright-pixel (top 1 %) estimates'
+    log-chroma on the four quadrants of an analysis image (``cells`` clipped
+    at 1e-6, usable ``ok``, as :func:`recovery.learned.features` reads the
+    whole image); NaN for a quadrant with fewer than
+    :data:`MIN_REGION_CELLS` usable cells. Cheap (two statistics, no
+    filters), so the confidence adds little to an estimate's cost."""
+    from .estimators import bright_pixels, gray_world
+    from .learned import rgb_to_uv
+
+    img = np.clip(np.asarray(cells, float), 1e-6, None)
+    out = np.full((4, 2, 2), np.nan)
+    for q, sl in enumerate(quadrants(ok.shape)):
+        px = img[sl][ok[sl]]
+        if px.shape[0] >= MIN_REGION_CELLS:
+            est = np.array([gray_world(px), bright_pixels(px, None, 0.01)])
+            if np.all(np.isfinite(est) & (est > 0)):
+                out[q] = rgb_to_uv(est)
+    return out
+
+
+def confidence_inputs(feats, uv, region, input_z2, gamut_fraction, usable_fraction, patch_fraction,
+                      reference: int, locus_uv, locus_mired) -> np.ndarray:
+    """(N, len(INPUT_NAMES)) the evidence for :class:`FlagModel`.
+
+    Parameters
+    ----------
+    feats : (N, F, 2) the classical estimates' log-chroma (gray world first)
+    uv : (N, 2) the learnt estimate (the first stage's)
+    region : (N, 4, 2, 2) the quadrants' gray-world and bright-pixel
+        estimates (:func:`region_estimates`; NaN where a quadrant had too
+        few usable cells)
+    input_z2 : (N,) mean squared standardised model input
+    gamut_fraction, usable_fraction, patch_fraction : (N,)
+    reference : index of the reference (bright-pixel) estimate in ``feats``
+    locus_uv, locus_mired : the model's Planckian locus
+        (:func:`recovery.learned.locus_coordinates`): where the estimate sits
+        among physical lights (a light far off the locus is suspect)
+    """
+    from .learned import locus_coordinates
+
+    f = np.asarray(feats, float)
+    uv = np.asarray(uv, float)
+    rg = np.asarray(region, float)
+    spread = np.sqrt(np.mean(np.sum((f - uv[:, None, :]) ** 2, axis=-1), axis=-1))
+    corr = np.linalg.norm(uv - f[:, reference], axis=-1)
+    # fewer than two quadrants to compare: as spread out as the classical estimates are
+    rr = _region_rms(rg[:, :, 1], f[:, reference])
+    rr = np.where(np.isfinite(rr), rr, spread)
+    rw = _region_rms(rg[:, :, 0], f[:, 0])
+    rw = np.where(np.isfinite(rw), rw, spread)
+    lc = locus_coordinates(uv, np.asarray(locus_uv, float), np.asarray(locus_mired, float))
+    return np.stack([np.log(spread + _FLOOR), np.log(corr + _FLOOR),
+                     np.log(np.asarray(input_z2, float) + 1e-3), np.asarray(gamut_fraction, float),
+                     np.asarray(usable_fraction, float), np.asarray(patch_fraction, float),
+                     np.abs(lc[:, 1]), lc[:, 0], np.log(rr + _FLOOR), np.log(rw + _FLOOR)], axis=1)
+
+
+def fit_logistic(x, y, weights=None, l2: float = 1e-3, iters: int = 100) -> np.ndarray:
+    """Weighted logistic regression of ``y`` (0/1) on ``x`` (N, k) with a
+    constant, the slopes penalised by ``l2 |b|^2`` (the weights summing to
+    1): Newton's method from zero, a convex problem, so the result is
+    unique and deterministic. Returns (k + 1,) ``[constant, slopes...]``."""
+    x = np.asarray(x, float)
+    X = np.c_[np.ones(len(x)), x]
+    y = np.asarray(y, float)
+    w = np.ones(len(y)) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    P = l2 * np.diag(np.r_[0.0, np.ones(x.shape[1])])
+    c = np.zeros(X.shape[1])
+    for _ in range(iters):
+        p = 1.0 / (1.0 + np.exp(-(X @ c)))
+        g = X.T @ (w * (y - p)) - 2 * P @ c
+        h = (X * (w * p * (1 - p))[:, None]).T @ X + 2 * P + 1e-12 * np.eye(X.shape[1])
+        step = np.linalg.solve(h, g)
+        c = c + step
+        if np.abs(step).max() < 1e-10:
+            break
+    return c
+
+
+def auroc(score, positive) -> float:
+    """Area under the ROC curve of ``score`` for ``positive`` (ties count
+    half): the probability that a positive scores above a negative
+    (Mann-Whitney). NaN without both classes."""
+    from scipy.stats import rankdata
+
+    s = np.asarray(score, float)
+    pos = np.asarray(positive, bool)
+    n1, n0 = int(pos.sum()), int((~pos).sum())
+    if n1 == 0 or n0 == 0:
+        return float("nan")
+    r = rankdata(s)
+    return float((r[pos].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
+
+
+def choose_threshold(conf, failed, groups, max_flag: float = 0.15) -> tuple[float, dict]:
+    """The flag threshold on the out-of-fold confidences ``conf``: the
+    largest threshold whose flag rate is at most ``max_flag`` in every group
+    (benchmark) — the most failures caught (``failed``: error above 6
+    degrees) for a bounded share of photographs flagged. Returns the
+    threshold and, per group, its flag and catch rates."""
+    conf = np.asarray(conf, float)
+    failed = np.asarray(failed, bool)
+    groups = np.asarray(groups)
+    names = sorted(set(groups.tolist()))
+    cands = np.unique(np.round(conf, 4))
+    best = float(cands.min()) if cands.size else 0.0
+    for t in cands:
+        if all(np.mean(conf[groups == g] < t) <= max_flag for g in names):
+            best = float(t)
+    rec = {g: {"flagged": float(np.mean(conf[groups == g] < best)),
+               "caught": float(np.mean(conf[(groups == g) & failed] < best)) if np.any(failed[groups == g]) else None}
+           for g in names}
+    return best, rec
+
+
+@dataclass(frozen=True)
+class FlagModel:
+    """The calibrated confidence and the flag (see the module docstring).
+
+    Attributes
+    ----------
+    names : the inputs (:data:`INPUT_NAMES`)
+    mean, scale : (k,) their standardisation
+    coef : (k + 1,) the logistic law of P(error < 3 deg) on the standardised inputs
+    threshold : confidence below which an estimate is flagged
+    peers : method -> P(error < 3 deg) of a classical estimator on the
+        development photographs (the confidence a requested peer reports)
+    info : what it was fitted on, and how
+    """
+
+    names: tuple
+    mean: np.ndarray
+    scale: np.ndarray
+    coef: np.ndarray
+    threshold: float
+    peers: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict, compare=False)
+
+    def confidence(self, x) -> np.ndarray:
+        """(N,) P(error < 3 deg) for inputs (N, k) (:func:`confidence_inputs`)."""
+        z = (np.atleast_2d(np.asarray(x, float)) - self.mean) / self.scale
+        return 1.0 / (1.0 + np.exp(-(self.coef[0] + z @ self.coef[1:])))
+
+    def to_json(self) -> str:
+        return json.dumps({"names": list(self.names), "mean": list(map(float, self.mean)),
+                           "scale": list(map(float, self.scale)), "coef": list(map(float, self.coef)),
+                           "threshold": float(self.threshold), "peers": {k: float(v) for k, v in self.peers.items()},
+                           "info": self.info}, indent=1, sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> "FlagModel":
+        d = json.loads(text)
+        return cls(tuple(d["names"]), np.asarray(d["mean"], float), np.asarray(d["scale"], float),
+                   np.asarray(d["coef"], float), float(d["threshold"]), dict(d.get("peers", {})), d.get("info", {}))
+
+
+def fit_flag_model(x, ok3, failed, groups, weights=None, l2: float = 1e-3, max_flag: float = 0.15,
+                   peers=None, info=None) -> FlagModel:
+    """Fit :class:`FlagModel` on out-of-fold inputs ``x`` (N, k), outcomes
+    ``ok3`` (error under 3 degrees) and ``failed`` (above 6), the threshold
+    by :func:`choose_threshold` per group (benchmark)."""
+    x = np.asarray(x, float)
+    mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-9
+    coef = fit_logistic((x - mean) / scale, ok3, weights, l2)
+    fm = FlagModel(tuple(INPUT_NAMES), mean, scale, coef, 0.0, dict(peers or {}), dict(info or {}))
+    t, rec = choose_threshold(fm.confidence(x), failed, groups, max_flag)
+    return FlagModel(fm.names, mean, scale, coef, t, fm.peers, {**fm.info, "threshold_choice": rec,
+                                                                 "max_flag_rate": max_flag, "l2": l2})
+
+
+@lru_cache(maxsize=4)
+def load_flag_model(path: str | None = None) -> FlagModel | None:
+    """The shipped flag model (None when the file is absent)."""
+    p = Path(path) if path else DEFAULT_FLAG_PATH
+    if not p.exists():
+        return None
+    return FlagModel.from_json(p.read_text())

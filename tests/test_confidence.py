@@ -1,0 +1,145 @@
+"""The confidence and the flag (:mod:`recovery.confidence`; issue 27, item 4).
+
+What they achieve on benchmarks never seen is measured by ``python -m
+benchmarks.real_photos`` (docs/confidence.md); here the pieces: the
+logistic fit, the ROC area, the threshold rule, the shipped file, and that
+the product computes for one photograph exactly the inputs the training
+computed for it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recovery import confidence as C
+from recovery import learned as L
+
+from .conftest import SHARED, unavailable
+
+REAL = SHARED / "data" / "real"
+
+
+def test_logistic_fit_recovers_the_law_it_was_drawn_from():
+    """20,000 draws from a known logistic law in two inputs: the maximum
+    likelihood fit is within 4 standard errors (each about 0.03 here) of
+    the truth, and the same on a second call (deterministic)."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(20000, 2))
+    truth = np.array([0.5, 1.5, -1.0])
+    y = rng.uniform(size=20000) < 1 / (1 + np.exp(-(truth[0] + x @ truth[1:])))
+    c = C.fit_logistic(x, y, l2=0.0)
+    p = 1 / (1 + np.exp(-(c[0] + x @ c[1:])))
+    X = np.c_[np.ones(len(x)), x]
+    se = np.sqrt(np.diag(np.linalg.inv((X * (p * (1 - p))[:, None]).T @ X)))
+    assert np.all(np.abs(c - truth) < 4 * se), (c, se)
+    np.testing.assert_array_equal(c, C.fit_logistic(x, y, l2=0.0))
+
+
+def test_auroc_is_the_share_of_positive_negative_pairs_ranked_right():
+    rng = np.random.default_rng(2)
+    s = rng.normal(size=300).round(1)              # ties
+    pos = rng.uniform(size=300) < 0.3
+    pairs = [(a > b) + 0.5 * (a == b) for a in s[pos] for b in s[~pos]]
+    assert C.auroc(s, pos) == pytest.approx(np.mean(pairs), abs=1e-12)
+    assert C.auroc(-s, pos) == pytest.approx(1 - np.mean(pairs), abs=1e-12)
+
+
+def test_threshold_flags_at_most_the_share_allowed_in_every_group():
+    rng = np.random.default_rng(3)
+    conf = rng.uniform(size=1000)
+    groups = np.where(np.arange(1000) < 400, "a", "b")
+    failed = conf < 0.2
+    t, rec = C.choose_threshold(conf, failed, groups, max_flag=0.15)
+    for g in ("a", "b"):
+        assert np.mean(conf[groups == g] < t) <= 0.15
+        assert rec[g]["flagged"] <= 0.15
+    # the largest such threshold: one step up breaks the bound in some group
+    above = np.unique(np.round(conf, 4))
+    nxt = above[above > t]
+    if nxt.size:
+        assert max(np.mean(conf[groups == g] < nxt[0]) for g in ("a", "b")) > 0.15
+
+
+def test_the_shipped_confidence_says_what_it_was_fitted_on():
+    fm = C.load_flag_model()
+    assert fm is not None, "recovery/data/learned_confidence.json is missing (python -m benchmarks.train_illuminant)"
+    assert fm.names == C.INPUT_NAMES and len(fm.coef) == len(C.INPUT_NAMES) + 1
+    assert 0.0 < fm.threshold < 1.0
+    assert "inner leave-one-benchmark-out" in fm.info["fitted_on"]
+    assert set(fm.peers) == {"gray-world", "white-patch", "shades-of-gray", "gray-edge"}
+    assert all(0.0 < v < 1.0 for v in fm.peers.values())
+
+
+def test_the_product_computes_the_inputs_the_training_computed():
+    """For real thumbnails, :func:`recovery.learned.estimate_learned` (the
+    product, one image) and :func:`benchmarks.train_illuminant.flag_inputs`
+    (the training, all images at once) give the same confidence inputs and
+    so the same confidence (to rounding)."""
+    for f in ("cubeplus.npz", "cameras.json"):
+        if not (REAL / f).is_file():
+            unavailable(f"{REAL / f} is absent (the development photographs are not next to the project)")
+    from benchmarks.realdata import load_real, usable_mask
+    from benchmarks.train_illuminant import dataset_features, dataset_regions, flag_inputs, predict
+
+    rs = load_real(REAL, benchmarks=["Cube+"])
+    rs = rs.subset(np.arange(0, len(rs.truth), 200))
+    feats, _, _, gam = dataset_features(rs)
+    regions = dataset_regions(rs)
+    model, fm = L.load_model(), C.load_flag_model()
+    rows = np.flatnonzero(np.all(np.isfinite(feats), axis=(1, 2)))
+    x = flag_inputs(model, feats, predict(model, feats[rows], gam[rows]), gam, regions, rows)
+    for j, i in enumerate(rows):
+        res = L.estimate_learned(rs.images[i], usable_mask(rs.images[i]), rs.matrices[rs.camera[i]], model)
+        got = np.array([res.diagnostics["flag_inputs"][n] for n in fm.names])
+        np.testing.assert_allclose(got, x[j], rtol=1e-9, atol=1e-9)
+        assert res.confidence == pytest.approx(float(fm.confidence(x[j])[0]), abs=1e-9)
+
+
+def test_a_batch_lists_its_flagged_items_first_and_the_cli_names_them(tmp_path, monkeypatch):
+    """Issue 27, item 4: a batch of a chart scene and a DNG black but for one
+    2x2 cell (a fallback, flagged): ``GET /v1/batches/{id}`` lists the
+    flagged item first (keeping its index) and names it; the CLI's summary
+    names it too."""
+    import io
+    import time
+
+    from fastapi.testclient import TestClient
+
+    from service import cli
+    from service.settings import get_settings
+    from testing.dngwriter import scene_dng, write_dng
+
+    monkeypatch.setenv("WANDELL_DATA_DIR", str(tmp_path / "data"))
+    get_settings.cache_clear()
+    good = io.BytesIO()
+    scene_dng(good, "Nikon 5100 (NPL)", "D65", 96, 144, seed=1, layout="mondrian", surfaces="all")
+    cfa = np.zeros((64, 96), np.uint16)
+    cfa[30:32, 40:42] = [[40000, 9000], [9000, 3000]]
+    bad = io.BytesIO()
+    write_dng(bad, cfa)
+    from service.app import app
+
+    try:
+        with TestClient(app) as c:
+            r = c.post("/v1/batches", data={"format": "png"},
+                       files=[("files", ("chart.dng", good.getvalue())), ("files", ("onecell.dng", bad.getvalue()))])
+            assert r.status_code == 202, r.text
+            bid = r.json()["id"]
+            t_end = time.monotonic() + 180
+            while True:
+                doc = c.get(f"/v1/batches/{bid}").json()
+                if doc["status"] not in ("queued", "running") or time.monotonic() > t_end:
+                    break
+                time.sleep(0.2)
+    finally:
+        get_settings.cache_clear()
+    assert doc["status"] == "done", doc
+    items = doc["items"]
+    assert [it["name"] for it in items] == ["onecell.dng", "chart.dng"]
+    assert [it["index"] for it in items] == [1, 0]
+    assert items[0]["illuminant"]["low_confidence"] is True and items[1]["illuminant"]["low_confidence"] is False
+    assert doc["low_confidence"] == ["onecell.dng"]
+    out = io.StringIO()
+    cli._summary([{"name": it["name"], "status": it["status"], "illuminant": it["illuminant"]} for it in items], out)
+    text = out.getvalue()
+    assert "low confidence, check these white balances first (1):\n  onecell.dng\n" in text
