@@ -10,7 +10,7 @@ in its ``Annotated`` metadata (:func:`opt_of`), so the form fields
 (:mod:`service.schemas.forms`) are derived from the models.
 
 >>> Estimation(method="gray-world").estimate_kwargs()
-{'white_level': 1.0, 'spatial': False}
+{'white_level': 1.0, 'spatial': 'auto'}
 >>> Estimation(method="magic")
 Traceback (most recent call last):
 ...
