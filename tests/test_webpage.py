@@ -349,6 +349,15 @@ def test_batch_view_shows_progress_and_items(page, server, tmp_path):
     assert "2 done, 1 failed, 0 pending of 3" in page.inner_text("#batch-status")
     assert page.is_visible("#batch-zip")
     _screenshot(page, tmp_path, "wandell-webpage-batch.png")
+    # issue 29, item 6: the page removes a settled batch (after a confirmation) and the server forgets it
+    bid = httpx.get(server + "/v1/batches", timeout=30).json()["batches"]
+    assert page.is_visible("#batch-remove")
+    page.once("dialog", lambda d: d.accept())
+    page.click("#batch-remove")
+    page.wait_for_selector("#batch-view", state="hidden", timeout=30_000)
+    assert "removed from the server" in page.inner_text("#batch-note")
+    after = {b["id"] for b in httpx.get(server + "/v1/batches", timeout=30).json()["batches"]}
+    assert len(after) == len(bid) - 1
 
 
 def test_phone_width_has_no_horizontal_scroll_and_a_click_sets_the_white(browser, server, tmp_path):

@@ -1276,6 +1276,7 @@ function renderBatch(j) {
   const zip = $("batch-zip");
   zip.hidden = !(settled && done > 0);
   zip.href = `/v1/batches/${encodeURIComponent(j.id)}/zip`;
+  $("batch-remove").hidden = !settled;
   const cancel = $("batch-cancel");
   cancel.hidden = settled;
   cancel.disabled = j.status === "cancelled";
@@ -1307,6 +1308,7 @@ async function startBatch() {
   if (!batchFiles.length) return;
   if (batch && batch.timer) clearTimeout(batch.timer);
   $("batch-error").hidden = true;
+  $("batch-note").hidden = true;
   $("batch-run").disabled = true;
   const fd = new FormData();
   for (const f of batchFiles) fd.append("files", f, f.name);
@@ -1350,6 +1352,33 @@ async function cancelBatch() {
     showError($("batch-error"), err);
     $("batch-cancel").disabled = false;
     $("batch-cancel").textContent = "Cancel";
+  }
+}
+
+// Removes a settled batch and its files from the server (DELETE ?remove=true:
+// a plain DELETE only cancels), after the user confirms.
+async function removeBatch() {
+  if (!batch) return;
+  const mine = batch;
+  if (!window.confirm("Delete this batch and its results from the server? Downloaded files stay.")) return;
+  $("batch-remove").disabled = true;
+  try {
+    const resp = await fetch(`/v1/batches/${encodeURIComponent(mine.id)}?remove=true`, {method: "DELETE"});
+    if (!resp.ok) throw await failure(resp);
+    const j = await resp.json();
+    if (batch !== mine) return;
+    batch = null;
+    $("batch-view").hidden = true;
+    $("batch-remove").hidden = true;
+    $("batch-status").textContent = "";
+    $("batch-error").hidden = true;
+    const note = $("batch-note");
+    note.hidden = false;
+    note.textContent = `Batch removed from the server (${fmt(j.freed_bytes / 1e6, 1)} MB freed).`;
+  } catch (err) {
+    showError($("batch-error"), err);
+  } finally {
+    $("batch-remove").disabled = false;
   }
 }
 
@@ -1416,4 +1445,5 @@ document.addEventListener("DOMContentLoaded", () => {
   dropZone($("batch-drop"), $("batch-files"), chooseBatch);
   $("batch-run").addEventListener("click", startBatch);
   $("batch-cancel").addEventListener("click", cancelBatch);
+  $("batch-remove").addEventListener("click", removeBatch);
 });
