@@ -19,7 +19,7 @@ import threading
 import time
 import zipfile
 
-from fastapi import APIRouter, Depends, File, Form, Path, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Path, Query, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
@@ -444,7 +444,9 @@ def cancel_batch_only(batch_id: str):
 
 @router.delete("/batches/{batch_id}", response_model=BatchDeleted | BatchProgress,
                responses={409: {"description": "cancelled, but running items have not stopped yet: try again"}})
-def delete_batch(batch_id: str, remove: bool = False):
+def delete_batch(batch_id: str, remove: bool = Query(
+        False, description="also delete the batch and its files once it is over (without it a DELETE only "
+                           "cancels, and never deletes results)", examples=[True])):
     """Cancel a batch, as it always did; with ``remove=true``, also remove
     it and its files (inputs and results). Without ``remove`` nothing is
     deleted: the answer is the progress document with ``deleted: false``
