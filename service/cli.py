@@ -281,10 +281,8 @@ def _summary(rows: list[dict], stream, quiet: bool = False) -> None:
     warns = [(names[id(r)], term_safe(w)) for r in rows for w in _warnings_of(r)]
     if warns:
         stream.write("\nwarnings:\n" + "".join(f"  {n}: {t}\n" for n, t in warns))
-    low = [names[id(r)] for r in rows if (r.get("illuminant") or {}).get("low_confidence")]
-    if low:
-        stream.write(f"\nlow confidence, check these white balances first ({len(low)}):\n"
-                     + "".join(f"  {n}\n" for n in low))
+    if low := [names[id(r)] for r in rows if (r.get("illuminant") or {}).get("low_confidence")]:
+        stream.write(f"\nlow confidence, check these white balances first ({len(low)}):\n" + "".join(f"  {n}\n" for n in low))
     stream.write(f"\n{counts['done']} done, {counts['skipped']} skipped (already finished), "
                  f"{counts['failed']} failed, {len(rows)} in all\n")
 
