@@ -249,6 +249,8 @@ class BatchProgress(_Answer):
                                                          "that were not all under one light, with its confidence")
     registration: str | None = Field(None, description="deferred: made while the job store was busy, not yet "
                                                        "registered (every item pending)")
+    low_confidence: list[str] | None = Field(None, description="the items whose light estimate is flagged "
+                                                               "low-confidence (listed first in `items`)")
     deleted: bool | None = Field(None, description="false: a DELETE of an unfinished batch cancels it; "
                                                    "DELETE again once settled to remove it")
 
