@@ -163,7 +163,8 @@ def _learned_light_map(img, m, camera, est, mode: str):
     cam = np.clip(cam, 1e-9, None)
     cam = cam / cam.sum(axis=1, keepdims=True)
     spd0 = np.asarray(est.spectrum, float)
-    spectra = np.array([modulated_spectrum(spd0, camera, c * (camera.response(spd0).sum() / 1.0)) for c in cam])
+    total = float(camera.response(spd0).sum())       # each centre's light at the scene light's scale
+    spectra = np.array([modulated_spectrum(spd0, camera, c * total) for c in cam])
     spectra = spectra / np.where(spectra.mean(axis=1, keepdims=True) > 0, spectra.mean(axis=1, keepdims=True), 1.0)
     gr, gc = fld.shape[:2]
     n = spd0.size
