@@ -58,6 +58,26 @@ def test_field_keeps_the_whole_image_level_and_the_windows_variation_along_their
     assert np.abs((f - uv0) @ np.array([-0.8, 0.6])).max() > 5e-4
 
 
+def test_level_blends_the_whole_image_estimate_with_the_windows_precision_weighted_mean():
+    uv0 = np.array([0.1, 0.4])
+    rng = np.random.default_rng(3)
+    uv = np.array([0.5, 0.3]) + rng.normal(size=(9, 2)) * 0.02
+    var = rng.uniform(1e-4, 1e-3, 9)
+    var[2] = np.nan                                            # an unusable window gets the level
+    ev = _evidence(uv, var)
+    v = np.isfinite(var)
+    m = (uv[v] / var[v, None]).sum(axis=0) / (1.0 / var[v]).sum()
+    for level in (0.0, 0.5, 1.0):
+        fld = LM.light_field(uv0, ev, LM.MixtureSettings(threshold=0, gain=0.75, project=False, level=level))
+        fld = fld.reshape(-1, 2)
+        lev = (1 - level) * uv0 + level * m
+        np.testing.assert_allclose(fld[v], lev + 0.75 * (uv[v] - m), atol=1e-12)
+        np.testing.assert_allclose(fld[2], lev, atol=1e-15)
+    # the windows' own estimates, exactly, at level 1 and gain 1
+    full = LM.light_field(uv0, ev, LM.MixtureSettings(0, 1.0, False, 1.0)).reshape(-1, 2)
+    np.testing.assert_allclose(full[v], uv[v], atol=1e-12)
+
+
 def test_decision_says_one_light_for_agreement_and_a_map_for_a_strong_change():
     K = np.eye(3)
     uv0 = np.array([0.0, 0.0])
