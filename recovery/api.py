@@ -1000,8 +1000,9 @@ class AnalysisResult:
     * ``"prior"`` (the default): the posterior mean under a Gaussian prior
       learnt from 274 measured reflectances (:mod:`recovery.surface_prior`;
       Brainard & Freeman 1997, Shimano 2006), with a band per wavelength
-      (posterior standard deviation) and the expected RMS error per surface
-      (:meth:`surface_estimates`); the light's 90 % region and, for a camera
+      (posterior standard deviation times factors calibrated on reflectance
+      sets left out, ``band_scale``: mean +- 1.645 std is a 90 % band) and the
+      expected RMS error per surface (:meth:`surface_estimates`); the light's 90 % region and, for a camera
       known by its colour matrix or not at all, the spread of 47 measured
       cameras enter by sampling. Reflectances are absolute up to the
       exposure, which is chosen by maximum marginal likelihood under the

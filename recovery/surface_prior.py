@@ -42,6 +42,13 @@ What is uncertain besides the surface enters by sampling
   measured cameras, conditioned on the matrix (a linear constraint), and
   :func:`generic_camera_samples` the same without a matrix.
 
+The posterior band of this model does not hold the truth at its stated
+rate on real surfaces (the prior is learnt from few sets, and the light and
+camera samples are approximations): :func:`calibration_factors` learns a
+factor per wavelength from errors on reflectance sets left out, and
+:func:`calibrate_band` applies it (per kind of camera and light,
+:func:`band_kind`; the shipped factors: :func:`band_scale`).
+
 All functions are pure functions on arrays.
 
 References

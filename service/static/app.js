@@ -1010,7 +1010,8 @@ async function readSurface(x, y) {
     const where = `rows ${rect[0]}–${rect[2]}, columns ${rect[1]}–${rect[3]}`;
     const trust = typeof s.expected_rmse === "number"
       ? `Expected error ${fmt(s.expected_rmse, 3)} (RMS over wavelengths, reflectance 0–1). The shaded band ` +
-        "holds the true reflectance at 90 % of wavelengths (calibrated on measured surfaces kept aside)."
+        "is a 90 % band: at each wavelength it is calibrated to hold the true reflectance 90 % of the time " +
+        "(on measured surfaces kept aside)."
       : "No band: the literal method (eq. 36) gives none.";
     const warn = s.warnings.length ? ` Check: ${s.warnings.join("; ")}.` : "";
     $("surface-words").textContent = `Surface at ${where}, under Auto's light. ${trust}${warn}`;
@@ -1024,7 +1025,7 @@ async function readSurface(x, y) {
 
 function plotReflectance(container, wl, mean, std) {
   container.textContent = "";
-  const W = 320, H = 200, L = 40, R = 8, T = 8, B = 34, Z = 1.6448536269514722;
+  const W = 320, H = 200, L = 40, R = 14, T = 8, B = 34, Z = 1.6448536269514722;
   const svg = el("svg", {viewBox: `0 0 ${W} ${H}`, width: "100%", role: "img", id: "surface-svg",
     "aria-label": "the surface's estimated reflectance with its 90 % band"});
   const lo = mean.map((m, i) => (std ? m - Z * std[i] : m)), hi = mean.map((m, i) => (std ? m + Z * std[i] : m));
