@@ -753,7 +753,7 @@ def band_kind(camera_source: str, has_matrix: bool, light_method: str) -> str:
     return f"{cam}/{'true' if light_method == 'true' else 'estimated'}"
 
 
-def calibration_factors(z, level: float = BAND_LEVEL) -> np.ndarray:
+def calibration_factors(z, level: float = BAND_LEVEL, weights=None) -> np.ndarray:
     """Factors per wavelength that make ``mean +- BAND_Z * factor * std`` hold the truth at ``level``.
 
     Parameters
@@ -762,13 +762,16 @@ def calibration_factors(z, level: float = BAND_LEVEL) -> np.ndarray:
         ``|estimate - truth| / std`` of surfaces kept aside (each learnt
         without the surface's reflectance set).
     level : float
+    weights : (P,) array_like, optional
+        Weight of each surface (e.g. one over its set's size, so that every
+        reflectance set counts the same); default equal.
 
     Returns
     -------
-    (N,) the ``level`` quantile of ``z`` per wavelength over :data:`BAND_Z`
-    (the empirical quantile: on new surfaces from the same population the
-    band then holds the truth at ``level`` up to sampling error; a
-    conformal-prediction reading, Vovk, Gammerman & Shafer 2005).
+    (N,) the weighted ``level`` quantile of ``z`` per wavelength over
+    :data:`BAND_Z` (the empirical quantile: on new surfaces from the same
+    population the band then holds the truth at ``level`` up to sampling
+    error; a conformal-prediction reading, Vovk, Gammerman & Shafer 2005).
 
     Examples
     --------
@@ -778,7 +781,13 @@ def calibration_factors(z, level: float = BAND_LEVEL) -> np.ndarray:
     """
     z = np.asarray(z, float)
     z = np.where(np.isfinite(z), z, np.inf)
-    return np.quantile(z, float(level), axis=0) / BAND_Z
+    w = np.ones(z.shape[0]) if weights is None else np.asarray(weights, float)
+    order = np.argsort(z, axis=0)
+    zs = np.take_along_axis(z, order, axis=0)
+    cw = np.cumsum(w[order], axis=0)
+    cw /= cw[-1:]
+    k = np.array([np.searchsorted(cw[:, j], float(level)) for j in range(z.shape[1])])
+    return zs[np.minimum(k, z.shape[0] - 1), np.arange(z.shape[1])] / BAND_Z
 
 
 def band_scale(kind: str, wavelengths) -> np.ndarray | None:
