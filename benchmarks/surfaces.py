@@ -489,6 +489,9 @@ def write_calibration(shipped, path=CALIBRATION_JSON) -> None:
                        "other sets; 6 measured cameras (measured), 3 matrix-described cameras (matrix), the generic "
                        "camera; D65, A, FL2, LED-B3; the true light and auto's estimate"),
     }, indent=1) + "\n")
+    from models import surface_data
+
+    surface_data._calibration_file.cache_clear()          # the timing below reads the new factors
 
 
 def per_set(rec, key):

@@ -100,6 +100,14 @@ def camera_set(wavelengths=None) -> tuple[list[str], np.ndarray]:
     return [str(n) for n in d["names"]], np.swapaxes(_on(d["wavelengths"], sens, wavelengths), 1, 2)
 
 
+@functools.lru_cache(maxsize=1)
+def _calibration_file() -> dict | None:
+    import json
+
+    f = _DATA / "surface_band_scale.json"
+    return json.loads(f.read_text()) if f.exists() else None
+
+
 def band_calibration(wavelengths=None) -> dict:
     """Band calibration factors of the surface prior, per camera kind and light.
 
@@ -119,12 +127,9 @@ def band_calibration(wavelengths=None) -> dict:
     >>> sorted(band_calibration()["scale"])[:2]
     ['generic/estimated', 'generic/true']
     """
-    import json
-
-    f = _DATA / "surface_band_scale.json"
-    if not f.exists():
+    d = _calibration_file()
+    if d is None:
         return {"level": 0.9, "z": 1.6448536269514722, "scale": {}, "provenance": "none (file absent)"}
-    d = json.loads(f.read_text())
     wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
     src = np.asarray(d["wavelengths"], float)
     return {"level": float(d["level"]), "z": float(d["z"]), "provenance": d["provenance"],
