@@ -5,8 +5,8 @@ The learnt estimator's 90 % region (:mod:`recovery.learned`) grows with
 one number, the spread of the classical estimates about the answer; it is
 calibrated for coverage, but as a *ranking* of the failures it is weak
 (area under the ROC curve for errors above 6 degrees 0.68-0.77 on
-benchmarks never seen; with this module's evidence 0.75-0.79, ``python -m
-benchmarks.real_photos``, docs/confidence.md). This module
+benchmarks never seen; with this module's evidence and law 0.79-0.82,
+``python -m benchmarks.real_photos``, docs/confidence.md). This module
 adds the other evidence that an answer may be wrong, each read from the
 image alone:
 
@@ -33,13 +33,17 @@ image alone:
   added nothing the inner cross-validation could see and cost four more
   feature extractions per estimate.
 
-``P(error < 3 degrees)`` is a logistic regression on these (standardised;
-Newton's method from zero with a small ridge: deterministic), fitted on the
-*out-of-fold* predictions of the training procedure's inner
-leave-one-benchmark-out (each benchmark predicted by a model that never saw
-it), so the probability is calibrated for photographs of benchmarks never
-seen. ``low_confidence`` is ``confidence < threshold``, the threshold chosen
-on the same out-of-fold predictions (:func:`choose_threshold`). Both ship in
+``P(error < 3 degrees)`` is a sum of boosted stumps (:func:`fit_stumps`:
+200 Newton steps of the logistic loss, each a split of one input; a small
+nonlinear law, deterministic) on these, fitted on the *out-of-fold*
+predictions of the training procedure's inner leave-one-benchmark-out (each
+benchmark predicted by a model that never saw it), so the probability is
+calibrated for photographs of benchmarks never seen. A logistic regression
+on the same inputs (:func:`fit_logistic`, the law before) is kept as an
+option: the stumps ranked the failures better in the inner
+cross-validation (docs/confidence.md). ``low_confidence`` is ``confidence <
+threshold``, the threshold chosen on the same out-of-fold predictions
+(:func:`choose_threshold`). Both ship in
 ``recovery/data/learned_confidence.json``, built by ``python -m
 benchmarks.train_illuminant --flag-only`` (the learnt model's own file left
 as it is).
@@ -47,7 +51,8 @@ as it is).
 References
 ----------
 Cox (1958), The regression analysis of binary sequences, JRSS B (logistic
-regression). Platt (1999), Probabilistic outputs for support vector
+regression). Friedman (2001), Greedy function approximation: a gradient
+boosting machine, Annals of Statistics 29(5). Platt (1999), Probabilistic outputs for support vector
 machines (calibrated probabilities from held-out scores). Fawcett (2006),
 An introduction to ROC analysis, Pattern Recognition Letters 27.
 """
