@@ -484,6 +484,7 @@ def select_and_calibrate(rs, feats, tuv, Ks, idx, loc, settings=SETTINGS, log=pr
     if regions is not None:
         x = np.zeros((len(idx), len(C.INPUT_NAMES)))
         averaged = isinstance(ridge, list)
+        models = {}
         for g in groups:
             te = rs.dataset[idx] == g
             if averaged:
@@ -492,7 +493,9 @@ def select_and_calibrate(rs, feats, tuv, Ks, idx, loc, settings=SETTINGS, log=pr
             else:
                 m = fold_models[[float(r) for r in settings["ridge_grid"]].index(float(ridge))][g]
             x[te] = flag_inputs(m, feats, uv[te], gam, regions, idx[te])
+            models[g] = m
         oof["x"] = x
+        oof["models"] = models          # benchmark -> the estimator that predicted it (benchmarks.flag_variants)
     return ridge, sigma, conf, {"inner_mean_error_by_ridge": record, "chosen_ridge": ridge}, oof
 
 
