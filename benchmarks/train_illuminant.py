@@ -530,11 +530,11 @@ def outside_calibration(rs, feats, tuv, Ks, idx, gam, settings=SETTINGS, min_ima
 #: ``stumps``: the law is boosted stumps (:func:`recovery.confidence.fit_stumps`)
 #: instead of the logistic regression (``None``): chosen on the inner
 #: cross-validation, not on any left-out figure (docs/confidence.md, "Choosing
-#: the model"): the stumps' inner AUROC (errors above 6 degrees) by
-#: leave-one-camera-out within each outer fold's training benchmarks 0.785
-#: against the logistic law's 0.774, by leave-one-benchmark-out 0.770 against
-#: 0.770; the rounds (200 of 50, 100, 200, 400) by the inner
-#: leave-one-benchmark-out.
+#: the model"; ``python -m benchmarks.flag_variants``): the stumps' inner AUROC
+#: (errors above 6 degrees) by leave-one-camera-out within each outer fold's
+#: training benchmarks 0.786 against the logistic law's 0.773, by
+#: leave-one-benchmark-out 0.770 against 0.770; the rounds (200 of 50, 100,
+#: 200, 400) by the inner leave-one-benchmark-out.
 FLAG_SETTINGS = {"l2": 1e-3, "max_flag": 0.15, "stumps": {"rounds": 200, "rate": 0.1, "bins": 32, "lam": 1.0}}
 
 
