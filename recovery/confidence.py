@@ -5,8 +5,8 @@ The learnt estimator's 90 % region (:mod:`recovery.learned`) grows with
 one number, the spread of the classical estimates about the answer; it is
 calibrated for coverage, but as a *ranking* of the failures it is weak
 (area under the ROC curve for errors above 6 degrees 0.68-0.77 on
-benchmarks never seen; with this module's evidence 0.75-0.79, ``python -m
-benchmarks.real_photos``, docs/confidence.md). This module
+benchmarks never seen; with this module's evidence and law 0.79-0.82,
+``python -m benchmarks.real_photos``, docs/confidence.md). This module
 adds the other evidence that an answer may be wrong, each read from the
 image alone:
 
@@ -33,13 +33,17 @@ image alone:
   added nothing the inner cross-validation could see and cost four more
   feature extractions per estimate.
 
-``P(error < 3 degrees)`` is a logistic regression on these (standardised;
-Newton's method from zero with a small ridge: deterministic), fitted on the
-*out-of-fold* predictions of the training procedure's inner
-leave-one-benchmark-out (each benchmark predicted by a model that never saw
-it), so the probability is calibrated for photographs of benchmarks never
-seen. ``low_confidence`` is ``confidence < threshold``, the threshold chosen
-on the same out-of-fold predictions (:func:`choose_threshold`). Both ship in
+``P(error < 3 degrees)`` is a sum of boosted stumps (:func:`fit_stumps`:
+200 Newton steps of the logistic loss, each a split of one input; a small
+nonlinear law, deterministic) on these, fitted on the *out-of-fold*
+predictions of the training procedure's inner leave-one-benchmark-out (each
+benchmark predicted by a model that never saw it), so the probability is
+calibrated for photographs of benchmarks never seen. A logistic regression
+on the same inputs (:func:`fit_logistic`, the law before) is kept as an
+option: the stumps ranked the failures better in the inner
+cross-validation (docs/confidence.md). ``low_confidence`` is ``confidence <
+threshold``, the threshold chosen on the same out-of-fold predictions
+(:func:`choose_threshold`). Both ship in
 ``recovery/data/learned_confidence.json``, built by ``python -m
 benchmarks.train_illuminant --flag-only`` (the learnt model's own file left
 as it is).
@@ -47,7 +51,8 @@ as it is).
 References
 ----------
 Cox (1958), The regression analysis of binary sequences, JRSS B (logistic
-regression). Platt (1999), Probabilistic outputs for support vector
+regression). Friedman (2001), Greedy function approximation: a gradient
+boosting machine, Annals of Statistics 29(5). Platt (1999), Probabilistic outputs for support vector
 machines (calibrated probabilities from held-out scores). Fawcett (2006),
 An introduction to ROC analysis, Pattern Recognition Letters 27.
 """
@@ -61,7 +66,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["INPUT_NAMES", "FlagModel", "confidence_inputs", "fit_logistic", "choose_threshold", "auroc",
+__all__ = ["INPUT_NAMES", "FlagModel", "confidence_inputs", "fit_logistic", "fit_stumps", "stump_score",
+           "choose_threshold", "auroc",
            "load_flag_model", "DEFAULT_FLAG_PATH", "quadrants", "region_estimates"]
 
 DEFAULT_FLAG_PATH = Path(__file__).with_name("data") / "learned_confidence.json"
@@ -211,6 +217,68 @@ def choose_threshold(conf, failed, groups, max_flag: float = 0.15) -> tuple[floa
     return best, rec
 
 
+def fit_stumps(x, y, weights=None, rounds: int = 200, rate: float = 0.1, bins: int = 32,
+               lam: float = 1.0) -> tuple[float, np.ndarray]:
+    """Gradient-boosted stumps for the log-odds of ``y`` (0/1) on ``x`` (N, k):
+    ``rounds`` Newton steps of the weighted logistic loss, each a split of
+    one input at one of its ``bins - 1`` inner quantiles (the split of
+    largest gain, the leaves' values ``-G / (H + lam)`` shrunk by ``rate``).
+    Deterministic (no sampling; ties in gain go to the first input and
+    split). The weights are rescaled to average 1, so ``lam`` is worth
+    ``lam`` photographs of average weight.
+
+    Returns ``(constant, stumps)``, ``stumps`` (rounds, 4): input index,
+    threshold, value below it, value at or above it (:func:`stump_score`).
+
+    References
+    ----------
+    Friedman (2001), Greedy function approximation: a gradient boosting
+    machine, Annals of Statistics 29(5). Chen & Guestrin (2016), XGBoost,
+    KDD (the Newton step and its ``lam``).
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    w = np.ones(len(y)) if weights is None else np.asarray(weights, float)
+    w = w / w.mean()
+    n, k = x.shape
+    edges = [np.unique(np.quantile(x[:, j], np.linspace(0.0, 1.0, bins + 1)[1:-1])) for j in range(k)]
+    b = np.stack([np.searchsorted(edges[j], x[:, j], side="right") for j in range(k)], axis=1)
+    p0 = float(np.clip(np.average(y, weights=w), 1e-3, 1 - 1e-3))
+    c0 = float(np.log(p0 / (1 - p0)))
+    f = np.full(n, c0)
+    out = np.zeros((rounds, 4))
+    for r in range(rounds):
+        p = 1.0 / (1.0 + np.exp(-f))
+        g, h = w * (p - y), w * p * (1 - p)
+        best = None
+        for j in range(k):
+            m = len(edges[j]) + 1
+            if m < 2:
+                continue
+            G, H = np.bincount(b[:, j], g, m), np.bincount(b[:, j], h, m)
+            gl, hl = np.cumsum(G)[:-1], np.cumsum(H)[:-1]
+            gr, hr = G.sum() - gl, H.sum() - hl
+            gain = gl ** 2 / (hl + lam) + gr ** 2 / (hr + lam)
+            t = int(np.argmax(gain))
+            if best is None or gain[t] > best[0]:
+                best = (gain[t], j, t, -gl[t] / (hl[t] + lam), -gr[t] / (hr[t] + lam))
+        if best is None:
+            return c0, out[:r]
+        _, j, t, vl, vr = best
+        out[r] = (j, edges[j][t], rate * vl, rate * vr)
+        f += np.where(b[:, j] <= t, rate * vl, rate * vr)
+    return c0, out
+
+
+def stump_score(x, constant: float, stumps) -> np.ndarray:
+    """(N,) log-odds of :func:`fit_stumps`' model at inputs ``x`` (N, k)."""
+    x = np.atleast_2d(np.asarray(x, float))
+    st = np.asarray(stumps, float).reshape(-1, 4)
+    v = np.where(x[:, st[:, 0].astype(int)] < st[:, 1], st[:, 2], st[:, 3])
+    # summed in the stumps' order from the constant (a running sum: the same bits as adding one by one)
+    return np.cumsum(np.c_[np.full(len(x), float(constant)), v], axis=1)[:, -1]
+
+
 @dataclass(frozen=True)
 class FlagModel:
     """The calibrated confidence and the flag (see the module docstring).
@@ -218,12 +286,15 @@ class FlagModel:
     Attributes
     ----------
     names : the inputs (:data:`INPUT_NAMES`)
-    mean, scale : (k,) their standardisation
-    coef : (k + 1,) the logistic law of P(error < 3 deg) on the standardised inputs
+    mean, scale : (k,) their standardisation (the logistic law's)
+    coef : (k + 1,) the logistic law of P(error < 3 deg) on the standardised
+        inputs; with ``stumps``, ``[constant]`` of the boosted stumps
     threshold : confidence below which an estimate is flagged
     peers : method -> P(error < 3 deg) of a classical estimator on the
         development photographs (the confidence a requested peer reports)
     info : what it was fitted on, and how
+    stumps : (R, 4) boosted stumps (:func:`fit_stumps`) on the raw inputs, or
+        None for the logistic law
     """
 
     names: tuple
@@ -233,37 +304,53 @@ class FlagModel:
     threshold: float
     peers: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict, compare=False)
+    stumps: np.ndarray | None = None
 
     def confidence(self, x) -> np.ndarray:
         """(N,) P(error < 3 deg) for inputs (N, k) (:func:`confidence_inputs`)."""
-        z = (np.atleast_2d(np.asarray(x, float)) - self.mean) / self.scale
-        return 1.0 / (1.0 + np.exp(-(self.coef[0] + z @ self.coef[1:])))
+        x = np.atleast_2d(np.asarray(x, float))
+        if self.stumps is not None:
+            a = stump_score(x, float(self.coef[0]), self.stumps)
+        else:
+            a = self.coef[0] + ((x - self.mean) / self.scale) @ self.coef[1:]
+        return 1.0 / (1.0 + np.exp(-np.clip(a, -50.0, 50.0)))
 
     def to_json(self) -> str:
-        return json.dumps({"names": list(self.names), "mean": list(map(float, self.mean)),
-                           "scale": list(map(float, self.scale)), "coef": list(map(float, self.coef)),
-                           "threshold": float(self.threshold), "peers": {k: float(v) for k, v in self.peers.items()},
-                           "info": self.info}, indent=1, sort_keys=True)
+        d = {"names": list(self.names), "mean": list(map(float, self.mean)),
+             "scale": list(map(float, self.scale)), "coef": list(map(float, self.coef)),
+             "threshold": float(self.threshold), "peers": {k: float(v) for k, v in self.peers.items()},
+             "info": self.info}
+        if self.stumps is not None:
+            d["stumps"] = [[int(j), float(t), float(lo), float(hi)] for j, t, lo, hi in np.asarray(self.stumps)]
+        return json.dumps(d, indent=1, sort_keys=True)
 
     @classmethod
     def from_json(cls, text: str) -> "FlagModel":
         d = json.loads(text)
+        st = d.get("stumps")
         return cls(tuple(d["names"]), np.asarray(d["mean"], float), np.asarray(d["scale"], float),
-                   np.asarray(d["coef"], float), float(d["threshold"]), dict(d.get("peers", {})), d.get("info", {}))
+                   np.asarray(d["coef"], float), float(d["threshold"]), dict(d.get("peers", {})), d.get("info", {}),
+                   None if st is None else np.asarray(st, float).reshape(-1, 4))
 
 
 def fit_flag_model(x, ok3, failed, groups, weights=None, l2: float = 1e-3, max_flag: float = 0.15,
-                   peers=None, info=None) -> FlagModel:
+                   peers=None, info=None, stumps: dict | None = None) -> FlagModel:
     """Fit :class:`FlagModel` on out-of-fold inputs ``x`` (N, k), outcomes
     ``ok3`` (error under 3 degrees) and ``failed`` (above 6), the threshold
-    by :func:`choose_threshold` per group (benchmark)."""
+    by :func:`choose_threshold` per group (benchmark): the logistic law
+    (ridge ``l2``), or with ``stumps`` (keyword arguments of
+    :func:`fit_stumps`) boosted stumps."""
     x = np.asarray(x, float)
     mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-9
-    coef = fit_logistic((x - mean) / scale, ok3, weights, l2)
-    fm = FlagModel(tuple(INPUT_NAMES), mean, scale, coef, 0.0, dict(peers or {}), dict(info or {}))
+    if stumps is not None:
+        c0, st = fit_stumps(x, ok3, weights, **stumps)
+        coef, st = np.array([c0]), st
+    else:
+        coef, st = fit_logistic((x - mean) / scale, ok3, weights, l2), None
+    fm = FlagModel(tuple(INPUT_NAMES), mean, scale, coef, 0.0, dict(peers or {}), dict(info or {}), st)
     t, rec = choose_threshold(fm.confidence(x), failed, groups, max_flag)
     return FlagModel(fm.names, mean, scale, coef, t, fm.peers, {**fm.info, "threshold_choice": rec,
-                                                                 "max_flag_rate": max_flag, "l2": l2})
+                                                                 "max_flag_rate": max_flag, "l2": l2}, st)
 
 
 @lru_cache(maxsize=4)

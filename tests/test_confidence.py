@@ -2,7 +2,7 @@
 
 What they achieve on benchmarks never seen is measured by ``python -m
 benchmarks.real_photos`` (docs/confidence.md); here the pieces: the
-logistic fit, the ROC area, the threshold rule, the shipped file, and that
+logistic fit, the boosted stumps, the ROC area, the threshold rule, the shipped file, and that
 the product computes for one photograph exactly the inputs the training
 computed for it."""
 
@@ -60,10 +60,59 @@ def test_threshold_flags_at_most_the_share_allowed_in_every_group():
         assert max(np.mean(conf[groups == g] < nxt[0]) for g in ("a", "b")) > 0.15
 
 
+def test_boosted_stumps_recover_a_step_law_and_ignore_noise():
+    """20,000 draws whose P(y) is 0.8 above 0 of the first input and 0.2
+    below, with three inputs of noise: the stumps' probabilities in each
+    half are within 4 binomial standard errors (about 0.004) plus the
+    leaves' shrinkage left after 200 rounds (under 0.01) of the truth, the
+    first split is on the first input within 0.1 of 0 (its 32 quantile
+    bins are 0.08 wide near 0), and the fit is the same on a second call."""
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(20000, 4))
+    y = rng.uniform(size=20000) < np.where(x[:, 0] > 0, 0.8, 0.2)
+    c0, st = C.fit_stumps(x, y)
+    p = 1 / (1 + np.exp(-C.stump_score(x, c0, st)))
+    for half, truth in ((x[:, 0] > 0.3, 0.8), (x[:, 0] < -0.3, 0.2)):
+        se = np.sqrt(truth * (1 - truth) / half.sum())
+        assert abs(p[half].mean() - truth) < 4 * se + 0.01, (p[half].mean(), truth)
+    assert int(st[0, 0]) == 0 and abs(st[0, 1]) < 0.1
+    c1, st1 = C.fit_stumps(x, y)
+    assert c1 == c0
+    np.testing.assert_array_equal(st1, st)
+
+
+def test_stump_scores_are_the_stumps_added_one_by_one():
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(500, 3))
+    c0, st = C.fit_stumps(x, x[:, 1] + rng.normal(size=500) > 0, rounds=50)
+    f = np.full(len(x), c0)
+    for j, thr, lo, hi in st:
+        f += np.where(x[:, int(j)] < thr, lo, hi)
+    np.testing.assert_array_equal(C.stump_score(x, c0, st), f)
+
+
+def test_the_confidence_is_a_finite_probability_whatever_the_inputs():
+    """The shipped law on extreme and ordinary inputs: finite, in [0, 1];
+    its JSON round trip gives the same numbers."""
+    fm = C.load_flag_model()
+    assert fm is not None
+    k = len(fm.names)
+    x = np.vstack([np.full(k, 1e300), np.full(k, -1e300), np.zeros(k), fm.mean,
+                   np.random.default_rng(6).normal(fm.mean, 10 * fm.scale, (200, k))])
+    c = fm.confidence(x)
+    assert np.all(np.isfinite(c)) and np.all((c >= 0) & (c <= 1))
+    np.testing.assert_array_equal(C.FlagModel.from_json(fm.to_json()).confidence(x), c)
+
+
 def test_the_shipped_confidence_says_what_it_was_fitted_on():
     fm = C.load_flag_model()
     assert fm is not None, "recovery/data/learned_confidence.json is missing (python -m benchmarks.train_illuminant)"
-    assert fm.names == C.INPUT_NAMES and len(fm.coef) == len(C.INPUT_NAMES) + 1
+    assert fm.names == C.INPUT_NAMES
+    if fm.stumps is None:
+        assert len(fm.coef) == len(C.INPUT_NAMES) + 1
+    else:
+        assert len(fm.coef) == 1 and fm.stumps.shape[1] == 4
+        assert set(fm.stumps[:, 0].astype(int)) <= set(range(len(C.INPUT_NAMES)))
     assert 0.0 < fm.threshold < 1.0
     assert "inner leave-one-benchmark-out" in fm.info["fitted_on"]
     assert set(fm.peers) == {"gray-world", "white-patch", "shades-of-gray", "gray-edge"}

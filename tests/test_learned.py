@@ -453,13 +453,25 @@ def test_rebuilding_the_model_gives_the_shipped_one(real):
     leave a million times that for other libm/SIMD builds of tanh and exp,
     and are still far below anything an estimate could show."""
     from benchmarks.realdata import usable_mask
-    from benchmarks.train_illuminant import shipped_model, single_threaded
+    from benchmarks.train_illuminant import dataset_regions, shipped_model, single_threaded
+    from recovery.confidence import load_flag_model
 
     rs, feats, tuv, Ks, gam = real
     with single_threaded():
-        new = shipped_model(rs, feats, tuv, Ks, log=lambda s: None, gam=gam)
+        new = shipped_model(rs, feats, tuv, Ks, log=lambda s: None, gam=gam, regions=dataset_regions(rs))
     old = L.load_model()
     assert new.info["selection"] == old.info["selection"]
+    # the confidence and flag (recovery/data/learned_confidence.json, `--flag-only`) rebuilt with it: the
+    # same threshold and stumps (their inputs, thresholds and values to rounding), so the same confidences
+    flag = load_flag_model()
+    assert new.flag is not None and flag is not None
+    assert new.flag.threshold == flag.threshold
+    assert (new.flag.stumps is None) == (flag.stumps is None)
+    if flag.stumps is not None:
+        assert new.flag.stumps.shape == flag.stumps.shape
+        np.testing.assert_array_equal(new.flag.stumps[:, 0], flag.stumps[:, 0])
+        np.testing.assert_allclose(new.flag.stumps[:, 1:], flag.stumps[:, 1:], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(new.flag.coef, flag.coef, rtol=1e-9, atol=1e-12)
     for i in range(0, len(rs.truth), 251):
         m = rs.matrices[rs.camera[i]]
         try:
