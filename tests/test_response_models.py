@@ -8,6 +8,7 @@ without Sphinx roles, and an unknown form or query field is a 422 naming it
 from __future__ import annotations
 
 import io
+import json
 import re
 import time
 import typing
@@ -182,3 +183,73 @@ def test_the_web_pages_own_forms_still_pass(client, dng):
     r = client.post("/v1/batches", files=[("files", ("a.dng", dng))],
                     data={**opts, "format": "jpeg", "target": "D65", "lighting": "per-image"})
     assert r.status_code == 202, r.text
+
+
+def _refs(obj) -> set[str]:
+    """The component names an OpenAPI fragment refers to."""
+    if isinstance(obj, dict):
+        out = {obj["$ref"].split("/")[-1]} if isinstance(obj.get("$ref"), str) else set()
+        return out.union(*(_refs(v) for v in obj.values()))
+    if isinstance(obj, list):
+        return set().union(*(_refs(v) for v in obj))
+    return set()
+
+
+def response_components(spec) -> set[str]:
+    """Every component schema an answer's body or header uses, nested ones too."""
+    comps = spec["components"]["schemas"]
+    todo = _refs([op.get("responses", {}) for ops in spec["paths"].values() for op in ops.values()])
+    seen: set[str] = set()
+    while todo:
+        name = todo.pop()
+        if name not in seen:
+            seen.add(name)
+            todo |= _refs(comps[name]) - seen
+    return seen
+
+
+def test_every_response_model_has_real_examples_that_validate(client):
+    """Issue 29, item 4: ``/docs`` shows an example for every JSON answer
+    (analyze, white-balance and its X-Illuminant header, surfaces, render,
+    batches and their items, errors), and each example is its own model's:
+    it validates and declares no undeclared key, so an example cannot drift
+    from the model (and the model not from the real answers, above)."""
+    spec = client.get("/openapi.json").json()
+    comps = spec["components"]["schemas"]
+    used = response_components(spec)
+    models = {n for n, m in vars(R).items() if isinstance(m, type) and issubclass(m, R._Answer) and m is not R._Answer}
+    assert models <= used, models - used            # every response model is in the document
+    assert {"AnalyzeResult", "WhiteBalanceResult", "IlluminantHeader", "EstimateSummary", "SurfacesResult",
+            "RenderReport", "BatchCreated", "BatchProgress", "BatchItem", "BatchDeleted", "BatchList", "ErrorBody"} <= used
+    for name in sorted(used):
+        examples = comps[name].get("examples")
+        assert examples, f"{name} has no example"
+        for ex in examples:
+            model = getattr(R, name, None)
+            if model is not None:
+                _check(model, ex)
+            else:
+                assert name == "ErrorBody", name
+                assert set(ex) == {"error", "detail"} and all(isinstance(v, str) and v for v in ex.values())
+    header = spec["paths"]["/v1/white-balance"]["post"]["responses"]["200"]["headers"]["X-Illuminant"]
+    assert [r["$ref"].split("/")[-1] for r in header["schema"]["contentSchema"]["anyOf"]] == [
+        "IlluminantHeader", "EstimateSummary"]
+    _check(R.IlluminantHeader, json.loads(header["example"]))
+
+
+def test_the_x_illuminant_header_is_its_model(client, dng):
+    f = {"file": ("a.dng", dng)}
+    for data in ({"format": "png"}, {"format": "xmp"}, {"format": "jpeg", "neutral": "[10, 10, 40, 40]"}):
+        r = client.post("/v1/white-balance", files=f, data=data)
+        assert r.status_code == 200, r.text
+        model = R.EstimateSummary if data["format"] == "xmp" else R.IlluminantHeader
+        _check(model, json.loads(r.headers["X-Illuminant"]))
+
+
+def test_a_bad_example_is_caught():
+    """The checks above can fail: a wrong type, a key the model lacks."""
+    good = R.AnalyzeResult.model_config["json_schema_extra"]["examples"][0]
+    with pytest.raises(Exception):
+        _check(R.AnalyzeResult, {**good, "illuminant": {**good["illuminant"], "cct": "warm"}})
+    with pytest.raises(AssertionError):
+        _check(R.AnalyzeResult, {**good, "colour": 1})

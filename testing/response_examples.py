@@ -1,0 +1,162 @@
+"""Regenerate ``service/schemas/examples.py``: the examples ``/openapi.json``
+and ``/docs`` show for the JSON answers, taken from real answers of the real
+app (issue 29, item 4).
+
+Run from the repository root::
+
+    .venv/bin/python -m testing.response_examples
+
+It posts the real CinemaDNG (``../shared/data/raw/Blackmagic.dng``) to
+``/v1/analyze``, ``/v1/white-balance`` (``response=json``, and a JPEG and an
+XMP sidecar for their ``X-Illuminant`` headers) and ``/v1/surfaces``; the ColorChecker's
+reflectances (BabelColor average, 4 x 6 patches) to ``/v1/render``; runs a
+batch of the CinemaDNG and the scanner's NEF (which fails: not a camera
+RAW), lists, removes and cancels batches; and keeps one error answer. The
+answers are trimmed, never invented: numbers rounded to 4 significant
+digits, spectra kept every 20 nm, long lists cut to their first entries.
+Batch store: a temporary directory (``WANDELL_DATA_DIR``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+OUT = ROOT / "service" / "schemas" / "examples.py"
+
+#: A list longer than this is cut to its first entries (spectra are subsampled instead).
+MAX_LIST = 6
+
+
+def _round(x):
+    if isinstance(x, float) and abs(x) > 1e8:      # epoch seconds: tenths
+        return round(x, 1)
+    if isinstance(x, float) and math.isfinite(x) and x != 0:
+        return float(f"{x:.4g}")
+    return x
+
+
+def trim(doc, key: str = ""):
+    """Round floats to 4 significant digits, keep spectra every 20 nm (every
+    other sample of a 10 nm grid; wavelengths alike) and cut other long
+    lists of numbers to their first ``MAX_LIST`` entries."""
+    if isinstance(doc, dict):
+        out = {}
+        wl = doc.get("wavelengths")
+        step = 2 if isinstance(wl, list) and len(wl) > 16 else 1
+        for k, v in doc.items():
+            if step > 1 and isinstance(v, list) and len(v) == len(wl) and k in ("wavelengths", "spectrum",
+                                                                                  "reflectance", "reflectance_std"):
+                v = v[::step]
+            out[k] = trim(v, k)
+        if step > 1:
+            for s in out.get("surfaces", []):
+                for k in ("reflectance", "reflectance_std"):
+                    if isinstance(s.get(k), list) and len(s[k]) == len(wl):
+                        s[k] = s[k][::step]
+        return out
+    if isinstance(doc, list):
+        if len(doc) > MAX_LIST and key not in ("wavelengths", "spectrum", "reflectance", "reflectance_std",
+                                               "nodes_nm", "items", "batches", "surfaces"):
+            doc = doc[:MAX_LIST]
+        return [trim(v) for v in doc]
+    return _round(doc)
+
+
+def collect() -> dict:
+    os.environ["WANDELL_DATA_DIR"] = tempfile.mkdtemp(prefix="wandell-examples-")
+    os.environ.setdefault("WANDELL_ALLOWED_HOSTS", "testserver")   # the TestClient's host
+    from fastapi.testclient import TestClient
+
+    from models import reflectance_set
+    from service.app import app
+
+    dng = (SHARED / "data" / "raw" / "Blackmagic.dng").read_bytes()
+    nef = (SHARED / "data" / "raw" / "Nikon_uncompressed.nef").read_bytes()
+    f = {"file": ("Blackmagic.dng", dng)}
+    ex: dict = {}
+    with TestClient(app) as c:
+        def ok(r, code=200):
+            assert r.status_code == code, (r.status_code, r.text[:500])
+            return r
+
+        ex["AnalyzeResult"] = ok(c.post("/v1/analyze", files=f)).json()
+        ex["AnalyzeResult (light map)"] = ok(c.post("/v1/analyze", files=f, data={"spatial": "true"})).json()
+        ex["WhiteBalanceResult"] = ok(c.post("/v1/white-balance", files=f, data={"response": "json"})).json()
+        r = ok(c.post("/v1/white-balance", files=f, data={"format": "jpeg"}))
+        ex["IlluminantHeader"] = json.loads(r.headers["X-Illuminant"])
+        r = ok(c.post("/v1/white-balance", files=f, data={"format": "xmp"}))
+        ex["EstimateSummary"] = json.loads(r.headers["X-Illuminant"])
+        ex["SurfacesResult"] = ok(c.post("/v1/surfaces", files=f, data={
+            "points": "[[1500, 1000]]", "rects": "[[1900, 200, 2100, 600]]"})).json()
+        wl = list(range(400, 710, 10))
+        cube = reflectance_set("colorchecker", np.array(wl, float)).reshape(4, 6, len(wl))
+        buf = io.BytesIO()
+        np.save(buf, cube)
+        ex["RenderReport"] = ok(c.post("/v1/render", files={"file": ("colorchecker.npy", buf.getvalue())},
+                                       data={"wavelengths": ",".join(map(str, wl)), "illuminant": "D65",
+                                             "response": "json"})).json()
+        r = ok(c.post("/v1/batches", files=[("files", ("Blackmagic.dng", dng)),
+                                            ("files", ("Nikon_uncompressed.nef", nef))],
+                      data={"format": "jpeg"}), 202)
+        ex["BatchCreated"] = r.json()
+        bid = r.json()["id"]
+        t_end = time.monotonic() + 600
+        while not (doc := c.get(f"/v1/batches/{bid}").json())["settled"]:
+            assert time.monotonic() < t_end, doc
+            time.sleep(0.5)
+        ex["BatchProgress"] = doc
+        ex["BatchList"] = ok(c.get("/v1/batches")).json()
+        ex["BatchProgress (DELETE without remove)"] = ok(c.delete(f"/v1/batches/{bid}")).json()
+        ex["BatchDeleted"] = ok(c.delete(f"/v1/batches/{bid}", params={"remove": "true"})).json()
+        ex["ErrorBody"] = ok(c.post("/v1/white-balance", files=f, data={"taget": "A"}), 422).json()
+    shutil.rmtree(os.environ["WANDELL_DATA_DIR"], ignore_errors=True)
+    return {k: trim(v) for k, v in ex.items()}
+
+
+def literal(v, indent: int = 0) -> str:
+    """``v`` as a Python literal: dicts one key a line, lists of numbers or
+    short strings on one line."""
+    pad = " " * (indent + 4)
+    if isinstance(v, dict):
+        if not v:
+            return "{}"
+        return "{\n" + "".join(f"{pad}{k!r}: {literal(x, indent + 4)},\n" for k, x in v.items()) + " " * indent + "}"
+    if isinstance(v, list):
+        flat = "[" + ", ".join(literal(x) for x in v) + "]"
+        if all(not isinstance(x, (dict, list)) for x in v):
+            if len(flat) <= 100:
+                return flat
+            if all(isinstance(x, (int, float)) for x in v):   # numbers: 12 a line
+                rows = [", ".join(literal(x) for x in v[i:i + 12]) for i in range(0, len(v), 12)]
+                return "[\n" + "".join(f"{pad}{r},\n" for r in rows) + " " * indent + "]"
+        return "[\n" + "".join(f"{pad}{literal(x, indent + 4)},\n" for x in v) + " " * indent + "]"
+    return repr(v)
+
+
+def main() -> None:
+    ex = collect()
+    text = literal(ex)
+    OUT.write_text(
+        '"""Examples of the JSON answers, for ``/openapi.json`` and ``/docs``: real\n'
+        "answers of the app on the real CinemaDNG (a ColorChecker cube for\n"
+        "``/v1/render``), trimmed (4 significant digits, spectra every 20 nm, long\n"
+        "lists cut). Generated by ``python -m testing.response_examples``; do not\n"
+        'edit by hand. ``tests/test_response_models.py`` validates each against its model."""\n\n'
+        "# flake8: noqa\n"
+        f"EXAMPLES = {text}\n")
+    print(f"wrote {OUT} ({OUT.stat().st_size} bytes): {', '.join(ex)}")
+
+
+if __name__ == "__main__":
+    main()
