@@ -195,8 +195,17 @@ def enrich(spec: dict) -> dict:
                          "application/json": ok.get("content", {}).get("application/json")
                          or {"schema": {"type": "object"}}}   # WhiteBalanceResult, declared by the router
         ok["headers"] = {"X-Illuminant": _header(("IlluminantHeader", "EstimateSummary"), X_ILLUMINANT, comps)}
+    errors = {code: EXAMPLES[f"ErrorBody {code}"] for code in ("422", "415", "413", "404")
+              if f"ErrorBody {code}" in EXAMPLES}
     if "ErrorBody" in comps:
-        comps["ErrorBody"] = {**comps["ErrorBody"], "examples": [EXAMPLES["ErrorBody"]]}
+        comps["ErrorBody"] = {**comps["ErrorBody"], "examples": list(errors.values())}
+    for ops in spec.get("paths", {}).values():     # each error answer with an example of its own kind
+        for op in ops.values():
+            for code, r in op.get("responses", {}).items():
+                media = r.get("content", {}).get("application/json")
+                ex = errors.get("404" if code == "4XX" else code)
+                if media is not None and media.get("schema", {}).get("$ref") == ERROR_REF and ex is not None:
+                    media["example"] = ex
     return spec
 
 

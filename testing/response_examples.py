@@ -11,7 +11,8 @@ It posts the real CinemaDNG (``../shared/data/raw/Blackmagic.dng``) to
 XMP sidecar for their ``X-Illuminant`` headers) and ``/v1/surfaces``; the ColorChecker's
 reflectances (BabelColor average, 4 x 6 patches) to ``/v1/render``; runs a
 batch of the CinemaDNG and the scanner's NEF (which fails: not a camera
-RAW), lists, removes and cancels batches; and keeps one error answer. The
+RAW), lists, removes and cancels batches; and keeps an error answer of
+each kind the document declares (413 with ``WANDELL_MAX_PIXELS`` lowered). The
 answers are trimmed, never invented: numbers rounded to 4 significant
 digits, spectra kept every 20 nm, long lists cut to their first entries.
 Batch store: a temporary directory (``WANDELL_DATA_DIR``).
@@ -119,7 +120,18 @@ def collect() -> dict:
         ex["BatchList"] = ok(c.get("/v1/batches")).json()
         ex["BatchProgress (DELETE without remove)"] = ok(c.delete(f"/v1/batches/{bid}")).json()
         ex["BatchDeleted"] = ok(c.delete(f"/v1/batches/{bid}", params={"remove": "true"})).json()
-        ex["ErrorBody"] = ok(c.post("/v1/white-balance", files=f, data={"taget": "A"}), 422).json()
+        ex["ErrorBody 422"] = ok(c.post("/v1/white-balance", files=f, data={"taget": "A"}), 422).json()
+        ex["ErrorBody 415"] = ok(c.post("/v1/analyze", files={"file": ("Nikon_uncompressed.nef", nef)}), 415).json()
+        ex["ErrorBody 404"] = ok(c.get(f"/v1/batches/{bid}"), 404).json()
+        from service.settings import get_settings
+
+        os.environ["WANDELL_MAX_PIXELS"] = "4000000"      # the CinemaDNG has 8.98 million
+        get_settings.cache_clear()
+        try:
+            ex["ErrorBody 413"] = ok(c.post("/v1/analyze", files=f), 413).json()
+        finally:
+            del os.environ["WANDELL_MAX_PIXELS"]
+            get_settings.cache_clear()
     shutil.rmtree(os.environ["WANDELL_DATA_DIR"], ignore_errors=True)
     return {k: trim(v) for k, v in ex.items()}
 

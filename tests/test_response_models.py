@@ -231,6 +231,15 @@ def test_every_response_model_has_real_examples_that_validate(client):
             else:
                 assert name == "ErrorBody", name
                 assert set(ex) == {"error", "detail"} and all(isinstance(v, str) and v for v in ex.values())
+    # each error answer shows an error of its own kind (a 413 is not shown as a misspelled field)
+    kinds = {"413": {"file_too_large", "too_large", "too_many_pixels"}, "415": {"not_camera_raw", "unsupported_format"},
+             "422": {"unknown_field", "invalid_parameter"}, "4XX": {"not_found"}}
+    for path, ops in spec["paths"].items():
+        for op in ops.values():
+            for code, r in op["responses"].items():
+                media = r.get("content", {}).get("application/json", {})
+                if media.get("schema", {}).get("$ref", "").endswith("/ErrorBody"):
+                    assert media.get("example", {}).get("error") in kinds[code], (path, code, media.get("example"))
     header = spec["paths"]["/v1/white-balance"]["post"]["responses"]["200"]["headers"]["X-Illuminant"]
     assert [r["$ref"].split("/")[-1] for r in header["schema"]["contentSchema"]["anyOf"]] == [
         "IlluminantHeader", "EstimateSummary"]

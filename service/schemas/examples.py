@@ -98,9 +98,9 @@ EXAMPLES = {
         },
         'warnings': ['approximate: derived from colour matrix'],
         'timings_ms': {
-            'estimate': 1073.0,
-            'decode': 913.8,
-            'total': 2137.0,
+            'estimate': 787.7,
+            'decode': 415.8,
+            'total': 1294.0,
         },
         'image': {
             'kind': 'raw',
@@ -219,9 +219,9 @@ EXAMPLES = {
         },
         'warnings': ['approximate: derived from colour matrix'],
         'timings_ms': {
-            'estimate': 133.2,
-            'decode': 497.7,
-            'total': 663.7,
+            'estimate': 155.1,
+            'decode': 414.1,
+            'total': 588.1,
         },
         'image': {
             'kind': 'raw',
@@ -361,8 +361,8 @@ EXAMPLES = {
         },
         'warnings': ['approximate: derived from colour matrix'],
         'timings_ms': {
-            'estimate': 153.6,
-            'decode': 507.6,
+            'estimate': 103.2,
+            'decode': 342.1,
         },
         'image': {
             'kind': 'raw',
@@ -419,10 +419,10 @@ EXAMPLES = {
         },
         'warnings': ['approximate: derived from colour matrix'],
         'timings_ms': {
-            'estimate': 126.6,
-            'decode': 520.4,
-            'render': 3086.0,
-            'total': 3813.0,
+            'estimate': 87.66,
+            'decode': 357.5,
+            'render': 2250.0,
+            'total': 2731.0,
         },
         'illuminant': {
             'camera_rgb': [0.335, 0.8268, 0.4519],
@@ -655,16 +655,16 @@ EXAMPLES = {
             'bands_chosen_for': 'given light',
         },
         'timings_ms': {
-            'choose': 2601.0,
-            'integrate': 0.1823,
-            'encode': 0.08721,
-            'total': 5659.0,
-            'request': 5664.0,
+            'choose': 1168.0,
+            'integrate': 0.1814,
+            'encode': 0.0759,
+            'total': 2969.0,
+            'request': 2970.0,
         },
         'warnings': [],
     },
     'BatchCreated': {
-        'id': '042ee08873ea472f',
+        'id': '65772d1f030d4c9e',
         'status': 'queued',
         'counts': {
             'done': 0,
@@ -672,10 +672,10 @@ EXAMPLES = {
             'pending': 2,
         },
         'lighting': 'per-image',
-        'url': '/v1/batches/042ee08873ea472f',
+        'url': '/v1/batches/65772d1f030d4c9e',
     },
     'BatchProgress': {
-        'id': '042ee08873ea472f',
+        'id': '65772d1f030d4c9e',
         'status': 'done',
         'settled': True,
         'lighting': 'per-image',
@@ -702,12 +702,12 @@ EXAMPLES = {
             'cancelled': 0,
             'total': 2,
         },
-        'rate_per_minute': 17.59,
+        'rate_per_minute': 24.38,
         'time_left_s': 0.0,
-        'elapsed_s': 6.82,
-        'rate': 17.59,
+        'elapsed_s': 4.923,
+        'rate': 24.38,
         'eta_s': 0.0,
-        'created': 1796292485.8,
+        'created': 1796292616.8,
         'items': [
             {
                 'index': 0,
@@ -725,7 +725,7 @@ EXAMPLES = {
                     'confidence': 0.7042,
                     'low_confidence': False,
                 },
-                'url': '/v1/batches/042ee08873ea472f/items/by-index/0',
+                'url': '/v1/batches/65772d1f030d4c9e/items/by-index/0',
             },
             {
                 'index': 1,
@@ -740,10 +740,10 @@ EXAMPLES = {
     'BatchList': {
         'batches': [
             {
-                'id': '042ee08873ea472f',
+                'id': '65772d1f030d4c9e',
                 'status': 'done',
-                'created': 1796292485.8,
-                'finished': 1796292492.7,
+                'created': 1796292616.8,
+                'finished': 1796292621.8,
                 'counts': {
                     'done': 1,
                     'failed': 1,
@@ -752,16 +752,16 @@ EXAMPLES = {
                     'cancelled': 0,
                     'total': 2,
                 },
-                'bytes': 7439649,
-                'url': '/v1/batches/042ee08873ea472f',
+                'bytes': 7439650,
+                'url': '/v1/batches/65772d1f030d4c9e',
             },
         ],
-        'bytes': 7439649,
+        'bytes': 7439650,
         'result_retention_s': 604800.0,
         'input_retention_s': 86400.0,
     },
     'BatchProgress (DELETE without remove)': {
-        'id': '042ee08873ea472f',
+        'id': '65772d1f030d4c9e',
         'status': 'done',
         'settled': True,
         'lighting': 'per-image',
@@ -788,12 +788,12 @@ EXAMPLES = {
             'cancelled': 0,
             'total': 2,
         },
-        'rate_per_minute': 17.59,
+        'rate_per_minute': 24.38,
         'time_left_s': 0.0,
-        'elapsed_s': 6.82,
-        'rate': 17.59,
+        'elapsed_s': 4.923,
+        'rate': 24.38,
         'eta_s': 0.0,
-        'created': 1796292485.8,
+        'created': 1796292616.8,
         'items': [
             {
                 'index': 0,
@@ -811,7 +811,7 @@ EXAMPLES = {
                     'confidence': 0.7042,
                     'low_confidence': False,
                 },
-                'url': '/v1/batches/042ee08873ea472f/items/by-index/0',
+                'url': '/v1/batches/65772d1f030d4c9e/items/by-index/0',
             },
             {
                 'index': 1,
@@ -826,12 +826,24 @@ EXAMPLES = {
         'note': 'over already: nothing to cancel; DELETE with ?remove=true removes the batch and its files',
     },
     'BatchDeleted': {
-        'id': '042ee08873ea472f',
+        'id': '65772d1f030d4c9e',
         'deleted': True,
-        'freed_bytes': 7439649,
+        'freed_bytes': 7439650,
     },
-    'ErrorBody': {
+    'ErrorBody 422': {
         'error': 'unknown_field',
         'detail': "unknown form field 'taget' (did you mean 'target'?); this endpoint accepts: camera, display_referred, exposure, file, format, light_dim, light_model, method, neutral, output, quality, region_size, response, sensitivities, spatial, surface_dim, surface_model, target, white",
+    },
+    'ErrorBody 415': {
+        'error': 'not_camera_raw',
+        'detail': "'Nikon_uncompressed.nef' is not a camera RAW: a scanned 8-bit RGB image (Nikon COOLSCAN IV ED); it carries no linear sensor data to analyse",
+    },
+    'ErrorBody 404': {
+        'error': 'not_found',
+        'detail': "no batch '65772d1f030d4c9e'",
+    },
+    'ErrorBody 413': {
+        'error': 'too_many_pixels',
+        'detail': "'Blackmagic.dng' declares 4128x2176 pixels (8,982,528 with margins); the limit is 4,000,000",
     },
 }
