@@ -894,11 +894,14 @@ def test_a_light_map_is_shown_as_lights_found_and_a_picture(page, server, tmp_pa
 
 def test_several_picks_are_averaged(page, server, tmp_path):
     """A click picks white there (a mark shows it); Shift-click adds a
-    pick: the white used is the mean chromaticity of the picks' whites, each
-    read by the API (/v1/analyze with that neutral), as Temperature/Tint."""
+    pick: the page sends all picks to the API (``neutral`` a list), which
+    averages them (the mean of each pick's white at unit length), so the
+    page shows what the REST API answers for the same picks: the preview
+    shown is byte for byte /v1/preview's with that list, and the white is
+    the mean of the single picks' whites (1e-6 degrees: floating point)."""
     import httpx
 
-    from recovery.dng_color import temperature_tint_to_xy, xy_to_temperature_tint
+    from recovery import angular_error
 
     dng = _dng(tmp_path / "scene.dng", "D50", 6)
     _open(page, server, dng)
@@ -914,20 +917,27 @@ def test_several_picks_are_averaged(page, server, tmp_path):
     page.keyboard.down("Shift")
     page.mouse.click(v["x"] + points[1][0], v["y"] + points[1][1])
     page.keyboard.up("Shift")
-    page.wait_for_selector("#dl-white:has-text('the mean of 2 picks')", timeout=120_000)
-    _wait_rendered(page)
+    page.wait_for_selector("#neutral-note:has-text('averaged from 2 picks')", timeout=120_000)
+    page.wait_for_selector("#status:has-text('Done')", timeout=120_000)
+    assert page.text_content("#dl-white") == "the mean of your 2 picks"
     assert page.eval_on_selector_all(".pick-mark", "ms => ms.filter(m => !m.hidden).length") == 2
     neutrals = page.evaluate("() => current.picks.map(p => p.neutral)")
-    xys = []
-    for n in neutrals:
-        il = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())},
-                        data={"neutral": json.dumps(n)}, timeout=60).json()["illuminant"]
-        xys.append(temperature_tint_to_xy(il["temperature"], il["tint"]))
-    t, tint = xy_to_temperature_tint(np.mean(xys, axis=0))
-    white = page.text_content("#dl-white").split(", ")[-1]
-    # the page sends whole kelvin and whole tint units
-    assert white == f"{round(t)}/{'+' if tint >= 0 else ''}{round(tint)}", (white, t, tint)
-    assert page.get_attribute("#wb-custom", "aria-pressed") == "true"
+    assert page.evaluate("() => current.neutral") == neutrals and len(neutrals) == 2
+    files = {"file": ("scene.dng", dng.read_bytes())}
+    singles = [np.array(httpx.post(server + "/v1/analyze", files=files, data={"neutral": json.dumps(n)},
+                                   timeout=60).json()["illuminant"]["camera_rgb"]) for n in neutrals]
+    both = httpx.post(server + "/v1/analyze", files=files, data={"neutral": json.dumps(neutrals)}, timeout=60).json()
+    mean = np.mean([s / np.linalg.norm(s) for s in singles], axis=0)
+    assert angular_error(np.array(both["illuminant"]["camera_rgb"]), mean) < 1e-6
+    shown = page.evaluate("() => current.estimate.illuminant.camera_rgb")
+    assert angular_error(np.array(shown), mean) < 1e-6
+    api = httpx.post(server + "/v1/preview", files=files, timeout=60, data={
+        "wb": "corrected", "white": "estimate", "target": "D65", "format": "jpeg", "max_side": "1024",
+        "neutral": json.dumps(neutrals)})
+    assert api.status_code == 200, api.text
+    shown_bytes = base64.b64decode(page.evaluate(_IMG_BYTES, "#img-corrected"))
+    assert shown_bytes == api.content
+    assert page.get_attribute("#wb-auto", "aria-pressed") == "true"
     _screenshot(page, tmp_path, "wandell-webpage-picks.png")
 
 

@@ -189,7 +189,10 @@ function diagnosticsInWords(j) {
   const method = j.method || d.method || "unknown";
   let summary;
   if (method === "neutral-surface") {
-    summary = "The white was taken from the surface you clicked (its mean colour is used as the light).";
+    const picks = j.neutral && j.neutral.picks ? j.neutral.picks.length : 1;
+    summary = picks > 1
+      ? `The white is the mean of the ${picks} surfaces you clicked (each weighs the same).`
+      : "The white was taken from the surface you clicked (its mean colour is used as the light).";
   } else {
     const what = typeof il.temperature === "number" ? `a light of about ${Math.round(il.temperature)} K` : "the light";
     summary = `Auto found ${what}, estimated by ${METHOD_WORDS[method] || method}.`;
@@ -407,29 +410,6 @@ function ttToXy(temperature, tint) {
   return [1.5 * u / den, v / den];
 }
 
-// Temperature/Tint of an xy (DNG SDK dng_temperature::Set_xy_coord, Robertson's method)
-function xyToTt([x, y]) {
-  const d = 1.5 - x + 6 * y, u = 2 * x / d, v = 3 * y / d;
-  let lastDt = 0, lastDu = 0, lastDv = 0;
-  for (let i = 1; i < ROBERTSON.length; i++) {
-    const [, u1, v1, t1] = ROBERTSON[i];
-    const n = Math.hypot(1, t1);
-    let du = 1 / n, dv = t1 / n;
-    let dt = -(u - u1) * dv + (v - v1) * du;
-    if (dt <= 0 || i === ROBERTSON.length - 1) {
-      dt = -Math.min(dt, 0);
-      const f = i === 1 ? 0 : dt / (lastDt + dt);
-      const [r0, u0, v0] = ROBERTSON[i - 1], r1 = ROBERTSON[i][0];
-      const t = 1e6 / (r0 * f + r1 * (1 - f));
-      const uu = u - (u0 * f + u1 * (1 - f)), vv = v - (v0 * f + v1 * (1 - f));
-      du = du * (1 - f) + lastDu * f; dv = dv * (1 - f) + lastDv * f;
-      return {t, tint: (uu * du + vv * dv) / Math.hypot(du, dv) * -3000};
-    }
-    lastDt = dt; lastDu = du; lastDv = dv;
-  }
-  return null;
-}
-
 // The slider's 0..1000 is linear in mireds (even steps of perceived colour), 2000 K to 50000 K.
 const MIRED_WARM = 1e6 / 2000, MIRED_COOL = 1e6 / 50000;
 const sliderToK = (v) => 1e6 / (MIRED_WARM - v / 1000 * (MIRED_WARM - MIRED_COOL));
@@ -625,9 +605,10 @@ function showWhiteBalance() {
   }
   $("temp-value").textContent = w ? `${Math.round(w.t)} K` : "–";
   $("tint-value").textContent = w ? `${w.tint >= 0 ? "+" : ""}${Math.round(w.tint)}` : "–";
-  $("dl-white").textContent = current.wb.mode === "custom"
-    ? `${current.wb.picks ? `the mean of ${current.wb.picks} picks, ` : "Custom "}${whiteField()}`
-    : current.wb.mode === "as-shot" ? "As shot" : (current.neutral ? "your white" : "Auto");
+  const nPicks = current.picks.length;
+  $("dl-white").textContent = current.wb.mode === "custom" ? `Custom ${whiteField()}`
+    : current.wb.mode === "as-shot" ? "As shot"
+    : (current.neutral ? (nPicks > 1 ? `the mean of your ${nPicks} picks` : "your white") : "Auto");
 }
 
 function setWhiteMode(mode) {
@@ -925,9 +906,10 @@ function wireViewer() {
 
 // "Use this as white": a click fixes the light from a small square around
 // that point (about 1 % of the long side), in the decoded image's pixels.
-// With Shift (or "Average several picks") the click adds a pick: each pick's
-// white comes from /v1/analyze with that neutral, and the white used is the
-// mean of their chromaticities (each pick weighs the same), as Temperature/Tint.
+// With Shift (or "Average several picks") the click adds a pick: the API
+// averages them (neutral = a list of squares: the mean of each pick's white,
+// each weighing the same), so the page, the downloads and the REST API agree.
+const MAX_PICKS = 16;   // the API's limit (service.options.MAX_NEUTRAL_PICKS)
 function pickWhite(x, y, add) {
   if (!current || !current.box || !view.W) return;
   const px = (x - view.tx) / view.s, py = (y - view.ty) / view.s;
@@ -937,49 +919,19 @@ function pickWhite(x, y, add) {
   const half = Math.max(2, Math.round(0.005 * Math.max(W, H)));
   const neutral = [Math.max(0, r - half), Math.max(0, c - half), Math.min(H, r + half + 1), Math.min(W, c + half + 1)];
   const pick = {x: px, y: py, neutral};
-  if (add && current.picks.length && current.estimate && current.neutral) {
-    addPick(pick);
-    return;
+  if (add && current.picks.length && current.neutral) {
+    if (current.picks.length >= MAX_PICKS) {
+      $("neutral-note").textContent = `At most ${MAX_PICKS} picks: click without Shift to start again.`;
+      return;
+    }
+    current.picks.push(pick);
+  } else {
+    current.picks = [pick];
   }
-  current.picks = [pick];
-  current.neutral = neutral;
+  current.neutral = current.picks.length > 1 ? current.picks.map((p) => p.neutral) : neutral;
   current.wb = {mode: "auto"};
   applyView();
   run();
-}
-
-async function addPick(pick) {
-  const first = current.picks[0];
-  if (first.t === undefined) {
-    const il = current.estimate.illuminant || {};
-    first.t = il.temperature; first.tint = il.tint;
-  }
-  current.picks.push(pick);
-  applyView();
-  const seq = current.seq;
-  $("wb-status").textContent = "Reading the white there…";
-  try {
-    const j = await post("/v1/analyze", formFor(current.file, Object.assign(estimationFields(current.options),
-      {neutral: JSON.stringify(pick.neutral)}))).then((r) => r.json());
-    if (!current || current.seq !== seq || !current.picks.includes(pick)) return;
-    const il = j.illuminant || {};
-    if (typeof il.temperature !== "number") throw new Error("That surface's colour has no temperature: pick a white or grey one.");
-    pick.t = il.temperature; pick.tint = il.tint;
-    const xy = [0, 0];
-    const ok = current.picks.filter((p) => typeof p.t === "number");
-    for (const p of ok) { const q = ttToXy(p.t, p.tint); xy[0] += q[0] / ok.length; xy[1] += q[1] / ok.length; }
-    const mean = xyToTt(xy);
-    current.wb = {mode: "custom", t: mean.t, tint: mean.tint, picks: ok.length};
-    $("neutral-note").textContent = `White averaged from ${ok.length} picks (the mean of their chromaticities). ` +
-      "Shift-click to add another; click without Shift to start again.";
-    showWhiteBalance();
-    rerenderAfter();
-  } catch (err) {
-    current.picks = current.picks.filter((p) => p !== pick);
-    applyView();
-    $("wb-status").textContent = "";
-    showError($("error"), err);
-  }
 }
 
 function drawMarks() {
@@ -1006,8 +958,12 @@ function drawMarks() {
 function showNeutral(analysis) {
   const n = analysis && analysis.neutral;
   $("neutral-clear").hidden = !current.neutral;
-  if (n) {
-    const ang = typeof n.angle_to_estimate_deg === "number" ? `, ${fmt(n.angle_to_estimate_deg, 1)}° from Auto's` : "";
+  const ang = n && typeof n.angle_to_estimate_deg === "number" ? `, ${fmt(n.angle_to_estimate_deg, 1)}° from Auto's` : "";
+  if (n && n.picks) {
+    $("neutral-note").textContent = `White averaged from ${n.picks.length} picks (each weighs the same; they ` +
+      `differ from their mean by up to ${fmt(n.spread_deg, 1)}°${ang}). Shift-click to add another; click ` +
+      "without Shift to start again.";
+  } else if (n) {
     $("neutral-note").textContent = `White taken from the marked surface (rows ${n.where[0]}–${n.where[2]}, ` +
       `columns ${n.where[1]}–${n.where[3]}; ${n.cells_used} cells${ang}). Click elsewhere to change it.`;
   } else {
