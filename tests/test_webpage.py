@@ -967,6 +967,98 @@ def test_ctrl_wheel_zooms_about_the_pointer(page, server, tmp_path):
     assert page.eval_on_selector("#img-corrected", rect)[2] == pytest.approx(w0, rel=1e-6)
 
 
+def _touch(cdp, kind: str, points) -> None:
+    """A touch event with these fingers ``[(x, y), ...]`` (page CSS px), sent
+    through Chromium's input pipeline (DevTools ``Input.dispatchTouchEvent``:
+    the browser's gesture handling, touch-action and pointer events, as a
+    phone's touchscreen sends them)."""
+    cdp.send("Input.dispatchTouchEvent", {"type": kind, "touchPoints": [
+        {"x": x, "y": y, "id": i, "radiusX": 5, "radiusY": 5} for i, (x, y) in enumerate(points)]})
+
+
+def test_pinch_and_pan_by_touch_on_a_phone(browser, server, tmp_path):
+    """Issue 29, item 3 (zoom, pan on a phone), at 375 px with a touch
+    screen (device pixel ratio 2): two fingers pinching apart zoom by the
+    ratio of their distances, the picture's point under their midpoint
+    staying under it; two fingers moving together pan; one finger pans the
+    zoomed picture by its own movement; none of it picks a white or zooms
+    the page itself, and a pinch that starts on the split's divider (in the
+    middle of the picture, where a thumb lands) zooms and leaves the divider
+    where it was. Bounds: 1e-3 relative for the scale (the page computes it
+    from the fingers' distance in floating point) and 0.5 px for positions
+    (the touch points are CSS pixels)."""
+    ctx = browser.new_context(viewport={"width": 375, "height": 800}, has_touch=True, is_mobile=True,
+                              device_scale_factor=2)
+    pg = ctx.new_page()
+    problems = []
+    pg.on("pageerror", lambda e: problems.append(str(e)))
+    dng = tmp_path / "square.dng"
+    scene_dng(dng, "Nikon 5100 (NPL)", "D50", 360, 360, seed=6)
+    _open(pg, server, dng)
+    pg.locator("#viewer").scroll_into_view_if_needed()
+    v = pg.locator("#viewer").bounding_box()
+    rect = "i => { const b = i.getBoundingClientRect(); return [b.left, b.top, b.width]; }"
+
+    def picture_point(x, y):
+        """The picture's point (fractions of its width) under page point (x, y)."""
+        left, top, w = pg.eval_on_selector("#img-corrected", rect)
+        return np.array([(x - left) / w, (y - top) / w]), w
+
+    cdp = ctx.new_cdp_session(pg)
+    divider = pg.locator("#divider").bounding_box()
+    x0 = divider["x"] + divider["width"] / 2          # the first finger on the divider
+    y = v["y"] + 0.5 * v["height"]
+    mid = (x0 + 40, y)                                 # the second 80 px to its right
+    before, w0 = picture_point(*mid)
+    split0 = pg.evaluate("view.split")
+    _touch(cdp, "touchStart", [(x0, y), (x0 + 80, y)])
+    for d in range(45, 81, 5):                         # the fingers 80 -> 160 px apart, midpoint fixed
+        _touch(cdp, "touchMove", [(mid[0] - d, y), (mid[0] + d, y)])
+    _touch(cdp, "touchEnd", [])
+    pg.wait_for_selector("#viewer.zoomed")
+    after, w1 = picture_point(*mid)
+    assert w1 / w0 == pytest.approx(2.0, rel=1e-3)
+    assert np.abs(after - before).max() * w1 < 0.5, (before, after)
+    assert pg.evaluate("view.split") == split0                   # the divider stayed
+    assert pg.evaluate("visualViewport.scale") == 1              # the page itself did not zoom
+    assert pg.evaluate("document.documentElement.scrollWidth") <= 375
+
+    # two fingers moving together (same distance): the picture follows them
+    v = pg.locator("#viewer").bounding_box()
+    y = v["y"] + 0.5 * v["height"]
+    a, b = (v["x"] + 120, y), (v["x"] + 220, y)
+    start, _ = picture_point(170 + v["x"], y)
+    _touch(cdp, "touchStart", [a, b])
+    for k in range(1, 7):
+        _touch(cdp, "touchMove", [(a[0] + 5 * k, y + 3 * k), (b[0] + 5 * k, y + 3 * k)])
+    _touch(cdp, "touchEnd", [])
+    moved, w2 = picture_point(170 + v["x"] + 30, y + 18)
+    assert w2 == pytest.approx(w1, rel=1e-3) and np.abs(moved - start).max() * w2 < 0.5, (start, moved)
+
+    # one finger: pans the zoomed picture by its movement
+    l0, t0, _ = pg.eval_on_selector("#img-corrected", rect)
+    p = (v["x"] + 300, v["y"] + 200)                  # away from the divider (which a finger would move)
+    _touch(cdp, "touchStart", [p])
+    for k in range(1, 9):
+        _touch(cdp, "touchMove", [(p[0] - 5 * k, p[1] - 4 * k)])
+    _touch(cdp, "touchEnd", [])
+    l1, t1, _ = pg.eval_on_selector("#img-corrected", rect)
+    assert (l1 - l0, t1 - t0) == (pytest.approx(-40, abs=0.5), pytest.approx(-32, abs=0.5))
+    assert not (pg.text_content("#neutral-note") or "").startswith("White taken")   # no gesture picked a white
+    _screenshot(pg, tmp_path, "wandell-webpage-pinch-phone.png")
+
+    # pinching far in stops at Fit
+    c = (v["x"] + v["width"] / 2 + 50, y)
+    _touch(cdp, "touchStart", [(c[0] - 100, y), (c[0] + 100, y)])
+    for d in range(90, 9, -10):
+        _touch(cdp, "touchMove", [(c[0] - d, y), (c[0] + d, y)])
+    _touch(cdp, "touchEnd", [])
+    pg.wait_for_selector("#zoom-fit[aria-pressed='true']")
+    assert pg.eval_on_selector("#img-corrected", rect)[2] == pytest.approx(w0, rel=1e-6)
+    assert not problems, problems
+    ctx.close()
+
+
 def _two_light_dng(path: Path) -> Path:
     """A Mondrian half under CIE A, half under D65 (24 degrees apart for the
     Nikon 5100), :func:`testing.scenes.two_light_scene`, mosaicked into a

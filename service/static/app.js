@@ -759,12 +759,13 @@ function setZoom(zoom) {
   }
 }
 
-// Zoom to scale s (between Fit and 400 %) keeping the picture's point under (x, y) where it is.
-function zoomAt(s, x, y) {
+// Zoom to scale s (between Fit and 400 %) keeping the picture's point under (x, y) where it is
+// (or bringing the picture's point ``anchor`` there: a pinch's fingers pan as they zoom).
+function zoomAt(s, x, y, anchor) {
   if (!view.W) return;
   const dpr = window.devicePixelRatio || 1, fit = fitScale();
   s = Math.min(4 / dpr, Math.max(fit, s));
-  const px = (x - view.tx) / view.s, py = (y - view.ty) / view.s;
+  const [px, py] = anchor || [(x - view.tx) / view.s, (y - view.ty) / view.s];
   view.s = s;
   view.tx = x - px * s;
   view.ty = y - py * s;
@@ -822,19 +823,30 @@ function viewerPoint(ev) {
 function wireViewer() {
   const v = $("viewer");
   let drag = null;
-  // two fingers: pinch to zoom about their midpoint (no pick, no pan)
+  // two fingers: pinch to zoom; the picture's point under the fingers'
+  // midpoint when they landed stays under their midpoint (zoom and pan
+  // together, as a phone's photo viewer does); no pick. A finger that lands
+  // on the split's divider counts too: the pinch wins and the divider goes
+  // back to where it was.
   const touches = new Map();
   let pinch = null;
+  let dividerDrag = null;   // {id, split}: the divider follows this pointer
   v.addEventListener("pointerdown", (ev) => {
-    if (ev.target.closest("#divider") || ev.button !== 0) return;
+    if (ev.button !== 0) return;
+    const onDivider = Boolean(ev.target.closest("#divider"));
+    if (onDivider && ev.pointerType !== "touch") return;
     const [x, y] = viewerPoint(ev);
     touches.set(ev.pointerId, [x, y]);
     if (touches.size === 2) {
       const [a, b] = [...touches.values()];
-      pinch = {d: Math.hypot(a[0] - b[0], a[1] - b[1]) || 1, s: view.s};
+      const mx = (a[0] + b[0]) / 2, my = (a[1] + b[1]) / 2;
+      pinch = {d: Math.hypot(a[0] - b[0], a[1] - b[1]) || 1, s: view.s,
+               anchor: [(mx - view.tx) / view.s, (my - view.ty) / view.s]};
       drag = null;
+      if (dividerDrag) { view.split = dividerDrag.split; dividerDrag = null; applyView(); }
       return;
     }
+    if (onDivider) return;               // one finger on the divider moves the divider
     drag = {x, y, tx: view.tx, ty: view.ty, moved: false, id: ev.pointerId};
     if (view.zoom !== "fit") v.setPointerCapture(ev.pointerId);
   });
@@ -842,7 +854,8 @@ function wireViewer() {
     if (touches.has(ev.pointerId)) touches.set(ev.pointerId, viewerPoint(ev));
     if (pinch && touches.size === 2) {
       const [a, b] = [...touches.values()];
-      zoomAt(pinch.s * Math.hypot(a[0] - b[0], a[1] - b[1]) / pinch.d, (a[0] + b[0]) / 2, (a[1] + b[1]) / 2);
+      zoomAt(pinch.s * Math.hypot(a[0] - b[0], a[1] - b[1]) / pinch.d, (a[0] + b[0]) / 2, (a[1] + b[1]) / 2,
+             pinch.anchor);
       return;
     }
     if (!drag || drag.id !== ev.pointerId) return;
@@ -869,16 +882,19 @@ function wireViewer() {
   v.addEventListener("pointercancel", end);
 
   const div = $("divider");
-  let dragging = false;
-  div.addEventListener("pointerdown", (ev) => { dragging = true; div.setPointerCapture(ev.pointerId); ev.preventDefault(); });
+  div.addEventListener("pointerdown", (ev) => {
+    dividerDrag = {id: ev.pointerId, split: view.split};
+    div.setPointerCapture(ev.pointerId);
+    ev.preventDefault();
+  });
   div.addEventListener("pointermove", (ev) => {
-    if (!dragging) return;
+    if (!dividerDrag || dividerDrag.id !== ev.pointerId) return;
     const [x] = viewerPoint(ev);
     view.split = Math.min(1, Math.max(0, x / viewerSize()[0]));
     applyView();
   });
-  div.addEventListener("pointerup", () => { dragging = false; });
-  div.addEventListener("pointercancel", () => { dragging = false; });
+  div.addEventListener("pointerup", () => { dividerDrag = null; });
+  div.addEventListener("pointercancel", () => { dividerDrag = null; });
   div.addEventListener("keydown", (ev) => {
     const step = {ArrowLeft: -0.05, ArrowRight: 0.05, Home: -1, End: 1}[ev.key];
     if (step === undefined) return;
