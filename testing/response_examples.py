@@ -8,13 +8,15 @@ Run from the repository root::
 
 It posts the real CinemaDNG (``../shared/data/raw/Blackmagic.dng``) to
 ``/v1/analyze``, ``/v1/white-balance`` (``response=json``, and a JPEG and an
-XMP sidecar for their ``X-Illuminant`` headers) and ``/v1/surfaces``; the ColorChecker's
-reflectances (BabelColor average, 4 x 6 patches) to ``/v1/render``; runs a
-batch of the CinemaDNG and the scanner's NEF (which fails: not a camera
-RAW), lists, removes and cancels batches; and keeps an error answer of
-each kind the document declares (413 with ``WANDELL_MAX_PIXELS`` lowered). The
-answers are trimmed, never invented: numbers rounded to 4 significant
-digits, spectra kept every 20 nm, long lists cut to their first entries.
+XMP sidecar for their ``X-Illuminant`` headers) and ``/v1/surfaces``; the
+ColorChecker's reflectances (BabelColor average, 4 x 6 patches) to
+``/v1/render``; runs a batch of the CinemaDNG and the scanner's NEF (which
+fails: not a camera RAW), lists, removes and cancels batches; and keeps an
+error answer of each kind the document declares (413 with
+``WANDELL_MAX_PIXELS`` lowered). The answers are trimmed, never invented:
+numbers rounded to 4 significant digits, spectra kept every 20 nm, long
+lists cut to their first entries, and the diagnostics of the answers after
+the first cut to the few that differ (``SHORT_DIAGNOSTICS``).
 Batch store: a temporary directory (``WANDELL_DATA_DIR``).
 """
 
@@ -34,6 +36,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 OUT = ROOT / "service" / "schemas" / "examples.py"
+
+#: The diagnostics kept in the answers after the first (which keeps them all).
+SHORT_DIAGNOSTICS = ("decision", "confidence", "low_confidence", "region90_deg", "spatial_decision",
+                     "spatial_reason", "lights_found", "light_map_range_deg")
 
 #: A list longer than this is cut to its first entries (spectra are subsampled instead).
 MAX_LIST = 6
@@ -133,16 +139,19 @@ def collect() -> dict:
             del os.environ["WANDELL_MAX_PIXELS"]
             get_settings.cache_clear()
     shutil.rmtree(os.environ["WANDELL_DATA_DIR"], ignore_errors=True)
+    for k in ("AnalyzeResult (light map)", "WhiteBalanceResult"):    # the first shows them all
+        ex[k]["diagnostics"] = {d: v for d, v in ex[k]["diagnostics"].items() if d in SHORT_DIAGNOSTICS}
     return {k: trim(v) for k, v in ex.items()}
 
 
 def literal(v, indent: int = 0) -> str:
-    """``v`` as a Python literal: dicts one key a line, lists of numbers or
-    short strings on one line."""
+    """``v`` as a Python literal: short dicts and lists on one line, longer
+    dicts one key a line, long lists of numbers 12 a line."""
     pad = " " * (indent + 4)
     if isinstance(v, dict):
-        if not v:
-            return "{}"
+        flat = "{" + ", ".join(f"{k!r}: {literal(x)}" for k, x in v.items()) + "}"
+        if "\n" not in flat and len(flat) <= 100:
+            return flat
         return "{\n" + "".join(f"{pad}{k!r}: {literal(x, indent + 4)},\n" for k, x in v.items()) + " " * indent + "}"
     if isinstance(v, list):
         flat = "[" + ", ".join(literal(x) for x in v) + "]"

@@ -262,3 +262,13 @@ def test_a_bad_example_is_caught():
         _check(R.AnalyzeResult, {**good, "illuminant": {**good["illuminant"], "cct": "warm"}})
     with pytest.raises(AssertionError):
         _check(R.AnalyzeResult, {**good, "colour": 1})
+
+
+def test_white_balance_json_gives_the_as_shot_white_as_analyze_does(client, dng):
+    """The same document type answers the same fields: /v1/white-balance's
+    JSON had the as-shot white without its Temperature/Tint and xy."""
+    f = {"file": ("a.dng", dng)}
+    a = client.post("/v1/analyze", files=f).json()["as_shot"]
+    w = client.post("/v1/white-balance", files=f, data={"response": "json"}).json()["as_shot"]
+    assert {"temperature", "tint", "xy"} <= set(a)
+    assert w == a
