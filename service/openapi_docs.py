@@ -195,6 +195,12 @@ def enrich(spec: dict) -> dict:
                          "application/json": ok.get("content", {}).get("application/json")
                          or {"schema": {"type": "object"}}}   # WhiteBalanceResult, declared by the router
         ok["headers"] = {"X-Illuminant": _header(("IlluminantHeader", "EstimateSummary"), X_ILLUMINANT, comps)}
+    for path, name, model, words in (
+            ("/v1/render", "X-Render-Report", "RenderReport", "JSON: the render report (as response=json answers)"),
+            ("/v1/preview", "X-Preview", "PreviewInfo", "JSON: what the preview shows")):
+        op = spec.get("paths", {}).get(path, {}).get("post")
+        if op is not None and "200" in op["responses"]:
+            op["responses"]["200"]["headers"] = {name: _header((model,), words, comps)}
     errors = {code: EXAMPLES[f"ErrorBody {code}"] for code in ("422", "415", "413", "404")
               if f"ErrorBody {code}" in EXAMPLES}
     if "ErrorBody" in comps:

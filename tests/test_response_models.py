@@ -220,7 +220,8 @@ def test_every_response_model_has_real_examples_that_validate(client):
     models = {n for n, m in vars(R).items() if isinstance(m, type) and issubclass(m, R._Answer) and m is not R._Answer}
     assert models <= used, models - used            # every response model is in the document
     assert {"AnalyzeResult", "WhiteBalanceResult", "IlluminantHeader", "EstimateSummary", "SurfacesResult",
-            "RenderReport", "BatchCreated", "BatchProgress", "BatchItem", "BatchDeleted", "BatchList", "ErrorBody"} <= used
+            "RenderReport", "BatchCreated", "BatchProgress", "BatchItem", "BatchDeleted", "BatchList", "ErrorBody",
+            "Health", "CameraList", "ModelsInfo", "SamplingRule", "PreviewInfo"} <= used
     for name in sorted(used):
         examples = comps[name].get("examples")
         assert examples, f"{name} has no example"
@@ -272,3 +273,34 @@ def test_white_balance_json_gives_the_as_shot_white_as_analyze_does(client, dng)
     w = client.post("/v1/white-balance", files=f, data={"response": "json"}).json()["as_shot"]
     assert {"temperature", "tint", "xy"} <= set(a)
     assert w == a
+
+
+def test_reference_answers_and_json_headers_are_their_models(client, dng):
+    """/health, /v1/cameras, /v1/models and /v1/sampling (defined and not)
+    have their models too, as do the X-Preview and X-Render-Report headers."""
+    _check(R.Health, client.get("/health").json())
+    _check(R.CameraList, client.get("/v1/cameras").json())
+    _check(R.ModelsInfo, client.get("/v1/models").json())
+    for params in ({"strategy": "gauss-ac1c2", "n": 4}, {"strategy": "wiener-points", "n": 4, "illuminant": "A"},
+                   {"strategy": "quasi-gauss-xyz", "degrees": "4,4,4"}):
+        r = client.get("/v1/sampling", params=params)
+        assert r.status_code == 200, r.text
+        _check(R.SamplingRule, r.json())
+    assert r.json()["defined"] is False and "reason" in r.json()
+    f = {"file": ("a.dng", dng)}
+    for data in ({"wb": "camera"}, {"wb": "corrected"}, {"wb": "corrected", "white": "5000/+5"}):
+        r = client.post("/v1/preview", files=f, data=data)
+        assert r.status_code == 200, r.text
+        _check(R.PreviewInfo, json.loads(r.headers["X-Preview"]))
+    buf = io.BytesIO()
+    np.save(buf, np.random.default_rng(0).uniform(0.05, 0.9, (4, 5, 31)))
+    r = client.post("/v1/render", files={"file": ("c.npy", buf.getvalue())},
+                    data={"wavelengths": ",".join(str(x) for x in range(400, 710, 10)), "format": "png"})
+    assert r.status_code == 200, r.text
+    _check(R.RenderReport, json.loads(r.headers["X-Render-Report"]))
+    spec = client.get("/openapi.json").json()
+    for path, header, model in (("/v1/render", "X-Render-Report", "RenderReport"),
+                                ("/v1/preview", "X-Preview", "PreviewInfo")):
+        h = spec["paths"][path]["post"]["responses"]["200"]["headers"][header]
+        assert h["schema"]["contentSchema"]["$ref"].endswith("/" + model)
+        _check(getattr(R, model), json.loads(h["example"]))

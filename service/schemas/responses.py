@@ -28,7 +28,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from .examples import EXAMPLES
 
 __all__ = ["AnalyzeResult", "WhiteBalanceResult", "IlluminantHeader", "EstimateSummary", "SurfacesResult", "RenderReport",
-           "BatchCreated", "BatchProgress", "BatchDeleted", "BatchSummary", "BatchList"]
+           "BatchCreated", "BatchProgress", "BatchDeleted", "BatchSummary", "BatchList", "Health", "CameraList",
+           "ModelsInfo", "SamplingRule", "PreviewInfo"]
 
 
 def _examples(*paths: tuple) -> ConfigDict:
@@ -216,7 +217,8 @@ class RenderReport(_Answer):
                                                            "full calculation")
     bound: dict[str, Any] | None = None
     why: str | None = None
-    tried: list[dict[str, Any]] | None = None
+    tried: list[dict[str, Any]] | int | None = Field(None, description="the rules tried, in order of cost (in the "
+                                                                        "X-Render-Report header: how many)")
     output: str
     adapt: bool
     white_xyz: list[float]
@@ -370,3 +372,91 @@ class EstimateSummary(_Answer):
     lights: str | None = Field(None, description="`several` when the photograph has several lights")
     lights_reason: str | None = None
     light_held: str | None = Field(None, description="which light the sidecar's single white is")
+
+
+# --------------------------------------------------------------------------- reference answers
+
+class Health(_Answer):
+    """``GET /health``: liveness, the upload limits, the batch store and runner."""
+    model_config = _examples(("Health",))
+    status: str = Field(description="`ok`, or `degraded` when batch items cannot run now (still HTTP 200)")
+    version: str
+    max_upload_bytes: int = Field(description="WANDELL_MAX_UPLOAD_BYTES: a larger upload is a 413")
+    max_pixels: int = Field(description="WANDELL_MAX_PIXELS: a larger image is a 413")
+    job_store: dict[str, Any] = Field(description="`status` ok or `recovered` (a damaged store moved aside, "
+                                                  "with where to)")
+    batch_runner: dict[str, Any] = Field(description="`status` ok or `degraded` (why, since when), the executor "
+                                                     "and its counters")
+
+
+class KnownCamera(_Answer):
+    model_config = _examples(("CameraList", "cameras", 0))
+    name: str
+    source: str = Field(description="`measured`: spectral sensitivities measured in a laboratory")
+    channels: int
+    matches: list[str] = Field(description="make/model texts (lower case) that select this camera")
+
+
+class CameraList(_Answer):
+    """``GET /v1/cameras``: the cameras with measured sensitivities, and the
+    other ways the service gets a camera's."""
+    model_config = _examples(("CameraList",))
+    cameras: list[KnownCamera]
+    other_sources: dict[str, str] = Field(description="`matrix-derived`, `uploaded`, `generic`: what each is")
+
+
+class ModelsInfo(_Answer):
+    """``GET /v1/models``: linear models, estimation methods and the names
+    the options accept."""
+    model_config = _examples(("ModelsInfo",))
+    surface_models: dict[str, str]
+    light_models: dict[str, str]
+    rules: list[str] = Field(description="the dimension rules (Wandell 1985)")
+    defaults: dict[str, str]
+    methods: list[str] = Field(description="what `method` accepts")
+    method_descriptions: dict[str, str]
+    method_words: dict[str, str] = Field(description="each method in plain words (the web page's)")
+    wavelengths: list[float] = Field(description="the analysis grid, nm")
+    reflectance_sets: list[str]
+    illuminants: list[str] = Field(description="the CIE lights `target` and `illuminant` accept by name (besides "
+                                               "`D5600`, `BB3200`, ...)")
+    displays: list[str]
+
+
+class SamplingRule(_Answer):
+    """``GET /v1/sampling``: a sampling rule's nodes and weights."""
+    model_config = _examples(("SamplingRule",), ("SamplingRule (undefined)",))
+    strategy: str
+    n: int | None = None
+    defined: bool = Field(description="false when the order does not exist (`reason` says why)")
+    nodes_nm: list[float] | None = Field(None, description="absent when the rule is not defined")
+    weights: list[float] | list[list[float]] | None = Field(None, description="the rule's own weights, or its "
+                                                                        "integration weights (one row per node)")
+    weights_kind: str
+    integration_weights_xyz: list[list[float]] | None = Field(None, description="against CIE 1931 xbar, ybar, zbar, "
+                                                                          "one row per node")
+    options: dict[str, Any]
+    diagnostics: dict[str, Any]
+    reason: str | None = Field(None, description="why the rule is not defined")
+
+
+class PreviewInfo(_Answer):
+    """The ``X-Preview`` header of ``POST /v1/preview``: what the preview shows."""
+    model_config = _examples(("PreviewInfo",), ("PreviewInfo (camera)",))
+    wb: str = Field(description="`camera` (the file's multipliers) or `corrected`")
+    width: int = Field(description="the preview's size")
+    height: int
+    full_width: int = Field(description="the decoded image's size: the frame of `neutral`")
+    full_height: int
+    crop: list[int] = Field(description="[top, left, height, width] of the output in that frame (DNG DefaultCrop)")
+    output_width: int = Field(description="the size /v1/white-balance writes")
+    output_height: int
+    warnings: list[str]
+    ms: float = Field(description="time taken, ms")
+    camera_multipliers: list[float] | None = Field(None, description="wb=camera: the file's own multipliers")
+    method: str | None = None
+    target: str | None = None
+    output: str | None = None
+    white: str | None = Field(None, description="`estimate`, `as-shot`, a `TEMPERATURE/TINT` or `neutral`")
+    correction_matrix: list[list[float]] | None = None
+    rendering: Rendering | None = None
