@@ -298,6 +298,11 @@ def test_upload_shows_both_images_the_light_and_the_diagnostics(page, server, tm
     png = cv2.imdecode(np.frombuffer(Path(dl.value.path()).read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
     assert dl.value.suggested_filename == "scene-corrected.png"
     assert png.shape == (240, 360, 3) and png.dtype == np.uint8
+    with page.expect_download(timeout=90_000) as dl:       # JPEG too (the README's tour promises it)
+        page.click("#dl-jpeg")
+    data = Path(dl.value.path()).read_bytes()
+    assert dl.value.suggested_filename == "scene-corrected.jpg" and data[:3] == b"\xff\xd8\xff"
+    assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED).shape == (240, 360, 3)
     with page.expect_download() as dl:
         page.click("#dl-json")
     saved = json.loads(Path(dl.value.path()).read_text())
@@ -370,6 +375,8 @@ def test_phone_width_has_no_horizontal_scroll_and_a_click_sets_the_white(browser
     pg.set_input_files("#file", str(_dng(tmp_path / "scene.dng")))
     pg.wait_for_selector("#result", state="visible", timeout=90_000)
     assert pg.evaluate("document.documentElement.scrollWidth") <= 375
+    # the options (two menus a row) leave room: the picture starts on the first screen
+    assert pg.evaluate("document.querySelector('#viewer').getBoundingClientRect().top + scrollY") < 800
     viewer = pg.locator("#viewer")
     viewer.scroll_into_view_if_needed()
     box = viewer.bounding_box()

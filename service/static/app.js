@@ -1410,6 +1410,7 @@ document.addEventListener("DOMContentLoaded", () => {
   $("target-k").addEventListener("change", () => { if (current && current.estimate) run(); });
   $("dl-tiff").addEventListener("click", () => downloadCorrected("tiff", "tif"));
   $("dl-png").addEventListener("click", () => downloadCorrected("png", "png"));
+  $("dl-jpeg").addEventListener("click", () => downloadCorrected("jpeg", "jpg"));
   $("dl-json").addEventListener("click", downloadEstimate);
   $("dl-asshot").addEventListener("click", () => downloadCorrected("png", "png", "as-shot"));
   $("dl-xmp").addEventListener("click", () => downloadCorrected("xmp", "xmp"));
