@@ -7,8 +7,9 @@ host. :func:`enrich` completes the generated OpenAPI document: every
 parameter gets a description, its enumeration where the choices are fixed,
 and examples; uploads declare their 413/415/422 answers (``{"error",
 "detail"}``); ``/v1/white-balance`` declares its image media types and the
-``X-Illuminant`` header (its JSON's schema and a real example); the
-error body gets a real example too.
+``X-Illuminant`` header; the JSON headers (``X-Illuminant``, ``X-Preview``,
+``X-Render-Report``) are declared with their models and a real example,
+and each error answer with a real error of its kind.
 """
 
 from __future__ import annotations
@@ -195,12 +196,13 @@ def enrich(spec: dict) -> dict:
                          "application/json": ok.get("content", {}).get("application/json")
                          or {"schema": {"type": "object"}}}   # WhiteBalanceResult, declared by the router
         ok["headers"] = {"X-Illuminant": _header(("IlluminantHeader", "EstimateSummary"), X_ILLUMINANT, comps)}
-    for path, name, model, words in (
-            ("/v1/render", "X-Render-Report", "RenderReport", "JSON: the render report (as response=json answers)"),
-            ("/v1/preview", "X-Preview", "PreviewInfo", "JSON: what the preview shows")):
+    for path, name, model, words, example in (
+            ("/v1/render", "X-Render-Report", "RenderReport", "JSON: the render report (as response=json answers, "
+             "with `tried` the number of rules tried)", 1),
+            ("/v1/preview", "X-Preview", "PreviewInfo", "JSON: what the preview shows", 0)):
         op = spec.get("paths", {}).get(path, {}).get("post")
         if op is not None and "200" in op["responses"]:
-            op["responses"]["200"]["headers"] = {name: _header((model,), words, comps)}
+            op["responses"]["200"]["headers"] = {name: _header((model,), words, comps, example)}
     errors = {code: EXAMPLES[f"ErrorBody {code}"] for code in ("422", "415", "413", "404")
               if f"ErrorBody {code}" in EXAMPLES}
     if "ErrorBody" in comps:
@@ -215,11 +217,11 @@ def enrich(spec: dict) -> dict:
     return spec
 
 
-def _header(model_names: tuple[str, ...], description: str, comps: dict) -> dict:
+def _header(model_names: tuple[str, ...], description: str, comps: dict, example: int = 0) -> dict:
     """A header whose value is JSON: a string whose content is one of the
     models (OpenAPI 3.1 / JSON Schema ``contentMediaType`` and
-    ``contentSchema``), with the first model's first example as the
-    header's example."""
+    ``contentSchema``), with the first model's example number ``example``
+    (a real header) as the header's example."""
     from .schemas import responses
 
     for name in model_names:
@@ -229,7 +231,8 @@ def _header(model_names: tuple[str, ...], description: str, comps: dict) -> dict
             comps.setdefault(sub_name, sub)
         comps.setdefault(name, schema)
     refs = [{"$ref": f"#/components/schemas/{n}"} for n in model_names]
-    first = (getattr(responses, model_names[0]).model_config["json_schema_extra"]["examples"] or [{}])[0]
+    examples = getattr(responses, model_names[0]).model_config["json_schema_extra"]["examples"]
+    first = examples[example] if len(examples) > example else {}
     return {"description": f"{description} (schema: {' or '.join(model_names)})",
             "schema": {"type": "string", "contentMediaType": "application/json",
                        "contentSchema": refs[0] if len(refs) == 1 else {"anyOf": refs}},

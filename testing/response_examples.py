@@ -10,7 +10,7 @@ It posts the real CinemaDNG (``../shared/data/raw/Blackmagic.dng``) to
 ``/v1/analyze``, ``/v1/white-balance`` (``response=json``, and a JPEG and an
 XMP sidecar for their ``X-Illuminant`` headers) and ``/v1/surfaces``; the
 ColorChecker's reflectances (BabelColor average, 4 x 6 patches) to
-``/v1/render``; runs a batch of the CinemaDNG and the scanner's NEF (which
+``/v1/render`` (JSON, and a PNG for its ``X-Render-Report``); runs a batch of the CinemaDNG and the scanner's NEF (which
 fails: not a camera RAW), lists, removes and cancels batches; asks ``/health``, ``/v1/cameras``, ``/v1/models``, ``/v1/sampling``
 and ``/v1/preview`` (its ``X-Preview`` header); and keeps an
 error answer of each kind the document declares (413 with
@@ -114,6 +114,9 @@ def collect() -> dict:
         ex["RenderReport"] = ok(c.post("/v1/render", files={"file": ("colorchecker.npy", buf.getvalue())},
                                        data={"wavelengths": ",".join(map(str, wl)), "illuminant": "D65",
                                              "response": "json"})).json()
+        r = ok(c.post("/v1/render", files={"file": ("colorchecker.npy", buf.getvalue())},
+                      data={"wavelengths": ",".join(map(str, wl)), "illuminant": "D65", "format": "png"}))
+        ex["RenderReport (header)"] = json.loads(r.headers["X-Render-Report"])
         r = ok(c.post("/v1/batches", files=[("files", ("Blackmagic.dng", dng)),
                                             ("files", ("Nikon_uncompressed.nef", nef))],
                       data={"format": "jpeg"}), 202)

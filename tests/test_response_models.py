@@ -304,3 +304,6 @@ def test_reference_answers_and_json_headers_are_their_models(client, dng):
         h = spec["paths"][path]["post"]["responses"]["200"]["headers"][header]
         assert h["schema"]["contentSchema"]["$ref"].endswith("/" + model)
         _check(getattr(R, model), json.loads(h["example"]))
+    assert isinstance(json.loads(h["example"])["ms"], float)
+    assert isinstance(json.loads(spec["paths"]["/v1/render"]["post"]["responses"]["200"]["headers"][
+        "X-Render-Report"]["example"])["tried"], int)              # the header's own example, not the JSON answer

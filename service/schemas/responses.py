@@ -203,7 +203,7 @@ class SurfacesResult(_Answer):
 class RenderReport(_Answer):
     """``POST /v1/render`` with ``response=json`` (also the ``X-Render-Report``
     header): the sampling rule used and its error against the full calculation."""
-    model_config = _examples(("RenderReport",))
+    model_config = _examples(("RenderReport",), ("RenderReport (header)",))
     strategy: str
     n: int | None = None
     options: dict[str, Any]
