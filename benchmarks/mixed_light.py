@@ -63,6 +63,8 @@ PAIRS = {"close": (1.5, 4.0), "medium": (4.0, 10.0), "far": (10.0, 40.0)}
 THRESHOLDS = (2.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0, 64.0, float("inf"))
 GAINS = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
 PROJECT = (True, False)
+#: weight of the windows' precision-weighted mean in the map's level (0: the whole image's estimate)
+LEVELS = (0.0, 0.5, 0.75, 1.0)
 
 
 def angle_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -205,7 +207,7 @@ def score(scenes, evs, settings_list) -> dict:
         maps = {}
         cache = {}
         for s in settings_list:
-            key = (s.gain, s.project)
+            key = (s.gain, s.project, s.level)
             if key not in cache:
                 fld = LM.light_field(e["uv0"], e["ev"], s)
                 rng = LM.field_range_deg(fld, K) if e["ev"].valid.sum() >= 2 else 0.0
@@ -219,7 +221,7 @@ def score(scenes, evs, settings_list) -> dict:
 
 
 def settings_grid():
-    return [LM.MixtureSettings(t, g, p) for t in THRESHOLDS for g in GAINS for p in PROJECT]
+    return [LM.MixtureSettings(t, g, p, lv) for t in THRESHOLDS for g in GAINS for p in PROJECT for lv in LEVELS]
 
 
 #: the single-light photographs may lose at most this fraction of their
@@ -406,11 +408,12 @@ def main(argv=None) -> int:
     report = {"per_benchmark": a.per, "chosen": {b: vars(s) for b, s in chosen.items()}, "results": {},
               "shipped_choice": vars(shipped), "shipped_now": vars(LM.DEFAULT_SETTINGS)}
     print(f"settings the rule chooses on all three benchmarks (to ship): T > {shipped.threshold:g}, gain "
-          f"{shipped.gain:g}, {'projected' if shipped.project else 'free'}; shipped now: "
+          f"{shipped.gain:g}, {'projected' if shipped.project else 'free'}, level {shipped.level:g}; shipped now: "
           f"T > {LM.DEFAULT_SETTINGS.threshold:g}, gain {LM.DEFAULT_SETTINGS.gain:g}, "
-          f"{'projected' if LM.DEFAULT_SETTINGS.project else 'free'}")
+          f"{'projected' if LM.DEFAULT_SETTINGS.project else 'free'}, level {LM.DEFAULT_SETTINGS.level:g}")
     print(f"\nsettings chosen by inner leave-one-benchmark-out (threshold on T, gain, projection): "
-          + "; ".join(f"without {b}: T > {s.threshold:g}, gain {s.gain:g}, {'projected' if s.project else 'free'}"
+          + "; ".join(f"without {b}: T > {s.threshold:g}, gain {s.gain:g}, {'projected' if s.project else 'free'}, "
+                                 f"level {s.level:g}"
                       for b, s in chosen.items()))
     cols = ("learned", "sog", "oracle", "map always", "map decided")
     print("\nmean per-pixel angle per image (degrees): mean / median / worst 25 % over images")

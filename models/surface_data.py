@@ -12,6 +12,11 @@ records their provenance):
   sensitivities (Academy Software Foundation ``rawtoaces-data``, Apache-2.0,
   ``data/camera_set_rawtoaces.LICENSE``).
 
+A third, derived file, ``data/surface_band_scale.json``, holds the factors
+per wavelength that calibrate the bands of the surface prior (written by
+``python -m benchmarks.surfaces --write-calibration`` from leave-one-set-out
+errors; read by :func:`band_calibration`).
+
 Both are stored on 380-780 nm at 5 nm and linearly interpolated to the grid
 asked for (smooth data: at 10 nm the interpolation error is below 1e-3).
 
@@ -30,7 +35,7 @@ import numpy as np
 
 from .grid import DEFAULT_WAVELENGTHS
 
-__all__ = ["SURFACE_SETS", "surface_sets", "camera_set"]
+__all__ = ["SURFACE_SETS", "surface_sets", "camera_set", "band_calibration"]
 
 _DATA = Path(__file__).resolve().parent / "data"
 
@@ -93,3 +98,39 @@ def camera_set(wavelengths=None) -> tuple[list[str], np.ndarray]:
     d = _npz("camera_set_rawtoaces.npz")
     sens = np.swapaxes(d["sensitivities"], 1, 2)                  # (K, 3, N5)
     return [str(n) for n in d["names"]], np.swapaxes(_on(d["wavelengths"], sens, wavelengths), 1, 2)
+
+
+@functools.lru_cache(maxsize=1)
+def _calibration_file() -> dict | None:
+    import json
+
+    f = _DATA / "surface_band_scale.json"
+    return json.loads(f.read_text()) if f.exists() else None
+
+
+def band_calibration(wavelengths=None) -> dict:
+    """Band calibration factors of the surface prior, per camera kind and light.
+
+    Returns
+    -------
+    dict
+        ``{"level": 0.9, "z": 1.645, "scale": {"measured/estimated": (N,), ...},
+        "provenance": str}``: the posterior standard deviation times
+        ``scale[kind/light]`` at each wavelength makes ``mean +- z std`` hold the
+        truth at ``level`` on reflectance sets left out (``kind`` one of
+        ``measured``, ``matrix``, ``generic``; ``light`` ``true`` or
+        ``estimated``). Interpolated linearly to ``wavelengths`` (held constant
+        beyond the stored range). Empty ``scale`` when the file is absent.
+
+    Examples
+    --------
+    >>> sorted(band_calibration()["scale"])[:2]
+    ['generic/estimated', 'generic/true']
+    """
+    d = _calibration_file()
+    if d is None:
+        return {"level": 0.9, "z": 1.6448536269514722, "scale": {}, "provenance": "none (file absent)"}
+    wl = DEFAULT_WAVELENGTHS if wavelengths is None else np.asarray(wavelengths, float)
+    src = np.asarray(d["wavelengths"], float)
+    return {"level": float(d["level"]), "z": float(d["z"]), "provenance": d["provenance"],
+            "scale": {k: np.interp(wl, src, np.asarray(v, float)) for k, v in d["scale"].items()}}

@@ -1000,8 +1000,9 @@ class AnalysisResult:
     * ``"prior"`` (the default): the posterior mean under a Gaussian prior
       learnt from 274 measured reflectances (:mod:`recovery.surface_prior`;
       Brainard & Freeman 1997, Shimano 2006), with a band per wavelength
-      (posterior standard deviation) and the expected RMS error per surface
-      (:meth:`surface_estimates`); the light's 90 % region and, for a camera
+      (posterior standard deviation times factors calibrated on reflectance
+      sets left out, ``band_scale``: mean +- 1.645 std is a 90 % band) and the
+      expected RMS error per surface (:meth:`surface_estimates`); the light's 90 % region and, for a camera
       known by its colour matrix or not at all, the spread of 47 measured
       cameras enter by sampling. Reflectances are absolute up to the
       exposure, which is chosen by maximum marginal likelihood under the
@@ -1024,6 +1025,8 @@ class AnalysisResult:
     prior_exposure: float = 1.0
     prior_sensitivities: np.ndarray | None = None      # (S, N, C) camera samples, or (1, N, C)
     prior_lights: np.ndarray | None = None             # (S, N) light samples, or (1, N)
+    band_scale: np.ndarray | None = None               # (N,) calibration of the band, or None
+    _band_calibrate: bool = field(default=True, repr=False)
     _prior_spectrum: np.ndarray | None = field(default=None, repr=False)
     _prior_pixels: np.ndarray | None = field(default=None, repr=False)
 
@@ -1060,13 +1063,18 @@ class AnalysisResult:
 
         rho = np.atleast_2d(np.asarray(rho, float))
         if self.prior is None or not np.array_equal(self._prior_spectrum, self.illuminant.spectrum):
-            prepare_prior(self, self._prior_pixels, prior=self.prior)   # the light was replaced since
+            prepare_prior(self, self._prior_pixels, prior=self.prior,   # the light was replaced since
+                          calibrate=self._band_calibrate)
+        from .surface_prior import calibrate_band
+
         if self.illuminant.light_map is not None:
             spd = self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
-            return surface_estimates_per_point(self.prior, rho, self.camera.sensitivities, spd,
-                                               self.camera.dlambda, self.prior_exposure)
-        return surface_estimates(self.prior, rho, self.prior_sensitivities, self.prior_lights, self.camera.dlambda,
-                                 exposure=self.prior_exposure, nominal=True)
+            pe = surface_estimates_per_point(self.prior, rho, self.camera.sensitivities, spd,
+                                             self.camera.dlambda, self.prior_exposure)
+        else:
+            pe = surface_estimates(self.prior, rho, self.prior_sensitivities, self.prior_lights, self.camera.dlambda,
+                                   exposure=self.prior_exposure, nominal=True)
+        return calibrate_band(pe, self.band_scale)
 
     def surface_estimates(self, points):
         """Estimates with bands at ``[(row, col), ...]``: a
@@ -1133,14 +1141,17 @@ def _light_radius(est: IlluminantEstimate) -> float:
 
 
 def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFACE_SAMPLES, *, prior=None,
-                  camera_exclude=()) -> None:
+                  camera_exclude=(), calibrate: bool = True) -> None:
     """Set up the prior estimator of ``res``: the camera (or samples of it:
     matrix-derived and generic cameras, :func:`recovery.surface_prior.camera_posterior`),
     the light (or samples in its 90 % region), and the exposure from
     ``pixels`` ``(Q, C)`` of the scene. Records what entered in
-    ``res.diagnostics``. ``prior`` (default :func:`recovery.surface_prior.default_prior`)
-    and ``camera_exclude`` (cameras left out of the camera prior) serve
-    cross-validation (``benchmarks.surfaces``)."""
+    ``res.diagnostics``. The band is calibrated per wavelength for the
+    camera's kind and the light (:func:`recovery.surface_prior.band_kind`,
+    :func:`recovery.surface_prior.band_scale`). ``prior`` (default
+    :func:`recovery.surface_prior.default_prior`), ``camera_exclude``
+    (cameras left out of the camera prior) and ``calibrate=False`` (the raw
+    posterior band) serve cross-validation (``benchmarks.surfaces``)."""
     from . import surface_prior as sp
 
     cam = res.camera
@@ -1182,6 +1193,9 @@ def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFAC
                  if radius > 0 else ("none (a light map: each pixel's light taken as known)"
                                      if est.light_map is not None else "none (the estimate gives no region)"))
     res.prior, res.prior_sensitivities, res.prior_lights = prior, sens, lights
+    kind = sp.band_kind(cam.source, cam.color_matrix is not None, est.method)
+    res._band_calibrate = calibrate
+    res.band_scale = sp.band_scale(kind, wl) if calibrate else None
     res._prior_spectrum, res._prior_pixels = np.array(est.spectrum, copy=True), pixels
     A0 = sp.lighting_operator(nominal, lights[0], cam.dlambda)
     px = pixels[np.all(np.isfinite(pixels), axis=1)] if pixels.size else pixels
@@ -1190,8 +1204,14 @@ def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFAC
         "surface_estimator": "prior",
         "surface_prior": prior.name,
         "surface_prior_noise": prior.noise,
-        "surface_band": "posterior standard deviation per wavelength (reflectance_std); expected_rmse = "
-                        "sqrt(mean of its square)",
+        "surface_band": (f"reflectance +- {sp.BAND_Z:.3f} reflectance_std holds the truth at "
+                         f"{sp.BAND_LEVEL:.0%}: the posterior standard deviation per wavelength times a factor "
+                         f"calibrated on reflectance sets left out for this kind of camera and light ({kind}); "
+                         "expected_rmse = sqrt(mean of reflectance_std squared)"
+                         if res.band_scale is not None else
+                         "posterior standard deviation per wavelength (reflectance_std), not calibrated; "
+                         "expected_rmse = sqrt(mean of its square)"),
+        "surface_band_calibration": kind if res.band_scale is not None else None,
         "surface_band_light_uncertainty": light_unc,
         "surface_band_camera_uncertainty": cam_unc,
         "surface_exposure": res.prior_exposure,
@@ -1227,7 +1247,7 @@ def _every_kth_finite(img: np.ndarray, n: int, strip: int = 256) -> tuple[np.nda
 
 def surfaces_from_estimate(image, camera: Camera, est: IlluminantEstimate, surface_dim_render: int | None = None,
                            synthesis_basis=None, surface_estimator: str | None = None, *, prior=None,
-                           camera_exclude=()) -> AnalysisResult:
+                           camera_exclude=(), calibrate: bool = True) -> AnalysisResult:
     """The surface half of :func:`analyze` for a light already estimated,
     e.g. on a reduced image (``surface_estimator``: see :func:`analyze`)."""
     img = np.asarray(image)
@@ -1256,7 +1276,7 @@ def surfaces_from_estimate(image, camera: Camera, est: IlluminantEstimate, surfa
     if choice == "prior":
         res.surface_estimator = "prior"
         pix = np.asarray(img[ys, xs], np.float64) if ys.size else np.zeros((0, camera.channels))
-        prepare_prior(res, pix, prior=prior, camera_exclude=camera_exclude)
+        prepare_prior(res, pix, prior=prior, camera_exclude=camera_exclude, calibrate=calibrate)
         refl = res.reflectance(np.stack([ys, xs], 1)) if ys.size else np.zeros((0, camera.wavelengths.size))
     res.diagnostics.update({
         "nonphysical_reflectance_fraction": float(np.mean(np.any((refl < -0.02) | (refl > 1.02), axis=1)))

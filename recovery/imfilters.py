@@ -68,10 +68,13 @@ def gaussian_filter(image: np.ndarray, sigma: float, order=(0, 0), mode: str = "
                     truncate: float = 4.0) -> np.ndarray:
     """``scipy.ndimage.gaussian_filter(image, sigma, order, mode=mode)`` of a
     2-D float array: derivative ``order[0]`` along rows (axis 0) and
-    ``order[1]`` along columns (axis 1)."""
+    ``order[1]`` along columns (axis 1). An (h, w, c) array of up to four
+    channels is filtered channel by channel in one call (the same numbers
+    as one call per channel)."""
     img = np.ascontiguousarray(image, dtype=np.float64)
-    if img.ndim != 2:
-        raise ValueError(f"gaussian_filter takes a 2-D array, got shape {img.shape}")
+    if img.ndim != 2 and not (img.ndim == 3 and 1 <= img.shape[2] <= 4):
+        raise ValueError(f"gaussian_filter takes a 2-D array (or a 2-D array of up to 4 channels, each "
+                         f"filtered alone), got shape {img.shape}")
     ky = gaussian_kernel1d(float(sigma), int(order[0]), truncate)
     kx = gaussian_kernel1d(float(sigma), int(order[1]), truncate)
     return cv2.sepFilter2D(img, cv2.CV_64F, kx, ky, borderType=_BORDERS[mode])

@@ -68,7 +68,7 @@ from . import chroma_histogram as CH
 from . import imfilters
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation
-from .estimators import bright_pixels, gray_edge, gray_world, shades_of_gray, white_patch
+from .estimators import gray_edge
 
 __all__ = ["LearnedModel", "LearnedResult", "FEATURE_NAMES", "load_model", "camera_color_matrix",
            "canonical_transform", "estimation_image", "features", "estimate_learned", "fit_robust_ridge",
@@ -192,15 +192,74 @@ def _edge(img: np.ndarray, ok: np.ndarray, p: float, sigma: float, order: int) -
 def _gray_pixels(img: np.ndarray, m: np.ndarray, q: float) -> np.ndarray:
     """Mean of the pixels whose local log-contrast is most alike in the
     three channels (gray pixels; Yang et al. 2015, Qian et al. 2019)."""
+    return _gray_pixels_many(img, m, (q,))[0]
+
+
+def _gray_pixels_many(img: np.ndarray, m: np.ndarray, qs) -> list[np.ndarray]:
+    """:func:`_gray_pixels` for each fraction of ``qs``, the contrast map
+    computed once."""
     lg = np.log(np.clip(img, 1e-4, None))
-    c = np.stack([np.abs(imfilters.laplace(imfilters.gaussian_filter(lg[..., k], 0.5))) for k in range(3)], -1)
+    c = np.abs(imfilters.laplace(imfilters.gaussian_filter(lg, 0.5)))
     mm = m & np.all(c > 1e-3, axis=-1)
     if mm.sum() < 10:
-        return img[m].mean(axis=0)
+        return [img[m].mean(axis=0)] * len(qs)
     cc = c[mm]
     gi = np.std(cc / cc.sum(axis=1, keepdims=True), axis=1)
-    k = max(1, int(q * gi.size))
-    return img[mm][np.argpartition(gi, k - 1)[:k]].mean(axis=0)
+    sel = img[mm]
+    out = []
+    for q in qs:
+        k = max(1, int(q * gi.size))
+        out.append(sel[np.argpartition(gi, k - 1)[:k]].mean(axis=0))
+    return out
+
+
+def _percentile_sorted(srt: np.ndarray, q: float) -> np.ndarray:
+    """``np.percentile(x, q, axis=0)`` (linear interpolation, numpy's own
+    rounding) of ``srt``, the columns of ``x`` sorted."""
+    v = q / 100.0 * (srt.shape[0] - 1)
+    lo = int(np.floor(v))
+    hi = min(lo + 1, srt.shape[0] - 1)
+    t = v - lo
+    a, b = srt[lo], srt[hi]
+    d = b - a
+    return b - d * (1.0 - t) if t >= 0.5 else a + d * t
+
+
+def _edges(img: np.ndarray, ok: np.ndarray, which=((1, 1, 1), (6, 1, 1), (6, 2, 1), (6, 1, 2))) -> dict:
+    """:func:`recovery.estimators.gray_edge` for each ``(p, sigma, order)``
+    of ``which`` (NaN where the image has no edges), the derivative
+    magnitudes computed once per sigma and order and the three channels
+    filtered together (van de Weijer, Gevers & Gijsenij 2007)."""
+    img = np.asarray(img, dtype=np.float64)
+    scale = float(np.max(img)) or 1.0
+    im = img / scale
+    mags, masks, out = {}, {}, {}
+    for p, sigma, order in which:
+        if (sigma, order) not in mags:
+            if order == 1:
+                gx = imfilters.gaussian_filter(im, sigma, (0, 1), "nearest")
+                gy = imfilters.gaussian_filter(im, sigma, (1, 0), "nearest")
+                mg = np.hypot(gx, gy)
+            else:
+                gxx = imfilters.gaussian_filter(im, sigma, (0, 2), "nearest")
+                gyy = imfilters.gaussian_filter(im, sigma, (2, 0), "nearest")
+                gxy = imfilters.gaussian_filter(im, sigma, (1, 1), "nearest")
+                mg = np.sqrt(gxx ** 2 + gyy ** 2 + 2 * gxy ** 2)
+            mg[mg < 1e-12] = 0.0
+            e = max(1, int(np.ceil(2 * sigma)))
+            if e not in masks:
+                em = imfilters.binary_erosion(ok, e)
+                masks[e] = em if em.any() else ok
+            mags[(sigma, order)] = mg[masks[e]]
+        px = mags[(sigma, order)]
+        top = px.max() if px.size else 0.0
+        if top > 0:
+            r = px / top
+            rp = r if p == 1 else (r * r) ** 3 if p == 6 else r ** p
+            out[(p, sigma, order)] = scale * top * np.mean(rp, axis=0) ** (1.0 / p)
+        else:
+            out[(p, sigma, order)] = np.full(3, np.nan)
+    return out
 
 
 #: Below this RMS spread of the cells' log-chroma (about half a degree) the
@@ -236,11 +295,27 @@ def features(cells: np.ndarray, ok: np.ndarray) -> np.ndarray:
         raise InsufficientSurfaceVariation(
             f"one colour: the usable cells' chromaticities spread by {rms:.2g} in log-chroma (under "
             f"{MIN_CHROMA_SPREAD}), so the light cannot be told from the surface")
-    est = [gray_world(px), *(shades_of_gray(px, None, p) for p in (2, 4, 8, 16)), white_patch(px),
-           np.percentile(px, 99, axis=0), np.percentile(px, 95, axis=0),
-           _edge(img, ok, 1, 1, 1), _edge(img, ok, 6, 1, 1), _edge(img, ok, 6, 2, 1), _edge(img, ok, 6, 1, 2),
-           *(bright_pixels(px, None, q) for q in (0.005, 0.01, 0.02, 0.05, 0.1)),
-           _gray_pixels(img, ok, 0.05), _gray_pixels(img, ok, 0.2)]
+    # The classical estimates of FEATURE_NAMES, with the work they share done
+    # once (one scaling for the shades of gray, one filtering per gray-edge
+    # sigma and order, one ordering of the brightness for the bright pixels,
+    # one contrast map for the gray pixels): the same numbers as calling
+    # recovery.estimators one by one, at a third of the cost (the 3 x 3
+    # windows of recovery.light_mixture run this ten times per image).
+    n = px.shape[0]
+    top = px.max()
+    r2 = (px / top) ** 2
+    r4 = r2 * r2
+    r8 = r4 * r4
+    norms = np.stack([r2, r4, r8, r8 * r8]).mean(axis=1)              # Minkowski means, p = 2, 4, 8, 16
+    sog = top * norms ** (1.0 / np.array([2.0, 4.0, 8.0, 16.0]))[:, None]
+    srt = np.sort(px, axis=0)
+    pct = [_percentile_sorted(srt, q) for q in (99.0, 95.0)]
+    edges = _edges(img, ok)
+    by_brightness = np.cumsum(px[np.argsort(px.sum(axis=1), kind="stable")[::-1]], axis=0)
+    bright = [by_brightness[k - 1] / k for k in (max(1, int(q * n)) for q in (0.005, 0.01, 0.02, 0.05, 0.1))]
+    est = [px.mean(axis=0), *sog, srt[-1], pct[0], pct[1],
+           edges[(1, 1, 1)], edges[(6, 1, 1)], edges[(6, 2, 1)], edges[(6, 1, 2)],
+           *bright, *_gray_pixels_many(img, ok, (0.05, 0.2))]
     est = np.array(est)
     # an estimate that could not be made (no edges) stands in as the reference
     bad = ~np.all(np.isfinite(est) & (est > 0), axis=1)

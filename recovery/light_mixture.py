@@ -9,11 +9,16 @@ estimates of a window of the analysis grid, corrected by the learnt model,
 give that window's light in canonical log-chroma. Three things make a map
 of them:
 
-1. **The level from the whole image.** A window sees a quarter of the
-   scene, so its estimate is noisier than the whole image's; its errors
-   share the scene's bias. The map keeps the whole-image estimate as its
-   level and takes from the windows only how the light *varies*: the
-   windows' estimates minus their mean.
+1. **The level: the whole image's estimate and the windows' mean.** A
+   window sees a quarter of the scene, so its estimate is noisier than the
+   whole image's; but where two lights mix, the whole image's estimate
+   follows the light of its brightest surfaces (the bright-pixel reference
+   it corrects), while the windows, each lit mostly by one light, average
+   to the light over the frame. The map's level is a blend,
+   ``(1 - level) uv0 + level m``, of the whole-image estimate ``uv0`` and
+   the windows' precision-weighted mean ``m``, with the blend chosen by
+   cross-validation; the windows give the variation about it: their
+   estimates minus ``m``.
 2. **Two lights lie on a line.** Where two lights mix, every window's light
    lies between them: in log-chroma, close to the segment joining them. The
    variation is projected on the windows' principal direction (weighted by
@@ -81,9 +86,10 @@ class MixtureSettings:
     cross-validation on relit development photographs
     (``python -m benchmarks.mixed_light``, inner leave-one-benchmark-out)."""
 
-    threshold: float = 32.0     #: the decision's threshold on T (module docstring)
-    gain: float = 0.5           #: multiplies the windows' variation (item 3 of the module docstring)
+    threshold: float = 48.0     #: the decision's threshold on T (module docstring)
+    gain: float = 0.75          #: multiplies the windows' variation (item 3 of the module docstring)
     project: bool = False       #: project the variation on the principal direction (two lights)
+    level: float = 1.0          #: weight of the windows' mean in the map's level (item 1 of the module docstring)
 
 
 #: The shipped settings (benchmarks.mixed_light prints how they were chosen).
@@ -188,20 +194,23 @@ def mixture_statistic(ev: WindowEvidence) -> float:
 
 def light_field(uv0: np.ndarray, ev: WindowEvidence, settings: MixtureSettings = DEFAULT_SETTINGS) -> np.ndarray:
     """(gr, gc, 2) the light at the window centres (canonical log-chroma):
-    the whole image's ``uv0`` plus the windows' variation about their
-    precision-weighted mean, projected on their principal direction and
-    multiplied by the gain (module docstring). Unusable windows get the
-    level ``uv0``."""
+    the level (the whole image's ``uv0`` blended with the windows'
+    precision-weighted mean, ``settings.level``) plus the windows' variation
+    about their mean, projected on their principal direction and multiplied
+    by the gain (module docstring). Unusable windows get the level."""
     gr, gc = ev.grid
-    out = np.tile(np.asarray(uv0, float), (gr * gc, 1))
+    uv0 = np.asarray(uv0, float)
     v = ev.valid
-    if v.sum() >= 2:
-        uv, s2 = ev.uv[v], ev.var[v]
-        m, d = _principal(uv, 1.0 / s2)
-        dev = uv - m
-        if settings.project:
-            dev = (dev @ d)[:, None] * d[None, :]
-        out[v] = uv0 + settings.gain * dev
+    if v.sum() < 2:
+        return np.tile(uv0, (gr * gc, 1)).reshape(gr, gc, 2)
+    uv, s2 = ev.uv[v], ev.var[v]
+    m, d = _principal(uv, 1.0 / s2)
+    level = (1.0 - settings.level) * uv0 + settings.level * m
+    out = np.tile(level, (gr * gc, 1))
+    dev = uv - m
+    if settings.project:
+        dev = (dev @ d)[:, None] * d[None, :]
+    out[v] = level + settings.gain * dev
     return out.reshape(gr, gc, 2)
 
 
@@ -232,7 +241,8 @@ def decide(ev: WindowEvidence, uv0: np.ndarray, K: np.ndarray,
     nv = int(ev.valid.sum())
     evidence = {"mixture_T": T, "mixture_threshold": settings.threshold, "map_range_deg": rng,
                 "map_range_threshold_deg": MIN_RANGE_DEG, "windows_used": nv, "windows": int(ev.valid.size),
-                "window_cells": WINDOW, "gain": settings.gain}
+                "window_cells": WINDOW, "gain": settings.gain,
+                "level_windows_weight": settings.level}
     if nv < 2:
         evidence["reason"] = (f"one light: only {nv} of {ev.valid.size} windows have enough surfaces to read "
                               "a light from, so a change of light across the frame cannot be seen")

@@ -170,11 +170,12 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
                             "expected_rmse": None if er is None else float(er)})
     return {"wavelengths": run.camera.wavelengths.tolist(), "surfaces": entries,
             "surface_estimator": res.surface_estimator,
-            "band": ("reflectance_std: posterior standard deviation per wavelength; the stated band is "
-                     "reflectance +- 1.645 reflectance_std, a 90 % band (cross-validated on reflectance sets "
-                     "left out, measured in benchmarks.surfaces and docs/surfaces.md; +- 1 std holds about 75-80 %, "
-                     "the posterior being heavier-tailed than a Gaussian); expected_rmse: the RMS error the "
-                     "model expects for the surface"
+            "band": ("reflectance_std: the posterior standard deviation per wavelength times a factor "
+                     "calibrated, per wavelength and per kind of camera (measured, matrix-derived, generic) and "
+                     "light, on reflectance sets left out (benchmarks.surfaces, docs/surfaces.md): reflectance "
+                     "+- 1.645 reflectance_std is a 90 % band (diagnostics.surface_band_calibration names the "
+                     "factors used); expected_rmse: the RMS of that band, the error the model expects for the "
+                     "surface"
                      if res.surface_estimator == "prior" else
                      "none: the literal method (eq. 36, pseudo-inverse in the surface model) has no band"),
             "surface_model": res.diagnostics.get("surface_model"),

@@ -103,3 +103,39 @@ def test_gray_pixels_estimate_is_unchanged():
     k = max(1, int(0.05 * gi.size))
     theirs = img[mm][np.argsort(gi, kind="stable")[:k]].mean(axis=0)
     np.testing.assert_allclose(learned._gray_pixels(img, ok, 0.05), theirs, rtol=1e-12)
+
+
+@pytest.mark.parametrize("order,mode", [((0, 0), "reflect"), ((0, 1), "nearest"), ((1, 1), "nearest"),
+                                        ((2, 0), "nearest")])
+def test_three_channels_in_one_call_are_each_channel_alone(order, mode):
+    img = RNG.random((40, 33, 3))
+    together = imfilters.gaussian_filter(img, 1.5, order, mode)
+    for k in range(3):
+        np.testing.assert_allclose(together[..., k], imfilters.gaussian_filter(img[..., k], 1.5, order, mode),
+                                   rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="2-D array"):
+        imfilters.gaussian_filter(RNG.random((4, 4, 5)), 1.0)
+
+
+def _features_one_by_one(cells, ok):
+    """The 19 classical estimates of recovery.learned.FEATURE_NAMES, each
+    computed alone by recovery.estimators (what features() shares work
+    between)."""
+    img = np.clip(cells, 1e-6, None)
+    px = img[ok]
+    est = [estimators.gray_world(px), *(estimators.shades_of_gray(px, None, p) for p in (2, 4, 8, 16)),
+           estimators.white_patch(px), np.percentile(px, 99, axis=0), np.percentile(px, 95, axis=0),
+           *(estimators.gray_edge(img, ok, p, s, o) for p, s, o in ((1, 1, 1), (6, 1, 1), (6, 2, 1), (6, 1, 2))),
+           *(estimators.bright_pixels(px, None, q) for q in (0.005, 0.01, 0.02, 0.05, 0.1)),
+           learned._gray_pixels(img, ok, 0.05), learned._gray_pixels(img, ok, 0.2)]
+    return learned.rgb_to_uv(np.array(est))
+
+
+@pytest.mark.parametrize("shape", [(64, 64), (32, 32), (23, 41)])
+def test_features_share_work_without_changing_an_estimate(shape):
+    # the work shared between the 19 estimates (one filtering per sigma and
+    # order, one ordering of the brightness, one contrast map) changes only
+    # rounding: 1e-12 in log-chroma is 1e-10 degrees
+    img = RNG.random((*shape, 3)) * np.array([0.6, 0.9, 0.4]) + 0.02
+    ok = RNG.random(shape) > 0.15
+    np.testing.assert_allclose(learned.features(img, ok), _features_one_by_one(img, ok), rtol=0, atol=1e-12)

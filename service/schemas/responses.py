@@ -176,11 +176,12 @@ class Surface(_Answer):
     reflectance: list[float] = Field(description="the estimate: the posterior mean under the prior over measured "
                                                  "surfaces, or eq. 36 when a surface model is named")
     warnings: list[str]
-    reflectance_std: list[float] | None = Field(None, description="the band: posterior standard deviation per "
-                                                                  "wavelength (reflectance +- 1.645 std is a 90 % "
-                                                                  "band); null for eq. 36")
+    reflectance_std: list[float] | None = Field(None, description="the band per wavelength: the posterior "
+                                                                  "standard deviation times a factor calibrated on "
+                                                                  "reflectance sets left out, so that reflectance "
+                                                                  "+- 1.645 std is a 90 % band; null for eq. 36")
     expected_rmse: float | None = Field(None, description="one number for the surface: the RMS error the model "
-                                                          "expects (the band's RMS); null for eq. 36")
+                                                          "expects (the calibrated band's RMS); null for eq. 36")
 
 
 class SurfacesResult(_Answer):

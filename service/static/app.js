@@ -500,6 +500,7 @@ async function run() {
   current.seq++;
   view.full = null;
   $("error").hidden = true;
+  $("surface").hidden = true;            // a surface read under the earlier settings
   $("run").disabled = true;
   $("status").textContent = `Analysing ${file.name}…`;
   const t0 = performance.now();
@@ -876,7 +877,10 @@ function wireViewer() {
     const d = drag;
     drag = null;
     v.classList.remove("panning");
-    if (ev.type === "pointerup" && !d.moved) pickWhite(d.x, d.y, ev.shiftKey || $("pick-add").checked);
+    if (ev.type === "pointerup" && !d.moved) {
+      if ($("pick-surface").checked) readSurface(d.x, d.y);
+      else pickWhite(d.x, d.y, ev.shiftKey || $("pick-add").checked);
+    }
   };
   v.addEventListener("pointerup", end);
   v.addEventListener("pointercancel", end);
@@ -948,6 +952,72 @@ function pickWhite(x, y, add) {
   current.wb = {mode: "auto"};
   applyView();
   run();
+}
+
+// "Read a surface": a click asks /v1/surfaces for the reflectance of a small
+// square there (the estimate of its mean camera response under Auto's light),
+// drawn with its calibrated 90 % band and the one number that goes with it.
+async function readSurface(x, y) {
+  if (!current || !current.box || !view.W) return;
+  const px = (x - view.tx) / view.s, py = (y - view.ty) / view.s;
+  if (px < 0 || py < 0 || px >= view.W || py >= view.H) return;
+  const [H, W] = current.box.full, [top, left] = current.box.crop;
+  const r = Math.min(H - 1, top + Math.floor(py)), c = Math.min(W - 1, left + Math.floor(px));
+  const half = Math.max(2, Math.round(0.005 * Math.max(W, H)));
+  const rect = [Math.max(0, r - half), Math.max(0, c - half), Math.min(H, r + half + 1), Math.min(W, c + half + 1)];
+  const seq = current.seq;
+  $("surface").hidden = false;
+  $("surface-words").textContent = "Reading the surface there…";
+  const f = {rects: JSON.stringify([rect])};
+  for (const k of ["camera", "method"]) if (current.options[k]) f[k] = current.options[k];
+  try {
+    const j = await post("/v1/surfaces", formFor(current.file, f)).then((resp) => resp.json());
+    if (!current || current.seq !== seq) return;
+    const s = j.surfaces[0];
+    plotReflectance($("surface-plot"), j.wavelengths, s.reflectance, s.reflectance_std);
+    const where = `rows ${rect[0]}–${rect[2]}, columns ${rect[1]}–${rect[3]}`;
+    const trust = typeof s.expected_rmse === "number"
+      ? `Expected error ${fmt(s.expected_rmse, 3)} (RMS over wavelengths, reflectance 0–1). The shaded band ` +
+        "is a 90 % band: at each wavelength it is calibrated to hold the true reflectance 90 % of the time " +
+        "(on measured surfaces kept aside)."
+      : "No band: the literal method (eq. 36) gives none.";
+    const warn = s.warnings.length ? ` Check: ${s.warnings.join("; ")}.` : "";
+    $("surface-words").textContent = `Surface at ${where}, under Auto's light. ${trust}${warn}`;
+    $("surface-words").dataset.expectedRmse = String(s.expected_rmse);
+    $("surface-words").dataset.rect = JSON.stringify(rect);
+  } catch (err) {
+    $("surface-words").textContent = "";
+    showError($("error"), err);
+  }
+}
+
+function plotReflectance(container, wl, mean, std) {
+  container.textContent = "";
+  const W = 320, H = 200, L = 40, R = 14, T = 8, B = 34, Z = 1.6448536269514722;
+  const svg = el("svg", {viewBox: `0 0 ${W} ${H}`, width: "100%", role: "img", id: "surface-svg",
+    "aria-label": "the surface's estimated reflectance with its 90 % band"});
+  const lo = mean.map((m, i) => (std ? m - Z * std[i] : m)), hi = mean.map((m, i) => (std ? m + Z * std[i] : m));
+  const x0 = wl[0], x1 = wl[wl.length - 1];
+  const ymax = Math.max(1, ...hi.filter(isFinite)), ymin = Math.min(0, ...lo.filter(isFinite));
+  const sx = (x) => L + (x - x0) / (x1 - x0) * (W - L - R);
+  const sy = (y) => T + (1 - (y - ymin) / (ymax - ymin)) * (H - T - B);
+  svg.appendChild(el("line", {x1: L, y1: sy(ymin), x2: L, y2: T, class: "axis"}));
+  svg.appendChild(el("line", {x1: L, y1: sy(0), x2: W - R, y2: sy(0), class: "axis"}));
+  for (let x = Math.ceil(x0 / 50) * 50; x <= x1; x += 50) {
+    svg.appendChild(el("text", {x: sx(x), y: sy(ymin) + 16, "text-anchor": "middle", class: "tick"}, `${x}`));
+  }
+  for (const y of [0, 0.5, 1]) {
+    svg.appendChild(el("text", {x: L - 6, y: sy(y) + 4, "text-anchor": "end", class: "tick"}, y.toFixed(1)));
+  }
+  svg.appendChild(el("text", {x: (L + W - R) / 2, y: H - 4, "text-anchor": "middle", class: "label"},
+    "wavelength (nm)"));
+  const path = (ys) => ys.map((y, i) => `${i ? "L" : "M"}${sx(wl[i]).toFixed(1)},${sy(y).toFixed(1)}`).join(" ");
+  if (std) {
+    const back = hi.map((y, i) => [wl[i], y]).reverse().map(([x, y]) => `L${sx(x).toFixed(1)},${sy(y).toFixed(1)}`);
+    svg.appendChild(el("path", {d: `${path(lo)} ${back.join(" ")} Z`, id: "surface-band", class: "band"}));
+  }
+  svg.appendChild(el("path", {d: path(mean), id: "surface-mean", class: "curve"}));
+  container.appendChild(svg);
 }
 
 function drawMarks() {
