@@ -154,12 +154,39 @@ AS_SHOT_WARN_DEG = 5.0
 NEUTRAL_LOW_SIGNAL = 0.05
 
 
-def neutral_white(decoded, where: list[int]) -> tuple[np.ndarray, dict]:
+def neutral_white(decoded, where: list) -> tuple[np.ndarray, dict]:
     """The light's camera RGB from a surface the user says is white or grey:
     the mean camera RGB of the unclipped cells of the estimation image under
     the point or rectangle ``where`` (full-resolution pixels, as
     :func:`surfaces_at`). 422 when it is outside the image or every cell
-    there is clipped or black."""
+    there is clipped or black.
+
+    Several picks (``where`` a list of points and rectangles): each pick's
+    white as above, scaled to unit length, and their mean, so each pick
+    weighs the same whatever its area and brightness (a white card and a
+    grey one say the same light). The answer's ``picks`` give each pick's
+    own; a 422 names the pick that was wrong."""
+    if where and isinstance(where[0], list):
+        units, picks = [], []
+        for i, w in enumerate(where):
+            try:
+                rgb, info = neutral_white(decoded, w)
+            except ServiceError as e:
+                raise ServiceError(e.status, e.code, f"pick {i + 1} of {len(where)}: {e.detail}") from None
+            units.append(rgb / np.linalg.norm(rgb))
+            picks.append(info)
+        rgb = np.mean(units, axis=0)
+        out = {"where": [list(w) for w in where], "cells_used": sum(p["cells_used"] for p in picks),
+               "cells_clipped_or_black": sum(p["cells_clipped_or_black"] for p in picks),
+               "camera_rgb": (rgb / np.linalg.norm(rgb)).tolist(), "level": min(p["level"] for p in picks),
+               "picks": picks,
+               "spread_deg": max(float(angular_error(u, rgb)) for u in units)}
+        dark = [str(i + 1) for i, p in enumerate(picks) if p.get("warning")]
+        if dark:
+            out["warning"] = (f"pick {', '.join(dark)} of {len(where)} is dark (its brightest channel under "
+                              f"{100 * NEUTRAL_LOW_SIGNAL:g} % of the white level): noise and black-level error "
+                              "dominate its colour; a brighter white or grey surface gives a more reliable white")
+        return rgb, out
     H, W = decoded.full_shape
     r0, c0, r1, c1 = (where[0], where[1], where[0] + 1, where[1] + 1) if len(where) == 2 else where
     if len(where) == 4 and (r0 >= r1 or c0 >= c1):

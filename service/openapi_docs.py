@@ -7,13 +7,17 @@ host. :func:`enrich` completes the generated OpenAPI document: every
 parameter gets a description, its enumeration where the choices are fixed,
 and examples; uploads declare their 413/415/422 answers (``{"error",
 "detail"}``); ``/v1/white-balance`` declares its image media types and the
-``X-Illuminant`` header.
+``X-Illuminant`` header; the JSON headers (``X-Illuminant``, ``X-Preview``,
+``X-Render-Report``) are declared with their models and a real example,
+and each error answer with a real error of its kind.
 """
 
 from __future__ import annotations
 
 import json
 import os
+
+from .schemas.examples import EXAMPLES
 
 #: The two Swagger UI files the page needs, and their media types.
 SWAGGER_FILES = {"swagger-ui-bundle.js": "text/javascript; charset=utf-8",
@@ -78,7 +82,8 @@ X_ILLUMINANT = ("JSON: the estimate (method, camera, illuminant camera_rgb/wb_mu
                 "came from) and rendering: rendering (dng-matrix or spectral), color_source, exposure {rule: "
                 "auto (LibRaw's auto-brightness: the 99th percentile of the brightest display channel is white) "
                 "or user, ev}, curve (libraw: LibRaw's BT.709 tone as a display shows it), tone, white_xy, "
-                "temperature, tint")
+                "temperature, tint. With format=xmp: the estimate in short (method, camera_rgb, wb_multipliers, "
+                "cct, duv, xy, confidence and the sidecar's temperature/tint)")
 
 
 def swagger_path() -> str | None:
@@ -190,8 +195,48 @@ def enrich(spec: dict) -> dict:
                          "application/rdf+xml": {"schema": {"type": "string"}},
                          "application/json": ok.get("content", {}).get("application/json")
                          or {"schema": {"type": "object"}}}   # WhiteBalanceResult, declared by the router
-        ok["headers"] = {"X-Illuminant": {"description": X_ILLUMINANT, "schema": {"type": "string"}}}
+        ok["headers"] = {"X-Illuminant": _header(("IlluminantHeader", "EstimateSummary"), X_ILLUMINANT, comps)}
+    for path, name, model, words, example in (
+            ("/v1/render", "X-Render-Report", "RenderReport", "JSON: the render report (as response=json answers, "
+             "with `tried` the number of rules tried)", 1),
+            ("/v1/preview", "X-Preview", "PreviewInfo", "JSON: what the preview shows", 0)):
+        op = spec.get("paths", {}).get(path, {}).get("post")
+        if op is not None and "200" in op["responses"]:
+            op["responses"]["200"]["headers"] = {name: _header((model,), words, comps, example)}
+    errors = {code: EXAMPLES[f"ErrorBody {code}"] for code in ("422", "415", "413", "404")
+              if f"ErrorBody {code}" in EXAMPLES}
+    if "ErrorBody" in comps:
+        comps["ErrorBody"] = {**comps["ErrorBody"], "examples": list(errors.values())}
+    for ops in spec.get("paths", {}).values():     # each error answer with an example of its own kind
+        for op in ops.values():
+            for code, r in op.get("responses", {}).items():
+                media = r.get("content", {}).get("application/json")
+                ex = errors.get("404" if code == "4XX" else code)
+                if media is not None and media.get("schema", {}).get("$ref") == ERROR_REF and ex is not None:
+                    media["example"] = ex
     return spec
+
+
+def _header(model_names: tuple[str, ...], description: str, comps: dict, example: int = 0) -> dict:
+    """A header whose value is JSON: a string whose content is one of the
+    models (OpenAPI 3.1 / JSON Schema ``contentMediaType`` and
+    ``contentSchema``), with the first model's example number ``example``
+    (a real header) as the header's example."""
+    from .schemas import responses
+
+    for name in model_names:
+        schema = getattr(responses, name).model_json_schema(ref_template="#/components/schemas/{model}",
+                                                            mode="serialization")
+        for sub_name, sub in schema.pop("$defs", {}).items():
+            comps.setdefault(sub_name, sub)
+        comps.setdefault(name, schema)
+    refs = [{"$ref": f"#/components/schemas/{n}"} for n in model_names]
+    examples = getattr(responses, model_names[0]).model_config["json_schema_extra"]["examples"]
+    first = examples[example] if len(examples) > example else {}
+    return {"description": f"{description} (schema: {' or '.join(model_names)})",
+            "schema": {"type": "string", "contentMediaType": "application/json",
+                       "contentSchema": refs[0] if len(refs) == 1 else {"anyOf": refs}},
+            "example": json.dumps(first, separators=(",", ":"))}
 
 
 def install(app) -> None:

@@ -325,20 +325,48 @@ def parse_exposure(value) -> float | None:
     return ev
 
 
+#: At most this many picks in one ``neutral`` (a darktable/RawTherapee user
+#: samples a few grey patches, never hundreds; each costs one rectangle mean).
+MAX_NEUTRAL_PICKS = 16
+
 NEUTRAL_HELP = ("'use this as white': JSON [row, col] (a point) or [r0, c0, r1, c1] (a rectangle, end "
                 "exclusive) in full-resolution pixels of the image as decoded (before DefaultCrop); the light "
-                "is the mean camera RGB of the unclipped pixels there, rendered like an estimate")
+                "is the mean camera RGB of the unclipped pixels there, rendered like an estimate. Several picks: "
+                f"a list of points and rectangles, [[row, col], [r0, c0, r1, c1], ...] (at most "
+                f"{MAX_NEUTRAL_PICKS}): the light is the mean of the picks' whites, each pick weighing the same "
+                "(each pick's camera RGB scaled to unit length), as the web page's Shift-click averages them")
+
+_NEUTRAL_SHAPE = (f"[row, col], [r0, c0, r1, c1], or a list of up to {MAX_NEUTRAL_PICKS} of them "
+                  "([[row, col], [r0, c0, r1, c1], ...])")
 
 
-def parse_neutral(text) -> list[int] | None:
-    """``neutral``: JSON ``[row, col]`` or ``[r0, c0, r1, c1]`` (integers);
-    ``None`` when absent; otherwise a 422 saying what is accepted."""
+def _is_region(v) -> bool:
+    return (isinstance(v, list) and len(v) in (2, 4)
+            and all(isinstance(x, int) and not isinstance(x, bool) for x in v))
+
+
+def parse_neutral(text) -> list | None:
+    """``neutral``: JSON ``[row, col]`` or ``[r0, c0, r1, c1]`` (integers), or
+    a list of up to :data:`MAX_NEUTRAL_PICKS` of them (several picks,
+    averaged by :func:`service.estimation.neutral_white`); ``None`` when
+    absent; otherwise a 422 saying what is accepted and which pick was
+    wrong."""
     if text is None or (isinstance(text, str) and not text.strip()):
         return None
-    val = parse_json_field(text, "neutral", "[row, col] or [r0, c0, r1, c1]") if isinstance(text, str) else text
-    if (not isinstance(val, list) or len(val) not in (2, 4)
-            or not all(isinstance(x, int) and not isinstance(x, bool) for x in val)):
-        shown = repr(text) if len(repr(text)) <= 80 else repr(text)[:77] + "..."
-        raise ServiceError(422, "invalid_parameter", f"neutral must be [row, col] or [r0, c0, r1, c1] "
-                           f"(integers), got {shown}")
-    return val
+    val = parse_json_field(text, "neutral", _NEUTRAL_SHAPE) if isinstance(text, str) else text
+    shown = repr(text) if len(repr(text)) <= 80 else repr(text)[:77] + "..."
+    if _is_region(val):
+        return val
+    if isinstance(val, list) and val and all(isinstance(v, list) for v in val):
+        if len(val) > MAX_NEUTRAL_PICKS:
+            raise ServiceError(422, "invalid_parameter", f"neutral has {len(val)} picks, at most "
+                               f"{MAX_NEUTRAL_PICKS}")
+        for i, v in enumerate(val):
+            if not _is_region(v):
+                pick = repr(v) if len(repr(v)) <= 60 else repr(v)[:57] + "..."
+                raise ServiceError(422, "invalid_parameter", f"neutral pick {i + 1} of {len(val)} is {pick}: each "
+                                   "pick must be [row, col] or [r0, c0, r1, c1] (integers)")
+        return val
+    if isinstance(val, list) and not val:
+        raise ServiceError(422, "invalid_parameter", f"neutral is an empty list; give {_NEUTRAL_SHAPE}")
+    raise ServiceError(422, "invalid_parameter", f"neutral must be {_NEUTRAL_SHAPE} (integers), got {shown}")

@@ -68,7 +68,8 @@ def test_every_parameter_has_a_description_and_examples(spec):
                   if PARAMS.get(name, (None, None, None))[2] and "Examples: `" not in holder["description"]]
     assert not no_example, no_example
     neutral = next(h for p, m, n, s, h in _fields(spec) if p == "/v1/analyze" and n == "neutral")
-    assert "Examples: `[1200, 2040]`, `[100, 200, 140, 260]`." in neutral["description"]
+    assert "Examples: `[1200, 2040]`, `[100, 200, 140, 260]`, `[[1200, 2040], [1500, 800, 1540, 860]]`." in \
+        neutral["description"]
 
 
 def _keywords(obj, key):

@@ -151,3 +151,50 @@ def test_neutral_with_as_shot_white_conflicts(client, scene):
     t, data = scene
     r = _post(client, "/v1/white-balance", data, neutral=json.dumps(_patch_rect(t, 0)), white="as-shot")
     assert r.status_code == 422 and "neutral" in r.json()["detail"]
+
+
+def test_several_picks_are_the_mean_of_their_whites(client, scene):
+    """Issue 29, item 3 ("several picks averaged"), in the API so the REST
+    API and the page agree: ``neutral`` takes a list of points and
+    rectangles; the white is the mean of each pick's white scaled to unit
+    length (each pick weighs the same), which is what the single picks
+    answer, up to floating point (bound 1e-6 degrees). Two halves of the
+    grey patch give the light (as one rectangle does, 0.2 degrees), and
+    /v1/white-balance and /v1/preview take the same list."""
+    t, data = scene
+    grey, k = _patch_rect(t, 0), 5
+    other = _patch_rect(t, k)
+    picks = [grey, [(other[0] + other[2]) // 2, (other[1] + other[3]) // 2], other]
+    singles = [np.array(_post(client, "/v1/analyze", data, neutral=json.dumps(p)).json()["illuminant"]["camera_rgb"])
+               for p in picks]
+    r = _post(client, "/v1/analyze", data, neutral=json.dumps(picks))
+    assert r.status_code == 200, r.text
+    body = r.json()
+    mean = np.mean([s / np.linalg.norm(s) for s in singles], axis=0)
+    assert body["method"] == "neutral-surface"
+    assert angular_error(body["illuminant"]["camera_rgb"], mean) < 1e-6
+    assert body["neutral"]["where"] == picks and len(body["neutral"]["picks"]) == 3
+    assert body["neutral"]["spread_deg"] == pytest.approx(max(angular_error(s, mean) for s in singles), abs=1e-6)
+    halves = [[grey[0], grey[1], grey[2], (grey[1] + grey[3]) // 2], [grey[0], (grey[1] + grey[3]) // 2, grey[2], grey[3]]]
+    both = _post(client, "/v1/analyze", data, neutral=json.dumps(halves)).json()
+    assert angular_error(both["illuminant"]["camera_rgb"], t.light_rgb) < 0.2
+    wb = _post(client, "/v1/white-balance", data, neutral=json.dumps(picks), response="json")
+    assert wb.status_code == 200 and angular_error(wb.json()["illuminant"]["camera_rgb"], mean) < 1e-6, wb.text
+    p = _post(client, "/v1/preview", data, wb="corrected", neutral=json.dumps(picks))
+    assert p.status_code == 200 and json.loads(p.headers["X-Preview"])["method"] == "neutral-surface"
+
+
+@pytest.mark.parametrize("value,words", [
+    ("[[10, 10], [1, 2, 3]]", "neutral pick 2 of 2 is [1, 2, 3]"),
+    ("[[10, 10], [10.5, 3]]", "neutral pick 2 of 2"),
+    ("[[10, 10], [0, 0, 500, 10]]", "pick 2 of 2: neutral [0, 0, 500, 10] is outside"),
+    ("[[20, 20, 10, 10]]", "pick 1 of 1: neutral [20, 20, 10, 10] is an inverted"),
+    ("[]", "neutral is an empty list"),
+    (json.dumps([[1, 2]] * 17), "neutral has 17 picks, at most 16"),
+    ("[[1, 2], 3]", "neutral must be"),
+])
+def test_bad_picks_are_a_422_naming_the_pick(client, scene, value, words):
+    _, data = scene
+    r = _post(client, "/v1/analyze", data, neutral=value)
+    assert r.status_code == 422 and r.json()["error"] == "invalid_parameter", r.text
+    assert words in r.json()["detail"], r.json()["detail"]

@@ -8,6 +8,7 @@ without Sphinx roles, and an unknown form or query field is a 422 naming it
 from __future__ import annotations
 
 import io
+import json
 import re
 import time
 import typing
@@ -182,3 +183,127 @@ def test_the_web_pages_own_forms_still_pass(client, dng):
     r = client.post("/v1/batches", files=[("files", ("a.dng", dng))],
                     data={**opts, "format": "jpeg", "target": "D65", "lighting": "per-image"})
     assert r.status_code == 202, r.text
+
+
+def _refs(obj) -> set[str]:
+    """The component names an OpenAPI fragment refers to."""
+    if isinstance(obj, dict):
+        out = {obj["$ref"].split("/")[-1]} if isinstance(obj.get("$ref"), str) else set()
+        return out.union(*(_refs(v) for v in obj.values()))
+    if isinstance(obj, list):
+        return set().union(*(_refs(v) for v in obj))
+    return set()
+
+
+def response_components(spec) -> set[str]:
+    """Every component schema an answer's body or header uses, nested ones too."""
+    comps = spec["components"]["schemas"]
+    todo = _refs([op.get("responses", {}) for ops in spec["paths"].values() for op in ops.values()])
+    seen: set[str] = set()
+    while todo:
+        name = todo.pop()
+        if name not in seen:
+            seen.add(name)
+            todo |= _refs(comps[name]) - seen
+    return seen
+
+
+def test_every_response_model_has_real_examples_that_validate(client):
+    """Issue 29, item 4: ``/docs`` shows an example for every JSON answer
+    (analyze, white-balance and its X-Illuminant header, surfaces, render,
+    batches and their items, errors), and each example is its own model's:
+    it validates and declares no undeclared key, so an example cannot drift
+    from the model (and the model not from the real answers, above)."""
+    spec = client.get("/openapi.json").json()
+    comps = spec["components"]["schemas"]
+    used = response_components(spec)
+    models = {n for n, m in vars(R).items() if isinstance(m, type) and issubclass(m, R._Answer) and m is not R._Answer}
+    assert models <= used, models - used            # every response model is in the document
+    assert {"AnalyzeResult", "WhiteBalanceResult", "IlluminantHeader", "EstimateSummary", "SurfacesResult",
+            "RenderReport", "BatchCreated", "BatchProgress", "BatchItem", "BatchDeleted", "BatchList", "ErrorBody",
+            "Health", "CameraList", "ModelsInfo", "SamplingRule", "PreviewInfo"} <= used
+    for name in sorted(used):
+        examples = comps[name].get("examples")
+        assert examples, f"{name} has no example"
+        for ex in examples:
+            model = getattr(R, name, None)
+            if model is not None:
+                _check(model, ex)
+            else:
+                assert name == "ErrorBody", name
+                assert set(ex) == {"error", "detail"} and all(isinstance(v, str) and v for v in ex.values())
+    # each error answer shows an error of its own kind (a 413 is not shown as a misspelled field)
+    kinds = {"413": {"file_too_large", "too_large", "too_many_pixels"}, "415": {"not_camera_raw", "unsupported_format"},
+             "422": {"unknown_field", "invalid_parameter"}, "4XX": {"not_found"}}
+    for path, ops in spec["paths"].items():
+        for op in ops.values():
+            for code, r in op["responses"].items():
+                media = r.get("content", {}).get("application/json", {})
+                if media.get("schema", {}).get("$ref", "").endswith("/ErrorBody"):
+                    assert media.get("example", {}).get("error") in kinds[code], (path, code, media.get("example"))
+    header = spec["paths"]["/v1/white-balance"]["post"]["responses"]["200"]["headers"]["X-Illuminant"]
+    assert [r["$ref"].split("/")[-1] for r in header["schema"]["contentSchema"]["anyOf"]] == [
+        "IlluminantHeader", "EstimateSummary"]
+    _check(R.IlluminantHeader, json.loads(header["example"]))
+
+
+def test_the_x_illuminant_header_is_its_model(client, dng):
+    f = {"file": ("a.dng", dng)}
+    for data in ({"format": "png"}, {"format": "xmp"}, {"format": "jpeg", "neutral": "[10, 10, 40, 40]"}):
+        r = client.post("/v1/white-balance", files=f, data=data)
+        assert r.status_code == 200, r.text
+        model = R.EstimateSummary if data["format"] == "xmp" else R.IlluminantHeader
+        _check(model, json.loads(r.headers["X-Illuminant"]))
+
+
+def test_a_bad_example_is_caught():
+    """The checks above can fail: a wrong type, a key the model lacks."""
+    good = R.AnalyzeResult.model_config["json_schema_extra"]["examples"][0]
+    with pytest.raises(Exception):
+        _check(R.AnalyzeResult, {**good, "illuminant": {**good["illuminant"], "cct": "warm"}})
+    with pytest.raises(AssertionError):
+        _check(R.AnalyzeResult, {**good, "colour": 1})
+
+
+def test_white_balance_json_gives_the_as_shot_white_as_analyze_does(client, dng):
+    """The same document type answers the same fields: /v1/white-balance's
+    JSON had the as-shot white without its Temperature/Tint and xy."""
+    f = {"file": ("a.dng", dng)}
+    a = client.post("/v1/analyze", files=f).json()["as_shot"]
+    w = client.post("/v1/white-balance", files=f, data={"response": "json"}).json()["as_shot"]
+    assert {"temperature", "tint", "xy"} <= set(a)
+    assert w == a
+
+
+def test_reference_answers_and_json_headers_are_their_models(client, dng):
+    """/health, /v1/cameras, /v1/models and /v1/sampling (defined and not)
+    have their models too, as do the X-Preview and X-Render-Report headers."""
+    _check(R.Health, client.get("/health").json())
+    _check(R.CameraList, client.get("/v1/cameras").json())
+    _check(R.ModelsInfo, client.get("/v1/models").json())
+    for params in ({"strategy": "gauss-ac1c2", "n": 4}, {"strategy": "wiener-points", "n": 4, "illuminant": "A"},
+                   {"strategy": "quasi-gauss-xyz", "degrees": "4,4,4"}):
+        r = client.get("/v1/sampling", params=params)
+        assert r.status_code == 200, r.text
+        _check(R.SamplingRule, r.json())
+    assert r.json()["defined"] is False and "reason" in r.json()
+    f = {"file": ("a.dng", dng)}
+    for data in ({"wb": "camera"}, {"wb": "corrected"}, {"wb": "corrected", "white": "5000/+5"}):
+        r = client.post("/v1/preview", files=f, data=data)
+        assert r.status_code == 200, r.text
+        _check(R.PreviewInfo, json.loads(r.headers["X-Preview"]))
+    buf = io.BytesIO()
+    np.save(buf, np.random.default_rng(0).uniform(0.05, 0.9, (4, 5, 31)))
+    r = client.post("/v1/render", files={"file": ("c.npy", buf.getvalue())},
+                    data={"wavelengths": ",".join(str(x) for x in range(400, 710, 10)), "format": "png"})
+    assert r.status_code == 200, r.text
+    _check(R.RenderReport, json.loads(r.headers["X-Render-Report"]))
+    spec = client.get("/openapi.json").json()
+    for path, header, model in (("/v1/render", "X-Render-Report", "RenderReport"),
+                                ("/v1/preview", "X-Preview", "PreviewInfo")):
+        h = spec["paths"][path]["post"]["responses"]["200"]["headers"][header]
+        assert h["schema"]["contentSchema"]["$ref"].endswith("/" + model)
+        _check(getattr(R, model), json.loads(h["example"]))
+    assert isinstance(json.loads(h["example"])["ms"], float)
+    assert isinstance(json.loads(spec["paths"]["/v1/render"]["post"]["responses"]["200"]["headers"][
+        "X-Render-Report"]["example"])["tried"], int)              # the header's own example, not the JSON answer

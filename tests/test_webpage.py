@@ -298,6 +298,11 @@ def test_upload_shows_both_images_the_light_and_the_diagnostics(page, server, tm
     png = cv2.imdecode(np.frombuffer(Path(dl.value.path()).read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
     assert dl.value.suggested_filename == "scene-corrected.png"
     assert png.shape == (240, 360, 3) and png.dtype == np.uint8
+    with page.expect_download(timeout=90_000) as dl:       # JPEG too (the README's tour promises it)
+        page.click("#dl-jpeg")
+    data = Path(dl.value.path()).read_bytes()
+    assert dl.value.suggested_filename == "scene-corrected.jpg" and data[:3] == b"\xff\xd8\xff"
+    assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED).shape == (240, 360, 3)
     with page.expect_download() as dl:
         page.click("#dl-json")
     saved = json.loads(Path(dl.value.path()).read_text())
@@ -370,6 +375,8 @@ def test_phone_width_has_no_horizontal_scroll_and_a_click_sets_the_white(browser
     pg.set_input_files("#file", str(_dng(tmp_path / "scene.dng")))
     pg.wait_for_selector("#result", state="visible", timeout=90_000)
     assert pg.evaluate("document.documentElement.scrollWidth") <= 375
+    # the options (two menus a row) leave room: the picture starts on the first screen
+    assert pg.evaluate("document.querySelector('#viewer').getBoundingClientRect().top + scrollY") < 800
     viewer = pg.locator("#viewer")
     viewer.scroll_into_view_if_needed()
     box = viewer.bounding_box()
@@ -894,11 +901,14 @@ def test_a_light_map_is_shown_as_lights_found_and_a_picture(page, server, tmp_pa
 
 def test_several_picks_are_averaged(page, server, tmp_path):
     """A click picks white there (a mark shows it); Shift-click adds a
-    pick: the white used is the mean chromaticity of the picks' whites, each
-    read by the API (/v1/analyze with that neutral), as Temperature/Tint."""
+    pick: the page sends all picks to the API (``neutral`` a list), which
+    averages them (the mean of each pick's white at unit length), so the
+    page shows what the REST API answers for the same picks: the preview
+    shown is byte for byte /v1/preview's with that list, and the white is
+    the mean of the single picks' whites (1e-6 degrees: floating point)."""
     import httpx
 
-    from recovery.dng_color import temperature_tint_to_xy, xy_to_temperature_tint
+    from recovery import angular_error
 
     dng = _dng(tmp_path / "scene.dng", "D50", 6)
     _open(page, server, dng)
@@ -914,20 +924,27 @@ def test_several_picks_are_averaged(page, server, tmp_path):
     page.keyboard.down("Shift")
     page.mouse.click(v["x"] + points[1][0], v["y"] + points[1][1])
     page.keyboard.up("Shift")
-    page.wait_for_selector("#dl-white:has-text('the mean of 2 picks')", timeout=120_000)
-    _wait_rendered(page)
+    page.wait_for_selector("#neutral-note:has-text('averaged from 2 picks')", timeout=120_000)
+    page.wait_for_selector("#status:has-text('Done')", timeout=120_000)
+    assert page.text_content("#dl-white") == "the mean of your 2 picks"
     assert page.eval_on_selector_all(".pick-mark", "ms => ms.filter(m => !m.hidden).length") == 2
     neutrals = page.evaluate("() => current.picks.map(p => p.neutral)")
-    xys = []
-    for n in neutrals:
-        il = httpx.post(server + "/v1/analyze", files={"file": ("scene.dng", dng.read_bytes())},
-                        data={"neutral": json.dumps(n)}, timeout=60).json()["illuminant"]
-        xys.append(temperature_tint_to_xy(il["temperature"], il["tint"]))
-    t, tint = xy_to_temperature_tint(np.mean(xys, axis=0))
-    white = page.text_content("#dl-white").split(", ")[-1]
-    # the page sends whole kelvin and whole tint units
-    assert white == f"{round(t)}/{'+' if tint >= 0 else ''}{round(tint)}", (white, t, tint)
-    assert page.get_attribute("#wb-custom", "aria-pressed") == "true"
+    assert page.evaluate("() => current.neutral") == neutrals and len(neutrals) == 2
+    files = {"file": ("scene.dng", dng.read_bytes())}
+    singles = [np.array(httpx.post(server + "/v1/analyze", files=files, data={"neutral": json.dumps(n)},
+                                   timeout=60).json()["illuminant"]["camera_rgb"]) for n in neutrals]
+    both = httpx.post(server + "/v1/analyze", files=files, data={"neutral": json.dumps(neutrals)}, timeout=60).json()
+    mean = np.mean([s / np.linalg.norm(s) for s in singles], axis=0)
+    assert angular_error(np.array(both["illuminant"]["camera_rgb"]), mean) < 1e-6
+    shown = page.evaluate("() => current.estimate.illuminant.camera_rgb")
+    assert angular_error(np.array(shown), mean) < 1e-6
+    api = httpx.post(server + "/v1/preview", files=files, timeout=60, data={
+        "wb": "corrected", "white": "estimate", "target": "D65", "format": "jpeg", "max_side": "1024",
+        "neutral": json.dumps(neutrals)})
+    assert api.status_code == 200, api.text
+    shown_bytes = base64.b64decode(page.evaluate(_IMG_BYTES, "#img-corrected"))
+    assert shown_bytes == api.content
+    assert page.get_attribute("#wb-auto", "aria-pressed") == "true"
     _screenshot(page, tmp_path, "wandell-webpage-picks.png")
 
 
@@ -955,6 +972,98 @@ def test_ctrl_wheel_zooms_about_the_pointer(page, server, tmp_path):
     page.keyboard.up("Control")
     page.wait_for_selector("#zoom-fit[aria-pressed='true']")
     assert page.eval_on_selector("#img-corrected", rect)[2] == pytest.approx(w0, rel=1e-6)
+
+
+def _touch(cdp, kind: str, points) -> None:
+    """A touch event with these fingers ``[(x, y), ...]`` (page CSS px), sent
+    through Chromium's input pipeline (DevTools ``Input.dispatchTouchEvent``:
+    the browser's gesture handling, touch-action and pointer events, as a
+    phone's touchscreen sends them)."""
+    cdp.send("Input.dispatchTouchEvent", {"type": kind, "touchPoints": [
+        {"x": x, "y": y, "id": i, "radiusX": 5, "radiusY": 5} for i, (x, y) in enumerate(points)]})
+
+
+def test_pinch_and_pan_by_touch_on_a_phone(browser, server, tmp_path):
+    """Issue 29, item 3 (zoom, pan on a phone), at 375 px with a touch
+    screen (device pixel ratio 2): two fingers pinching apart zoom by the
+    ratio of their distances, the picture's point under their midpoint
+    staying under it; two fingers moving together pan; one finger pans the
+    zoomed picture by its own movement; none of it picks a white or zooms
+    the page itself, and a pinch that starts on the split's divider (in the
+    middle of the picture, where a thumb lands) zooms and leaves the divider
+    where it was. Bounds: 1e-3 relative for the scale (the page computes it
+    from the fingers' distance in floating point) and 0.5 px for positions
+    (the touch points are CSS pixels)."""
+    ctx = browser.new_context(viewport={"width": 375, "height": 800}, has_touch=True, is_mobile=True,
+                              device_scale_factor=2)
+    pg = ctx.new_page()
+    problems = []
+    pg.on("pageerror", lambda e: problems.append(str(e)))
+    dng = tmp_path / "square.dng"
+    scene_dng(dng, "Nikon 5100 (NPL)", "D50", 360, 360, seed=6)
+    _open(pg, server, dng)
+    pg.locator("#viewer").scroll_into_view_if_needed()
+    v = pg.locator("#viewer").bounding_box()
+    rect = "i => { const b = i.getBoundingClientRect(); return [b.left, b.top, b.width]; }"
+
+    def picture_point(x, y):
+        """The picture's point (fractions of its width) under page point (x, y)."""
+        left, top, w = pg.eval_on_selector("#img-corrected", rect)
+        return np.array([(x - left) / w, (y - top) / w]), w
+
+    cdp = ctx.new_cdp_session(pg)
+    divider = pg.locator("#divider").bounding_box()
+    x0 = divider["x"] + divider["width"] / 2          # the first finger on the divider
+    y = v["y"] + 0.5 * v["height"]
+    mid = (x0 + 40, y)                                 # the second 80 px to its right
+    before, w0 = picture_point(*mid)
+    split0 = pg.evaluate("view.split")
+    _touch(cdp, "touchStart", [(x0, y), (x0 + 80, y)])
+    for d in range(45, 81, 5):                         # the fingers 80 -> 160 px apart, midpoint fixed
+        _touch(cdp, "touchMove", [(mid[0] - d, y), (mid[0] + d, y)])
+    _touch(cdp, "touchEnd", [])
+    pg.wait_for_selector("#viewer.zoomed")
+    after, w1 = picture_point(*mid)
+    assert w1 / w0 == pytest.approx(2.0, rel=1e-3)
+    assert np.abs(after - before).max() * w1 < 0.5, (before, after)
+    assert pg.evaluate("view.split") == split0                   # the divider stayed
+    assert pg.evaluate("visualViewport.scale") == 1              # the page itself did not zoom
+    assert pg.evaluate("document.documentElement.scrollWidth") <= 375
+
+    # two fingers moving together (same distance): the picture follows them
+    v = pg.locator("#viewer").bounding_box()
+    y = v["y"] + 0.5 * v["height"]
+    a, b = (v["x"] + 120, y), (v["x"] + 220, y)
+    start, _ = picture_point(170 + v["x"], y)
+    _touch(cdp, "touchStart", [a, b])
+    for k in range(1, 7):
+        _touch(cdp, "touchMove", [(a[0] + 5 * k, y + 3 * k), (b[0] + 5 * k, y + 3 * k)])
+    _touch(cdp, "touchEnd", [])
+    moved, w2 = picture_point(170 + v["x"] + 30, y + 18)
+    assert w2 == pytest.approx(w1, rel=1e-3) and np.abs(moved - start).max() * w2 < 0.5, (start, moved)
+
+    # one finger: pans the zoomed picture by its movement
+    l0, t0, _ = pg.eval_on_selector("#img-corrected", rect)
+    p = (v["x"] + 300, v["y"] + 200)                  # away from the divider (which a finger would move)
+    _touch(cdp, "touchStart", [p])
+    for k in range(1, 9):
+        _touch(cdp, "touchMove", [(p[0] - 5 * k, p[1] - 4 * k)])
+    _touch(cdp, "touchEnd", [])
+    l1, t1, _ = pg.eval_on_selector("#img-corrected", rect)
+    assert (l1 - l0, t1 - t0) == (pytest.approx(-40, abs=0.5), pytest.approx(-32, abs=0.5))
+    assert not (pg.text_content("#neutral-note") or "").startswith("White taken")   # no gesture picked a white
+    _screenshot(pg, tmp_path, "wandell-webpage-pinch-phone.png")
+
+    # pinching far in stops at Fit
+    c = (v["x"] + v["width"] / 2 + 50, y)
+    _touch(cdp, "touchStart", [(c[0] - 100, y), (c[0] + 100, y)])
+    for d in range(90, 9, -10):
+        _touch(cdp, "touchMove", [(c[0] - d, y), (c[0] + d, y)])
+    _touch(cdp, "touchEnd", [])
+    pg.wait_for_selector("#zoom-fit[aria-pressed='true']")
+    assert pg.eval_on_selector("#img-corrected", rect)[2] == pytest.approx(w0, rel=1e-6)
+    assert not problems, problems
+    ctx.close()
 
 
 def _two_light_dng(path: Path) -> Path:

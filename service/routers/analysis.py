@@ -275,6 +275,8 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
         M, info = pipeline.correction_matrix(run, target, output, opts.get("surface_basis"), decoded=decoded,
                                              exposure=ev)
         body = pipeline.analysis_json(run, decoded)
+        if "as_shot" in body:     # as /v1/analyze answers it
+            body["as_shot"].update(as_shot_temperature_tint(decoded, run))
         body["correction_matrix"] = M.tolist()
         body["rendering"] = pipeline.rendering_json(info)
         return JSONResponse(clean(body))

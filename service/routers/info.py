@@ -7,12 +7,13 @@ from fastapi import APIRouter, Depends
 import models
 from recovery.methods import METHODS
 
+from ..schemas.responses import CameraList, Health, ModelsInfo
 from ..settings import Settings, get_settings
 
 router = APIRouter()
 
 
-@router.get("/health")
+@router.get("/health", response_model=None, responses={200: {"model": Health}})
 def health(settings: Settings = Depends(get_settings)) -> dict:
     """Liveness: the service is up and the numerical core imports;
     ``job_store`` says whether the batch store opened cleanly (``recovered``:
@@ -30,7 +31,7 @@ def health(settings: Settings = Depends(get_settings)) -> dict:
             "job_store": store_health(), "batch_runner": runner}
 
 
-@router.get("/v1/cameras")
+@router.get("/v1/cameras", response_model=None, responses={200: {"model": CameraList}})
 def cameras() -> dict:
     """Cameras the service knows, and how it knows them."""
     measured = [{"name": n, "source": "measured", "channels": 3,
@@ -46,7 +47,7 @@ def cameras() -> dict:
     }
 
 
-@router.get("/v1/models")
+@router.get("/v1/models", response_model=None, responses={200: {"model": ModelsInfo}})
 def linear_models() -> dict:
     """Linear models (bases) and their dimensions; estimation methods."""
     return {

@@ -23,7 +23,7 @@ from ..jsonsafe import clean
 from ..options import FORMATS, MAX_N, MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, parse_wavelengths, rule_options
 from ..schemas import Sampling, SpectralRendering
 from ..schemas.forms import form, query
-from ..schemas.responses import RenderReport
+from ..schemas.responses import RenderReport, SamplingRule
 from ..settings import Settings, get_settings
 from ..workers import run_heavy
 
@@ -248,7 +248,7 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
     return await run_heavy(work, request=request)
 
 
-@router.get("/sampling")
+@router.get("/sampling", responses={200: {"model": SamplingRule}})
 def sampling(q: Sampling = Depends(_SAMPLING)):
     """Nodes and weights of a sampling rule on the analysis grid (400-700 nm,
     10 nm), ``defined`` false with a ``reason`` when the order does not exist

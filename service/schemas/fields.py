@@ -225,8 +225,9 @@ WHITE_BALANCE = {
 # --------------------------------------------------------------------------- regions
 #: A surface the user says is white.
 NEUTRAL = {
-    "neutral": Opt(list[int] | None, None, checks.NEUTRAL_HELP, wire=str | None, wire_default=None,
-                   examples=("[1200, 2040]", "[100, 200, 140, 260]"), check=_neutral,
+    "neutral": Opt(list | None, None, checks.NEUTRAL_HELP, wire=str | None, wire_default=None,
+                   examples=("[1200, 2040]", "[100, 200, 140, 260]", "[[1200, 2040], [1500, 800, 1540, 860]]"),
+                   check=_neutral,
                    summary="a surface to use as white: JSON [row, col] or [r0, c0, r1, c1] in full-resolution "
                            "pixels"),
 }

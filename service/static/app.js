@@ -189,7 +189,10 @@ function diagnosticsInWords(j) {
   const method = j.method || d.method || "unknown";
   let summary;
   if (method === "neutral-surface") {
-    summary = "The white was taken from the surface you clicked (its mean colour is used as the light).";
+    const picks = j.neutral && j.neutral.picks ? j.neutral.picks.length : 1;
+    summary = picks > 1
+      ? `The white is the mean of the ${picks} surfaces you clicked (each weighs the same).`
+      : "The white was taken from the surface you clicked (its mean colour is used as the light).";
   } else {
     const what = typeof il.temperature === "number" ? `a light of about ${Math.round(il.temperature)} K` : "the light";
     summary = `Auto found ${what}, estimated by ${METHOD_WORDS[method] || method}.`;
@@ -407,29 +410,6 @@ function ttToXy(temperature, tint) {
   return [1.5 * u / den, v / den];
 }
 
-// Temperature/Tint of an xy (DNG SDK dng_temperature::Set_xy_coord, Robertson's method)
-function xyToTt([x, y]) {
-  const d = 1.5 - x + 6 * y, u = 2 * x / d, v = 3 * y / d;
-  let lastDt = 0, lastDu = 0, lastDv = 0;
-  for (let i = 1; i < ROBERTSON.length; i++) {
-    const [, u1, v1, t1] = ROBERTSON[i];
-    const n = Math.hypot(1, t1);
-    let du = 1 / n, dv = t1 / n;
-    let dt = -(u - u1) * dv + (v - v1) * du;
-    if (dt <= 0 || i === ROBERTSON.length - 1) {
-      dt = -Math.min(dt, 0);
-      const f = i === 1 ? 0 : dt / (lastDt + dt);
-      const [r0, u0, v0] = ROBERTSON[i - 1], r1 = ROBERTSON[i][0];
-      const t = 1e6 / (r0 * f + r1 * (1 - f));
-      const uu = u - (u0 * f + u1 * (1 - f)), vv = v - (v0 * f + v1 * (1 - f));
-      du = du * (1 - f) + lastDu * f; dv = dv * (1 - f) + lastDv * f;
-      return {t, tint: (uu * du + vv * dv) / Math.hypot(du, dv) * -3000};
-    }
-    lastDt = dt; lastDu = du; lastDv = dv;
-  }
-  return null;
-}
-
 // The slider's 0..1000 is linear in mireds (even steps of perceived colour), 2000 K to 50000 K.
 const MIRED_WARM = 1e6 / 2000, MIRED_COOL = 1e6 / 50000;
 const sliderToK = (v) => 1e6 / (MIRED_WARM - v / 1000 * (MIRED_WARM - MIRED_COOL));
@@ -626,9 +606,10 @@ function showWhiteBalance() {
   }
   $("temp-value").textContent = w ? `${Math.round(w.t)} K` : "–";
   $("tint-value").textContent = w ? `${w.tint >= 0 ? "+" : ""}${Math.round(w.tint)}` : "–";
-  $("dl-white").textContent = current.wb.mode === "custom"
-    ? `${current.wb.picks ? `the mean of ${current.wb.picks} picks, ` : "Custom "}${whiteField()}`
-    : current.wb.mode === "as-shot" ? "As shot" : (current.neutral ? "your white" : "Auto");
+  const nPicks = current.picks.length;
+  $("dl-white").textContent = current.wb.mode === "custom" ? `Custom ${whiteField()}`
+    : current.wb.mode === "as-shot" ? "As shot"
+    : (current.neutral ? (nPicks > 1 ? `the mean of your ${nPicks} picks` : "your white") : "Auto");
 }
 
 function setWhiteMode(mode) {
@@ -779,12 +760,13 @@ function setZoom(zoom) {
   }
 }
 
-// Zoom to scale s (between Fit and 400 %) keeping the picture's point under (x, y) where it is.
-function zoomAt(s, x, y) {
+// Zoom to scale s (between Fit and 400 %) keeping the picture's point under (x, y) where it is
+// (or bringing the picture's point ``anchor`` there: a pinch's fingers pan as they zoom).
+function zoomAt(s, x, y, anchor) {
   if (!view.W) return;
   const dpr = window.devicePixelRatio || 1, fit = fitScale();
   s = Math.min(4 / dpr, Math.max(fit, s));
-  const px = (x - view.tx) / view.s, py = (y - view.ty) / view.s;
+  const [px, py] = anchor || [(x - view.tx) / view.s, (y - view.ty) / view.s];
   view.s = s;
   view.tx = x - px * s;
   view.ty = y - py * s;
@@ -842,19 +824,30 @@ function viewerPoint(ev) {
 function wireViewer() {
   const v = $("viewer");
   let drag = null;
-  // two fingers: pinch to zoom about their midpoint (no pick, no pan)
+  // two fingers: pinch to zoom; the picture's point under the fingers'
+  // midpoint when they landed stays under their midpoint (zoom and pan
+  // together, as a phone's photo viewer does); no pick. A finger that lands
+  // on the split's divider counts too: the pinch wins and the divider goes
+  // back to where it was.
   const touches = new Map();
   let pinch = null;
+  let dividerDrag = null;   // {id, split}: the divider follows this pointer
   v.addEventListener("pointerdown", (ev) => {
-    if (ev.target.closest("#divider") || ev.button !== 0) return;
+    if (ev.button !== 0) return;
+    const onDivider = Boolean(ev.target.closest("#divider"));
+    if (onDivider && ev.pointerType !== "touch") return;
     const [x, y] = viewerPoint(ev);
     touches.set(ev.pointerId, [x, y]);
     if (touches.size === 2) {
       const [a, b] = [...touches.values()];
-      pinch = {d: Math.hypot(a[0] - b[0], a[1] - b[1]) || 1, s: view.s};
+      const mx = (a[0] + b[0]) / 2, my = (a[1] + b[1]) / 2;
+      pinch = {d: Math.hypot(a[0] - b[0], a[1] - b[1]) || 1, s: view.s,
+               anchor: [(mx - view.tx) / view.s, (my - view.ty) / view.s]};
       drag = null;
+      if (dividerDrag) { view.split = dividerDrag.split; dividerDrag = null; applyView(); }
       return;
     }
+    if (onDivider) return;               // one finger on the divider moves the divider
     drag = {x, y, tx: view.tx, ty: view.ty, moved: false, id: ev.pointerId};
     if (view.zoom !== "fit") v.setPointerCapture(ev.pointerId);
   });
@@ -862,7 +855,8 @@ function wireViewer() {
     if (touches.has(ev.pointerId)) touches.set(ev.pointerId, viewerPoint(ev));
     if (pinch && touches.size === 2) {
       const [a, b] = [...touches.values()];
-      zoomAt(pinch.s * Math.hypot(a[0] - b[0], a[1] - b[1]) / pinch.d, (a[0] + b[0]) / 2, (a[1] + b[1]) / 2);
+      zoomAt(pinch.s * Math.hypot(a[0] - b[0], a[1] - b[1]) / pinch.d, (a[0] + b[0]) / 2, (a[1] + b[1]) / 2,
+             pinch.anchor);
       return;
     }
     if (!drag || drag.id !== ev.pointerId) return;
@@ -892,16 +886,19 @@ function wireViewer() {
   v.addEventListener("pointercancel", end);
 
   const div = $("divider");
-  let dragging = false;
-  div.addEventListener("pointerdown", (ev) => { dragging = true; div.setPointerCapture(ev.pointerId); ev.preventDefault(); });
+  div.addEventListener("pointerdown", (ev) => {
+    dividerDrag = {id: ev.pointerId, split: view.split};
+    div.setPointerCapture(ev.pointerId);
+    ev.preventDefault();
+  });
   div.addEventListener("pointermove", (ev) => {
-    if (!dragging) return;
+    if (!dividerDrag || dividerDrag.id !== ev.pointerId) return;
     const [x] = viewerPoint(ev);
     view.split = Math.min(1, Math.max(0, x / viewerSize()[0]));
     applyView();
   });
-  div.addEventListener("pointerup", () => { dragging = false; });
-  div.addEventListener("pointercancel", () => { dragging = false; });
+  div.addEventListener("pointerup", () => { dividerDrag = null; });
+  div.addEventListener("pointercancel", () => { dividerDrag = null; });
   div.addEventListener("keydown", (ev) => {
     const step = {ArrowLeft: -0.05, ArrowRight: 0.05, Home: -1, End: 1}[ev.key];
     if (step === undefined) return;
@@ -929,9 +926,10 @@ function wireViewer() {
 
 // "Use this as white": a click fixes the light from a small square around
 // that point (about 1 % of the long side), in the decoded image's pixels.
-// With Shift (or "Average several picks") the click adds a pick: each pick's
-// white comes from /v1/analyze with that neutral, and the white used is the
-// mean of their chromaticities (each pick weighs the same), as Temperature/Tint.
+// With Shift (or "Average several picks") the click adds a pick: the API
+// averages them (neutral = a list of squares: the mean of each pick's white,
+// each weighing the same), so the page, the downloads and the REST API agree.
+const MAX_PICKS = 16;   // the API's limit (service.options.MAX_NEUTRAL_PICKS)
 function pickWhite(x, y, add) {
   if (!current || !current.box || !view.W) return;
   const px = (x - view.tx) / view.s, py = (y - view.ty) / view.s;
@@ -941,49 +939,19 @@ function pickWhite(x, y, add) {
   const half = Math.max(2, Math.round(0.005 * Math.max(W, H)));
   const neutral = [Math.max(0, r - half), Math.max(0, c - half), Math.min(H, r + half + 1), Math.min(W, c + half + 1)];
   const pick = {x: px, y: py, neutral};
-  if (add && current.picks.length && current.estimate && current.neutral) {
-    addPick(pick);
-    return;
+  if (add && current.picks.length && current.neutral) {
+    if (current.picks.length >= MAX_PICKS) {
+      $("neutral-note").textContent = `At most ${MAX_PICKS} picks: click without Shift to start again.`;
+      return;
+    }
+    current.picks.push(pick);
+  } else {
+    current.picks = [pick];
   }
-  current.picks = [pick];
-  current.neutral = neutral;
+  current.neutral = current.picks.length > 1 ? current.picks.map((p) => p.neutral) : neutral;
   current.wb = {mode: "auto"};
   applyView();
   run();
-}
-
-async function addPick(pick) {
-  const first = current.picks[0];
-  if (first.t === undefined) {
-    const il = current.estimate.illuminant || {};
-    first.t = il.temperature; first.tint = il.tint;
-  }
-  current.picks.push(pick);
-  applyView();
-  const seq = current.seq;
-  $("wb-status").textContent = "Reading the white there…";
-  try {
-    const j = await post("/v1/analyze", formFor(current.file, Object.assign(estimationFields(current.options),
-      {neutral: JSON.stringify(pick.neutral)}))).then((r) => r.json());
-    if (!current || current.seq !== seq || !current.picks.includes(pick)) return;
-    const il = j.illuminant || {};
-    if (typeof il.temperature !== "number") throw new Error("That surface's colour has no temperature: pick a white or grey one.");
-    pick.t = il.temperature; pick.tint = il.tint;
-    const xy = [0, 0];
-    const ok = current.picks.filter((p) => typeof p.t === "number");
-    for (const p of ok) { const q = ttToXy(p.t, p.tint); xy[0] += q[0] / ok.length; xy[1] += q[1] / ok.length; }
-    const mean = xyToTt(xy);
-    current.wb = {mode: "custom", t: mean.t, tint: mean.tint, picks: ok.length};
-    $("neutral-note").textContent = `White averaged from ${ok.length} picks (the mean of their chromaticities). ` +
-      "Shift-click to add another; click without Shift to start again.";
-    showWhiteBalance();
-    rerenderAfter();
-  } catch (err) {
-    current.picks = current.picks.filter((p) => p !== pick);
-    applyView();
-    $("wb-status").textContent = "";
-    showError($("error"), err);
-  }
 }
 
 // "Read a surface": a click asks /v1/surfaces for the reflectance of a small
@@ -1076,8 +1044,12 @@ function drawMarks() {
 function showNeutral(analysis) {
   const n = analysis && analysis.neutral;
   $("neutral-clear").hidden = !current.neutral;
-  if (n) {
-    const ang = typeof n.angle_to_estimate_deg === "number" ? `, ${fmt(n.angle_to_estimate_deg, 1)}° from Auto's` : "";
+  const ang = n && typeof n.angle_to_estimate_deg === "number" ? `, ${fmt(n.angle_to_estimate_deg, 1)}° from Auto's` : "";
+  if (n && n.picks) {
+    $("neutral-note").textContent = `White averaged from ${n.picks.length} picks (each weighs the same; they ` +
+      `differ from their mean by up to ${fmt(n.spread_deg, 1)}°${ang}). Shift-click to add another; click ` +
+      "without Shift to start again.";
+  } else if (n) {
     $("neutral-note").textContent = `White taken from the marked surface (rows ${n.where[0]}–${n.where[2]}, ` +
       `columns ${n.where[1]}–${n.where[3]}; ${n.cells_used} cells${ang}). Click elsewhere to change it.`;
   } else {
@@ -1508,6 +1480,7 @@ document.addEventListener("DOMContentLoaded", () => {
   $("target-k").addEventListener("change", () => { if (current && current.estimate) run(); });
   $("dl-tiff").addEventListener("click", () => downloadCorrected("tiff", "tif"));
   $("dl-png").addEventListener("click", () => downloadCorrected("png", "png"));
+  $("dl-jpeg").addEventListener("click", () => downloadCorrected("jpeg", "jpg"));
   $("dl-json").addEventListener("click", downloadEstimate);
   $("dl-asshot").addEventListener("click", () => downloadCorrected("png", "png", "as-shot"));
   $("dl-xmp").addEventListener("click", () => downloadCorrected("xmp", "xmp"));
