@@ -384,7 +384,7 @@ def main(argv=None) -> None:
             if f"before {k}" in whole:
                 r = _median([x / y for x, y in zip(whole[k]["t"], whole[f"before {k}"]["t"])])
                 print(f"  {k:40s} {r:.2f}")
-    if real:
+    if real and whole:
         print(f"\nwandell analyze of the real CinemaDNG: {_median(whole['wandell analyze (real CinemaDNG)']['t']):.2f} s "
               "(target <= 0.80 s)")
     print(f"load average at the end {os.getloadavg()[0]:.2f}")

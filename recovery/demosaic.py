@@ -443,19 +443,53 @@ def _rcd_core(M: np.ndarray, letters: dict) -> tuple[dict, dict, dict]:
 
 # --- the compiled kernel ----------------------------------------------------
 #
-# The same steps pixel by pixel (the reference's loops), compiled by numba
-# when it is installed (serial and without the GIL: strips run on threads).
+# The same steps as the reference's loops, compiled by numba when it is
+# installed (serial and without the GIL: strips run on threads), but run on
+# the four colour-filter sub-planes like the numpy steps above: every inner
+# loop walks one row of contiguous sub-plane values (unit stride, no branch),
+# which the compiler turns into SIMD code; the reference's loops step over
+# every other pixel of the full-resolution mosaic and stay scalar (3-4x
+# slower here). The float32 operations and their order are the reference
+# loops', pixel for pixel, so the result does not depend on the layout.
 # Without numba the vectorised numpy steps above run instead (the same
 # arithmetic up to float32 rounding: a test compares them).
 
-def _rcd_loops(M, pat, P, n, m, out, scale, rnd, ws):
-    """RCD of the padded float32 block ``M`` (colours ``pat[(r & 1) * 2 +
-    (c & 1)]``: 0 R, 1 G, 2 B); rows/columns ``P:P + n``, ``P:P + m``
-    written to ``out`` (``n x m x 3``) times ``scale``, clipped to
-    ``[0, scale]``, plus ``rnd`` (0.5: rounded when ``out`` is integer).
-    ``ws``: a workspace of 8 finite float32 rows of at least ``M.size``
-    (reused from block to block: new memory is the slow part)."""
-    H, W = M.shape
+def _nbr(A, py, px, dy, dx, i, nw):
+    """Sub-plane row ``i`` of the site parity ``(py, px)``, columns ``_K:_K
+    + nw``, moved by the full-resolution offset ``(dy, dx)``: the ``nw``
+    values of ``A`` (``(4, h, w)``, one plane a parity ``2 * py + px``) at
+    those neighbours (a contiguous view)."""
+    sy = py + dy
+    sx = px + dx
+    j0 = _K + (sx >> 1)
+    return A[(sy & 1) * 2 + (sx & 1), i + (sy >> 1), j0:j0 + nw]
+
+
+def _mos(C, pat, py, px, dy, dx, i, nw):
+    """:func:`_nbr` of the mosaic: each site's own colour in ``C`` (``(3,
+    4, h, w)``: R, G, B of every parity)."""
+    sy = py + dy
+    sx = px + dx
+    q = (sy & 1) * 2 + (sx & 1)
+    j0 = _K + (sx >> 1)
+    return C[pat[q], q, i + (sy >> 1), j0:j0 + nw]
+
+
+def _rcd_planes(M, pat, P, n, m, out, scale, rnd, ws):
+    """RCD of the padded float32 block ``M`` (even sides; colours ``pat[(r
+    & 1) * 2 + (c & 1)]``: 0 R, 1 G, 2 B); rows/columns ``P:P + n``, ``P:P
+    + m`` (``P`` even) written to ``out`` (``n x m x 3``) times ``scale``,
+    clipped to ``[0, scale]``, plus ``rnd`` (0.5: rounded when ``out`` is
+    integer). ``ws``: a flat workspace of at least ``7 * M.size`` finite
+    float32 (reused from block to block: new memory is the slow part).
+    Every step is computed on the sub-plane region ``[_K, h - _K) x [_K, w
+    - _K)`` and reads at most 2 sub-plane pixels (4 mosaic pixels) around it."""
+    Hb, Wb = M.shape
+    h = Hb // 2
+    w = Wb // 2
+    N = h * w
+    K = _K
+    nw = w - 2 * K
     eps = np.float32(1e-5)
     epssq = np.float32(1e-10)
     half = np.float32(0.5)
@@ -464,160 +498,322 @@ def _rcd_loops(M, pat, P, n, m, out, scale, rnd, ws):
     six = np.float32(6.0)
     one = np.float32(1.0)
     zero = np.float32(0.0)
-    N = H * W
-    Vh = ws[0, :N].reshape((H, W))
-    Hh = ws[1, :N].reshape((H, W))
-    VH = ws[2, :N].reshape((H, W))
-    lpf = ws[3, :N].reshape((H, W))
-    PQ = ws[4, :N].reshape((H, W))
-    rgb0 = ws[5, :N].reshape((H, W))
-    rgb1 = ws[6, :N].reshape((H, W))
-    rgb2 = ws[7, :N].reshape((H, W))
-    for r in range(H):
-        for c in range(W):
-            k = pat[(r & 1) * 2 + (c & 1)]
-            if k == 0:
-                rgb0[r, c] = M[r, c]
-            elif k == 1:
-                rgb1[r, c] = M[r, c]
-            else:
-                rgb2[r, c] = M[r, c]
+    C = ws[0:12 * N].reshape((3, 4, h, w))      # R, G, B at every parity
+    Vh = ws[12 * N:16 * N].reshape((4, h, w))   # step 1, then step 4.0's P
+    Hh = ws[16 * N:20 * N].reshape((4, h, w))   # step 1, then step 4.0's Q
+    VH = ws[20 * N:24 * N].reshape((4, h, w))
+    L = ws[24 * N:28 * N].reshape((4, h, w))    # step 2's low-pass, then step 4.1's PQ
+    for q in range(4):
+        py = q >> 1
+        px = q & 1
+        k = pat[q]
+        for i in range(h):
+            src = M[2 * i + py]
+            dst = C[k, q, i]
+            for j in range(w):
+                dst[j] = src[2 * j + px]
     # Step 1: vertical and horizontal discrimination
-    for r in range(3, H - 3):
-        for c in range(3, W - 3):
-            v = (M[r - 3, c] - M[r - 1, c] - M[r + 1, c] + M[r + 3, c]) - three * (M[r - 2, c] + M[r + 2, c]) \
-                + six * M[r, c]
-            Vh[r, c] = v * v
-            h = (M[r, c - 3] - M[r, c - 1] - M[r, c + 1] + M[r, c + 3]) - three * (M[r, c - 2] + M[r, c + 2]) \
-                + six * M[r, c]
-            Hh[r, c] = h * h
-    for r in range(4, H - 4):
-        for c in range(4, W - 4):
-            vs = max(epssq, Vh[r - 1, c] + Vh[r, c] + Vh[r + 1, c])
-            hs = max(epssq, Hh[r, c - 1] + Hh[r, c] + Hh[r, c + 1])
-            VH[r, c] = vs / (vs + hs)
+    for q in range(4):
+        py = q >> 1
+        px = q & 1
+        for i in range(K, h - K):
+            c0 = _mos(C, pat, py, px, 0, 0, i, nw)
+            a3 = _mos(C, pat, py, px, -3, 0, i, nw)
+            a2 = _mos(C, pat, py, px, -2, 0, i, nw)
+            a1 = _mos(C, pat, py, px, -1, 0, i, nw)
+            b1 = _mos(C, pat, py, px, 1, 0, i, nw)
+            b2 = _mos(C, pat, py, px, 2, 0, i, nw)
+            b3 = _mos(C, pat, py, px, 3, 0, i, nw)
+            o = Vh[q, i, K:K + nw]
+            for j in range(nw):
+                v = (a3[j] - a1[j] - b1[j] + b3[j]) - three * (a2[j] + b2[j]) + six * c0[j]
+                o[j] = v * v
+            a3 = _mos(C, pat, py, px, 0, -3, i, nw)
+            a2 = _mos(C, pat, py, px, 0, -2, i, nw)
+            a1 = _mos(C, pat, py, px, 0, -1, i, nw)
+            b1 = _mos(C, pat, py, px, 0, 1, i, nw)
+            b2 = _mos(C, pat, py, px, 0, 2, i, nw)
+            b3 = _mos(C, pat, py, px, 0, 3, i, nw)
+            o = Hh[q, i, K:K + nw]
+            for j in range(nw):
+                v = (a3[j] - a1[j] - b1[j] + b3[j]) - three * (a2[j] + b2[j]) + six * c0[j]
+                o[j] = v * v
+    for q in range(4):
+        py = q >> 1
+        px = q & 1
+        for i in range(K, h - K):
+            vn = _nbr(Vh, py, px, -1, 0, i, nw)
+            vc = _nbr(Vh, py, px, 0, 0, i, nw)
+            vs = _nbr(Vh, py, px, 1, 0, i, nw)
+            hw = _nbr(Hh, py, px, 0, -1, i, nw)
+            hc = _nbr(Hh, py, px, 0, 0, i, nw)
+            he = _nbr(Hh, py, px, 0, 1, i, nw)
+            o = VH[q, i, K:K + nw]
+            for j in range(nw):
+                sv = max(epssq, vn[j] + vc[j] + vs[j])
+                sh = max(epssq, hw[j] + hc[j] + he[j])
+                o[j] = sv / (sv + sh)
     # Step 2: low-pass at the red and blue sites
-    for r in range(1, H - 1):
-        for c in range(1 + _rb_col(pat, r + 1), W - 1, 2):
-                lpf[r, c] = M[r, c] + half * (M[r - 1, c] + M[r + 1, c] + M[r, c - 1] + M[r, c + 1]) \
-                    + quarter * (M[r - 1, c - 1] + M[r - 1, c + 1] + M[r + 1, c - 1] + M[r + 1, c + 1])
+    for q in range(4):
+        if pat[q] == 1:
+            continue
+        py = q >> 1
+        px = q & 1
+        for i in range(K, h - K):
+            c0 = _mos(C, pat, py, px, 0, 0, i, nw)
+            sn = _mos(C, pat, py, px, -1, 0, i, nw)
+            ss = _mos(C, pat, py, px, 1, 0, i, nw)
+            sw = _mos(C, pat, py, px, 0, -1, i, nw)
+            se = _mos(C, pat, py, px, 0, 1, i, nw)
+            dnw = _mos(C, pat, py, px, -1, -1, i, nw)
+            dne = _mos(C, pat, py, px, -1, 1, i, nw)
+            dsw = _mos(C, pat, py, px, 1, -1, i, nw)
+            dse = _mos(C, pat, py, px, 1, 1, i, nw)
+            o = L[q, i, K:K + nw]
+            for j in range(nw):
+                o[j] = c0[j] + half * (sn[j] + ss[j] + sw[j] + se[j]) \
+                    + quarter * (dnw[j] + dne[j] + dsw[j] + dse[j])
     # Step 3: green at the red and blue sites
-    for r in range(4, H - 4):
-        for c in range(4 + _rb_col(pat, r), W - 4, 2):
-            c0 = M[r, c]
-            Ng = eps + abs(M[r - 1, c] - M[r + 1, c]) + abs(c0 - M[r - 2, c]) + abs(M[r - 1, c] - M[r - 3, c]) \
-                + abs(M[r - 2, c] - M[r - 4, c])
-            Sg = eps + abs(M[r + 1, c] - M[r - 1, c]) + abs(c0 - M[r + 2, c]) + abs(M[r + 1, c] - M[r + 3, c]) \
-                + abs(M[r + 2, c] - M[r + 4, c])
-            Wg = eps + abs(M[r, c + 1] - M[r, c - 1]) + abs(c0 - M[r, c - 2]) + abs(M[r, c - 1] - M[r, c - 3]) \
-                + abs(M[r, c - 2] - M[r, c - 4])
-            Eg = eps + abs(M[r, c - 1] - M[r, c + 1]) + abs(c0 - M[r, c + 2]) + abs(M[r, c + 1] - M[r, c + 3]) \
-                + abs(M[r, c + 2] - M[r, c + 4])
-            L0 = lpf[r, c]
-            Ne = M[r - 1, c] * ((L0 - lpf[r - 2, c]) / (L0 + lpf[r - 2, c] + eps) + one)
-            Se = M[r + 1, c] * ((L0 - lpf[r + 2, c]) / (L0 + lpf[r + 2, c] + eps) + one)
-            We = M[r, c - 1] * ((L0 - lpf[r, c - 2]) / (L0 + lpf[r, c - 2] + eps) + one)
-            Ee = M[r, c + 1] * ((L0 - lpf[r, c + 2]) / (L0 + lpf[r, c + 2] + eps) + one)
-            V = (Sg * Ne + Ng * Se) / (Ng + Sg)
-            Hz = (Wg * Ee + Eg * We) / (Eg + Wg)
-            cen = VH[r, c]
-            hood = (VH[r - 1, c - 1] + VH[r - 1, c + 1] + VH[r + 1, c - 1] + VH[r + 1, c + 1]) * quarter
-            d = hood if abs(half - cen) < abs(half - hood) else cen
-            g = (Hz - V) * d + V
-            rgb1[r, c] = min(one, max(zero, g))
-    # Step 4.0-4.1: diagonal discrimination at the red and blue sites
-    for r in range(3, H - 3):
-        for c in range(3 + _rb_col(pat, r + 1), W - 3, 2):
-            p = (M[r - 3, c - 3] - M[r - 1, c - 1] - M[r + 1, c + 1] + M[r + 3, c + 3]) \
-                - three * (M[r - 2, c - 2] + M[r + 2, c + 2]) + six * M[r, c]
-            Vh[r, c] = p * p
-            q = (M[r - 3, c + 3] - M[r - 1, c + 1] - M[r + 1, c - 1] + M[r + 3, c - 3]) \
-                - three * (M[r - 2, c + 2] + M[r + 2, c - 2]) + six * M[r, c]
-            Hh[r, c] = q * q
-    for r in range(4, H - 4):
-        for c in range(4 + _rb_col(pat, r), W - 4, 2):
-            ps = max(epssq, Vh[r - 1, c - 1] + Vh[r, c] + Vh[r + 1, c + 1])
-            qs = max(epssq, Hh[r - 1, c + 1] + Hh[r, c] + Hh[r + 1, c - 1])
-            PQ[r, c] = ps / (ps + qs)
+    for q in range(4):
+        if pat[q] == 1:
+            continue
+        py = q >> 1
+        px = q & 1
+        for i in range(K, h - K):
+            c0 = _mos(C, pat, py, px, 0, 0, i, nw)
+            n1 = _mos(C, pat, py, px, -1, 0, i, nw)
+            n2 = _mos(C, pat, py, px, -2, 0, i, nw)
+            n3 = _mos(C, pat, py, px, -3, 0, i, nw)
+            n4 = _mos(C, pat, py, px, -4, 0, i, nw)
+            s1 = _mos(C, pat, py, px, 1, 0, i, nw)
+            s2 = _mos(C, pat, py, px, 2, 0, i, nw)
+            s3 = _mos(C, pat, py, px, 3, 0, i, nw)
+            s4 = _mos(C, pat, py, px, 4, 0, i, nw)
+            w1 = _mos(C, pat, py, px, 0, -1, i, nw)
+            w2 = _mos(C, pat, py, px, 0, -2, i, nw)
+            w3 = _mos(C, pat, py, px, 0, -3, i, nw)
+            w4 = _mos(C, pat, py, px, 0, -4, i, nw)
+            e1 = _mos(C, pat, py, px, 0, 1, i, nw)
+            e2 = _mos(C, pat, py, px, 0, 2, i, nw)
+            e3 = _mos(C, pat, py, px, 0, 3, i, nw)
+            e4 = _mos(C, pat, py, px, 0, 4, i, nw)
+            l0 = _nbr(L, py, px, 0, 0, i, nw)
+            ln = _nbr(L, py, px, -2, 0, i, nw)
+            ls = _nbr(L, py, px, 2, 0, i, nw)
+            lw = _nbr(L, py, px, 0, -2, i, nw)
+            le = _nbr(L, py, px, 0, 2, i, nw)
+            vc = _nbr(VH, py, px, 0, 0, i, nw)
+            vnw = _nbr(VH, py, px, -1, -1, i, nw)
+            vne = _nbr(VH, py, px, -1, 1, i, nw)
+            vsw = _nbr(VH, py, px, 1, -1, i, nw)
+            vse = _nbr(VH, py, px, 1, 1, i, nw)
+            o = C[1, q, i, K:K + nw]
+            for j in range(nw):
+                cc = c0[j]
+                Ng = eps + abs(n1[j] - s1[j]) + abs(cc - n2[j]) + abs(n1[j] - n3[j]) + abs(n2[j] - n4[j])
+                Sg = eps + abs(s1[j] - n1[j]) + abs(cc - s2[j]) + abs(s1[j] - s3[j]) + abs(s2[j] - s4[j])
+                Wg = eps + abs(e1[j] - w1[j]) + abs(cc - w2[j]) + abs(w1[j] - w3[j]) + abs(w2[j] - w4[j])
+                Eg = eps + abs(w1[j] - e1[j]) + abs(cc - e2[j]) + abs(e1[j] - e3[j]) + abs(e2[j] - e4[j])
+                L0 = l0[j]
+                Ne = n1[j] * ((L0 - ln[j]) / (L0 + ln[j] + eps) + one)
+                Se = s1[j] * ((L0 - ls[j]) / (L0 + ls[j] + eps) + one)
+                We = w1[j] * ((L0 - lw[j]) / (L0 + lw[j] + eps) + one)
+                Ee = e1[j] * ((L0 - le[j]) / (L0 + le[j] + eps) + one)
+                V = (Sg * Ne + Ng * Se) / (Ng + Sg)
+                Hz = (Wg * Ee + Eg * We) / (Eg + Wg)
+                cen = vc[j]
+                hood = (vnw[j] + vne[j] + vsw[j] + vse[j]) * quarter
+                d = hood if abs(half - cen) < abs(half - hood) else cen
+                g = (Hz - V) * d + V
+                o[j] = min(one, max(zero, g))
+    # Step 4.0: the diagonal high-pass at the red and blue sites
+    for q in range(4):
+        if pat[q] == 1:
+            continue
+        py = q >> 1
+        px = q & 1
+        for i in range(K, h - K):
+            c0 = _mos(C, pat, py, px, 0, 0, i, nw)
+            a3 = _mos(C, pat, py, px, -3, -3, i, nw)
+            a2 = _mos(C, pat, py, px, -2, -2, i, nw)
+            a1 = _mos(C, pat, py, px, -1, -1, i, nw)
+            b1 = _mos(C, pat, py, px, 1, 1, i, nw)
+            b2 = _mos(C, pat, py, px, 2, 2, i, nw)
+            b3 = _mos(C, pat, py, px, 3, 3, i, nw)
+            o = Vh[q, i, K:K + nw]
+            for j in range(nw):
+                v = (a3[j] - a1[j] - b1[j] + b3[j]) - three * (a2[j] + b2[j]) + six * c0[j]
+                o[j] = v * v
+            a3 = _mos(C, pat, py, px, -3, 3, i, nw)
+            a2 = _mos(C, pat, py, px, -2, 2, i, nw)
+            a1 = _mos(C, pat, py, px, -1, 1, i, nw)
+            b1 = _mos(C, pat, py, px, 1, -1, i, nw)
+            b2 = _mos(C, pat, py, px, 2, -2, i, nw)
+            b3 = _mos(C, pat, py, px, 3, -3, i, nw)
+            o = Hh[q, i, K:K + nw]
+            for j in range(nw):
+                v = (a3[j] - a1[j] - b1[j] + b3[j]) - three * (a2[j] + b2[j]) + six * c0[j]
+                o[j] = v * v
+    # Step 4.1: diagonal discrimination (the low-pass's planes reused)
+    for q in range(4):
+        if pat[q] == 1:
+            continue
+        py = q >> 1
+        px = q & 1
+        for i in range(K, h - K):
+            pa = _nbr(Vh, py, px, -1, -1, i, nw)
+            pc = _nbr(Vh, py, px, 0, 0, i, nw)
+            pb = _nbr(Vh, py, px, 1, 1, i, nw)
+            qa = _nbr(Hh, py, px, -1, 1, i, nw)
+            qc = _nbr(Hh, py, px, 0, 0, i, nw)
+            qb = _nbr(Hh, py, px, 1, -1, i, nw)
+            o = L[q, i, K:K + nw]
+            for j in range(nw):
+                ps = max(epssq, pa[j] + pc[j] + pb[j])
+                qs = max(epssq, qa[j] + qc[j] + qb[j])
+                o[j] = ps / (ps + qs)
     # Step 4.2: red at the blue sites, blue at the red sites
-    for r in range(4, H - 4):
-        c4 = 4 + _rb_col(pat, r)
-        X = rgb2 if pat[(r & 1) * 2 + (c4 & 1)] == 0 else rgb0     # the colour missing there
-        for c in range(c4, W - 4, 2):
-            g0 = rgb1[r, c]
-            nw = X[r - 1, c - 1]
-            ne = X[r - 1, c + 1]
-            sw = X[r + 1, c - 1]
-            se = X[r + 1, c + 1]
-            gnw = eps + abs(nw - se) + abs(nw - X[r - 3, c - 3]) + abs(g0 - rgb1[r - 2, c - 2])
-            gne = eps + abs(ne - sw) + abs(ne - X[r - 3, c + 3]) + abs(g0 - rgb1[r - 2, c + 2])
-            gsw = eps + abs(ne - sw) + abs(sw - X[r + 3, c - 3]) + abs(g0 - rgb1[r + 2, c - 2])
-            gse = eps + abs(nw - se) + abs(se - X[r + 3, c + 3]) + abs(g0 - rgb1[r + 2, c + 2])
-            enw = nw - rgb1[r - 1, c - 1]
-            ene = ne - rgb1[r - 1, c + 1]
-            esw = sw - rgb1[r + 1, c - 1]
-            ese = se - rgb1[r + 1, c + 1]
-            Pe = (gnw * ese + gse * enw) / (gnw + gse)
-            Qe = (gne * esw + gsw * ene) / (gne + gsw)
-            cen = PQ[r, c]
-            hood = (PQ[r - 1, c - 1] + PQ[r - 1, c + 1] + PQ[r + 1, c - 1] + PQ[r + 1, c + 1]) * quarter
-            d = hood if abs(half - cen) < abs(half - hood) else cen
-            X[r, c] = (Qe - Pe) * d + Pe + g0
+    for q in range(4):
+        if pat[q] == 1:
+            continue
+        py = q >> 1
+        px = q & 1
+        x = 2 if pat[q] == 0 else 0                  # the colour missing there
+        for i in range(K, h - K):
+            g0 = _nbr(C[1], py, px, 0, 0, i, nw)
+            gnw2 = _nbr(C[1], py, px, -2, -2, i, nw)
+            gne2 = _nbr(C[1], py, px, -2, 2, i, nw)
+            gsw2 = _nbr(C[1], py, px, 2, -2, i, nw)
+            gse2 = _nbr(C[1], py, px, 2, 2, i, nw)
+            gnw = _nbr(C[1], py, px, -1, -1, i, nw)
+            gne = _nbr(C[1], py, px, -1, 1, i, nw)
+            gsw = _nbr(C[1], py, px, 1, -1, i, nw)
+            gse = _nbr(C[1], py, px, 1, 1, i, nw)
+            X = C[x]
+            xnw = _nbr(X, py, px, -1, -1, i, nw)
+            xne = _nbr(X, py, px, -1, 1, i, nw)
+            xsw = _nbr(X, py, px, 1, -1, i, nw)
+            xse = _nbr(X, py, px, 1, 1, i, nw)
+            xnw3 = _nbr(X, py, px, -3, -3, i, nw)
+            xne3 = _nbr(X, py, px, -3, 3, i, nw)
+            xsw3 = _nbr(X, py, px, 3, -3, i, nw)
+            xse3 = _nbr(X, py, px, 3, 3, i, nw)
+            pc = _nbr(L, py, px, 0, 0, i, nw)
+            pnw = _nbr(L, py, px, -1, -1, i, nw)
+            pne = _nbr(L, py, px, -1, 1, i, nw)
+            psw = _nbr(L, py, px, 1, -1, i, nw)
+            pse = _nbr(L, py, px, 1, 1, i, nw)
+            o = X[q, i, K:K + nw]
+            for j in range(nw):
+                gg = g0[j]
+                nw_ = xnw[j]
+                ne = xne[j]
+                sw = xsw[j]
+                se = xse[j]
+                Gnw = eps + abs(nw_ - se) + abs(nw_ - xnw3[j]) + abs(gg - gnw2[j])
+                Gne = eps + abs(ne - sw) + abs(ne - xne3[j]) + abs(gg - gne2[j])
+                Gsw = eps + abs(ne - sw) + abs(sw - xsw3[j]) + abs(gg - gsw2[j])
+                Gse = eps + abs(nw_ - se) + abs(se - xse3[j]) + abs(gg - gse2[j])
+                enw = nw_ - gnw[j]
+                ene = ne - gne[j]
+                esw = sw - gsw[j]
+                ese = se - gse[j]
+                Pe = (Gnw * ese + Gse * enw) / (Gnw + Gse)
+                Qe = (Gne * esw + Gsw * ene) / (Gne + Gsw)
+                cen = pc[j]
+                hood = (pnw[j] + pne[j] + psw[j] + pse[j]) * quarter
+                d = hood if abs(half - cen) < abs(half - hood) else cen
+                o[j] = (Qe - Pe) * d + Pe + gg
     # Step 4.3: red and blue at the green sites
-    for r in range(4, H - 4):
-        for c in range(4 + 1 - _rb_col(pat, r), W - 4, 2):
-            cen = VH[r, c]
-            hood = (VH[r - 1, c - 1] + VH[r - 1, c + 1] + VH[r + 1, c - 1] + VH[r + 1, c + 1]) * quarter
-            d = hood if abs(half - cen) < abs(half - hood) else cen
-            g0 = rgb1[r, c]
-            n1 = abs(g0 - rgb1[r - 2, c]) + eps
-            s1 = abs(g0 - rgb1[r + 2, c]) + eps
-            w1 = abs(g0 - rgb1[r, c - 2]) + eps
-            e1 = abs(g0 - rgb1[r, c + 2]) + eps
-            for X in (rgb0, rgb2):
-                xn = X[r - 1, c]
-                xs = X[r + 1, c]
-                xw = X[r, c - 1]
-                xe = X[r, c + 1]
-                sn = abs(xn - xs)
-                ew = abs(xw - xe)
-                Ng = abs(xn - X[r - 3, c]) + n1 + sn
-                Sg = abs(xs - X[r + 3, c]) + s1 + sn
-                Wg = abs(xw - X[r, c - 3]) + w1 + ew
-                Eg = abs(xe - X[r, c + 3]) + e1 + ew
-                V = (Ng * (xs - rgb1[r + 1, c]) + Sg * (xn - rgb1[r - 1, c])) / (Ng + Sg)
-                Hz = (Eg * (xw - rgb1[r, c - 1]) + Wg * (xe - rgb1[r, c + 1])) / (Eg + Wg)
-                X[r, c] = (Hz - V) * d + V + g0
-    for i in range(n):
-        for j in range(m):
-            out[i, j, 0] = min(one, max(zero, rgb0[P + i, P + j])) * scale + rnd
-            out[i, j, 1] = min(one, max(zero, rgb1[P + i, P + j])) * scale + rnd
-            out[i, j, 2] = min(one, max(zero, rgb2[P + i, P + j])) * scale + rnd
+    for q in range(4):
+        if pat[q] != 1:
+            continue
+        py = q >> 1
+        px = q & 1
+        for i in range(K, h - K):
+            vc = _nbr(VH, py, px, 0, 0, i, nw)
+            vnw = _nbr(VH, py, px, -1, -1, i, nw)
+            vne = _nbr(VH, py, px, -1, 1, i, nw)
+            vsw = _nbr(VH, py, px, 1, -1, i, nw)
+            vse = _nbr(VH, py, px, 1, 1, i, nw)
+            g0 = _nbr(C[1], py, px, 0, 0, i, nw)
+            gn2 = _nbr(C[1], py, px, -2, 0, i, nw)
+            gs2 = _nbr(C[1], py, px, 2, 0, i, nw)
+            gw2 = _nbr(C[1], py, px, 0, -2, i, nw)
+            ge2 = _nbr(C[1], py, px, 0, 2, i, nw)
+            gn = _nbr(C[1], py, px, -1, 0, i, nw)
+            gs = _nbr(C[1], py, px, 1, 0, i, nw)
+            gw = _nbr(C[1], py, px, 0, -1, i, nw)
+            ge = _nbr(C[1], py, px, 0, 1, i, nw)
+            for x in (0, 2):
+                X = C[x]
+                xn = _nbr(X, py, px, -1, 0, i, nw)
+                xs = _nbr(X, py, px, 1, 0, i, nw)
+                xw = _nbr(X, py, px, 0, -1, i, nw)
+                xe = _nbr(X, py, px, 0, 1, i, nw)
+                xn3 = _nbr(X, py, px, -3, 0, i, nw)
+                xs3 = _nbr(X, py, px, 3, 0, i, nw)
+                xw3 = _nbr(X, py, px, 0, -3, i, nw)
+                xe3 = _nbr(X, py, px, 0, 3, i, nw)
+                o = X[q, i, K:K + nw]
+                for j in range(nw):
+                    cen = vc[j]
+                    hood = (vnw[j] + vne[j] + vsw[j] + vse[j]) * quarter
+                    d = hood if abs(half - cen) < abs(half - hood) else cen
+                    gg = g0[j]
+                    N1 = abs(gg - gn2[j]) + eps
+                    S1 = abs(gg - gs2[j]) + eps
+                    W1 = abs(gg - gw2[j]) + eps
+                    E1 = abs(gg - ge2[j]) + eps
+                    a = xn[j]
+                    b = xs[j]
+                    c = xw[j]
+                    e = xe[j]
+                    sn = abs(a - b)
+                    ew = abs(c - e)
+                    Ng = abs(a - xn3[j]) + N1 + sn
+                    Sg = abs(b - xs3[j]) + S1 + sn
+                    Wg = abs(c - xw3[j]) + W1 + ew
+                    Eg = abs(e - xe3[j]) + E1 + ew
+                    V = (Ng * (b - gs[j]) + Sg * (a - gn[j])) / (Ng + Sg)
+                    Hz = (Eg * (c - gw[j]) + Wg * (e - ge[j])) / (Eg + Wg)
+                    o[j] = (Hz - V) * d + V + gg
+    # the rows and columns P.. of the block, interleaved, scaled and clipped
+    j0 = P >> 1
+    for r in range(n):
+        py = r & 1
+        i = (P + r) >> 1
+        for px in range(2):
+            q = py * 2 + px
+            rr = C[0, q, i]
+            gg = C[1, q, i]
+            bb = C[2, q, i]
+            for c in range(px, m, 2):
+                j = j0 + (c >> 1)
+                out[r, c, 0] = min(one, max(zero, rr[j])) * scale + rnd
+                out[r, c, 1] = min(one, max(zero, gg[j])) * scale + rnd
+                out[r, c, 2] = min(one, max(zero, bb[j])) * scale + rnd
     return out
 
 
-def _rb_col(pat, r):
-    """0 or 1: the first column of row ``r`` holding a red or blue site."""
-    return 0 if pat[(r & 1) * 2] != 1 else 1
-
-
 _KERNEL = {}
-#: workspaces of :func:`_rcd_loops` not in use, kept for the next strip
+#: workspaces of :func:`_rcd_planes` not in use, kept for the next strip
 #: (new memory is the slow part on a busy machine): at most :data:`_SPARE`
-#: (one per core here: a 6000-pixel-wide strip of 128 rows holds 29 MB)
+#: (one per core here: a 6000-pixel-wide strip of 128 rows holds 26 MB)
 _FREE: list = []
 _FREE_LOCK = threading.Lock()
 _SPARE = 2
 
 
 def _take_workspace(size: int) -> np.ndarray:
-    """A workspace of :func:`_rcd_loops`: 8 rows of at least ``size``
-    float32, zeros when new (so every value in it is finite), reused."""
+    """A workspace of :func:`_rcd_planes` for a block of ``size`` pixels: at
+    least ``7 * size`` float32, zeros when new (so every value in it is
+    finite), reused."""
     with _FREE_LOCK:
         for k, ws in enumerate(_FREE):
-            if ws.shape[1] >= size:
+            if ws.size >= 7 * size:
                 return _FREE.pop(k)
-    return np.zeros((8, size), np.float32)
+    return np.zeros(7 * size, np.float32)
 
 
 def _give_workspace(ws: np.ndarray) -> None:
@@ -630,7 +826,7 @@ _KERNEL_LOCK = threading.Lock()
 
 
 def _kernel():
-    """The compiled :func:`_rcd_loops` (numba, cached on disk), or ``None``
+    """The compiled :func:`_rcd_planes` (numba, cached on disk), or ``None``
     when numba is not installed. Compiled once per process, whichever thread
     asks first (the strips of one image ask from several)."""
     with _KERNEL_LOCK:
@@ -640,8 +836,9 @@ def _kernel():
             except ImportError:
                 _KERNEL["k"] = None
             else:
-                global _rb_col
-                if not hasattr(_rb_col, "py_func"):
-                    _rb_col = numba.njit(cache=True)(_rb_col)
-                _KERNEL["k"] = numba.njit(nogil=True, cache=True)(_rcd_loops)
+                global _nbr, _mos
+                if not hasattr(_nbr, "py_func"):
+                    _nbr = numba.njit(nogil=True, cache=True)(_nbr)
+                    _mos = numba.njit(nogil=True, cache=True)(_mos)
+                _KERNEL["k"] = numba.njit(nogil=True, cache=True, error_model="numpy")(_rcd_planes)
         return _KERNEL["k"]
