@@ -71,7 +71,7 @@ from .errors import InputError, InsufficientSurfaceVariation
 from .estimators import gray_edge
 
 __all__ = ["LearnedModel", "LearnedResult", "FEATURE_NAMES", "load_model", "camera_color_matrix",
-           "canonical_transform", "estimation_image", "features", "estimate_learned", "fit_robust_ridge",
+           "canonical_transform", "estimation_image", "features", "shared_maps", "window_maps", "window_features", "estimate_learned", "fit_robust_ridge",
            "model_inputs", "canonical_analysis", "locus_coordinates", "rgb_to_uv", "uv_to_rgb", "DEFAULT_MODEL_PATH", "CHI2_90"]
 
 DEFAULT_MODEL_PATH = Path(__file__).with_name("data") / "learned_illuminant.npz"
@@ -195,11 +195,16 @@ def _gray_pixels(img: np.ndarray, m: np.ndarray, q: float) -> np.ndarray:
     return _gray_pixels_many(img, m, (q,))[0]
 
 
-def _gray_pixels_many(img: np.ndarray, m: np.ndarray, qs) -> list[np.ndarray]:
-    """:func:`_gray_pixels` for each fraction of ``qs``, the contrast map
-    computed once."""
+def _contrast(img: np.ndarray) -> np.ndarray:
+    """The gray pixels' local log-contrast of each channel."""
     lg = np.log(np.clip(img, 1e-4, None))
-    c = np.abs(imfilters.laplace(imfilters.gaussian_filter(lg, 0.5)))
+    return np.abs(imfilters.laplace(imfilters.gaussian_filter(lg, 0.5)))
+
+
+def _gray_pixels_many(img: np.ndarray, m: np.ndarray, qs, contrast: np.ndarray | None = None) -> list[np.ndarray]:
+    """:func:`_gray_pixels` for each fraction of ``qs``, the contrast map
+    computed once (or given: a window's part of the whole image's)."""
+    c = _contrast(img) if contrast is None else contrast
     mm = m & np.all(c > 1e-3, axis=-1)
     if mm.sum() < 10:
         return [img[m].mean(axis=0)] * len(qs)
@@ -225,30 +230,73 @@ def _percentile_sorted(srt: np.ndarray, q: float) -> np.ndarray:
     return b - d * (1.0 - t) if t >= 0.5 else a + d * t
 
 
-def _edges(img: np.ndarray, ok: np.ndarray, which=((1, 1, 1), (6, 1, 1), (6, 2, 1), (6, 1, 2))) -> dict:
+#: The gray edges' (sigma, derivative order) pairs, and the erosions their masks need.
+_EDGE_FILTERS = ((1, 1), (2, 1), (1, 2))
+
+
+def _edge_magnitude(im: np.ndarray, sigma: float, order: int) -> np.ndarray:
+    """Gaussian derivative magnitude of each channel of ``im``: the
+    gradient's (order 1) or ``sqrt(gxx^2 + gyy^2 + 2 gxy^2)`` (order 2)."""
+    if order == 1:
+        gx = imfilters.gaussian_filter(im, sigma, (0, 1), "nearest")
+        gy = imfilters.gaussian_filter(im, sigma, (1, 0), "nearest")
+        mg = np.hypot(gx, gy)
+    else:
+        gxx = imfilters.gaussian_filter(im, sigma, (0, 2), "nearest")
+        gyy = imfilters.gaussian_filter(im, sigma, (2, 0), "nearest")
+        gxy = imfilters.gaussian_filter(im, sigma, (1, 1), "nearest")
+        mg = np.sqrt(gxx ** 2 + gyy ** 2 + 2 * gxy ** 2)
+    mg[mg < 1e-12] = 0.0
+    return mg
+
+
+def shared_maps(cells: np.ndarray, ok: np.ndarray) -> dict:
+    """The filtered maps of a whole analysis image that :func:`features` of
+    its windows share (:func:`window_maps` cuts a window's part): the gray
+    edges' derivative magnitudes and eroded masks, and the gray pixels'
+    contrast. A window then sees the image's edges at its borders rather
+    than its own border's extension (the light map's windows,
+    :func:`recovery.light_mixture.window_evidence`), and the filtering is
+    done once instead of once per window."""
+    img = np.clip(np.asarray(cells, float), 1e-6, None)
+    scale = float(np.max(img)) or 1.0
+    out = {"scale": scale, "contrast": _contrast(img)}
+    for sigma, order in _EDGE_FILTERS:
+        out[(sigma, order)] = _edge_magnitude(img / scale, sigma, order)
+    for sigma in {sg for sg, _ in _EDGE_FILTERS}:
+        e = max(1, int(np.ceil(2 * sigma)))
+        out[("eroded", e)] = imfilters.binary_erosion(ok, e)
+    return out
+
+
+def window_maps(maps: dict, window) -> dict:
+    """The part of :func:`shared_maps` under ``window`` (a pair of slices)."""
+    return {k: (v[window] if isinstance(v, np.ndarray) else v) for k, v in maps.items()}
+
+
+def _percentile_rows(n: int, q: float) -> tuple[int, int]:
+    """The two rows of the sorted data :func:`_percentile_sorted` reads."""
+    v = q / 100.0 * (n - 1)
+    lo = int(np.floor(v))
+    return lo, min(lo + 1, n - 1)
+
+
+def _edges(img: np.ndarray, ok: np.ndarray, which=((1, 1, 1), (6, 1, 1), (6, 2, 1), (6, 1, 2)),
+           shared: dict | None = None) -> dict:
     """:func:`recovery.estimators.gray_edge` for each ``(p, sigma, order)``
     of ``which`` (NaN where the image has no edges), the derivative
     magnitudes computed once per sigma and order and the three channels
-    filtered together (van de Weijer, Gevers & Gijsenij 2007)."""
+    filtered together (van de Weijer, Gevers & Gijsenij 2007); with
+    ``shared`` (:func:`window_maps`) the whole image's magnitudes and masks."""
     img = np.asarray(img, dtype=np.float64)
-    scale = float(np.max(img)) or 1.0
-    im = img / scale
+    scale = shared["scale"] if shared is not None else (float(np.max(img)) or 1.0)
     mags, masks, out = {}, {}, {}
     for p, sigma, order in which:
         if (sigma, order) not in mags:
-            if order == 1:
-                gx = imfilters.gaussian_filter(im, sigma, (0, 1), "nearest")
-                gy = imfilters.gaussian_filter(im, sigma, (1, 0), "nearest")
-                mg = np.hypot(gx, gy)
-            else:
-                gxx = imfilters.gaussian_filter(im, sigma, (0, 2), "nearest")
-                gyy = imfilters.gaussian_filter(im, sigma, (2, 0), "nearest")
-                gxy = imfilters.gaussian_filter(im, sigma, (1, 1), "nearest")
-                mg = np.sqrt(gxx ** 2 + gyy ** 2 + 2 * gxy ** 2)
-            mg[mg < 1e-12] = 0.0
+            mg = shared[(sigma, order)] if shared is not None else _edge_magnitude(img / scale, sigma, order)
             e = max(1, int(np.ceil(2 * sigma)))
             if e not in masks:
-                em = imfilters.binary_erosion(ok, e)
+                em = shared[("eroded", e)] if shared is not None else imfilters.binary_erosion(ok, e)
                 masks[e] = em if em.any() else ok
             mags[(sigma, order)] = mg[masks[e]]
         px = mags[(sigma, order)]
@@ -275,9 +323,12 @@ FEATURE_NAMES = ("gray-world", "sog-2", "sog-4", "sog-8", "sog-16", "max-rgb", "
 REFERENCE = FEATURE_NAMES.index("bright-1%")
 
 
-def features(cells: np.ndarray, ok: np.ndarray) -> np.ndarray:
+def features(cells: np.ndarray, ok: np.ndarray, shared: dict | None = None) -> np.ndarray:
     """(len(FEATURE_NAMES), 2) log-chroma of each classical estimate on the
-    canonical-space analysis image ``cells`` with usable cells ``ok``.
+    canonical-space analysis image ``cells`` with usable cells ``ok``; a
+    window of a larger image may take that image's filtered maps
+    (``shared``, :func:`window_maps` of :func:`shared_maps`) for its gray
+    edges and gray pixels.
 
     Raises
     ------
@@ -310,17 +361,117 @@ def features(cells: np.ndarray, ok: np.ndarray) -> np.ndarray:
     sog = top * norms ** (1.0 / np.array([2.0, 4.0, 8.0, 16.0]))[:, None]
     srt = np.sort(px, axis=0)
     pct = [_percentile_sorted(srt, q) for q in (99.0, 95.0)]
-    edges = _edges(img, ok)
+    edges = _edges(img, ok, shared=shared)
     by_brightness = np.cumsum(px[np.argsort(px.sum(axis=1), kind="stable")[::-1]], axis=0)
     bright = [by_brightness[k - 1] / k for k in (max(1, int(q * n)) for q in (0.005, 0.01, 0.02, 0.05, 0.1))]
     est = [px.mean(axis=0), *sog, srt[-1], pct[0], pct[1],
            edges[(1, 1, 1)], edges[(6, 1, 1)], edges[(6, 2, 1)], edges[(6, 1, 2)],
-           *bright, *_gray_pixels_many(img, ok, (0.05, 0.2))]
+           *bright, *_gray_pixels_many(img, ok, (0.05, 0.2), None if shared is None else shared["contrast"])]
     est = np.array(est)
     # an estimate that could not be made (no edges) stands in as the reference
     bad = ~np.all(np.isfinite(est) & (est > 0), axis=1)
     est[bad] = est[REFERENCE]
     return rgb_to_uv(est)
+
+
+def window_features(cells: np.ndarray, ok: np.ndarray, windows) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`features` of each window of one analysis image, the windows
+    reading the whole image's filtered maps (:func:`shared_maps`): the same
+    estimates (to rounding) as ``features(cells[w], ok[w],
+    window_maps(shared_maps(cells, ok), w))`` for each window ``w``, at a
+    fraction of the cost. What adds up over cells (the counts, the means,
+    the Minkowski sums of the shades of gray and gray edges, the
+    chromaticity spread) is mapped once over the whole image and summed over
+    each window in one call; only what orders cells (percentiles, bright
+    pixels, gray pixels) is done window by window. The Minkowski sums are
+    taken of the cells over the whole image's maximum, not the window's:
+    the same norm, other rounding.
+
+    Parameters
+    ----------
+    cells : (h, w, 3) canonical-space analysis cells
+    ok : (h, w) usable cells
+    windows : sequence of (row slice, column slice)
+
+    Returns
+    -------
+    feats : (len(windows), len(FEATURE_NAMES), 2), NaN where not valid
+    valid : (len(windows),) bool: the windows :func:`features` would not
+        refuse (16 usable cells, a chromaticity spread of
+        :data:`MIN_CHROMA_SPREAD`)
+    """
+    img = np.clip(np.asarray(cells, float), 1e-6, None)
+    ok = np.asarray(ok, bool)
+    scale = float(np.max(img)) or 1.0                 # the gray edges' scaling, as shared_maps
+    top = float(img[ok].max()) if ok.any() else 1.0   # the shades of gray's
+    okf = ok[..., None].astype(float)
+    rel = img * (okf / top)                           # 0 where not usable
+    r2 = rel * rel
+    r4 = r2 * r2
+    r8 = r4 * r4
+    uv = rgb_to_uv(img) * okf
+    mag = {so: _edge_magnitude(img / scale, *so) for so in _EDGE_FILTERS}
+    e2 = imfilters.binary_erosion(ok, 2)[..., None].astype(float)       # sigma 1's mask
+    e4 = imfilters.binary_erosion(ok, 4)[..., None].astype(float)       # sigma 2's
+    m11 = mag[(1, 1)]
+    m11_6, m21_6, m12_6 = (m11 * m11) ** 3, (mag[(2, 1)] ** 2) ** 3, (mag[(1, 2)] ** 2) ** 3
+    edge = np.concatenate([m11, m11_6, m12_6, m21_6], axis=-1)
+    parts = [okf, img * okf, r2, r4, r8, r8 * r8, uv, (uv * uv).sum(axis=-1, keepdims=True),
+             e2, e2 * edge[..., :9], e4, e4 * edge[..., 9:], okf * edge]
+    at, pos = {}, 0
+    for name, width in (("n", 1), ("sum", 3), ("p2", 3), ("p4", 3), ("p8", 3), ("p16", 3), ("uv", 2), ("uv2", 1),
+                        ("n2", 1), ("g11", 3), ("g11_6", 3), ("g12_6", 3), ("n4", 1), ("g21_6", 3), ("o11", 3),
+                        ("o11_6", 3), ("o12_6", 3), ("o21_6", 3)):
+        at[name] = slice(pos, pos + width)
+        pos += width
+    A = np.concatenate(parts, axis=-1)
+    c = _contrast(img)
+    mm = ok & np.all(c > 1e-3, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gi = np.std(c / c.sum(axis=-1, keepdims=True), axis=-1)
+    feats = np.full((len(windows), len(FEATURE_NAMES), 2), np.nan)
+    valid = np.zeros(len(windows), bool)
+    for k, w in enumerate(windows):
+        S = A[w].sum(axis=(0, 1))
+        n = S[at["n"]][0]
+        if n < 16:
+            continue
+        muv = S[at["uv"]] / n
+        if np.sqrt(max(S[at["uv2"]][0] / n - float(muv @ muv), 0.0)) < MIN_CHROMA_SPREAD:
+            continue
+        gw = S[at["sum"]] / n
+        sog = [top * (S[at[f"p{p}"]] / n) ** (1.0 / p) for p in (2, 4, 8, 16)]
+        n2, n4 = S[at["n2"]][0], S[at["n4"]][0]
+        g11 = (S[at["g11"]] / n2) if n2 > 0 else S[at["o11"]] / n
+        g11_6 = (S[at["g11_6"]] / n2 if n2 > 0 else S[at["o11_6"]] / n) ** (1.0 / 6)
+        g12_6 = (S[at["g12_6"]] / n2 if n2 > 0 else S[at["o12_6"]] / n) ** (1.0 / 6)
+        g21_6 = (S[at["g21_6"]] / n4 if n4 > 0 else S[at["o21_6"]] / n) ** (1.0 / 6)
+        px = img[w][ok[w]]
+        npx = px.shape[0]
+        # only the top of each ordering is read: partition there, sort only that
+        ks = [max(1, int(f * npx)) for f in (0.005, 0.01, 0.02, 0.05, 0.1)]
+        br = px.sum(axis=1)
+        top_k = np.argpartition(br, npx - ks[-1])[npx - ks[-1]:] if ks[-1] < npx else np.arange(npx)
+        cum = np.cumsum(px[top_k[np.argsort(br[top_k], kind="stable")[::-1]]], axis=0)
+        bright = [cum[q - 1] / q for q in ks]
+        need = sorted({npx - 1, *_percentile_rows(npx, 99.0), *_percentile_rows(npx, 95.0)})
+        srt = np.partition(px, need, axis=0)
+        m = mm[w]
+        if m.sum() < 10:
+            gray = [gw, gw]
+        else:
+            g, sel = gi[w][m], img[w][m]
+            gray = []
+            for f in (0.05, 0.2):
+                q = max(1, int(f * g.size))
+                gray.append(sel[np.argpartition(g, q - 1)[:q]].mean(axis=0))
+        est = np.array([gw, *sog, srt[-1], _percentile_sorted(srt, 99.0), _percentile_sorted(srt, 95.0),
+                        scale * g11, scale * g11_6, scale * g21_6, scale * g12_6, *bright, *gray])
+        bad = ~np.all(np.isfinite(est) & (est > 0), axis=1)
+        est[bad] = est[REFERENCE]
+        feats[k] = rgb_to_uv(est)
+        valid[k] = True
+    return feats, valid
 
 
 def canonical_cells(image, mask, color_matrix, canonical):

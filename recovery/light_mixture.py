@@ -60,9 +60,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InsufficientSurfaceVariation
-from .learned import (REFERENCE, LearnedModel, _angle, _spread, features, rgb_to_uv, uv_to_rgb,
-                      variance_from_spread)
+from .learned import (REFERENCE, LearnedModel, _angle, _spread, rgb_to_uv, uv_to_rgb, variance_from_spread,
+                      window_features)
 
 __all__ = ["WINDOW", "STEP", "MixtureSettings", "DEFAULT_SETTINGS", "WindowEvidence", "window_evidence",
            "mixture_statistic", "light_field", "decide", "MIN_RANGE_DEG"]
@@ -130,6 +129,11 @@ def window_evidence(can: np.ndarray, ok: np.ndarray, model: LearnedModel, gamut_
                     window: int = WINDOW, step: int = STEP) -> WindowEvidence:
     """Each overlapping window's light by the learnt model.
 
+    The windows' classical estimates read the whole grid's filtered maps
+    (:func:`recovery.learned.window_features`): a window's gray edges and
+    gray pixels near its border see the image's neighbouring cells, not an
+    extension of the window's own border, and the filtering is done once.
+
     Parameters
     ----------
     can : (h, w, 3) canonical-space analysis cells
@@ -146,21 +150,19 @@ def window_evidence(can: np.ndarray, ok: np.ndarray, model: LearnedModel, gamut_
     var = np.full(n, np.nan)
     centres = np.zeros((n, 2))
     valid = np.zeros(n, bool)
-    feats = []
-    idx = []
-    k = 0
+    wins = []
     for r in rs:
         for c in cs:
             sl = (slice(r, min(h, r + window)), slice(c, min(w, c + window)))
-            centres[k] = ((sl[0].start + sl[0].stop - 1) / 2.0, (sl[1].start + sl[1].stop - 1) / 2.0)
-            o = ok[sl]
-            if int(o.sum()) >= MIN_WINDOW_CELLS:
-                try:
-                    feats.append(features(can[sl], o))
-                    idx.append(k)
-                except InsufficientSurfaceVariation:
-                    pass
-            k += 1
+            centres[len(wins)] = ((sl[0].start + sl[0].stop - 1) / 2.0, (sl[1].start + sl[1].stop - 1) / 2.0)
+            wins.append(sl)
+    enough = [k for k, sl in enumerate(wins) if int(ok[sl].sum()) >= MIN_WINDOW_CELLS]
+    idx, feats = [], []
+    if enough:
+        # each window reads the whole grid's filtered maps (recovery.learned.window_features)
+        f_all, v_all = window_features(can, ok, [wins[k] for k in enough])
+        idx = [k for k, v in zip(enough, v_all) if v]
+        feats = list(f_all[v_all])
     if idx:
         f = np.asarray(feats)
         gam = np.full(len(idx), float(gamut_fraction))

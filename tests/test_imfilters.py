@@ -139,3 +139,25 @@ def test_features_share_work_without_changing_an_estimate(shape):
     img = RNG.random((*shape, 3)) * np.array([0.6, 0.9, 0.4]) + 0.02
     ok = RNG.random(shape) > 0.15
     np.testing.assert_allclose(learned.features(img, ok), _features_one_by_one(img, ok), rtol=0, atol=1e-12)
+
+
+def test_windows_read_the_whole_images_maps_and_give_each_windows_features():
+    # window_features (the light map's nine windows at once) against features() of each window
+    # reading its part of the whole image's filtered maps: the same estimates, to rounding (the
+    # Minkowski sums are taken over the whole image's maximum instead of the window's)
+    img = RNG.random((64, 64, 3)) * np.array([0.6, 0.9, 0.4]) + 0.02
+    ok = RNG.random((64, 64)) > 0.15
+    ok[:20, :20] = False                            # a window with few usable cells
+    img[32:, 32:] = [0.3, 0.3, 0.3]                 # and one of a single colour: refused
+    wins = [(slice(r, r + 32), slice(c, c + 32)) for r in (0, 16, 32) for c in (0, 16, 32)]
+    feats, valid = learned.window_features(img, ok, wins)
+    maps = learned.shared_maps(img, ok)
+    for k, w in enumerate(wins):
+        try:
+            ref = learned.features(img[w], ok[w], learned.window_maps(maps, w))
+        except learned.InsufficientSurfaceVariation:
+            assert not valid[k] and np.all(np.isnan(feats[k]))
+            continue
+        assert valid[k]
+        np.testing.assert_allclose(feats[k], ref, rtol=0, atol=1e-12)
+    assert not valid[8] and valid.sum() >= 6
