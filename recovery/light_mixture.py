@@ -85,10 +85,10 @@ class MixtureSettings:
     cross-validation on relit development photographs
     (``python -m benchmarks.mixed_light``, inner leave-one-benchmark-out)."""
 
-    threshold: float = 48.0     #: the decision's threshold on T (module docstring)
-    gain: float = 0.75          #: multiplies the windows' variation (item 3 of the module docstring)
+    threshold: float = 32.0     #: the decision's threshold on T (module docstring)
+    gain: float = 0.5           #: multiplies the windows' variation (item 3 of the module docstring)
     project: bool = False       #: project the variation on the principal direction (two lights)
-    level: float = 1.0          #: weight of the windows' mean in the map's level (item 1 of the module docstring)
+    level: float = 0.75         #: weight of the windows' mean in the map's level (item 1 of the module docstring)
 
 
 #: The shipped settings (benchmarks.mixed_light prints how they were chosen).
