@@ -229,7 +229,7 @@ NEUTRAL = {
                    examples=("[1200, 2040]", "[100, 200, 140, 260]", "[[1200, 2040], [1500, 800, 1540, 860]]"),
                    check=_neutral,
                    summary="a surface to use as white: JSON [row, col] or [r0, c0, r1, c1] in full-resolution "
-                           "pixels"),
+                           "pixels, or a list of up to 16 such picks (averaged)"),
 }
 #: Where ``/v1/surfaces`` recovers reflectances, and how it answers.
 REGIONS = {
