@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .learned import (REFERENCE, LearnedModel, _angle, _spread, rgb_to_uv, uv_to_rgb, variance_from_spread,
+from .learned import (REFERENCE, LearnedModel, _spread, rgb_to_uv, uv_to_rgb, variance_from_spread,
                       window_features)
 
 __all__ = ["WINDOW", "STEP", "MixtureSettings", "DEFAULT_SETTINGS", "WindowEvidence", "window_evidence",
@@ -217,14 +217,15 @@ def light_field(uv0: np.ndarray, ev: WindowEvidence, settings: MixtureSettings =
 
 
 def field_range_deg(field_uv: np.ndarray, K: np.ndarray) -> float:
-    """Largest angle (degrees, camera RGB) between two lights of a field."""
+    """Largest angle (degrees, camera RGB) between two lights of a field
+    (every pair at once, by the stable half-angle formula of
+    :func:`recovery.learned._angle`)."""
     f = field_uv.reshape(-1, 2)
     cam = np.linalg.solve(K, uv_to_rgb(f).T).T
-    best = 0.0
-    for i in range(len(cam)):
-        for j in range(i + 1, len(cam)):
-            best = max(best, _angle(cam[i], cam[j]))
-    return best
+    u = cam / np.linalg.norm(cam, axis=1, keepdims=True)
+    d = np.linalg.norm(u[:, None, :] - u[None, :, :], axis=-1)
+    s = np.linalg.norm(u[:, None, :] + u[None, :, :], axis=-1)
+    return float(np.degrees(2 * np.arctan2(d, s)).max()) if len(u) > 1 else 0.0
 
 
 def decide(ev: WindowEvidence, uv0: np.ndarray, K: np.ndarray,

@@ -236,3 +236,14 @@ def test_white_balance_follows_the_map_through_the_app():
         assert r1.status_code == 200, r1.text
         body = r1.json() if path == "/v1/analyze" else json.loads(r1.headers["x-illuminant"])
         assert body["lights"]["found"] == 1 and body["lights"]["decision"] == "one light"
+
+
+def test_field_range_is_the_largest_angle_between_two_of_its_lights():
+    rng = np.random.default_rng(11)
+    for _ in range(50):
+        f = rng.normal(size=(3, 3, 2)) * 0.2
+        K = np.eye(3) + rng.normal(size=(3, 3)) * 0.05
+        cam = np.linalg.solve(K, L.uv_to_rgb(f.reshape(-1, 2)).T).T
+        pairs = max(L._angle(cam[i], cam[j]) for i in range(9) for j in range(i + 1, 9))
+        assert LM.field_range_deg(f, K) == pytest.approx(pairs, abs=1e-10)
+    assert LM.field_range_deg(np.zeros((1, 1, 2)), np.eye(3)) == 0.0
