@@ -327,10 +327,23 @@ def timing():
         "matrix camera, light with a 3 deg 90 % region (32 samples)": (
             camera_from_matrix((sp.matrix_operator(WL) @ S[0]).T, WL), 3.0),
     }
+    # a light map: D65 on the left, A on the right, a smooth ramp between (regions.LightMap)
+    from recovery.regions import LightMap
+
+    ramp = np.linspace(0.0, 1.0, 4)
+    w = np.stack([np.broadcast_to(1 - ramp, (4, 4)), np.broadcast_to(ramp, (4, 4))], axis=-1)
+    EA = light("A") * (E.mean() / light("A").mean())
+    ones = np.ones((4, 4))
+    two = LightMap(np.linspace(4, 60, 4), np.linspace(4, 60, 4), w, ones.astype(bool), ones, ones,
+                   np.stack([E, EA], axis=1))
+    cases["matrix camera, a light map of two lights, 3 deg region (32 samples)"] = cases[
+        "matrix camera, light with a 3 deg 90 % region (32 samples)"] + (two,)
     out = []
     with threadpool_limits(1):
-        for cname, (cam, r90) in cases.items():
+        for cname, (cam, r90, *lmap) in cases.items():
             est = IlluminantEstimate(np.ones(3) / np.sqrt(3), E, WL, "true", {"region90_deg": r90} if r90 else {})
+            if lmap:
+                est.light_map = lmap[0]
             res = surfaces_from_estimate(img, cam, est)
             for label, pts in rows.items():
                 rho = img[pts[:, 0], pts[:, 1]]
@@ -342,6 +355,14 @@ def timing():
                     walls.append(time.perf_counter() - t0), cpus.append(time.process_time() - c0)
                 out.append((cname, label, 1000 * float(np.median(walls)), 1000 * float(np.median(cpus))))
     return out
+
+
+def print_timing() -> None:
+    print("\n## Speed (AnalysisResult.estimates_from_responses, one BLAS thread, median of 5)")
+    print(f"load average now: {os.getloadavg()}")
+    print("| case | points | wall ms | CPU ms |\n|---|---|---|---|")
+    for c, l, w, cpu in timing():
+        print(f"| {c} | {l} | {w:.1f} | {cpu:.1f} |")
 
 
 def summarise(rec):
@@ -506,6 +527,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="2 chunks per set, 2 lights, 4 cameras")
     ap.add_argument("--cv", action="store_true", help="only choose the shipped prior's hyper-parameters")
+    ap.add_argument("--speed", action="store_true", help="only the speed table")
     ap.add_argument("--no-strict", action="store_true", help="keep near-copies of left-out surfaces in training")
     ap.add_argument("--json", help="write the raw figures here")
     ap.add_argument("--errors", help="write the per-surface errors of the prior (z, std, set, RMSE per camera kind "
@@ -518,6 +540,9 @@ def main(argv=None) -> None:
     t_start = time.perf_counter()
     if args.from_errors:
         _calibration_only(args)
+        return
+    if args.speed:
+        print_timing()
         return
     R, lab = surface_sets(WL)
     names, cams_all = camera_set(WL)
@@ -589,11 +614,7 @@ def main(argv=None) -> None:
         p, q = np.concatenate(d["prior"]), np.concatenate(d["pinv (C-term PCA)"])
         print(f"| {name} | {np.median(p):.4f} / {np.percentile(p, 90):.4f} | {np.median(q):.4f} / "
               f"{np.percentile(q, 90):.4f} |")
-    print("\n## Speed (AnalysisResult.estimates_from_responses, one BLAS thread, median of 5)")
-    print(f"load average now: {os.getloadavg()}")
-    print("| case | points | wall ms | CPU ms |\n|---|---|---|---|")
-    for c, l, w, cpu in timing():
-        print(f"| {c} | {l} | {w:.1f} | {cpu:.1f} |")
+    print_timing()
     print("\nReal ColorChecker photograph from its colour matrix: none in ../shared/data (the benchmark "
           "thumbnails have the chart masked; raw/ holds no chart): not measured.")
     m = np.concatenate(rec[("measured", "estimated")]["rmse"])

@@ -1068,13 +1068,31 @@ class AnalysisResult:
         from .surface_prior import calibrate_band
 
         if self.illuminant.light_map is not None:
-            spd = self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
-            pe = surface_estimates_per_point(self.prior, rho, self.camera.sensitivities, spd,
-                                             self.camera.dlambda, self.prior_exposure)
+            pe = self._map_estimates(rho, rows, cols)
         else:
             pe = surface_estimates(self.prior, rho, self.prior_sensitivities, self.prior_lights, self.camera.dlambda,
                                    exposure=self.prior_exposure, nominal=True)
         return calibrate_band(pe, self.band_scale)
+
+    def _map_estimates(self, rho, rows, cols):
+        """Estimates under a light map: each surface's posterior under the
+        map's light at its pixel and the nominal camera
+        (:func:`recovery.surface_prior.surface_estimates_per_point`), its
+        variance changed by what the light and camera samples change at the
+        whole-image light (:func:`recovery.surface_prior.sample_widening`):
+        the map's level shares the whole-image estimate's uncertainty, and
+        the camera's is the same at every pixel. A map equal to the
+        whole-image light everywhere gives the single light's estimates."""
+        from .surface_prior import SurfaceEstimates, sample_widening, surface_estimates_per_point
+
+        spd = self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
+        sens, lights = self.prior_sensitivities, self.prior_lights
+        pe = surface_estimates_per_point(self.prior, rho, sens[0], spd, self.camera.dlambda, self.prior_exposure)
+        if sens.shape[0] < 2:
+            return pe
+        widen = sample_widening(self.prior, rho, sens, lights, self.camera.dlambda, self.prior_exposure)
+        std = np.sqrt(np.clip(pe.std * pe.std + widen, 0.0, None))
+        return SurfaceEstimates(pe.mean, std, np.sqrt(np.mean(std * std, axis=1)), pe.exposure, int(sens.shape[0]))
 
     def surface_estimates(self, points):
         """Estimates with bands at ``[(row, col), ...]``: a
@@ -1176,7 +1194,9 @@ def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFAC
         nominal = mean47
         cam_unc = (f"generic camera: the mean of the 47 measured cameras, whose Gaussian's {samples} samples "
                    "widen the band")
-    radius = _light_radius(est) if est.light_map is None else 0.0
+    # under a light map the region is the whole-image estimate's: it is the map's level that is uncertain
+    # (estimates_from_responses carries its widening to each pixel's light)
+    radius = _light_radius(est)
     n_extra = samples if (extra is not None or radius > 0) else 0
     rgb = np.asarray(est.rgb, float)
     if extra is None:
@@ -1189,9 +1209,14 @@ def prepare_prior(res: AnalysisResult, pixels: np.ndarray, samples: int = SURFAC
     total = float((nominal.T @ (E0 * cam.dlambda)).sum())
     lights = np.stack([E0] + [sp.fit_light(est.spectrum, s_, cam.dlambda, d_, total)
                               for s_, d_ in zip(sens[1:], dirs)])
-    light_unc = (f"lights in the estimate's 90 % region ({radius:.2f} deg), {samples} samples widen the band"
-                 if radius > 0 else ("none (a light map: each pixel's light taken as known)"
-                                     if est.light_map is not None else "none (the estimate gives no region)"))
+    if est.light_map is not None:
+        light_unc = (f"a light map: each pixel's light from the map, widened as the whole-image estimate's 90 % "
+                     f"region ({radius:.2f} deg) widens it, {samples} samples; the map's own spatial uncertainty "
+                     "is not sampled" if radius > 0 else
+                     "a light map without a region: each pixel's light taken as known")
+    else:
+        light_unc = (f"lights in the estimate's 90 % region ({radius:.2f} deg), {samples} samples widen the band"
+                     if radius > 0 else "none (the estimate gives no region)")
     res.prior, res.prior_sensitivities, res.prior_lights = prior, sens, lights
     kind = sp.band_kind(cam.source, cam.color_matrix is not None, est.method)
     res._band_calibrate = calibrate

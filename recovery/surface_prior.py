@@ -80,7 +80,7 @@ __all__ = [
     "gaussian_prior", "smooth_kernel", "CAMERA_SHRINKAGE",
     "MATRIX_TOLERANCE", "MATRIX_GAIN_TOLERANCE", "SurfacePrior", "learn_prior", "default_prior", "lighting_operator", "wiener_gain",
     "wiener_estimate", "pinv_estimate", "exposure_scale", "light_samples", "fit_light", "light_directions", "camera_prior",
-    "matrix_operator", "camera_posterior", "generic_camera_samples", "surface_estimates", "surface_estimates_per_point", "SurfaceEstimates",
+    "matrix_operator", "camera_posterior", "generic_camera_samples", "surface_estimates", "surface_estimates_per_point", "sample_widening", "SurfaceEstimates",
     "BAND_LEVEL", "BAND_Z", "band_kind", "band_scale", "calibrate_band", "calibration_factors",
 ]
 
@@ -704,6 +704,30 @@ def surface_estimates(prior: SurfacePrior, rho, sensitivities, spectra, dlambda,
     return SurfaceEstimates(mean, std, np.sqrt(np.mean(std * std, axis=1)), float(exposure), int(A.shape[0]))
 
 
+def sample_widening(prior: SurfacePrior, rho, sensitivities, spectra, dlambda, exposure: float,
+                    noise: float | None = None) -> np.ndarray:
+    """What sampling the light and camera changes in the variance, ``(P, N)``:
+    :func:`surface_estimates` with ``nominal=True`` over all samples
+    (sample 0 the nominal light and camera) minus the same with the nominal
+    sample alone, at exposure ``exposure``. Mostly positive (the samples'
+    means scatter about the nominal's), but it may be negative at a
+    wavelength where the other samples' posteriors are narrower than the
+    nominal's: a caller adds it to a variance and clips the sum at 0."""
+    A = lighting_operator(np.asarray(sensitivities, float), np.asarray(spectra, float), dlambda)
+    A = A.reshape(-1, A.shape[-2], A.shape[-1])
+    y = np.atleast_2d(np.asarray(rho, float)) / float(exposure)
+    if A.shape[0] == 1:
+        return np.zeros((y.shape[0], A.shape[-1]))
+    # surface_estimates(..., nominal=True)'s variance over all samples minus over sample 0 alone: the
+    # components' spread (A_0's in both) cancels
+    mean0, Wa, _ = _mixture_moments(prior, A[0], y, noise)
+    K, P = wiener_gain(prior, A, noise)
+    innov = y[None] - np.einsum("pn,scn->spc", Wa, A, optimize=True)
+    dev = Wa[None] + np.einsum("spc,snc->spn", innov, K, optimize=True) - mean0[None]
+    d = np.diagonal(P, axis1=1, axis2=2)
+    return (d.mean(axis=0) - d[0])[None] + (dev[1:] * dev[1:]).mean(axis=0)
+
+
 def surface_estimates_per_point(prior: SurfacePrior, rho, sensitivities, spectra, dlambda, exposure: float,
                                 noise: float | None = None, chunk: int = 64) -> SurfaceEstimates:
     """:func:`surface_estimates` with one light per surface (a light map):
@@ -727,15 +751,22 @@ def surface_estimates_per_point(prior: SurfacePrior, rho, sensitivities, spectra
         Gi = np.linalg.inv(G)
         K = SA @ Gi                                                                # (p, N, C)
         Pd = np.diagonal(prior.cov)[None] - np.einsum("pnc,pnc->pn", K, SA)
-        AR = np.einsum("mn,pcn->pmc", atoms, A, optimize=True)                     # (p, M, C)
-        ll = (np.einsum("pc,pcd,pmd->pm", y, Gi, AR, optimize=True)
-              - 0.5 * np.einsum("pmc,pcd,pmd->pm", AR, Gi, AR, optimize=True))
+        p_, C_ = A.shape[0], A.shape[1]
+        AR = (atoms @ A.transpose(2, 0, 1).reshape(N, -1)).reshape(-1, p_, C_).transpose(1, 0, 2)   # (p, M, C)
+        ARG = AR @ Gi                                                              # (p, M, C)
+        ll = (ARG @ y[:, :, None])[..., 0] - 0.5 * np.einsum("pmc,pmc->pm", ARG, AR)   # Gi symmetric
         ll -= ll.max(axis=1, keepdims=True)
         W = np.exp(ll)
         W /= W.sum(axis=1, keepdims=True)
-        c = atoms[None] - np.einsum("pmc,pnc->pmn", AR, K, optimize=True)          # (p, M, N)
-        Wc = np.einsum("pm,pmn->pn", W, c)
-        Wc2 = np.einsum("pm,pmn->pn", W, c * c)
+        # the components' c_m = a_m - K A a_m weighted by W without the (p, M, N) tensor of them:
+        # sum_m W c = W a - K (W AR), sum_m W c^2 = W a^2 - 2 K.(AR'W a) + K (AR'W AR) K' (diagonal)
+        WAR = W[:, :, None] * AR                                                   # (p, M, C)
+        Wa = W @ atoms                                                             # (p, N)
+        Wc = Wa - np.einsum("pnc,pc->pn", K, WAR.sum(axis=1))
+        cross = (WAR.transpose(0, 2, 1).reshape(-1, WAR.shape[1]) @ atoms).reshape(p_, C_, N)   # sum_m W AR a
+        mom = np.matmul(WAR.transpose(0, 2, 1), AR)                                # (p, C, C): sum_m W AR AR'
+        Wc2 = (W @ (atoms * atoms) - 2.0 * np.einsum("pnc,pcn->pn", K, cross)
+               + np.einsum("pnc,pcd,pnd->pn", K, mom, K))
         mean[s0:s0 + chunk] = Wc + np.einsum("pnc,pc->pn", K, y)
         var[s0:s0 + chunk] = Pd + np.clip(Wc2 - Wc * Wc, 0.0, None)
     std = np.sqrt(np.clip(var, 0.0, None))

@@ -212,3 +212,85 @@ def test_per_point_lights_give_the_one_light_answer_when_the_lights_agree():
                                          exposure=0.8, chunk=7)
     np.testing.assert_allclose(per.mean, one.mean, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(per.std, one.std, rtol=1e-9, atol=1e-12)
+
+
+def _map_result(cam, radius_deg: float):
+    """An analysis of a chart under D65 by gray world, its light's 90 %
+    region set to ``radius_deg`` (the prior prepared again for it)."""
+    from recovery import analyze
+    from recovery.api import prepare_prior
+
+    refl = models.reflectance_set("colorchecker")
+    img = cam.response(refl * models.illuminant("D65", WL)).reshape(4, 6, 3)
+    res = analyze(img, cam, method="gray-world")
+    res.illuminant.diagnostics["region90_deg"] = radius_deg
+    res.illuminant.light_map = None
+    prepare_prior(res, img.reshape(-1, 3))
+    return res, img
+
+
+def _constant_map(E):
+    from recovery.regions import LightMap
+
+    one = np.ones((2, 2))
+    return LightMap(np.array([0.0, 3.0]), np.array([0.0, 5.0]), np.ones((2, 2, 1)), one.astype(bool), one, one,
+                    np.asarray(E, float)[:, None])
+
+
+@pytest.mark.parametrize("source", ["matrix", "measured"])
+def test_a_light_map_carries_the_light_and_camera_uncertainty_to_each_pixel(source):
+    """Under a light map each surface's band holds what the whole-image
+    estimate's region and the camera's spread add (issue 31 item 2): a map
+    equal to the whole-image light everywhere gives exactly the one-light
+    estimates and bands (the same formulas; 1e-9 relative for their
+    summation order), and under a map of another light the band is the
+    per-pixel posterior's with the samples' change of variance added (wider
+    on the whole), and the per-pixel posterior's alone when nothing is
+    sampled."""
+    from recovery.cameras import camera_from_matrix
+
+    measured = Camera.named("Nikon 5100 (NPL)")
+    if source == "matrix":
+        xyz = models.observer(wavelengths=WL)
+        M = np.linalg.lstsq(xyz, measured.sensitivities, rcond=None)[0].T
+        cam = camera_from_matrix(M).with_color_matrix(M)
+    else:
+        cam = measured
+    res, _ = _map_result(cam, 3.0)
+    assert res.prior_sensitivities.shape[0] == sp_samples() + 1
+    pts = [(r, c) for r in range(4) for c in range(6)]
+    one = res.surface_estimates(pts)
+    res.illuminant.light_map = _constant_map(res.prior_lights[0])
+    flat = res.surface_estimates(pts)
+    np.testing.assert_allclose(flat.mean, one.mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(flat.std, one.std, rtol=1e-9, atol=1e-12)
+    assert flat.samples == one.samples > 1
+
+    other = models.illuminant("A", WL)
+    res.illuminant.light_map = _constant_map(other / other.mean() * res.prior_lights[0].mean())
+    under = res.surface_estimates(pts)
+    rows, cols = np.array(pts, float).T
+    pe = sp.surface_estimates_per_point(res.prior, res.image.reshape(-1, 3)[:len(pts)],
+                                        res.prior_sensitivities[0], res.illuminant.light_map.spectra_at(rows, cols),
+                                        cam.dlambda, res.prior_exposure)
+    scale = res.band_scale if res.band_scale is not None else 1.0
+    np.testing.assert_allclose(under.mean, pe.mean, rtol=1e-12)
+    widen = sp.sample_widening(res.prior, res.image.reshape(-1, 3)[:len(pts)], res.prior_sensitivities,
+                               res.prior_lights, cam.dlambda, res.prior_exposure)
+    np.testing.assert_allclose(under.std, np.sqrt(np.clip(pe.std ** 2 + widen, 0, None)) * scale, rtol=1e-12)
+    # wider on the whole: the samples' scatter outweighs the places their posteriors are narrower
+    assert np.mean(under.std ** 2) > 1.05 * np.mean((pe.std * scale) ** 2)
+    assert "region" in res.diagnostics["surface_band_light_uncertainty"]
+
+    res0, _ = _map_result(cam, 0.0)
+    if source == "measured":      # nothing sampled: the per-pixel posterior alone
+        res0.illuminant.light_map = res.illuminant.light_map
+        bare = res0.surface_estimates(pts)
+        np.testing.assert_allclose(bare.std, pe.std * scale, rtol=1e-12)
+        assert bare.samples == 1
+
+
+def sp_samples():
+    from recovery.api import SURFACE_SAMPLES
+
+    return SURFACE_SAMPLES
