@@ -476,6 +476,8 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     own = executor is None and bool(todo)
     interrupted = False
     xmp_jobs: dict = {}   # name -> future of its XMP sidecar
+    if xmp is not None:
+        batch_xmp.preload()   # before Ctrl-C can land in their first import (it would leave them half-made)
     ctrl_c = _CtrlC().__enter__()
     try:
         if own:

@@ -72,3 +72,34 @@ def test_ctrl_c_during_xmp_batch_leaves_sidecars_of_finished_images_and_no_locks
     assert done <= sidecars, f"finished without a sidecar: {done - sidecars}"
     assert not list(out.rglob("*.lock")), list(out.rglob("*.lock"))
     assert not list(out.rglob("*.part")), list(out.rglob("*.part"))
+
+
+SPY = """
+import sys
+from service import cli
+seen = []
+make = cli.jobs.make_executor
+def spy(*a, **k):
+    seen.append(type(sys.modules["service.sidecars"]).__name__)
+    return make(*a, **k)
+cli.jobs.make_executor = spy
+code = cli.main(["batch", sys.argv[1], sys.argv[2], "--workers", "1", "--xmp", "-q"])
+print("SEEN", seen, code)
+"""
+
+
+def test_an_xmp_batch_loads_the_sidecar_code_before_its_pool_starts(tmp_path):
+    """Found by a full test run under load (the test above failed once with
+    "module 'service.sidecars' has no attribute 'sidecar_path'"): the CLI
+    imports the sidecar code lazily, its first use was when the first image
+    finished, and the Ctrl-C that stopped the batch landed in that import,
+    leaving the module half-made for the sidecars made after the stop. A
+    batch with --xmp now loads it before the pool starts (and the Ctrl-C
+    handler is set): checked when the pool is made, in a fresh process."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    src.mkdir()
+    scene_dng(src / "a.dng", "Nikon 5100 (NPL)", "D65", 64, 96, seed=1)
+    p = subprocess.run([sys.executable, "-c", SPY, str(src), str(out)], cwd=ROOT, capture_output=True, text=True,
+                       timeout=300)
+    assert "SEEN ['module'] 0" in p.stdout, (p.stdout, p.stderr)     # loaded (not importlib's _LazyModule), done
+    assert (src / "a.xmp").is_file() or glob.glob(str(src / "a*.xmp")), os.listdir(src)

@@ -17,6 +17,16 @@ def _sidecars():
     return sidecars
 
 
+def preload() -> None:
+    """Load this module's and :mod:`service.sidecars`' code now. The CLI
+    imports both lazily (its ``--help`` costs nothing); their first use is
+    when the first image finishes, and a Ctrl-C landing in that import (the
+    CLI's handler raises KeyboardInterrupt in the main thread) left the lazy
+    module half-made, so the sidecars of the finished images, made after the
+    stop, failed with an AttributeError: seen in a full test run under load."""
+    _sidecars().sidecar_path        # an attribute access runs a lazy module's code
+
+
 def sidecar_args(t, r, options, out_dir: str, xmp: dict, settings) -> tuple:
     """The arguments of :func:`service.sidecars._sidecar_job` for task ``t`` (row ``r``)."""
     rel_dir = os.path.dirname(t.name)
