@@ -473,9 +473,7 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     bar = Progress(len(tasks), stream)
     count = {"done": 0, "failed": 0, "skipped": len(tasks) - len(todo)}
     bar.update(**count)
-    own = executor is None and bool(todo)
-    interrupted = False
-    xmp_jobs: dict = {}   # name -> future of its XMP sidecar
+    own, interrupted, xmp_jobs = executor is None and bool(todo), False, {}   # xmp_jobs: name -> its sidecar's future
     if xmp is not None:
         batch_xmp.preload()   # before Ctrl-C can land in their first import (it would leave them half-made)
     ctrl_c = _CtrlC().__enter__()
