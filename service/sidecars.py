@@ -30,7 +30,10 @@ def _sidecar_text(src: str, illuminant: dict, opts, limits) -> tuple[str, dict]:
         decoded, cam, warns, _ = pipeline.open_image(f.read(), os.path.basename(src), limits, opts.camera)
     run = pipeline.EstimateRun(jobs._estimate_from_json(illuminant, cam), cam, warns)  # the item's own light
     text, tt, summary = pipeline.xmp_sidecar(decoded, run)
-    return text, {**tt, "camera_rgb": summary["camera_rgb"]}
+    raw = None
+    if decoded.kind == "raw":      # what a DNG made of another RAW format needs (service.dngwrite.raw_as_dng)
+        raw = {"make": decoded.make, "model": decoded.model, "color_matrix": decoded.color_matrix}
+    return text, {**tt, "camera_rgb": summary["camera_rgb"], "raw": raw}
 
 
 def dng_copy_message(sc: dict) -> str:
@@ -49,12 +52,15 @@ def dng_copy_path(sidecar: str, src: str) -> str:
                         os.path.splitext(os.path.basename(src))[0] + ".wandell.dng")
 
 
-def _write_dng_copy(src: str, text: str, neutral, target: str, overwrite: bool) -> dict:
+def _write_dng_copy(src: str, text: str, neutral, target: str, overwrite: bool, raw: dict | None = None) -> dict:
     """For a DNG input: a copy of it with the sidecar's XMP packet and
     AsShotNeutral inside (:func:`service.dngxmp.dng_with_white`; what
-    Lightroom reads for a DNG) at ``target``; the original is only read.
-    ``{}`` for any other input; ``dng`` (the path), ``dng_kept`` or
-    ``dng_error`` otherwise."""
+    Lightroom reads for a DNG) at ``target``; for another camera RAW
+    (``raw``: its make, model and colour matrix) a DNG made of its raw data
+    with the same inside (:func:`service.dngwrite.raw_as_dng`); the original
+    is only read. ``{}`` for any other input (TIFF, PNG); ``dng`` (the
+    path), ``dng_kept`` or ``dng_error`` otherwise."""
+    from .dngwrite import NotConvertible, raw_as_dng
     from .dngxmp import NotADng, dng_with_white
 
     with open(src, "rb") as f:
@@ -62,7 +68,14 @@ def _write_dng_copy(src: str, text: str, neutral, target: str, overwrite: bool) 
     try:
         copy = dng_with_white(data, text, neutral)
     except NotADng:
-        return {}
+        if raw is None:
+            return {}
+        try:
+            copy = raw_as_dng(data, text, neutral, **raw)
+        except NotConvertible as e:
+            return {"dng_error": f"no DNG made of this RAW: {e}"}
+        except ValueError as e:
+            return {"dng_error": f"no DNG made of this RAW: {e}"}
     except ValueError as e:
         return {"dng_error": f"no DNG copy: {e}"}
     if os.path.abspath(target) == os.path.abspath(src):
@@ -127,7 +140,7 @@ def _sidecar_job(src: str, illuminant: dict, opts, target: str, fallback: str | 
             raise PermissionError(13, "permission denied", folder)
         _write_sidecar(target, text, overwrite)
         return {**out, "xmp": target, **_write_dng_copy(src, text, tt["camera_rgb"], dng_copy_path(target, src),
-                                                       overwrite)}
+                                                       overwrite, tt.get("raw"))}
     except FileExistsError:
         return {**out, "kept": target, "note": f"XMP sidecar {target} exists: kept as it is (--xmp-overwrite "
                                                "replaces it)"}
@@ -148,6 +161,7 @@ def _sidecar_job(src: str, illuminant: dict, opts, target: str, fallback: str | 
     except OSError as e:
         return {**out, "error": f"{why}, nor {fallback} ({e.strerror or e})",
                 "note": f"no XMP sidecar: {why}, nor {fallback} ({e.strerror or e})"}
-    return {**out, "xmp": alt, **_write_dng_copy(src, text, tt["camera_rgb"], dng_copy_path(alt, src), overwrite),
+    return {**out, "xmp": alt, **_write_dng_copy(src, text, tt["camera_rgb"], dng_copy_path(alt, src), overwrite,
+                                                  tt.get("raw")),
             "note": f"{why}: XMP sidecar written to {alt} instead; editors look for it beside "
                                        "the RAW, so move it there"}

@@ -57,7 +57,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from fractions import Fraction
 
 import numpy as np
 
@@ -85,58 +84,17 @@ CAMERA_MAKE_MODEL = {
 }
 
 # TIFF/DNG tag codes (DNG specification 1.4, chapter 4).
-_TAG_MAKE, _TAG_MODEL, _TAG_ORIENTATION = 271, 272, 274
-_TAG_CFA_REPEAT_PATTERN_DIM, _TAG_CFA_PATTERN = 33421, 33422
-_TAG_DNG_VERSION, _TAG_DNG_BACKWARD_VERSION, _TAG_UNIQUE_CAMERA_MODEL = 50706, 50707, 50708
-_TAG_CFA_PLANE_COLOR, _TAG_CFA_LAYOUT = 50710, 50711
-_TAG_BLACK_LEVEL_REPEAT_DIM, _TAG_BLACK_LEVEL, _TAG_WHITE_LEVEL = 50713, 50714, 50717
-_TAG_COLOR_MATRIX1, _TAG_AS_SHOT_NEUTRAL, _TAG_CALIBRATION_ILLUMINANT1 = 50721, 50728, 50778
-_PHOTOMETRIC_CFA = 32803
+from service.dngwrite import (_COLOUR_CODE, _PHOTOMETRIC_CFA, _TAG_AS_SHOT_NEUTRAL, _TAG_BLACK_LEVEL,  # noqa: E402,F401
+                               _TAG_CALIBRATION_ILLUMINANT1, _TAG_CFA_PATTERN, _TAG_COLOR_MATRIX1, _TAG_MAKE,
+                               _TAG_MODEL, _TAG_WHITE_LEVEL, _ascii, _level_tag, _pattern_letters, _rational,
+                               _rationals, cfa_colour_indices)
+from service.dngwrite import write_dng as _write_dng  # noqa: E402
 
-_COLOUR_CODE = {"R": 0, "G": 1, "B": 2}
 
 
 # --------------------------------------------------------------------------
 # CFA patterns and mosaicking
 # --------------------------------------------------------------------------
-
-def cfa_colour_indices(pattern="RGGB") -> np.ndarray:
-    """The 2x2 CFA repeat pattern as DNG colour codes (0 red, 1 green, 2 blue).
-
-    Parameters
-    ----------
-    pattern : str or array_like
-        Four letters from ``R``, ``G``, ``B`` read row by row (``"RGGB"``,
-        ``"BGGR"``, ``"GRBG"``, ``"GBRG"``), or a 2x2 array of codes.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(2, 2)`` uint8, the CFAPattern tag of the file in row-major order.
-
-    Examples
-    --------
-    >>> cfa_colour_indices("GRBG").tolist()
-    [[1, 0], [2, 1]]
-    """
-    if isinstance(pattern, str):
-        letters = pattern.strip().upper()
-        if len(letters) != 4 or any(ch not in _COLOUR_CODE for ch in letters):
-            raise ValueError(f"CFA pattern must be four letters from R, G, B, not {pattern!r}")
-        codes = np.array([_COLOUR_CODE[ch] for ch in letters], dtype=np.uint8).reshape(2, 2)
-    else:
-        codes = np.asarray(pattern)
-        if codes.shape != (2, 2) or not np.all(np.isin(codes, (0, 1, 2))):
-            raise ValueError(f"CFA pattern must be a 2x2 array of 0, 1, 2, got {codes!r}")
-        codes = codes.astype(np.uint8)
-    if set(codes.ravel().tolist()) != {0, 1, 2}:
-        raise ValueError(f"CFA pattern must contain red, green and blue, got {codes.tolist()}")
-    return codes
-
-
-def _pattern_letters(codes: np.ndarray) -> str:
-    return "".join("RGB"[int(c)] for c in codes.ravel())
-
 
 def mosaic(rgb, pattern="RGGB") -> np.ndarray:
     """Sample a full-RGB camera image through a 2x2 colour filter array.
@@ -177,46 +135,6 @@ def mosaic(rgb, pattern="RGGB") -> np.ndarray:
 # The DNG writer
 # --------------------------------------------------------------------------
 
-def _rational(value: float, signed: bool) -> tuple[int, int]:
-    """``value`` as numerator/denominator fitting TIFF (S)RATIONAL (32 bits)."""
-    v = float(value)
-    if not np.isfinite(v):
-        raise ValueError(f"cannot store {value!r} as a TIFF rational")
-    top = 2**31 - 1 if signed else 2**32 - 1
-    if signed is False and v < 0:
-        raise ValueError(f"negative value {v} for an unsigned RATIONAL tag")
-    max_den = max(1, min(2**30, int(top // max(abs(v), 1.0))))
-    f = Fraction(v).limit_denominator(max_den)
-    if abs(f.numerator) > top:
-        raise ValueError(f"{v} is too large for a TIFF rational")
-    return f.numerator, f.denominator
-
-
-def _rationals(values, signed: bool) -> list[int]:
-    out: list[int] = []
-    for v in np.ravel(values):
-        out.extend(_rational(v, signed))
-    return out
-
-
-def _ascii(name: str, value: str) -> str:
-    try:
-        value.encode("ascii")
-    except UnicodeEncodeError as exc:
-        raise ValueError(f"{name} must be ASCII, got {value!r}") from exc
-    if "\x00" in value:
-        raise ValueError(f"{name} must not contain NUL")
-    return value
-
-
-def _level_tag(code: int, values) -> tuple:
-    """BlackLevel/WhiteLevel as LONG when integral, RATIONAL otherwise."""
-    vals = np.asarray(values, dtype=np.float64).ravel()
-    if np.all(vals == np.round(vals)) and np.all(vals >= 0) and np.all(vals < 2**32):
-        return (code, "I", vals.size, [int(v) for v in vals], True)
-    return (code, "2I", vals.size, _rationals(vals, signed=False), True)
-
-
 def _default_color_matrix() -> np.ndarray:
     """XYZ -> linear sRGB (camera space taken as sRGB), normalised as the DNG
     SDK's NormalizeColorMatrix does (D50 white -> camera max 1)."""
@@ -243,72 +161,11 @@ def _normalise_color_matrix(m: np.ndarray) -> np.ndarray:
     return m / top
 
 
-def write_dng(
-    path,
-    cfa,
-    *,
-    pattern="RGGB",
-    black_level=0,
-    white_level=None,
-    color_matrix1=None,
-    calibration_illuminant1: int = 21,
-    as_shot_neutral=None,
-    make: str = "wandell-recovery",
-    model: str = "synthetic CFA",
-    unique_camera_model: str | None = None,
-    bits: int = 16,
-    extratags=(),
-) -> None:
-    """Write a minimal, uncompressed, single-IFD CFA DNG (version 1.4).
-
-    Tags written: NewSubfileType 0, ImageWidth/Length, BitsPerSample,
-    Compression 1, PhotometricInterpretation 32803 (CFA), one strip,
-    Orientation 1, SamplesPerPixel 1, Make, Model, Software,
-    CFARepeatPatternDim (2, 2), CFAPattern, DNGVersion 1.4.0.0,
-    DNGBackwardVersion 1.1.0.0, UniqueCameraModel, CFAPlaneColor (0, 1, 2),
-    CFALayout 1, BlackLevelRepeatDim, BlackLevel, WhiteLevel, ColorMatrix1,
-    CalibrationIlluminant1 and, when given, AsShotNeutral.
-
-    The pixels are written straight from ``cfa`` (no copy when it is already a
-    C-contiguous unsigned integer array of the right width), so a 24-megapixel
-    image costs little more than its own 48 MB.
-
-    Parameters
-    ----------
-    path : str, os.PathLike or binary file object
-        Destination.
-    cfa : (H, W) array_like of int
-        Raw digital numbers, ``0 <= cfa < 2**bits``. LibRaw refuses images
-        narrower or shorter than 22 pixels (``LibRawFileUnsupportedError``);
-        such files are written all the same, e.g. to test that refusal.
-    pattern : str or array_like
-        2x2 CFA pattern, see :func:`cfa_colour_indices`.
-    black_level : float or array_like
-        One value, or four (a 2x2 array or a sequence in row-major order of
-        the CFA repeat) written with BlackLevelRepeatDim (2, 2).
-    white_level : int, optional
-        WhiteLevel; default ``2**bits - 1``.
-    color_matrix1 : (3, 3) array_like, optional
-        ColorMatrix1, XYZ -> camera (rows are camera channels R, G, B), stored
-        as SRATIONAL. Default: XYZ -> linear sRGB, normalised as the DNG SDK
-        does, i.e. a camera whose native space is linear sRGB.
-    calibration_illuminant1 : int
-        EXIF LightSource code of ColorMatrix1 (21 = D65, 17 = A, 23 = D50).
-    as_shot_neutral : (3,) array_like, optional
-        AsShotNeutral, the camera response to the scene's white (any scale;
-        written as given, conventionally green = 1). Omitted when ``None``.
-    make, model, unique_camera_model : str
-        ASCII identification; UniqueCameraModel defaults to
-        ``make + " " + model``.
-    bits : {8, 16}
-        BitsPerSample of the stored samples (uint8 or uint16).
-    extratags : sequence of tifffile tag tuples
-        ``(code, dtype, count, value, writeonce)`` added verbatim.
-
-    Raises
-    ------
-    ValueError
-        On a malformed array, out-of-range values or inconsistent levels.
+def write_dng(path, cfa, *, color_matrix1=None, **kw) -> None:
+    """:func:`service.dngwrite.write_dng` (the product's writer; see it for
+    the tags and parameters), with ColorMatrix1 by default XYZ -> linear sRGB
+    from colour-science's sRGB matrix (:func:`_default_color_matrix`) and this
+    module named as the Software.
 
     Examples
     --------
@@ -319,88 +176,8 @@ def write_dng(
     ...     int(raw.raw_image[0, 0]), raw.black_level_per_channel, raw.white_level
     (700, [64, 64, 64, 64], 4095)
     """
-    import tifffile
-
-    if bits not in (8, 16):
-        raise ValueError(f"bits must be 8 or 16, not {bits!r}")
-    dtype = np.uint8 if bits == 8 else np.uint16
-    maxval = 2**bits - 1
-
-    arr = np.asarray(cfa)
-    if arr.ndim != 2 or arr.shape[0] < 2 or arr.shape[1] < 2:
-        raise ValueError(f"cfa must be a 2-D array of at least 2x2, got shape {arr.shape}")
-    if arr.dtype != dtype:
-        if arr.dtype.kind not in "ui" and not (arr.dtype.kind == "f" and np.all(arr == np.round(arr))):
-            raise ValueError(f"cfa must hold integers, got dtype {arr.dtype}")
-        lo, hi = arr.min(), arr.max()
-        if lo < 0 or hi > maxval:
-            raise ValueError(f"cfa values {lo}..{hi} do not fit {bits} bits")
-        arr = arr.astype(dtype)
-    arr = np.ascontiguousarray(arr)
-
-    codes = cfa_colour_indices(pattern)
-
-    white = maxval if white_level is None else white_level
-    if not (0 < float(white) <= maxval):
-        raise ValueError(f"white_level {white} must be in (0, {maxval}]")
-    black = np.asarray(black_level, dtype=np.float64)
-    if black.size == 1:
-        black_vals, black_dim = black.reshape(1), (1, 1)
-    elif black.size == 4:
-        black_vals, black_dim = black.reshape(4), (2, 2)
-    else:
-        raise ValueError(f"black_level must be one value or four (2x2), got {black.shape}")
-    if np.any(black_vals < 0) or np.any(black_vals >= float(white)):
-        raise ValueError(f"black_level {black_vals.tolist()} must be in [0, white_level={white})")
-
-    cm = _default_color_matrix() if color_matrix1 is None else np.asarray(color_matrix1, float)
-    if cm.shape != (3, 3) or not np.all(np.isfinite(cm)):
-        raise ValueError(f"color_matrix1 must be a finite 3x3 array, got {cm.shape}")
-    if abs(np.linalg.det(cm)) < 1e-12:
-        raise ValueError("color_matrix1 is singular")
-
-    make = _ascii("make", str(make))
-    model = _ascii("model", str(model))
-    ucm = _ascii("unique_camera_model",
-                 f"{make} {model}".strip() if unique_camera_model is None else str(unique_camera_model))
-
-    tags = [
-        (_TAG_MAKE, "s", 0, make, True),
-        (_TAG_MODEL, "s", 0, model, True),
-        (_TAG_ORIENTATION, "H", 1, 1, True),
-        (_TAG_CFA_REPEAT_PATTERN_DIM, "H", 2, (2, 2), True),
-        (_TAG_CFA_PATTERN, "B", 4, tuple(int(c) for c in codes.ravel()), True),
-        (_TAG_DNG_VERSION, "B", 4, (1, 4, 0, 0), True),
-        (_TAG_DNG_BACKWARD_VERSION, "B", 4, (1, 1, 0, 0), True),
-        (_TAG_UNIQUE_CAMERA_MODEL, "s", 0, ucm, True),
-        (_TAG_CFA_PLANE_COLOR, "B", 3, (0, 1, 2), True),
-        (_TAG_CFA_LAYOUT, "H", 1, 1, True),
-        (_TAG_BLACK_LEVEL_REPEAT_DIM, "H", 2, black_dim, True),
-        _level_tag(_TAG_BLACK_LEVEL, black_vals),
-        _level_tag(_TAG_WHITE_LEVEL, [white]),
-        (_TAG_COLOR_MATRIX1, "2i", 9, _rationals(cm, signed=True), True),
-        (_TAG_CALIBRATION_ILLUMINANT1, "H", 1, int(calibration_illuminant1), True),
-    ]
-    if as_shot_neutral is not None:
-        neutral = np.asarray(as_shot_neutral, dtype=np.float64).ravel()
-        if neutral.size != 3 or not np.all(np.isfinite(neutral)) or np.any(neutral <= 0):
-            raise ValueError(f"as_shot_neutral must be three positive numbers, got {as_shot_neutral!r}")
-        tags.append((_TAG_AS_SHOT_NEUTRAL, "2I", 3, _rationals(neutral, signed=False), True))
-    tags.extend(extratags)
-
-    if isinstance(path, os.PathLike):
-        path = os.fspath(path)
-    tifffile.imwrite(
-        path,
-        arr,
-        photometric=_PHOTOMETRIC_CFA,
-        subfiletype=0,
-        rowsperstrip=arr.shape[0],
-        compression=None,
-        metadata=None,
-        software="wandell-recovery testing.dngwriter",
-        extratags=tags,
-    )
+    kw.setdefault("software", "wandell-recovery testing.dngwriter")
+    _write_dng(path, cfa, color_matrix1=_default_color_matrix() if color_matrix1 is None else color_matrix1, **kw)
 
 
 # --------------------------------------------------------------------------
