@@ -188,11 +188,13 @@ def enrich(spec: dict) -> dict:
     if wb is not None:
         ok = wb["responses"].setdefault("200", {})
         ok["description"] = ("the corrected image at full resolution (format: tiff 16-bit, png 8-bit, png16, "
-                             "jpeg), or a Camera Raw XMP sidecar (format=xmp), or JSON (response=json)")
+                             "jpeg), or a Camera Raw XMP sidecar (format=xmp), or the RAW as a DNG with the "
+                             "white balance inside (format=dng), or JSON (response=json)")
         ok["content"] = {"image/tiff": {"schema": {"type": "string", "format": "binary"}},
                          "image/png": {"schema": {"type": "string", "format": "binary"}},
                          "image/jpeg": {"schema": {"type": "string", "format": "binary"}},
                          "application/rdf+xml": {"schema": {"type": "string"}},
+                         "image/x-adobe-dng": {"schema": {"type": "string", "format": "binary"}},
                          "application/json": ok.get("content", {}).get("application/json")
                          or {"schema": {"type": "object"}}}   # WhiteBalanceResult, declared by the router
         ok["headers"] = {"X-Illuminant": _header(("IlluminantHeader", "EstimateSummary"), X_ILLUMINANT, comps)}

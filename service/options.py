@@ -22,7 +22,7 @@ __all__ = ["Format", "FORMATS", "MEDIA_TYPES", "IMAGE_FORMATS", "RENDER_FORMATS"
 
 
 class Format(NamedTuple):
-    """An output format: the encoder (``tiff``, ``png``, ``jpeg``, ``xmp``),
+    """An output format: the encoder (``tiff``, ``png``, ``jpeg``, ``xmp``, ``dng``),
     its bits per sample (0: not an image) and the file extension."""
 
     encoder: str
@@ -38,10 +38,12 @@ FORMATS = {
     "jpeg": Format("jpeg", 8, "jpg"),
     "jpg": Format("jpeg", 8, "jpg"),
     "xmp": Format("xmp", 0, "xmp"),
+    "dng": Format("dng", 0, "dng"),
 }
 #: Media type of each encoder.
-MEDIA_TYPES = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg", "xmp": "application/rdf+xml"}
-#: The formats of the corrected image (``/v1/white-balance`` adds ``xmp``; batches and the CLI).
+MEDIA_TYPES = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg", "xmp": "application/rdf+xml",
+               "dng": "image/x-adobe-dng"}
+#: The formats of the corrected image (``/v1/white-balance`` adds ``xmp`` and ``dng``; batches and the CLI).
 IMAGE_FORMATS = ("tiff", "png", "png16", "jpeg", "jpg")
 #: ``/v1/render`` (spectral data): lossless only.
 RENDER_FORMATS = ("tiff", "png", "png16")

@@ -233,3 +233,33 @@ def test_the_command_line_makes_the_dng_for_a_raw_that_is_not_one(shoot, monkeyp
         np.testing.assert_array_equal(b.raw_image_visible, a.raw_image_visible)
     assert _tag(made, 700).decode("utf-8") == side
     assert _tag(made, 305) == "wandell-recovery"          # Software: made by the product's writer, not copied
+
+
+def test_the_api_answers_format_dng_with_the_white_balance_inside(tmp_path):
+    """``POST /v1/white-balance`` with ``format=dng``: a DNG's copy with the
+    same packet and AsShotNeutral as ``format=xmp``'s sidecar and header, the
+    raw data untouched; a linear TIFF is a 422 naming what to ask instead."""
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+
+    src = tmp_path / "a.dng"
+    scene_dng(src, "Nikon 5100 (NPL)", "A", 64, 96, seed=3, grid=(4, 6))
+    data = src.read_bytes()
+    with TestClient(app, base_url="http://127.0.0.1") as c:
+        r = c.post("/v1/white-balance", files={"file": ("a.dng", data)}, data={"format": "dng"})
+        x = c.post("/v1/white-balance", files={"file": ("a.dng", data)}, data={"format": "xmp"})
+        assert r.status_code == 200 and x.status_code == 200, r.text
+        assert r.headers["content-type"] == "image/x-adobe-dng" and 'a.dng' in r.headers["content-disposition"]
+        (tmp_path / "b.dng").write_bytes(r.content)
+        assert _tag(tmp_path / "b.dng", 700).decode("utf-8") == x.text
+        rgb = np.array(json.loads(r.headers["X-Illuminant"])["camera_rgb"], float)
+        with rawpy.imread(io.BytesIO(data)) as a, rawpy.imread(io.BytesIO(r.content)) as b:
+            np.testing.assert_array_equal(b.raw_image_visible, a.raw_image_visible)
+            wb = np.array(b.camera_whitebalance[:3])
+            np.testing.assert_allclose(wb / wb[1], rgb[1] / rgb, rtol=1e-4)
+        buf = io.BytesIO()
+        tifffile.imwrite(buf, (np.random.default_rng(0).random((64, 64, 3)) * 60000).astype(np.uint16),
+                         photometric="rgb")
+        t = c.post("/v1/white-balance", files={"file": ("a.tif", buf.getvalue())}, data={"format": "dng"})
+        assert t.status_code == 422 and t.json()["error"] == "not_a_raw", t.text

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rawpy
 from fastapi.testclient import TestClient
 
 from service.app import app
@@ -303,6 +304,12 @@ def test_upload_shows_both_images_the_light_and_the_diagnostics(page, server, tm
     data = Path(dl.value.path()).read_bytes()
     assert dl.value.suggested_filename == "scene-corrected.jpg" and data[:3] == b"\xff\xd8\xff"
     assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED).shape == (240, 360, 3)
+    with page.expect_download(timeout=90_000) as dl:       # the DNG with the white balance inside (issue 30)
+        page.click("#dl-dng")
+    data = Path(dl.value.path()).read_bytes()
+    assert dl.value.suggested_filename == "scene.wandell.dng" and data[:4] in (b"II*\x00", b"MM\x00*")
+    with rawpy.imread(io.BytesIO(data)) as got, rawpy.imread(str(dng)) as orig:
+        np.testing.assert_array_equal(got.raw_image_visible, orig.raw_image_visible)
     with page.expect_download() as dl:
         page.click("#dl-json")
     saved = json.loads(Path(dl.value.path()).read_text())

@@ -63,7 +63,9 @@ _WB_ESTIMATION = form(AnalyzeEstimation)
 _WB_RENDERING = form(WhiteBalanceRendering, choices={"format": tuple(FORMATS)},
                      describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg, or xmp: a Camera Raw sidecar "
                                          "(crs:WhiteBalance=Custom, Temperature, Tint) to apply the estimate to "
-                                         "the original RAW in another editor"})
+                                         "the original RAW in another editor, or dng: the RAW as a DNG with that "
+                                         "white balance inside (a DNG's copy, its raw data untouched; another "
+                                         "RAW's raw data written as a DNG), what Lightroom reads for a DNG"})
 _SURFACES_ESTIMATION = form(Estimation, include=("camera", "method", "surface_model"))
 _REGIONS = form(Regions)
 _INPUT = form(Input)
@@ -114,6 +116,31 @@ def _with_white(decoded, run, white: str):
     white (the same rendering, for a side-by-side download), or a white
     given as Temperature/Tint."""
     return with_white(decoded, run, white)
+
+
+def _as_dng(data: bytes, decoded, xmp: str, summary: dict) -> bytes:
+    """``format=dng``: the upload as a DNG with the white balance inside (the
+    sidecar's packet ``xmp`` and the light's camera RGB as AsShotNeutral): a
+    DNG's copy (:func:`service.dngxmp.dng_with_white`) or another camera
+    RAW's raw data as a DNG (:func:`service.dngwrite.raw_as_dng`)."""
+    from ..dngwrite import NotConvertible, raw_as_dng
+    from ..dngxmp import NotADng, dng_with_white
+
+    neutral = summary["camera_rgb"]
+    try:
+        return dng_with_white(data, xmp, neutral)
+    except NotADng:
+        pass
+    except ValueError as e:
+        raise ServiceError(422, "dng_failed", f"no DNG copy of this DNG: {e}") from None
+    if decoded.kind != "raw":
+        raise ServiceError(422, "not_a_raw", "format=dng needs a camera RAW (a DNG, NEF, CR2, ARW, ...); this "
+                                             "upload is a linear image: ask for tiff, png or jpeg")
+    try:
+        return raw_as_dng(data, xmp, neutral, make=decoded.make, model=decoded.model,
+                          color_matrix=decoded.color_matrix)
+    except (NotConvertible, ValueError) as e:
+        raise ServiceError(422, "dng_failed", f"this RAW cannot be written as a DNG: {e}") from None
 
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,
@@ -259,14 +286,17 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                            f"combined with white={white!r}")
     data, sens = await _inputs(file, sensitivities, settings)
     await file.close()
-    if fmt.encoder == "xmp":
+    if fmt.encoder in ("xmp", "dng"):
         decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
                                        where, inp.display_referred, request=request)
         run = _with_white(decoded, run, white)
         text, _, summary = pipeline.xmp_sidecar(decoded, run)
         stem = os.path.splitext(download_name(file.filename, "image"))[0] or "image"
-        return Response(text, media_type=MEDIA_TYPES["xmp"],
-                        headers={"Content-Disposition": content_disposition(f"{stem}.xmp", default="image"),
+        body = text if fmt.encoder == "xmp" else await run_heavy(_as_dng, data, decoded, text, summary,
+                                                                  request=request)
+        return Response(body, media_type=MEDIA_TYPES[fmt.encoder],
+                        headers={"Content-Disposition": content_disposition(f"{stem}.{fmt.extension}",
+                                                                            default="image"),
                                  "X-Illuminant": json.dumps(clean(summary), separators=(",", ":"))})
     if response == "json":
         decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,

@@ -1216,6 +1216,7 @@ async function downloadCorrected(format, ext, white) {
   try {
     const resp = await post("/v1/white-balance", formFor(current.file, fields));
     const name = format === "xmp" ? `${stem(current.file.name)}.xmp`
+      : format === "dng" ? `${stem(current.file.name)}.wandell.dng`
       : `${stem(current.file.name)}-${w === "as-shot" ? "as-shot" : "corrected"}.${ext}`;
     saveBlob(await resp.blob(), name);
     $("dl-status").textContent = "";
@@ -1484,6 +1485,7 @@ document.addEventListener("DOMContentLoaded", () => {
   $("dl-json").addEventListener("click", downloadEstimate);
   $("dl-asshot").addEventListener("click", () => downloadCorrected("png", "png", "as-shot"));
   $("dl-xmp").addEventListener("click", () => downloadCorrected("xmp", "xmp"));
+  $("dl-dng").addEventListener("click", () => downloadCorrected("dng", "dng"));
   $("batch-files").addEventListener("change", (e) => chooseBatch(e.target.files));
   dropZone($("batch-drop"), $("batch-files"), chooseBatch);
   $("batch-run").addEventListener("click", startBatch);
