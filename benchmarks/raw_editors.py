@@ -1,6 +1,11 @@
 """The product beside the raw editors photographers use (issue 30).
 
-``python -m benchmarks.raw_editors [--per-set 20] [--batch 4] [--skip-wb] [--skip-batch]``
+``python -m benchmarks.raw_editors [--per-set 20] [--batch 4] [--skip-wb] [--skip-batch] [--skip-dng]``
+
+(3., ``--skip-dng`` skips it: the product's ``format=dng`` made from the real
+CinemaDNG's raw data as for a RAW that is not a DNG, opened by each editor
+with its as-shot white; the balance of each one's JPEG beside the product's,
+:func:`bench_dng_readback`.)
 
 Runs ``rawtherapee-cli`` and ``darktable-cli`` when they are installed
 (``apt-get install -y darktable rawtherapee``; each skipped with a message
@@ -66,6 +71,7 @@ import numpy as np
 SHARED = os.environ.get("WANDELL_SHARED_DIR") or os.path.join(
     os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "shared")
 REAL = os.path.join(SHARED, "data", "real")
+SHARED_RAW = os.path.join(SHARED, "data", "raw")
 SETS = ("nus8", "cubeplus", "tau_field")
 ENLARGE = 4
 WHITE = 16383
@@ -271,6 +277,55 @@ def bench_batch(n: int, repeat: int, log=print) -> dict:
     return res
 
 
+def bench_dng_readback(src: str, log=print) -> dict:
+    """The product's DNG with the white balance inside (``format=dng``), made
+    as for a RAW that is not a DNG (:func:`service.dngwrite.raw_as_dng` of
+    ``src``'s raw data), read back by each editor with its default (as-shot)
+    white: does it open, and is its balance the product's? Each tool's JPEG
+    is reduced to its mean sRGB; the balance is the ratios R/G and B/G of the
+    linearised means, printed beside the product's own JPEG of the same file."""
+    from service import pipeline
+    from service.dngwrite import raw_as_dng
+    from service.settings import Settings
+
+    out: dict = {}
+    with open(src, "rb") as f:
+        data = f.read()
+    with tempfile.TemporaryDirectory() as tmp:
+        decoded, run = pipeline.analyze(data, os.path.basename(src), Settings())
+        text, _, summary = pipeline.xmp_sidecar(decoded, run)
+        dng = os.path.join(tmp, "IMG.wandell.dng")
+        with open(dng, "wb") as f:
+            f.write(raw_as_dng(data, text, summary["camera_rgb"], make=decoded.make, model=decoded.model,
+                               color_matrix=decoded.color_matrix))
+        ours = os.path.join(tmp, "ours.jpg")
+        subprocess.run([sys.executable, "-m", "service.cli", "white-balance", "-q", src, ours], check=True)
+        cmds = {"product (wandell white-balance)": None}
+        if shutil.which("darktable-cli"):
+            cmds["darktable-cli"] = ["darktable-cli", dng, os.path.join(tmp, "dt.jpg"), "--core", "--configdir",
+                                     os.path.join(tmp, "dtconf"), "--library", ":memory:"]
+        else:
+            log("darktable-cli not installed: its read-back is skipped")
+        if shutil.which("rawtherapee-cli"):
+            cmds["rawtherapee-cli"] = ["rawtherapee-cli", "-o", os.path.join(tmp, "rt.jpg"), "-j90", "-Y", "-c", dng]
+        else:
+            log("rawtherapee-cli not installed: its read-back is skipped")
+        import cv2
+
+        for name, argv in cmds.items():
+            path = ours if argv is None else argv[2]
+            if argv is not None:
+                r = subprocess.run(argv, capture_output=True, text=True)
+                if r.returncode != 0 or not os.path.exists(path):
+                    out[name] = {"read": False, "why": (r.stdout + r.stderr)[-200:]}
+                    continue
+            img = cv2.imread(path)[..., ::-1].astype(np.float64) / 255.0
+            m = srgb_to_linear(img).reshape(-1, 3).mean(axis=0)
+            out[name] = {"read": True, "mean_srgb": (255 * img.reshape(-1, 3).mean(axis=0)).round(1).tolist(),
+                         "r_g": float(m[0] / m[1]), "b_g": float(m[2] / m[1])}
+    return out
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--per-set", type=int, default=20, help="photographs of each development benchmark")
@@ -278,6 +333,7 @@ def main(argv=None) -> None:
     ap.add_argument("--repeat", type=int, default=2, help="runs of each batch command (median)")
     ap.add_argument("--skip-wb", action="store_true")
     ap.add_argument("--skip-batch", action="store_true")
+    ap.add_argument("--skip-dng", action="store_true", help="skip the editors reading the product's DNG back")
     args = ap.parse_args(argv)
     print(f"load average {os.getloadavg()[0]:.1f} {os.getloadavg()[1]:.1f} on {os.cpu_count()} CPUs")
     if not args.skip_wb:
@@ -296,6 +352,19 @@ def main(argv=None) -> None:
             a, b = r["errors"]["product auto"], r["errors"]["RawTherapee auto (RGB grey)"]
             if a and len(a) == len(b):
                 print(f"product auto better than RawTherapee on {100 * np.mean(np.array(a) < np.array(b)):.0f} %")
+    if not args.skip_dng:
+        src = os.path.join(SHARED_RAW, "Blackmagic.dng")
+        if not os.path.exists(src):
+            print(f"no real RAW at {src}: the DNG read-back is skipped")
+        else:
+            print("\nthe product's DNG with the white balance inside (format=dng, made from the real CinemaDNG's "
+                  "raw data as for a non-DNG RAW), read back with each editor's as-shot white:")
+            print(f"{'':34s} {'opens':>6s} {'R/G':>6s} {'B/G':>6s}  mean sRGB of its JPEG")
+            for k, v in bench_dng_readback(src).items():
+                if v["read"]:
+                    print(f"{k:34s} {'yes':>6s} {v['r_g']:6.3f} {v['b_g']:6.3f}  {v['mean_srgb']}")
+                else:
+                    print(f"{k:34s} {'NO':>6s}  {v['why']}")
     if not args.skip_batch:
         print(f"\nbatch of {args.batch} x 24-megapixel DNG -> JPEG, whole commands (median of {args.repeat}); "
               f"load average {os.getloadavg()[0]:.1f}")
