@@ -212,3 +212,42 @@ def test_per_point_lights_give_the_one_light_answer_when_the_lights_agree():
                                          exposure=0.8, chunk=7)
     np.testing.assert_allclose(per.mean, one.mean, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(per.std, one.std, rtol=1e-9, atol=1e-12)
+
+
+def test_shipped_surface_sets_have_their_stated_provenance():
+    """``models/data/surface_sets.npz``: the six sets with the counts
+    docs/surfaces.md states, on 380-780 nm at 5 nm, reflectances in [0, 1]
+    (but for five rawtoaces patches as colour-science ships them, up to 1.44
+    at the red end: measured against a white standard),
+    the licence file beside it, and the rows of ``ces99`` (added for the
+    median-RMSE miss of issue 31) equal to what colour-science ships for the
+    99 colour evaluation samples of CIE 224:2017 (stored as float32: half a
+    float32 unit at 1 is 6e-8)."""
+    from pathlib import Path
+
+    import colour
+    from colour.quality.cfi2017 import load_TCS_CIE2017
+
+    from models.surface_data import SURFACE_SETS, surface_sets
+
+    data = Path(models.__file__).resolve().parent / "data"
+    with np.load(data / "surface_sets.npz") as z:
+        wl, R, lab, names, source = z["wavelengths"], z["reflectances"], z["set"].astype(str), z["names"], str(z["source"])
+    np.testing.assert_array_equal(wl, np.arange(380, 781, 5))
+    counts = {"colorchecker": 24, "rawtoaces-190": 190, "tcs": 15, "vs": 15, "pmc": 30, "ces99": 99}
+    assert tuple(SURFACE_SETS) == tuple(counts)
+    assert {s: int((lab == s).sum()) for s in SURFACE_SETS} == counts and lab.size == R.shape[0] == 373
+    assert list(dict.fromkeys(lab)) == list(SURFACE_SETS)          # rows grouped by set, in that order
+    assert R.shape == (373, 81) and np.all(np.isfinite(R)) and R.min() >= 0.0
+    above = names[R.max(axis=1) > 1.0].tolist()
+    assert above == [f"rawtoaces-190 patch{i}" for i in (85, 89, 114, 125, 128)] and R.max() < 1.45
+    assert R[lab == "ces99"].max() <= 1.0
+    assert len(set(names.tolist())) == len(names)
+    assert "load_TCS_CIE2017" in source
+    ces = load_TCS_CIE2017(colour.SpectralShape(380, 780, 5))
+    np.testing.assert_array_equal(ces.wavelengths, wl)
+    np.testing.assert_allclose(R[lab == "ces99"], ces.values.T, rtol=0, atol=6e-8)
+    lic = (data / "surface_sets.LICENSE").read_text()
+    assert "Redistribution and use in source and binary forms" in lic and "ces99" in lic
+    Rd, labd = surface_sets(WL, ["ces99"])
+    assert Rd.shape == (99, WL.size) and set(labd) == {"ces99"}
