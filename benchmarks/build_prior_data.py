@@ -9,16 +9,9 @@
     scaled so its largest value is 1.
 ``models/data/surface_sets.npz``
     The measured reflectance sets colour-science ships (BSD-3-Clause
-    package, licence text in ``models/data/surface_sets.LICENSE``; the data's
-    own terms in ``docs/surfaces.md``), float32 on 380-780 nm at 5 nm, each
-    row labelled with its set: so that the service does not import
-    colour-science to build the prior. ``ces99`` (added for issue 31's
-    median-RMSE miss) is the 99 colour evaluation samples of CIE 224:2017
-    (the CIE 2017 colour fidelity index; the same 99 as IES TM-30-18), read
-    from colour-science's ``quality/datasets/tcs_cfi2017_5_nm.csv.gz``
-    (measured on 380-780 nm at 5 nm: no resampling); it is last so that the
-    other sets keep their rows and the benchmark's scenes of them their
-    random draws.
+    package; the data's own terms in ``docs/surfaces.md``), float32 on
+    380-780 nm at 5 nm, each row labelled with its set: so that the service
+    does not import colour-science to build the prior.
 
 The product reads only the ``.npz`` files (:mod:`models.surface_data`).
 Run: ``python -m benchmarks.build_prior_data``.
@@ -67,19 +60,9 @@ def build_surfaces() -> None:
         "tcs": [colour.quality.SDS_TCS["CIE 2024"]],
         "vs": [colour.quality.SDS_VS["NIST CQS 9.0"]],
         "pmc": [colour.SDS_COLOURCHECKERS["PMC"]],
-        "ces99": "cfi2017",
     }
     rows, labels, names = [], [], []
     for name, groups in sets.items():
-        if groups == "cfi2017":
-            from colour.quality.cfi2017 import load_TCS_CIE2017
-
-            msds = load_TCS_CIE2017(colour.SpectralShape(380, 780, 5))
-            assert np.array_equal(msds.wavelengths, GRID) and msds.values.shape == (GRID.size, 99)
-            rows.append(msds.values.T.copy())
-            labels += [name] * 99
-            names += [f"{name} CES{i + 1}" for i in range(99)]
-            continue
         if groups is None:
             msds = colour.characterisation.read_training_data_rawtoaces_v1()
             arr = sd_to_array(msds, GRID).T
@@ -95,9 +78,7 @@ def build_surfaces() -> None:
                         set=np.array(labels), names=np.array(names),
                         source=np.array(f"colour-science {colour.__version__}: SDS_COLOURCHECKERS['BabelColor "
                                         "Average'], read_training_data_rawtoaces_v1(), quality.SDS_TCS['CIE 2024'], "
-                                        "quality.SDS_VS['NIST CQS 9.0'], SDS_COLOURCHECKERS['PMC'], ces99: "
-                                        "quality.cfi2017.load_TCS_CIE2017(SpectralShape(380, 780, 5)) (the 99 "
-                                        "colour evaluation samples of CIE 224:2017)"))
+                                        "quality.SDS_VS['NIST CQS 9.0'], SDS_COLOURCHECKERS['PMC']"))
     print(f"{len(R)} surfaces in {len(sets)} sets -> {out} ({out.stat().st_size} bytes)")
 
 

@@ -3,14 +3,11 @@
 Two shipped files, built by ``python -m benchmarks.build_prior_data`` (which
 records their provenance):
 
-* ``data/surface_sets.npz``: 373 measured reflectances in six sets that
+* ``data/surface_sets.npz``: 274 measured reflectances in five sets that
   colour-science ships (the BabelColor average of the ColorChecker, the 190
   rawtoaces training patches, the CIE test colour samples (CIE 2024 edition, 15),
   the NIST CQS 9.0 samples (15), the preferred-memory-colour chart PMC of
-  Luo 2024 (30: skin, food, sky, foliage, greys), the 99 colour evaluation
-  samples of CIE 224:2017 (``ces99``: natural objects, skin, textiles,
-  paints, plastics, printed materials)); colour-science's licence in
-  ``data/surface_sets.LICENSE``;
+  Luo 2024 (30: skin, food, sky, foliage, greys));
 * ``data/camera_set_rawtoaces.npz``: 47 cameras' measured R, G, B
   sensitivities (Academy Software Foundation ``rawtoaces-data``, Apache-2.0,
   ``data/camera_set_rawtoaces.LICENSE``).
@@ -44,7 +41,7 @@ _DATA = Path(__file__).resolve().parent / "data"
 
 #: The reflectance sets of ``surface_sets.npz`` (the names the prior's
 #: cross-validation leaves out in turn).
-SURFACE_SETS = ("colorchecker", "rawtoaces-190", "tcs", "vs", "pmc", "ces99")
+SURFACE_SETS = ("colorchecker", "rawtoaces-190", "tcs", "vs", "pmc")
 
 
 @functools.lru_cache(maxsize=4)
@@ -75,7 +72,7 @@ def surface_sets(wavelengths=None, sets=None) -> tuple[np.ndarray, np.ndarray]:
     --------
     >>> R, lab = surface_sets()
     >>> R.shape, sorted(set(lab)) == sorted(SURFACE_SETS)
-    ((373, 31), True)
+    ((274, 31), True)
     """
     d = _npz("surface_sets.npz")
     lab = d["set"].astype(str)

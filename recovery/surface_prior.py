@@ -229,7 +229,7 @@ def _default_prior(wl: tuple, exclude: tuple) -> SurfacePrior:
 
 def default_prior(wavelengths=None, exclude=()) -> SurfacePrior:
     """The shipped prior: every set of :data:`models.surface_data.SURFACE_SETS`
-    (373 measured surfaces) with the cross-validated hyper-parameters;
+    (274 measured surfaces) with the cross-validated hyper-parameters;
     ``exclude`` leaves sets out (cross-validation).
 
     Examples
