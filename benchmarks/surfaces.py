@@ -10,8 +10,10 @@ Protocol
   or those named by ``--sets``): the prior is learnt on the others, and its
   hyper-parameters (kernel bandwidth or one Gaussian, noise, shrinkage) are
   chosen by median RMSE in an inner leave-one-set-out over those others
-  (``--sets`` without ``ces99`` redoes the run before that set was added,
-  side by side with the same code): the reported set never chooses
+  (``--add-set NAME`` adds a candidate set of
+  :mod:`benchmarks.surface_candidates` as one more set, left out in turn like
+  the others: the shipped sets' figures with and without it, side by side
+  with the same code): the reported set never chooses
   anything. The bands are calibrated afterwards by a factor per wavelength
   and per camera kind and light (:func:`calibration_report`): for the
   reported set, learnt on the scenes of the other sets. ``strict`` also drops
@@ -519,6 +521,10 @@ def main(argv=None) -> None:
                     help=f"write the band calibration factors to {CALIBRATION_JSON.name} (the product's)")
     ap.add_argument("--sets", help="comma-separated reflectance sets to use (default all: "
                     f"{','.join(SURFACE_SETS)})")
+    ap.add_argument("--add-set", help="a candidate set of benchmarks.surface_candidates (e.g. ces99) added as one "
+                    "more set, left out in turn like the others (not shipped)")
+    ap.add_argument("--luxpy-dir", help="for --add-set: the luxpy wheel's luxpy/data/rfls folder")
+    ap.add_argument("--earthlib-dir", help="for --add-set: the earthlib wheel's earthlib/data folder")
     args = ap.parse_args(argv)
     if args.sets:
         SETS = tuple(s.strip() for s in args.sets.split(",") if s.strip())
@@ -528,6 +534,12 @@ def main(argv=None) -> None:
         _calibration_only(args)
         return
     R, lab = surface_sets(WL, SETS)
+    if args.add_set:
+        from benchmarks.surface_candidates import candidate
+
+        X = candidate(args.add_set, WL, args.luxpy_dir, args.earthlib_dir)
+        R, lab = np.concatenate([R, X]), np.concatenate([lab, np.full(len(X), args.add_set)])
+        SETS = tuple(SETS) + (args.add_set,)
     names, cams_all = camera_set(WL)
     cv_cams = [cams_all[i] for i in range(2, 47, 8)]
     cv_lights = [light("D65"), light("A")]
