@@ -146,7 +146,10 @@ def main(argv=None) -> None:
     print("| added to training | surfaces | median RMSE | p90 | " + " | ".join(SURFACE_SETS) + " |")
     print("|---|---|---|---|" + "---|" * len(SURFACE_SETS))
     for name in ["none"] + names:
-        X = np.zeros((0, WL.size)) if name == "none" else candidate(name, WL, args.luxpy_dir, args.earthlib_dir)
+        try:
+            X = np.zeros((0, WL.size)) if name == "none" else candidate(name, WL, args.luxpy_dir, args.earthlib_dir)
+        except (KeyError, ValueError, OSError) as e:
+            ap.error(str(e))
         out = screen(X, WL, cams, lights, hyper)
         pooled = np.concatenate(list(out.values()))
         print(f"| {name} | {len(X)} | {np.median(pooled):.4f} | {np.percentile(pooled, 90):.4f} | "

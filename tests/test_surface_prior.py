@@ -260,3 +260,19 @@ def test_shipped_surface_sets_have_their_stated_provenance():
     assert all(s in lic for s in SURFACE_SETS)
     Rd, labd = surface_sets(WL, ["pmc"])
     assert Rd.shape == (30, WL.size) and set(labd) == {"pmc"}
+
+
+def test_candidate_ces99_is_the_cie_2017_set_and_unknown_candidates_are_refused():
+    """The candidate set screened for the median-RMSE miss (not shipped):
+    the 99 CES of CIE 224:2017 on the working grid, values in [0, 1] (the
+    set's own maximum is 0.983); an unknown name is a KeyError naming the
+    accepted ones, a luxpy set without its folder a ValueError."""
+    from benchmarks.surface_candidates import CANDIDATES, candidate
+
+    X = candidate("ces99", WL)
+    assert X.shape == (99, WL.size) and X.min() >= 0.0 and X.max() <= 1.0
+    with pytest.raises(KeyError, match="ces99"):
+        candidate("no-such-set", WL)
+    with pytest.raises(ValueError, match="luxpy"):
+        candidate("munsell1269", WL)
+    assert "ces99" in CANDIDATES
