@@ -30,8 +30,8 @@ and why none is shipped):
 ``earthlib-measured``
     The 5261 spectra of the earthlib wheel (MIT; ``--earthlib-dir`` is its
     ``earthlib/data`` folder) labelled ``measured`` (4168 soils of the
-    ICRAF-ISRIC soil spectral library, 1085 urban materials and bark, litter,
-    char measured with an ASD spectrometer, 8 others; the 2000 PROSAIL
+    ICRAF-ISRIC soil spectral library, 1085 of source ``asd`` (urban
+    materials, bark, litter, char), 8 of source ``specevo``; the 2000 PROSAIL
     canopies, simulated, are left out); 400-2450 nm at 10 nm.
 
 References
