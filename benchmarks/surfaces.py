@@ -404,7 +404,7 @@ def calibration_report(rec):
     estimated with a prior learnt without its own set) and scored on X's
     scenes: X's truths never choose its factors. The shipped factors pool
     every set's scenes, each set weighing the same. Coverage is given pooled
-    over surfaces (rawtoaces-190 is 190 of the 373) and as the mean over
+    over surfaces (rawtoaces-190 is 190 of the 274) and as the mean over
     sets, with the range over sets."""
     lines, shipped, summary = [], {}, {}
     hdr = ("| camera / light | | " + " | ".join(f"{a}-{b}" for a, b in BANDS_NM)
