@@ -294,3 +294,67 @@ def sp_samples():
     from recovery.api import SURFACE_SAMPLES
 
     return SURFACE_SAMPLES
+
+
+def test_shipped_surface_sets_have_their_stated_provenance():
+    """``models/data/surface_sets.npz``: the five sets with the counts
+    docs/surfaces.md states, on 380-780 nm at 5 nm, reflectances >= 0 and
+    <= 1 but for five rawtoaces patches as colour-science ships them (up to
+    1.44 at the red end: measured against a white standard), the licence
+    file beside it, and every row equal to what colour-science (the
+    ``source`` it names) gives on that grid (stored as float32: half a
+    float32 unit below 2 is 1.2e-7)."""
+    from pathlib import Path
+
+    import colour
+
+    from models._colour import sd_to_array
+    from models.surface_data import SURFACE_SETS, surface_sets
+
+    data = Path(models.__file__).resolve().parent / "data"
+    with np.load(data / "surface_sets.npz") as z:
+        wl, R, lab, names, source = z["wavelengths"], z["reflectances"], z["set"].astype(str), z["names"], str(z["source"])
+    np.testing.assert_array_equal(wl, np.arange(380, 781, 5))
+    counts = {"colorchecker": 24, "rawtoaces-190": 190, "tcs": 15, "vs": 15, "pmc": 30}
+    assert tuple(SURFACE_SETS) == tuple(counts)
+    assert {s: int((lab == s).sum()) for s in SURFACE_SETS} == counts and lab.size == R.shape[0] == 274
+    assert list(dict.fromkeys(lab)) == list(SURFACE_SETS)          # rows grouped by set, in that order
+    assert R.shape == (274, 81) and np.all(np.isfinite(R)) and R.min() >= 0.0
+    above = names[R.max(axis=1) > 1.0].tolist()
+    assert above == [f"rawtoaces-190 patch{i}" for i in (85, 89, 114, 125, 128)] and R.max() < 1.45
+    assert len(set(names.tolist())) == len(names)
+    assert source.startswith("colour-science 0.4.7:")                # the version the file was built from
+    grid = wl.astype(float)
+    expect = {
+        "colorchecker": colour.SDS_COLOURCHECKERS["BabelColor Average"],
+        "tcs": colour.quality.SDS_TCS["CIE 2024"],
+        "vs": colour.quality.SDS_VS["NIST CQS 9.0"],
+        "pmc": colour.SDS_COLOURCHECKERS["PMC"],
+    }
+    for s, sds in expect.items():
+        ref = np.clip(np.stack([sd_to_array(sd, grid) for sd in sds.values()]), 0.0, None)
+        np.testing.assert_allclose(R[lab == s], ref, rtol=0, atol=1.2e-7, err_msg=s)
+    msds = colour.characterisation.read_training_data_rawtoaces_v1()
+    ref = np.clip(sd_to_array(msds, grid).T, 0.0, None)
+    np.testing.assert_allclose(R[lab == "rawtoaces-190"], ref, rtol=0, atol=1.2e-7)
+    lic = (data / "surface_sets.LICENSE").read_text()
+    assert "Redistribution and use in source and binary forms" in lic
+    assert all(s in lic for s in SURFACE_SETS)
+    Rd, labd = surface_sets(WL, ["pmc"])
+    assert Rd.shape == (30, WL.size) and set(labd) == {"pmc"}
+
+
+def test_candidate_ces99_is_the_cie_2017_set_and_unknown_candidates_are_refused():
+    """The candidate set screened for the median-RMSE miss (not shipped):
+    the 99 CES of CIE 224:2017 on the working grid, values in [0, 1] (the
+    set's own maximum is 0.983); an unknown name is a KeyError naming the
+    accepted ones, a luxpy set without its folder a ValueError."""
+    from benchmarks.surface_candidates import CANDIDATES, candidate
+
+    X = candidate("ces99", WL)
+    assert X.shape == (99, WL.size) and X.min() >= 0.0 and X.max() <= 1.0
+    with pytest.raises(KeyError, match="ces99"):
+        candidate("no-such-set", WL)
+    with pytest.raises(ValueError, match="luxpy"):
+        candidate("munsell1269", WL)
+    assert "ces99" in CANDIDATES
