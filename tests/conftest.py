@@ -83,6 +83,27 @@ def in_model_scene(rng, camera, surface_basis, light_weights, light_basis, n_pix
     return rho.reshape(*shape, camera.channels), sig
 
 
+def pytest_collection_finish(session):
+    """A test module may start a long, mostly idle step of its tests when
+    the session starts (a function ``start_in_background()``, its
+    ``stop_background()`` called at the end): run only when one of its
+    tests was selected, so the wait passes while other tests run."""
+    seen = set()
+    if session.config.option.collectonly:
+        return
+    for item in session.items:
+        mod = getattr(item, "module", None)
+        if mod is not None and mod not in seen and hasattr(mod, "start_in_background"):
+            seen.add(mod)
+            mod.start_in_background()
+    session.config._wandell_background = seen
+
+
+def pytest_sessionfinish(session):
+    for mod in getattr(session.config, "_wandell_background", ()):
+        mod.stop_background()
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261121)
