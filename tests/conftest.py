@@ -132,6 +132,27 @@ def blackmagic_dng() -> bytes:
         return f.read()
 
 
+@pytest.fixture(scope="session")
+def load_real_once():
+    """``benchmarks.realdata.load_real`` of a folder, loaded once a session
+    (the 7,524 thumbnails of the three benchmarks, 370 MB: test_bayes_spectra
+    and test_learned both use all of them); the arrays are shared, so a test
+    must not write into them."""
+    from benchmarks.realdata import load_real
+
+    loaded = {}
+
+    def load(directory):
+        key = str(Path(directory).resolve())
+        if key not in loaded:
+            rs = load_real(directory)
+            rs.images.flags.writeable = False
+            rs.truth.flags.writeable = False
+            loaded[key] = rs
+        return loaded[key]
+    return load
+
+
 @contextlib.contextmanager
 def running_server(env: dict | None = None, timeout: float = 60.0):
     """``python -m service`` (as the README starts it) on a free loopback

@@ -208,14 +208,13 @@ def test_no_usable_cells_falls_back_declared():
 
 # --------------------------------------------------------------------------- real photographs
 @pytest.fixture(scope="module")
-def real():
+def real(load_real_once):
     for f in ("nus8.npz", "cubeplus.npz", "tau_field.npz", "cameras.json"):
         if not (REAL / f).is_file():
             unavailable(f"{REAL / f} is absent (the development photographs are not next to the project)")
-    from benchmarks.realdata import load_real
     from benchmarks.train_illuminant import dataset_features
 
-    rs = load_real(REAL)
+    rs = load_real_once(REAL)     # loaded once a session (test_bayes_spectra uses them too)
     feats, tuv, Ks, gam = dataset_features(rs)
     return rs, feats, tuv, Ks, gam
 
