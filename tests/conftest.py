@@ -83,6 +83,27 @@ def in_model_scene(rng, camera, surface_basis, light_weights, light_basis, n_pix
     return rho.reshape(*shape, camera.channels), sig
 
 
+def pytest_collection_finish(session):
+    """A test module may start a long, mostly idle step of its tests when
+    the session starts (a function ``start_in_background()``, its
+    ``stop_background()`` called at the end): run only when one of its
+    tests was selected, so the wait passes while other tests run."""
+    seen = set()
+    if session.config.option.collectonly:
+        return
+    for item in session.items:
+        mod = getattr(item, "module", None)
+        if mod is not None and mod not in seen and hasattr(mod, "start_in_background"):
+            seen.add(mod)
+            mod.start_in_background()
+    session.config._wandell_background = seen
+
+
+def pytest_sessionfinish(session):
+    for mod in getattr(session.config, "_wandell_background", ()):
+        mod.stop_background()
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261121)
@@ -109,6 +130,27 @@ def blackmagic_dng() -> bytes:
     path = shared_file("data/raw/Blackmagic.dng")
     with open(path, "rb") as f:
         return f.read()
+
+
+@pytest.fixture(scope="session")
+def load_real_once():
+    """``benchmarks.realdata.load_real`` of a folder, loaded once a session
+    (the 7,524 thumbnails of the three benchmarks, 370 MB: test_bayes_spectra
+    and test_learned both use all of them); the arrays are shared, so a test
+    must not write into them."""
+    from benchmarks.realdata import load_real
+
+    loaded = {}
+
+    def load(directory):
+        key = str(Path(directory).resolve())
+        if key not in loaded:
+            rs = load_real(directory)
+            rs.images.flags.writeable = False
+            rs.truth.flags.writeable = False
+            loaded[key] = rs
+        return loaded[key]
+    return load
 
 
 @contextlib.contextmanager

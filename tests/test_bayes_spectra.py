@@ -30,13 +30,13 @@ from .conftest import unavailable
 
 
 @pytest.fixture(scope="module")
-def real():
-    from benchmarks.realdata import BENCHMARKS, REAL_DIR, load_real
+def real(load_real_once):
+    from benchmarks.realdata import BENCHMARKS, REAL_DIR
 
     missing = [f for f in (*BENCHMARKS.values(), "cameras.json") if not (REAL_DIR / f).is_file()]
     if missing:
         unavailable(f"{REAL_DIR} lacks {missing} (the development photographs are not next to the project)")
-    return load_real(REAL_DIR)
+    return load_real_once(REAL_DIR)       # loaded once a session (test_learned uses them too)
 
 
 def test_real_photographs_near_the_locus_get_smooth_spectra(real):
