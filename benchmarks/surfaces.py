@@ -257,13 +257,19 @@ def run_scenes(R, lab, cams, cam_names, matrices, hypers, strict, quick, seed=0)
                         res = surfaces_from_estimate(img, cam, est, prior=prior, camera_exclude=(cam_names[i],),
                                                      calibrate=False)      # the raw posterior band
                         pe = res.estimates_from_responses(rho, rows, cols)
+                        # the response's typicality under the one-Gaussian prior predictive (the
+                        # prior's whole covariance), beside the mixture's (pe.typicality)
+                        A0 = sp.lighting_operator(res.prior_sensitivities[0], res.prior_lights[0], DL)
+                        gp = sp.gaussian_prior(prior.mean, prior.marginal_cov, WL, prior.noise)
+                        tg = sp.typicality(gp, A0, rho / res.prior_exposure)
                         k = scene_scale(pe.mean, truth)
                         m, s = k * pe.mean, k * pe.std
                         z = np.abs(m - truth) / np.maximum(s, 1e-12)
                         de = delta_e(m, truth)
                         key = (mode, lmode)
                         add(key, rmse=rms(m, truth), exp_rmse=k * pe.expected_rmse, de65=de["D65"], deA=de["A"],
-                            in68=(z <= Z68), in90=(z <= Z90), z=z, sd=s, set=np.array([test] * len(idx)))
+                            in68=(z <= Z68), in90=(z <= Z90), z=z, sd=s, set=np.array([test] * len(idx)),
+                            typ=pe.typicality, typg=tg)
                         # the literal method with the same light and camera
                         lit = surfaces_from_estimate(img, cam, est, synthesis_basis=B)
                         L = lit._lighting(rows.astype(float), cols.astype(float))
@@ -473,8 +479,9 @@ def calibration_report(rec):
 def save_errors(rec, path) -> None:
     out = {}
     for (mode, lmode), d in ((k, v) for k, v in rec.items() if len(k) == 2):
-        for f in ("z", "sd", "rmse", "set"):
-            out[f"{mode}/{lmode}/{f}"] = np.concatenate(d[f])
+        for f in ("z", "sd", "rmse", "set", "typ", "typg"):
+            if f in d:
+                out[f"{mode}/{lmode}/{f}"] = np.concatenate(d[f])
     np.savez_compressed(path, **out)
 
 
