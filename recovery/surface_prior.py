@@ -81,7 +81,7 @@ __all__ = [
     "MATRIX_TOLERANCE", "MATRIX_GAIN_TOLERANCE", "SurfacePrior", "learn_prior", "default_prior", "lighting_operator", "wiener_gain",
     "wiener_estimate", "pinv_estimate", "exposure_scale", "light_samples", "fit_light", "light_directions", "camera_prior",
     "matrix_operator", "camera_posterior", "generic_camera_samples", "surface_estimates", "surface_estimates_per_point", "sample_widening", "SurfaceEstimates",
-    "typicality", "BAND_LEVEL", "BAND_Z", "band_kind", "band_scale", "calibrate_band", "calibration_factors",
+    "typicality", "typicality_factor", "TYPICALITY_FLOOR", "BAND_LEVEL", "BAND_Z", "band_kind", "band_scale", "calibrate_band", "calibration_factors",
 ]
 
 #: The stated band: mean +- BAND_Z std holds the truth at BAND_LEVEL.
@@ -875,6 +875,21 @@ def calibration_factors(z, level: float = BAND_LEVEL, weights=None) -> np.ndarra
     return zs[np.minimum(k, z.shape[0] - 1), np.arange(z.shape[1])] / BAND_Z
 
 
+#: Below this typicality the band's factor stays at its value there (an exact
+#: match of an atom's response must not shrink the band to nothing).
+TYPICALITY_FLOOR = 0.05
+
+
+def typicality_factor(typ, exponent: float) -> np.ndarray:
+    """The band's factor for the responses' :func:`typicality` ``t``:
+    :math:`\max(t, t_0)^\beta` (:data:`TYPICALITY_FLOOR`); 1 for
+    :math:`\beta = 0` (the band of the posterior alone)."""
+    t = np.asarray(typ, float)
+    if exponent == 0:
+        return np.ones_like(t)
+    return np.maximum(t, TYPICALITY_FLOOR) ** float(exponent)
+
+
 def band_scale(kind: str, wavelengths) -> np.ndarray | None:
     """The shipped calibration factors ``(N,)`` for ``kind`` (:func:`band_kind`;
     :func:`models.surface_data.band_calibration`), ``None`` when none is shipped."""
@@ -883,11 +898,17 @@ def band_scale(kind: str, wavelengths) -> np.ndarray | None:
     return band_calibration(np.asarray(wavelengths, float))["scale"].get(kind)
 
 
-def calibrate_band(est: SurfaceEstimates, scale) -> SurfaceEstimates:
+def calibrate_band(est: SurfaceEstimates, scale, exponent: float = 0.0) -> SurfaceEstimates:
     """``est`` with its band multiplied by ``scale`` ``(N,)`` per wavelength
-    and ``expected_rmse`` recomputed from it (unchanged when ``scale`` is ``None``)."""
+    and, with ``exponent`` :math:`\beta \ne 0`, by
+    :func:`typicality_factor` of each surface's typicality (wider for a
+    response unlike the prior's surfaces; the band's shape over wavelength is
+    kept), and ``expected_rmse`` recomputed from it (unchanged when ``scale``
+    is ``None``)."""
     if scale is None or est.std is None:
         return est
     std = est.std * np.asarray(scale, float)[None]
+    if exponent and est.typicality is not None:
+        std = std * typicality_factor(est.typicality, exponent)[:, None]
     return SurfaceEstimates(est.mean, std, np.sqrt(np.mean(std * std, axis=1)), est.exposure, est.samples,
                             est.typicality)
