@@ -477,7 +477,7 @@ def calibration_report(rec):
 
 
 #: Exponents tried for the typicality factor ``t ** beta`` of the band (:func:`typicality_report`).
-TYP_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0)
+TYP_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.25, 1.5, 2.0)
 
 
 def _typ_cover(z, sets, train, test, g):
