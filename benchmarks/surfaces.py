@@ -42,6 +42,11 @@ Protocol
   stated rate; then the stated 90 % band per wavelength band before and after
   the calibration. ``--write-calibration`` writes the factors the product
   ships (``models/data/surface_band_scale.json``).
+* A band widened by the response's typicality (not shipped):
+  ``--from-errors`` also prints :func:`typicality_report`, the band times
+  ``typicality ** beta`` with ``beta`` and the factors learnt on the other
+  sets, for the mixture's typicality, the one-Gaussian Mahalanobis distance
+  and the mixture's typicalities shuffled across surfaces (a control).
 * Baseline: eq. 36 (pseudo-inverse in the 3-term PCA model of the training
   sets, learnt the same way).
 * More than three channels: 6-channel cameras (a measured camera and the same
@@ -628,8 +633,8 @@ def main(argv=None) -> None:
     ap.add_argument("--speed", action="store_true", help="only the speed table")
     ap.add_argument("--no-strict", action="store_true", help="keep near-copies of left-out surfaces in training")
     ap.add_argument("--json", help="write the raw figures here")
-    ap.add_argument("--errors", help="write the per-surface errors of the prior (z, std, set, RMSE per camera kind "
-                    "and light) to this .npz (for --from-errors)")
+    ap.add_argument("--errors", help="write the per-surface errors of the prior (z, std, set, RMSE, typicality per "
+                    "camera kind and light) to this .npz (for --from-errors)")
     ap.add_argument("--from-errors", help="only the band calibration, from errors a run wrote with --errors")
     ap.add_argument("--write-calibration", action="store_true",
                     help=f"write the band calibration factors to {CALIBRATION_JSON.name} (the product's)")
