@@ -579,10 +579,14 @@ def _calibration_only(args) -> None:
     for d in rec.values():        # the control: the same typicalities shuffled across surfaces (no information)
         if "typ" in d:
             d["typ_shuffled"] = [np.random.default_rng(0).permutation(np.concatenate(d["typ"]))]
+            sd = np.concatenate(d["sd"])          # and one over the posterior's own level: beta = 1 is the
+            d["inv_level"] = [1.0 / np.sqrt(np.mean(sd * sd, axis=1))]   # scale-free band, 0 < beta < 1 between
     for field, what in (("typ", "the prior mixture's predictive likelihood"),
                         ("typg", "the one-Gaussian prior predictive (Mahalanobis)"),
                         ("typ_shuffled", "the mixture's, shuffled across surfaces (a control carrying no "
-                         "information about the surface)")):
+                         "information about the surface)"),
+                        ("inv_level", "one over the posterior's expected RMSE (beta = 1: every surface's band "
+                         "at one level; between 0 and 1 partly)")):
         if any(field in d for d in rec.values()):
             print(f"\n## The band times typicality ** beta, typicality from {what}; beta and the factors learnt on "
                   "the other sets")
