@@ -42,6 +42,11 @@ Protocol
   stated rate; then the stated 90 % band per wavelength band before and after
   the calibration. ``--write-calibration`` writes the factors the product
   ships (``models/data/surface_band_scale.json``).
+* A band widened by the response's typicality (not shipped):
+  ``--from-errors`` also prints :func:`typicality_report`, the band times
+  ``typicality ** beta`` with ``beta`` and the factors learnt on the other
+  sets, for the mixture's typicality, the one-Gaussian Mahalanobis distance
+  and the mixture's typicalities shuffled across surfaces (a control).
 * Baseline: eq. 36 (pseudo-inverse in the 3-term PCA model of the training
   sets, learnt the same way).
 * More than three channels: 6-channel cameras (a measured camera and the same
@@ -257,13 +262,19 @@ def run_scenes(R, lab, cams, cam_names, matrices, hypers, strict, quick, seed=0)
                         res = surfaces_from_estimate(img, cam, est, prior=prior, camera_exclude=(cam_names[i],),
                                                      calibrate=False)      # the raw posterior band
                         pe = res.estimates_from_responses(rho, rows, cols)
+                        # the response's typicality under the one-Gaussian prior predictive (the
+                        # prior's whole covariance), beside the mixture's (pe.typicality)
+                        A0 = sp.lighting_operator(res.prior_sensitivities[0], res.prior_lights[0], DL)
+                        gp = sp.gaussian_prior(prior.mean, prior.marginal_cov, WL, prior.noise)
+                        tg = sp.typicality(gp, A0, rho / res.prior_exposure)
                         k = scene_scale(pe.mean, truth)
                         m, s = k * pe.mean, k * pe.std
                         z = np.abs(m - truth) / np.maximum(s, 1e-12)
                         de = delta_e(m, truth)
                         key = (mode, lmode)
                         add(key, rmse=rms(m, truth), exp_rmse=k * pe.expected_rmse, de65=de["D65"], deA=de["A"],
-                            in68=(z <= Z68), in90=(z <= Z90), z=z, sd=s, set=np.array([test] * len(idx)))
+                            in68=(z <= Z68), in90=(z <= Z90), z=z, sd=s, set=np.array([test] * len(idx)),
+                            typ=pe.typicality, typg=tg)
                         # the literal method with the same light and camera
                         lit = surfaces_from_estimate(img, cam, est, synthesis_basis=B)
                         L = lit._lighting(rows.astype(float), cols.astype(float))
@@ -470,11 +481,84 @@ def calibration_report(rec):
     return lines, shipped, summary
 
 
+#: Exponents tried for the typicality factor ``t ** beta`` of the band (:func:`typicality_report`).
+TYP_GRID = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.25, 1.5, 2.0)
+
+
+def _typ_cover(z, sets, train, test, g):
+    """Inside-band mask of the ``test`` surfaces with the band ``std * g * factors``, the factors learnt on
+    ``train`` (every set weighing the same)."""
+    zz = z / g[:, None]
+    f = sp.calibration_factors(zz[train], weights=_set_weights(sets[train]))
+    return zz[test] <= Z90 * f[None], f
+
+
+def _typ_choose(z, sets, t, mask):
+    """The exponent of :data:`TYP_GRID` whose per-set coverage is nearest 0.9 (RMS over the sets of
+    ``mask``, each scored with factors learnt on the others of ``mask``): only ``mask``'s sets choose."""
+    best = None
+    for b in TYP_GRID:
+        g = sp.typicality_factor(t, b)
+        dev = [_typ_cover(z, sets, mask & (sets != Y), sets == Y, g)[0].mean() - 0.90 for Y in np.unique(sets[mask])]
+        crit = float(np.sqrt(np.mean(np.square(dev))))
+        if best is None or crit < best[0] - 1e-12:
+            best = (crit, b)
+    return best[1]
+
+
+def typicality_report(rec, field="typ"):
+    """The band ``std * factor(wavelength) * t ** beta`` (``t`` the response's typicality,
+    :func:`recovery.surface_prior.typicality`; ``field`` ``typ`` the mixture's, ``typg`` the one-Gaussian
+    prior predictive's): for each left-out set X, ``beta`` is chosen on the other sets (the exponent whose
+    per-set coverage, each set scored with factors learnt on the remaining ones, is nearest 0.9) and the
+    factors are learnt on the other sets with it; X is scored. Lines per camera kind and light: per-set,
+    pooled and mean-over-sets coverage, the exponents, and the spread of ``expected_rmse``."""
+    lines, shipped = [], {}
+    for mode in ("measured", "matrix", "generic"):
+        for lmode in ("true", "estimated"):
+            d = rec.get((mode, lmode))
+            if d is None or field not in d:
+                continue
+            z, sd, sets, rmse, t = (np.concatenate(d[f]) for f in ("z", "sd", "set", "rmse", field))
+            names = np.unique(sets)
+            after = np.zeros_like(z, bool)
+            er = np.zeros(len(z))
+            betas = {}
+            for X in names:
+                o = sets != X
+                betas[X] = _typ_choose(z, sets, t, o)
+                g = sp.typicality_factor(t, betas[X])
+                after[sets == X], f = _typ_cover(z, sets, o, sets == X, g)
+                sdx = sd[sets == X] * f[None] * g[sets == X, None]
+                er[sets == X] = np.sqrt(np.mean(sdx * sdx, axis=1))
+            b_all = _typ_choose(z, sets, t, np.ones(len(z), bool))
+            g = sp.typicality_factor(t, b_all)
+            shipped[f"{mode}/{lmode}"] = (b_all, sp.calibration_factors(z / g[:, None], weights=_set_weights(sets)))
+            per = {X: float(after[sets == X].mean()) for X in names}
+            ws = np.mean([after[sets == X].mean(axis=0) for X in names], axis=0)
+            js = int(np.argmax(np.abs(ws - 0.90)))
+            w = after.mean(axis=0)
+            j = int(np.argmax(np.abs(w - 0.90)))
+            lines.append(f"| {mode} / {lmode} | " + ", ".join(f"{betas[X]:g}" for X in names) + f" ({b_all:g}) | "
+                         + " / ".join(f"{per[X]:.3f}" for X in names)
+                         + f" | {min(per.values()):.2f}-{max(per.values()):.2f} | {after.mean():.3f} "
+                         f"({w[j]:.3f} at {WL[j]:.0f} nm) | {ws.mean():.3f} ({ws[js]:.3f} at {WL[js]:.0f} nm) | "
+                         f"{np.median(er):.4f} ({np.percentile(er, 10):.4f}-{np.percentile(er, 90):.4f}; actual "
+                         f"{np.median(rmse):.4f}) | {np.mean(rmse <= er):.3f} | "
+                         + " / ".join(f"{np.median(t[sets == X]):.2f}" for X in names) + " |")
+    hdr = ("| camera / light | beta per left-out set (all sets) | coverage per set (" + ", ".join(
+        str(x) for x in np.unique(np.concatenate(next(iter(rec.values()))["set"]))) + ") | range over sets | "
+        "all surfaces (worst wavelength) | mean over sets (worst wavelength) | expected RMSE median (p10-p90) | "
+        "RMSE <= expected | median typicality per set |")
+    return [hdr, "|" + "---|" * 9] + lines, shipped
+
+
 def save_errors(rec, path) -> None:
     out = {}
     for (mode, lmode), d in ((k, v) for k, v in rec.items() if len(k) == 2):
-        for f in ("z", "sd", "rmse", "set"):
-            out[f"{mode}/{lmode}/{f}"] = np.concatenate(d[f])
+        for f in ("z", "sd", "rmse", "set", "typ", "typg"):
+            if f in d:
+                out[f"{mode}/{lmode}/{f}"] = np.concatenate(d[f])
     np.savez_compressed(path, **out)
 
 
@@ -492,6 +576,21 @@ def _calibration_only(args) -> None:
     lines, shipped, cal = calibration_report(rec)
     print("\n".join(lines))
     _targets(cal)
+    for d in rec.values():        # the control: the same typicalities shuffled across surfaces (no information)
+        if "typ" in d:
+            d["typ_shuffled"] = [np.random.default_rng(0).permutation(np.concatenate(d["typ"]))]
+            sd = np.concatenate(d["sd"])          # and one over the posterior's own level: beta = 1 is the
+            d["inv_level"] = [1.0 / np.sqrt(np.mean(sd * sd, axis=1))]   # scale-free band, 0 < beta < 1 between
+    for field, what in (("typ", "the prior mixture's predictive likelihood"),
+                        ("typg", "the one-Gaussian prior predictive (Mahalanobis)"),
+                        ("typ_shuffled", "the mixture's, shuffled across surfaces (a control carrying no "
+                         "information about the surface)"),
+                        ("inv_level", "one over the posterior's expected RMSE (beta = 1: every surface's band "
+                         "at one level; between 0 and 1 partly)")):
+        if any(field in d for d in rec.values()):
+            print(f"\n## The band times typicality ** beta, typicality from {what}; beta and the factors learnt on "
+                  "the other sets")
+            print("\n".join(typicality_report(rec, field)[0]))
     if args.write_calibration:
         write_calibration(shipped)
         print(f"wrote {CALIBRATION_JSON}")
@@ -538,8 +637,8 @@ def main(argv=None) -> None:
     ap.add_argument("--speed", action="store_true", help="only the speed table")
     ap.add_argument("--no-strict", action="store_true", help="keep near-copies of left-out surfaces in training")
     ap.add_argument("--json", help="write the raw figures here")
-    ap.add_argument("--errors", help="write the per-surface errors of the prior (z, std, set, RMSE per camera kind "
-                    "and light) to this .npz (for --from-errors)")
+    ap.add_argument("--errors", help="write the per-surface errors of the prior (z, std, set, RMSE, typicality per "
+                    "camera kind and light) to this .npz (for --from-errors)")
     ap.add_argument("--from-errors", help="only the band calibration, from errors a run wrote with --errors")
     ap.add_argument("--write-calibration", action="store_true",
                     help=f"write the band calibration factors to {CALIBRATION_JSON.name} (the product's)")

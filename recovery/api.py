@@ -1092,7 +1092,8 @@ class AnalysisResult:
             return pe
         widen = sample_widening(self.prior, rho, sens, lights, self.camera.dlambda, self.prior_exposure)
         std = np.sqrt(np.clip(pe.std * pe.std + widen, 0.0, None))
-        return SurfaceEstimates(pe.mean, std, np.sqrt(np.mean(std * std, axis=1)), pe.exposure, int(sens.shape[0]))
+        return SurfaceEstimates(pe.mean, std, np.sqrt(np.mean(std * std, axis=1)), pe.exposure, int(sens.shape[0]),
+                                pe.typicality)
 
     def surface_estimates(self, points):
         """Estimates with bands at ``[(row, col), ...]``: a

@@ -81,7 +81,7 @@ __all__ = [
     "MATRIX_TOLERANCE", "MATRIX_GAIN_TOLERANCE", "SurfacePrior", "learn_prior", "default_prior", "lighting_operator", "wiener_gain",
     "wiener_estimate", "pinv_estimate", "exposure_scale", "light_samples", "fit_light", "light_directions", "camera_prior",
     "matrix_operator", "camera_posterior", "generic_camera_samples", "surface_estimates", "surface_estimates_per_point", "sample_widening", "SurfaceEstimates",
-    "BAND_LEVEL", "BAND_Z", "band_kind", "band_scale", "calibrate_band", "calibration_factors",
+    "typicality", "typicality_factor", "TYPICALITY_FLOOR", "BAND_LEVEL", "BAND_Z", "band_kind", "band_scale", "calibrate_band", "calibration_factors",
 ]
 
 #: The stated band: mean +- BAND_Z std holds the truth at BAND_LEVEL.
@@ -595,6 +595,9 @@ class SurfaceEstimates:
         the RMS error the model expects
     exposure : float, the exposure :math:`k` the responses were divided by
     samples : int, lights x cameras drawn (1: light and camera taken as known)
+    typicality : (P,) or None
+        How unlike the prior's surfaces the response is: :func:`typicality`
+        under the nominal light and camera (``None`` where not computed).
     """
 
     mean: np.ndarray
@@ -602,12 +605,14 @@ class SurfaceEstimates:
     expected_rmse: np.ndarray
     exposure: float
     samples: int
+    typicality: np.ndarray | None = None
 
 
-def _mixture_moments(prior: SurfacePrior, A, y, noise) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _mixture_moments(prior: SurfacePrior, A, y, noise) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The posterior for one lighting operator ``A`` ``(C, N)``: its mean,
     the components' weighted mean ``sum_i w_i r_i`` and the spread of the
-    components' posterior means, each ``(P, N)``.
+    components' posterior means, each ``(P, N)``, and the responses'
+    :func:`typicality` ``(P,)``.
 
     Each component i gives the Gaussian posterior :math:`N(r_i + K(y - A r_i),
     P)` with the shared gain and covariance of :func:`wiener_gain`, and the
@@ -619,18 +624,63 @@ def _mixture_moments(prior: SurfacePrior, A, y, noise) -> tuple[np.ndarray, np.n
     AR = prior.atoms @ A.T                                            # (M, C)
     Ky = y @ K.T                                                      # (P, N)
     c = prior.atoms - AR @ K.T                                        # (M, N)
-    if prior.atoms.shape[0] == 1:
-        return c[0] + Ky, np.broadcast_to(prior.atoms[0], Ky.shape), np.zeros_like(Ky)
     G = A @ prior.cov @ A.T + _noise_var(prior, A, noise) * np.eye(A.shape[0])
     Gi = np.linalg.inv(G)
-    ll = (y @ Gi) @ AR.T - 0.5 * np.einsum("mc,cd,md->m", AR, Gi, AR)[None]   # (P, M); y'G^-1 y cancels
-    ll -= ll.max(axis=1, keepdims=True)
-    W = np.exp(ll)
-    W /= W.sum(axis=1, keepdims=True)
+    yGy = np.einsum("pc,cd,pd->p", y, Gi, y)
+    ll = (y @ Gi) @ AR.T - 0.5 * np.einsum("mc,cd,md->m", AR, Gi, AR)[None]   # (P, M); y'G^-1 y left out
+    top = ll.max(axis=1, keepdims=True)
+    W = np.exp(ll - top)
+    sw = W.sum(axis=1, keepdims=True)
+    typ = _typicality(yGy, top[:, 0] + np.log(sw[:, 0]), AR.shape[0], A.shape[0])
+    if prior.atoms.shape[0] == 1:
+        return c[0] + Ky, np.broadcast_to(prior.atoms[0], Ky.shape), np.zeros_like(Ky), typ
+    W /= sw
     N = c.shape[1]
     both = W @ np.concatenate([prior.atoms, c, c * c], axis=1)         # one product: (P, 3N)
     Wa, Wc, Wc2 = both[:, :N], both[:, N:2 * N], both[:, 2 * N:]
-    return Wc + Ky, Wa, np.clip(Wc2 - Wc * Wc, 0.0, None)
+    return Wc + Ky, Wa, np.clip(Wc2 - Wc * Wc, 0.0, None), typ
+
+
+def _typicality(yGy, lse, M: int, C: int) -> np.ndarray:
+    """:func:`typicality` from ``y'G^-1 y`` ``(P,)`` and ``log sum_i exp(y'G^-1 A r_i - r_i'A'G^-1 A r_i / 2)``."""
+    return np.clip((yGy - 2.0 * lse + 2.0 * np.log(M)) / C, 0.0, None)
+
+
+def typicality(prior: SurfacePrior, A, y, noise: float | None = None) -> np.ndarray:
+    """How unlike the prior's surfaces a response is: the mixture's squared
+    Mahalanobis distance per channel, ``(P,)``.
+
+    With :math:`q_i = (y - A r_i)^T G^{-1} (y - A r_i)`, :math:`G = A\Sigma
+    A^T + \sigma^2\bar s^2 I` (the covariance of one component's predictive
+    density), :math:`t = -\frac{2}{C}\log\frac1M\sum_i e^{-q_i/2}`: minus
+    twice the log predictive likelihood of ``y`` under the prior's mixture up
+    to its normalising constant, per channel. For one Gaussian it is the
+    squared Mahalanobis distance of ``y`` from :math:`A\mu` over ``C`` (mean 1
+    under the prior); for a kernel prior it grows with the distance of ``y``
+    from the nearest atoms' responses, in units of a component's spread. A
+    band that widens with it (:func:`typicality_factor`) widens for responses
+    unlike the surfaces the prior was learnt from.
+
+    Parameters
+    ----------
+    prior : SurfacePrior
+    A : (C, N) lighting operator
+    y : (P, C) responses (divided by the exposure)
+    noise : float, optional
+
+    Returns
+    -------
+    (P,) non-negative
+
+    Examples
+    --------
+    >>> wl = np.linspace(400, 700, 31)
+    >>> p = learn_prior(np.random.default_rng(1).uniform(0, 1, (40, 31)), wl, bandwidth=None)
+    >>> A = np.random.default_rng(2).uniform(0, 1, (3, 31))
+    >>> float(typicality(p, A, (A @ p.mean)[None])[0])
+    0.0
+    """
+    return _mixture_moments(prior, np.asarray(A, float), np.atleast_2d(np.asarray(y, float)), noise)[3]
 
 
 def surface_estimates(prior: SurfacePrior, rho, sensitivities, spectra, dlambda, *, exposure: float | None = None,
@@ -684,7 +734,7 @@ def surface_estimates(prior: SurfacePrior, rho, sensitivities, spectra, dlambda,
     if exposure is None:
         exposure = exposure_scale(prior, A0, rho if scene_rho is None else scene_rho, noise)
     y = rho / float(exposure)
-    mean0, Wa, spread = _mixture_moments(prior, A0, y, noise)
+    mean0, Wa, spread, typ = _mixture_moments(prior, A0, y, noise)
     if A.shape[0] == 1:
         var = np.diagonal(wiener_gain(prior, A0, noise)[1])[None] + spread
         mean = mean0
@@ -701,7 +751,7 @@ def surface_estimates(prior: SurfacePrior, rho, sensitivities, spectra, dlambda,
             var = (np.diagonal(P, axis1=1, axis2=2).mean(axis=0)[None] + spread + (ms * ms).mean(axis=0)
                    - mean * mean)
     std = np.sqrt(np.clip(var, 0.0, None))
-    return SurfaceEstimates(mean, std, np.sqrt(np.mean(std * std, axis=1)), float(exposure), int(A.shape[0]))
+    return SurfaceEstimates(mean, std, np.sqrt(np.mean(std * std, axis=1)), float(exposure), int(A.shape[0]), typ)
 
 
 def sample_widening(prior: SurfacePrior, rho, sensitivities, spectra, dlambda, exposure: float,
@@ -720,7 +770,7 @@ def sample_widening(prior: SurfacePrior, rho, sensitivities, spectra, dlambda, e
         return np.zeros((y.shape[0], A.shape[-1]))
     # surface_estimates(..., nominal=True)'s variance over all samples minus over sample 0 alone: the
     # components' spread (A_0's in both) cancels
-    mean0, Wa, _ = _mixture_moments(prior, A[0], y, noise)
+    mean0, Wa, _, _ = _mixture_moments(prior, A[0], y, noise)
     K, P = wiener_gain(prior, A, noise)
     innov = y[None] - np.einsum("pn,scn->spc", Wa, A, optimize=True)
     dev = Wa[None] + np.einsum("spc,snc->spn", innov, K, optimize=True) - mean0[None]
@@ -742,6 +792,7 @@ def surface_estimates_per_point(prior: SurfacePrior, rho, sensitivities, spectra
     N = prior.mean.size
     mean = np.zeros((P_n, N))
     var = np.zeros((P_n, N))
+    typ = np.zeros(P_n)
     atoms = prior.atoms
     for s0 in range(0, P_n, chunk):
         y = y_all[s0:s0 + chunk]
@@ -755,9 +806,12 @@ def surface_estimates_per_point(prior: SurfacePrior, rho, sensitivities, spectra
         AR = (atoms @ A.transpose(2, 0, 1).reshape(N, -1)).reshape(-1, p_, C_).transpose(1, 0, 2)   # (p, M, C)
         ARG = AR @ Gi                                                              # (p, M, C)
         ll = (ARG @ y[:, :, None])[..., 0] - 0.5 * np.einsum("pmc,pmc->pm", ARG, AR)   # Gi symmetric
-        ll -= ll.max(axis=1, keepdims=True)
-        W = np.exp(ll)
-        W /= W.sum(axis=1, keepdims=True)
+        top = ll.max(axis=1, keepdims=True)
+        W = np.exp(ll - top)
+        sw = W.sum(axis=1, keepdims=True)
+        typ[s0:s0 + chunk] = _typicality(np.einsum("pc,pcd,pd->p", y, Gi, y), top[:, 0] + np.log(sw[:, 0]),
+                                         atoms.shape[0], C_)
+        W /= sw
         # the components' c_m = a_m - K A a_m weighted by W without the (p, M, N) tensor of them:
         # sum_m W c = W a - K (W AR), sum_m W c^2 = W a^2 - 2 K.(AR'W a) + K (AR'W AR) K' (diagonal)
         WAR = W[:, :, None] * AR                                                   # (p, M, C)
@@ -770,7 +824,7 @@ def surface_estimates_per_point(prior: SurfacePrior, rho, sensitivities, spectra
         mean[s0:s0 + chunk] = Wc + np.einsum("pnc,pc->pn", K, y)
         var[s0:s0 + chunk] = Pd + np.clip(Wc2 - Wc * Wc, 0.0, None)
     std = np.sqrt(np.clip(var, 0.0, None))
-    return SurfaceEstimates(mean, std, np.sqrt(np.mean(std * std, axis=1)), float(exposure), 1)
+    return SurfaceEstimates(mean, std, np.sqrt(np.mean(std * std, axis=1)), float(exposure), 1, typ)
 
 
 # --------------------------------------------------------------------------- calibrated bands
@@ -821,6 +875,21 @@ def calibration_factors(z, level: float = BAND_LEVEL, weights=None) -> np.ndarra
     return zs[np.minimum(k, z.shape[0] - 1), np.arange(z.shape[1])] / BAND_Z
 
 
+#: Below this typicality the band's factor stays at its value there (an exact
+#: match of an atom's response must not shrink the band to nothing).
+TYPICALITY_FLOOR = 0.05
+
+
+def typicality_factor(typ, exponent: float) -> np.ndarray:
+    """The band's factor for the responses' :func:`typicality` ``t``:
+    :math:`\max(t, t_0)^\beta` (:data:`TYPICALITY_FLOOR`); 1 for
+    :math:`\beta = 0` (the band of the posterior alone)."""
+    t = np.asarray(typ, float)
+    if exponent == 0:
+        return np.ones_like(t)
+    return np.maximum(t, TYPICALITY_FLOOR) ** float(exponent)
+
+
 def band_scale(kind: str, wavelengths) -> np.ndarray | None:
     """The shipped calibration factors ``(N,)`` for ``kind`` (:func:`band_kind`;
     :func:`models.surface_data.band_calibration`), ``None`` when none is shipped."""
@@ -829,10 +898,17 @@ def band_scale(kind: str, wavelengths) -> np.ndarray | None:
     return band_calibration(np.asarray(wavelengths, float))["scale"].get(kind)
 
 
-def calibrate_band(est: SurfaceEstimates, scale) -> SurfaceEstimates:
+def calibrate_band(est: SurfaceEstimates, scale, exponent: float = 0.0) -> SurfaceEstimates:
     """``est`` with its band multiplied by ``scale`` ``(N,)`` per wavelength
-    and ``expected_rmse`` recomputed from it (unchanged when ``scale`` is ``None``)."""
+    and, with ``exponent`` :math:`\beta \ne 0`, by
+    :func:`typicality_factor` of each surface's typicality (wider for a
+    response unlike the prior's surfaces; the band's shape over wavelength is
+    kept), and ``expected_rmse`` recomputed from it (unchanged when ``scale``
+    is ``None``)."""
     if scale is None or est.std is None:
         return est
     std = est.std * np.asarray(scale, float)[None]
-    return SurfaceEstimates(est.mean, std, np.sqrt(np.mean(std * std, axis=1)), est.exposure, est.samples)
+    if exponent and est.typicality is not None:
+        std = std * typicality_factor(est.typicality, exponent)[:, None]
+    return SurfaceEstimates(est.mean, std, np.sqrt(np.mean(std * std, axis=1)), est.exposure, est.samples,
+                            est.typicality)

@@ -142,3 +142,64 @@ def test_page_reads_a_surface_with_its_band(page, server, tmp_path):  # noqa: F8
     assert page.evaluate("() => current.picks.length") == 0
     _screenshot(page, tmp_path, "wandell-webpage-surface.png")
     assert page.problems == []
+
+
+# --------------------------------------------------------------------------- typicality of a response
+def _prior_and_operator():
+    from models import surface_data
+
+    R, _ = surface_data.surface_sets(WL)
+    prior = sp.learn_prior(R, WL)
+    cam = surface_data.camera_set(WL)[1][0]
+    A = sp.lighting_operator(cam, np.ones(WL.size), models.wavelength_step(WL))
+    return R, prior, A
+
+
+def test_typicality_has_mean_one_under_a_gaussian_prior_predictive():
+    """For one Gaussian the typicality is the squared Mahalanobis distance of
+    the response over C: chi-squared with C = 3 degrees of freedom over 3,
+    mean 1 and variance 2/3. 4,000 responses drawn from the prior predictive:
+    their mean within 5 standard errors (5 sqrt(2/3/4000) = 0.065) of 1."""
+    R, kernel, A = _prior_and_operator()
+    g = sp.gaussian_prior(kernel.mean, kernel.marginal_cov, WL, kernel.noise)
+    G = A @ g.cov @ A.T + sp._noise_var(g, A, None) * np.eye(3)
+    y = A @ g.mean + np.random.default_rng(5).multivariate_normal(np.zeros(3), G, 4000)
+    t = sp.typicality(g, A, y)
+    assert abs(t.mean() - 1.0) <= 5 * np.sqrt(2 / 3 / 4000), t.mean()
+
+
+def test_an_atypical_response_is_less_typical_and_gets_a_wider_band_of_the_same_shape():
+    """A training surface's response against a response no surface of the
+    prior comes near (a saturated green: 1 at 500-560 nm, 0 elsewhere): the
+    second's typicality is above every training surface's, and with a
+    typicality exponent its
+    band is wider by exactly the ratio of the factors, the same at every
+    wavelength (the shape of the band is the posterior's times the factors)."""
+    R, prior, A = _prior_and_operator()
+    green = np.where((WL >= 500) & (WL <= 560), 1.0, 0.0)
+    rho = np.stack([R[7], green]) @ A.T
+    est = sp.surface_estimates(prior, rho, A.T / models.wavelength_step(WL)[:, None], np.ones(WL.size),
+                               models.wavelength_step(WL), exposure=1.0)
+    t = est.typicality
+    assert t.shape == (2,) and t[1] > sp.typicality(prior, A, R @ A.T).max() > t[0], t
+    scale = np.linspace(0.8, 1.4, WL.size)
+    flat = sp.calibrate_band(est, scale)
+    wide = sp.calibrate_band(est, scale, exponent=0.5)
+    ratio = wide.std / flat.std
+    np.testing.assert_allclose(ratio, sp.typicality_factor(t, 0.5)[:, None] * np.ones(WL.size), rtol=1e-12)
+    assert ratio[1, 0] / ratio[0, 0] == pytest.approx((t[1] / max(t[0], sp.TYPICALITY_FLOOR)) ** 0.5)
+    np.testing.assert_allclose(wide.expected_rmse, np.sqrt(np.mean(wide.std ** 2, axis=1)))
+    assert wide.expected_rmse[1] / wide.expected_rmse[0] > flat.expected_rmse[1] / flat.expected_rmse[0]
+    np.testing.assert_array_equal(sp.calibrate_band(est, scale, exponent=0.0).std, flat.std)
+
+
+def test_typicality_under_a_light_map_is_the_one_light_typicality():
+    """The per-point path (a light map) computes the same typicality as the
+    one-light path when every point has that light."""
+    R, prior, A = _prior_and_operator()
+    dl = models.wavelength_step(WL)
+    sens = A.T / dl[:, None]
+    rho = R[::20] @ A.T
+    one = sp.surface_estimates(prior, rho, sens, np.ones(WL.size), dl, exposure=1.3)
+    per = sp.surface_estimates_per_point(prior, rho, sens, np.ones((len(rho), WL.size)), dl, 1.3)
+    np.testing.assert_allclose(per.typicality, one.typicality, rtol=1e-9, atol=1e-9)
