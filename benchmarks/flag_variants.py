@@ -120,7 +120,8 @@ def leverage_evidence(model, feats, rows, uv, system) -> dict:
     (the last IRLS step's weights kept) leaving out each training camera,
     (four random folds of its images where it has one camera), and of
     :data:`BOOTSTRAPS` Poisson-bootstrap refits of the training
-    images, about the full refit's."""
+    images, about the full refit's; ``lev1``, ``lev10`` the leverage at
+    ridges 1 and 10."""
     pw, pb = L.random_expansion(len(model.mean), int(model.expansion[0]), int(model.expansion[1]))
     phi = L.expand(model.inputs(feats[rows]), model.mean, model.scale, pw, pb)
     Z, u, y, A, P = (system[k] for k in ("Z", "u", "y", "A", "P"))
@@ -148,7 +149,12 @@ def leverage_evidence(model, feats, rows, uv, system) -> dict:
     def spread(preds):
         return np.sqrt(np.mean([((p - full) ** 2).sum(1) for p in preds], axis=0))
 
-    return {"lev": np.log(lev)[:, None],
+    ZUZ = A - P
+    other = {}
+    for r in (1.0, 10.0):        # the leverage at the grid's larger ridges (a larger floor under the training's spread)
+        Pr = P * (r / LEVERAGE_RIDGE)
+        other[f"lev{r:g}"] = np.log((np.linalg.solve(np.linalg.cholesky(ZUZ + Pr), phi.T) ** 2).sum(0))[:, None]
+    return {"lev": np.log(lev)[:, None], **other,
             "ens": np.stack([np.log(spread(loco) + 1e-6), np.log(spread(boot) + 1e-6)], axis=1)}
 
 
@@ -298,7 +304,8 @@ def main(argv=None) -> int:
     if a.leverage:
         variants += [(["base", "lev"], Law("logistic")), (["base", "lev"], Law("stumps")),
                      (["base", "ens"], Law("logistic")), (["base", "ens"], Law("stumps")),
-                     (["base", "lev", "ens"], Law("stumps"))]
+                     (["base", "lev", "ens"], Law("stumps")), (["lev"], Law("logistic")), (["ens"], Law("logistic")),
+                     (["base", "lev1"], Law("stumps")), (["base", "lev10"], Law("stumps"))]
     only = None if a.only is None else {v.strip() for v in a.only.split(",")}
     print("\nAUROC of (1 - confidence) for errors above 6 degrees; inner figures averaged over the three outer "
           "folds (the choice); left out: AUROC / catch / flag per benchmark (not used for the choice)")
