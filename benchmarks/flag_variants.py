@@ -246,7 +246,20 @@ def folds(rs, feats, tuv, Ks, gam, regions, wf, log=print, leverage=False) -> di
 
 
 def _x(part, keys):
-    return np.concatenate([part["x"] if k == "base" else part["ex"][k] for k in keys], axis=1)
+    """The columns of variant ``keys``: ``base`` the ten inputs, ``base-idist`` them without
+    ``log_input_distance``, ``idist`` that one alone, otherwise a further evidence's."""
+    j = C.INPUT_NAMES.index("log_input_distance")
+
+    def cols(k):
+        if k == "base":
+            return part["x"]
+        if k == "base-idist":
+            return np.delete(part["x"], j, axis=1)
+        if k == "idist":
+            return part["x"][:, [j]]
+        return part["ex"][k]
+
+    return np.concatenate([cols(k) for k in keys], axis=1)
 
 
 def score(F, keys, law) -> dict:
@@ -305,7 +318,8 @@ def main(argv=None) -> int:
         variants += [(["base", "lev"], Law("logistic")), (["base", "lev"], Law("stumps")),
                      (["base", "ens"], Law("logistic")), (["base", "ens"], Law("stumps")),
                      (["base", "lev", "ens"], Law("stumps")), (["lev"], Law("logistic")), (["ens"], Law("logistic")),
-                     (["base", "lev1"], Law("stumps")), (["base", "lev10"], Law("stumps"))]
+                     (["base", "lev1"], Law("stumps")), (["base", "lev10"], Law("stumps")),
+                     (["idist"], Law("logistic")), (["base-idist", "lev"], Law("stumps"))]
     only = None if a.only is None else {v.strip() for v in a.only.split(",")}
     print("\nAUROC of (1 - confidence) for errors above 6 degrees; inner figures averaged over the three outer "
           "folds (the choice); left out: AUROC / catch / flag per benchmark (not used for the choice)")
