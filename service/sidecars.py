@@ -60,7 +60,7 @@ def _write_dng_copy(src: str, text: str, neutral, target: str, overwrite: bool, 
     with the same inside (:func:`service.dngwrite.raw_as_dng`); the original
     is only read. ``{}`` for any other input (TIFF, PNG); ``dng`` (the
     path), ``dng_kept`` or ``dng_error`` otherwise."""
-    from .dngwrite import NotConvertible, raw_as_dng
+    from .dngwrite import raw_as_dng
     from .dngxmp import NotADng, dng_with_white
 
     with open(src, "rb") as f:
@@ -72,9 +72,7 @@ def _write_dng_copy(src: str, text: str, neutral, target: str, overwrite: bool, 
             return {}
         try:
             copy = raw_as_dng(data, text, neutral, **raw)
-        except NotConvertible as e:
-            return {"dng_error": f"no DNG made of this RAW: {e}"}
-        except ValueError as e:
+        except ValueError as e:          # NotConvertible among them: why this RAW cannot be a DNG
             return {"dng_error": f"no DNG made of this RAW: {e}"}
     except ValueError as e:
         return {"dng_error": f"no DNG copy: {e}"}

@@ -33,13 +33,19 @@ def _system(model, n=60, seed=0):
     return {"Z": Z, "u": u, "y": y, "A": (Z * u[:, None]).T @ Z + P, "P": P, "cam": cam, "img": np.arange(n)}, P
 
 
-def test_leverage_is_the_quadratic_form_of_the_inverse():
+def _evidence(n, seed):
+    """The model, its system, ``n`` new inputs' evidence and their expanded features."""
     model = _Model(6)
     sy, P = _system(model)
-    feats = np.random.default_rng(5).normal(size=(9, 3, 2))
-    ev = V.leverage_evidence(model, feats, np.arange(9), None, sy)
+    feats = np.random.default_rng(seed).normal(size=(n, 3, 2))
+    ev = V.leverage_evidence(model, feats, np.arange(n), None, sy)
     pw, pb = L.random_expansion(6, 7, 3)
     phi = L.expand(model.inputs(feats), model.mean, model.scale, pw, pb)
+    return model, sy, P, feats, ev, phi
+
+
+def test_leverage_is_the_quadratic_form_of_the_inverse():
+    model, sy, P, feats, ev, phi = _evidence(9, 5)
     direct = np.array([p @ np.linalg.inv(sy["A"]) @ p for p in phi])
     # a Cholesky solve against an explicit inverse of a matrix of condition < 1e6: agreement to ~1e-10 relative
     np.testing.assert_allclose(np.exp(ev["lev"][:, 0]), direct, rtol=1e-9)
@@ -53,12 +59,7 @@ def test_leverage_is_the_quadratic_form_of_the_inverse():
 
 
 def test_camera_refits_are_the_refits_without_that_camera():
-    model = _Model(6)
-    sy, P = _system(model)
-    feats = np.random.default_rng(6).normal(size=(4, 3, 2))
-    ev = V.leverage_evidence(model, feats, np.arange(4), None, sy)
-    pw, pb = L.random_expansion(6, 7, 3)
-    phi = L.expand(model.inputs(feats), model.mean, model.scale, pw, pb)
+    model, sy, P, feats, ev, phi = _evidence(4, 6)
     Z, u, y = sy["Z"], sy["u"], sy["y"]
 
     def fit(m):

@@ -123,7 +123,7 @@ def _as_dng(data: bytes, decoded, xmp: str, summary: dict) -> bytes:
     sidecar's packet ``xmp`` and the light's camera RGB as AsShotNeutral): a
     DNG's copy (:func:`service.dngxmp.dng_with_white`) or another camera
     RAW's raw data as a DNG (:func:`service.dngwrite.raw_as_dng`)."""
-    from ..dngwrite import NotConvertible, raw_as_dng
+    from ..dngwrite import raw_as_dng
     from ..dngxmp import NotADng, dng_with_white
 
     neutral = summary["camera_rgb"]
@@ -139,7 +139,7 @@ def _as_dng(data: bytes, decoded, xmp: str, summary: dict) -> bytes:
     try:
         return raw_as_dng(data, xmp, neutral, make=decoded.make, model=decoded.model,
                           color_matrix=decoded.color_matrix)
-    except (NotConvertible, ValueError) as e:
+    except ValueError as e:          # NotConvertible among them
         raise ServiceError(422, "dng_failed", f"this RAW cannot be written as a DNG: {e}") from None
 
 
