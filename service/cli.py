@@ -359,8 +359,7 @@ def _ignored_text(ignored: list, limit: int = 10) -> str:
 
 
 class BatchInterrupted(Exception):
-    """Ctrl-C stopped :func:`run_batch`; ``rows`` as it returns them, items
-    not finished marked ``stopped``."""
+    """Ctrl-C stopped :func:`run_batch`; ``rows`` as it returns them, unfinished ones ``stopped``."""
 
     def __init__(self, rows: list[dict]):
         super().__init__("interrupted")
@@ -403,8 +402,7 @@ class _CtrlC:
 
 
 def _stop_now(executor) -> None:
-    """After a Ctrl-C: end the pool now (queued items dropped, running ones
-    terminated; nothing partial keeps a final name)."""
+    """After a Ctrl-C: end the pool now (queued items dropped, running ones terminated)."""
     if executor is None:
         return
     if hasattr(executor, "terminate"):
@@ -440,9 +438,11 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     leaves every finished image with its sidecar (those still being made
     are written before the command exits) and no ``.lock`` file behind.
 
-    ``info`` (a dict, filled in): ``shared_light``, the light of a shared
-    batch (its ``warnings`` say when the images disagree)."""
+    ``info`` (a dict, filled in): ``shared_light``, the light of a shared batch. ``OUT_DIR/batch.json``:
+    :mod:`service.batch.summary`, the items flagged low confidence first."""
     import io
+
+    from .batch import summary as batch_summary   # before Ctrl-C can land in its import
 
     stream = io.StringIO() if quiet else (stream or sys.stderr)
     files = _inputs(in_dir, recursive, out_dir)
@@ -535,6 +535,9 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
         if xmp is not None:   # every finished image gets its sidecar before the command exits
             with contextlib.suppress(KeyboardInterrupt):
                 batch_xmp.finish_sidecars(tasks, rows, options, out_dir, xmp, xmp_jobs, _settings())
+    with contextlib.suppress(OSError, KeyboardInterrupt):   # OUT_DIR/batch.json, flagged first (docs/confidence.md)
+        batch_summary.write_cli_summary(tasks, rows, options, in_dir, out_dir, interrupted)
+    if interrupted:
         raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
 
@@ -572,8 +575,7 @@ def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = 
 
 
 def _cmd_batch(args) -> int:
-    if args.format is None:
-        args.format = "tiff"
+    args.format = args.format or "tiff"
     opts = _options(args, args.lighting)
     if not os.path.isdir(args.in_dir):
         raise ServiceError(422, "folder_not_found", f"input folder {args.in_dir!r} does not exist")
@@ -617,9 +619,7 @@ def _cmd_batch(args) -> int:
 
 
 def _print_light_warnings(light: dict | None) -> None:
-    """``--lighting shared``: the shared light's warnings (the images'
-    own lights disagree: they may not all be under one light), with its
-    confidence, on stderr (as the batch's JSON ``warnings``)."""
+    """``--lighting shared``: the shared light's warnings (its images' own lights disagree), on stderr."""
     if not light:
         return
     from .batch.store import shared_light_warnings

@@ -192,3 +192,46 @@ def test_a_batch_lists_its_flagged_items_first_and_the_cli_names_them(tmp_path, 
     cli._summary([{"name": it["name"], "status": it["status"], "illuminant": it["illuminant"]} for it in items], out)
     text = out.getvalue()
     assert "low confidence, check these white balances first (1):\n  onecell.dng\n" in text
+
+
+def test_a_cli_batch_writes_batch_json_with_its_flagged_items_first(tmp_path):
+    """Issue 27, item 4: ``wandell batch`` writes ``OUT_DIR/batch.json``:
+    every item with its output and light, the flagged one (a DNG black but
+    for one 2x2 cell: a fallback, confidence 0) first with its index, and
+    ``low_confidence`` naming it; a second run (both outputs skipped) says
+    the same from the outputs' sidecars."""
+    import io
+    import json
+
+    from service import cli, jobs
+    from testing.dngwriter import scene_dng, write_dng
+
+    src = tmp_path / "in"
+    src.mkdir()
+    scene_dng(src / "a_chart.dng", "Nikon 5100 (NPL)", "D65", 96, 144, seed=1, layout="mondrian", surfaces="all")
+    cfa = np.zeros((64, 96), np.uint16)
+    cfa[30:32, 40:42] = [[40000, 9000], [9000, 3000]]
+    buf = io.BytesIO()
+    write_dng(buf, cfa)
+    (src / "b_onecell.dng").write_bytes(buf.getvalue())
+    out = tmp_path / "out"
+    opts = jobs.batch_options(format="png")
+    ex = jobs.LocalExecutor(1)
+    try:
+        for run, status in ((1, "done"), (2, "skipped")):
+            rows = cli.run_batch(str(src), str(out), opts, executor=ex, quiet=True)
+            assert [r["status"] for r in rows] == [status, status], run
+            doc = json.loads((out / "batch.json").read_text())
+            items = doc["items"]
+            assert [(it["name"], it["index"]) for it in items] == [("b_onecell.dng", 1), ("a_chart.dng", 0)], run
+            assert items[0]["illuminant"]["low_confidence"] is True
+            assert items[0]["illuminant"]["confidence"] == 0.0
+            assert items[1]["illuminant"]["low_confidence"] is False
+            assert 0.0 < items[1]["illuminant"]["confidence"] <= 1.0
+            assert doc["low_confidence"] == ["b_onecell.dng"]
+            assert [it["output"] for it in items] == ["b_onecell.png", "a_chart.png"]
+            assert all((out / it["output"]).is_file() for it in items)
+            assert doc["counts"][status] == 2 and doc["counts"]["total"] == 2 and doc["interrupted"] is False
+            assert doc["options"]["format"] == "png"
+    finally:
+        ex.shutdown()

@@ -18,6 +18,7 @@ import uuid
 from ..errors import ServiceError
 from ..schemas.options import BatchOptions
 from .items import _clean, atomic_write, is_finished, is_temporary, meta_path, write_text
+from .summary import LIGHT_FIELDS, flagged, flagged_first
 
 
 _SCHEMA = """
@@ -705,12 +706,9 @@ class JobStore:
                 it["error"] = r["error"]
             if r["illuminant"]:
                 ill = json.loads(r["illuminant"])
-                it["illuminant"] = {k: ill.get(k) for k in ("camera_rgb", "wb_multipliers", "cct", "duv",
-                                                            "method", "camera", "warnings", "confidence",
-                                                            "low_confidence")}
+                it["illuminant"] = {k: ill.get(k) for k in LIGHT_FIELDS}
             items.append(it)
-        # the estimates flagged low confidence first (each keeps its index), the rest in order
-        items.sort(key=lambda it: not (it.get("illuminant") or {}).get("low_confidence"))
+        items = flagged_first(items)      # each keeps its index
         opts = json.loads(b["options"])
         # settled: the batch is over and every count final (a cancelled
         # batch's running items are still stopping until this is true)
@@ -722,7 +720,7 @@ class JobStore:
                "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
                "rate": rate, "eta_s": eta,  # short names the web page reads
                "created": b["created"], "items": items,
-               "low_confidence": [it["name"] for it in items if (it.get("illuminant") or {}).get("low_confidence")]}
+               "low_confidence": [it["name"] for it in items if flagged(it)]}
         if opts.get("lighting") == "shared" and not b["light"] and b["status"] == "running":
             doc["phase"] = "estimating the shared light from all images"
         if b["light"]:
