@@ -125,12 +125,8 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
     failed = method_failure(est, run.requested_method)
     if failed is not None:
         out["method_failed"] = failed
-    d = est.diagnostics
-    out["lights"] = {"found": 2 if lm_found(est) else 1, "decision": str(d.get("spatial_decision", "one light")),
-                     "reason": str(d.get("spatial_reason", ""))}
-    if lm_found(est):
-        out["lights"]["held"] = ("illuminant is the scene's one light (the whole image's estimate); light_map gives "
-                                 "the light across the frame, and white-balanced outputs correct each pixel by it")
+    out["lights"] = lights_json(est, "light_map gives the light across the frame, and white-balanced outputs "
+                                     "correct each pixel by it")
     lm = est.light_map
     if lm is not None:  # the light at the map's centres, as fractions of the image height and width
         rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
@@ -159,6 +155,18 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
 def lm_found(est) -> bool:
     """Whether the estimate carries a light map (several lights)."""
     return getattr(est, "light_map", None) is not None
+
+
+def lights_json(est, use: str) -> dict:
+    """The answer's ``lights``: how many lights the decision found, the
+    decision and its reason in words; with several, ``held`` says that
+    ``illuminant`` is the scene's one light and (``use``) what the map does."""
+    d = est.diagnostics
+    out = {"found": 2 if lm_found(est) else 1, "decision": str(d.get("spatial_decision", "one light")),
+           "reason": str(d.get("spatial_reason", ""))}
+    if lm_found(est):
+        out["held"] = f"illuminant is the scene's one light (the whole image's estimate); {use}"
+    return out
 
 
 def rendering_choice(run: EstimateRun, decoded=None) -> dict:

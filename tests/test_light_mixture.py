@@ -238,6 +238,50 @@ def test_white_balance_follows_the_map_through_the_app():
         assert body["lights"]["found"] == 1 and body["lights"]["decision"] == "one light"
 
 
+
+def test_surfaces_follow_the_map_and_say_how_many_lights():
+    """``POST /v1/surfaces`` takes ``spatial`` as ``/v1/analyze`` does and says
+    in ``lights`` what was decided: on the relit two-light photograph the
+    default finds two lights and estimates each surface under the light at
+    its pixel, so the surfaces differ from one light's where the lights do;
+    ``spatial=false`` gives one light. The CSV carries each surface's band
+    (``expected_rmse`` and ``std <nm>``), the JSON's numbers to the 6
+    significant digits it prints."""
+    import csv
+
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+
+    data = _two_light_dng()
+    c = TestClient(app, base_url="http://127.0.0.1")
+    form = {"grid": "4x6"}
+    r2 = c.post("/v1/surfaces", files={"file": ("two.dng", data)}, data=form)
+    r1 = c.post("/v1/surfaces", files={"file": ("two.dng", data)}, data={**form, "spatial": "false"})
+    assert r2.status_code == 200 and r1.status_code == 200, (r2.text, r1.text)
+    j2, j1 = r2.json(), r1.json()
+    assert j2["lights"]["found"] == 2 and "several lights" in j2["lights"]["reason"]
+    assert "under the map's light at its pixel" in j2["lights"]["held"]
+    assert j1["lights"]["found"] == 1 and j1["lights"]["decision"] == "one light"
+    a2 = np.array([s["reflectance"] for s in j2["surfaces"]])
+    a1 = np.array([s["reflectance"] for s in j1["surfaces"]])
+    assert a2.shape == a1.shape == (24, len(j2["wavelengths"]))
+    # the map moves the surfaces where its light departs from the whole image's (a far pair: by far more
+    # than the 1e-9 a map equal to the one light gives, test_surface_prior)
+    assert np.max(np.abs(a2 - a1)) > 0.01
+    rc = c.post("/v1/surfaces", files={"file": ("two.dng", data)}, data={**form, "format": "csv"})
+    assert rc.status_code == 200 and rc.headers["content-type"].startswith("text/csv")
+    rows = list(csv.reader(io.StringIO(rc.text)))
+    n = len(j2["wavelengths"])
+    head = rows[0]
+    assert head[:3] == ["kind", "where", "warnings"] and head[3 + n] == "expected_rmse"
+    assert head[4 + n:] == [f"std {w:g}" for w in j2["wavelengths"]]
+    assert len(rows) == 25 and all(len(r) == 4 + 2 * n for r in rows)
+    for row, s in zip(rows[1:], j2["surfaces"]):
+        np.testing.assert_allclose(np.array(row[3:3 + n], float), s["reflectance"], rtol=1e-5, atol=1e-9)
+        assert float(row[3 + n]) == pytest.approx(s["expected_rmse"], rel=1e-5)
+        np.testing.assert_allclose(np.array(row[4 + n:], float), s["reflectance_std"], rtol=1e-5, atol=1e-9)
+
 def test_field_range_is_the_largest_angle_between_two_of_its_lights():
     rng = np.random.default_rng(11)
     for _ in range(50):

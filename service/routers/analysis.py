@@ -21,7 +21,7 @@ from ..errors import INSUFFICIENT_STORAGE, ServiceError, disk_full
 from ..headers import content_disposition, download_name
 from ..jsonsafe import clean
 from ..options import FORMATS, MEDIA_TYPES
-from ..schemas import AnalyzeEstimation, Estimation, Input, Neutral, Regions, WhiteBalanceRendering
+from ..schemas import AnalyzeEstimation, Input, Neutral, Regions, WhiteBalanceRendering
 from ..schemas.responses import AnalyzeResult, SurfacesResult, WhiteBalanceResult
 from ..schemas.forms import form
 from ..settings import Settings, get_settings
@@ -66,7 +66,7 @@ _WB_RENDERING = form(WhiteBalanceRendering, choices={"format": tuple(FORMATS)},
                                          "the original RAW in another editor, or dng: the RAW as a DNG with that "
                                          "white balance inside (a DNG's copy, its raw data untouched; another "
                                          "RAW's raw data written as a DNG), what Lightroom reads for a DNG"})
-_SURFACES_ESTIMATION = form(Estimation, include=("camera", "method", "surface_model"))
+_SURFACES_ESTIMATION = form(AnalyzeEstimation, include=("camera", "method", "surface_model", "spatial"))
 _REGIONS = form(Regions)
 _INPUT = form(Input)
 
@@ -336,12 +336,28 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     return TemporaryFileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
 
 
+def _surfaces_csv(res: dict) -> str:
+    """``format=csv``: a row per surface (kind, where, warnings, the
+    reflectance at each wavelength), then its band: ``expected_rmse`` and
+    the standard deviation at each wavelength (``std <nm>``; empty for eq. 36)."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    wl = [f"{x:g}" for x in res["wavelengths"]]
+    w.writerow(["kind", "where", "warnings"] + wl + ["expected_rmse"] + [f"std {x}" for x in wl])
+    for s in res["surfaces"]:
+        std, rmse = s.get("reflectance_std"), s.get("expected_rmse")
+        w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
+                   + [f"{v:.6g}" for v in s["reflectance"]] + ["" if rmse is None else f"{rmse:.6g}"]
+                   + ([f"{v:.6g}" for v in std] if std is not None else [""] * len(wl)))
+    return buf.getvalue()
+
+
 @router.post("/surfaces", response_model=SurfacesResult,
              responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}},
                               "description": "JSON (format=json), or CSV (format=csv): kind, where, warnings, then "
                                              "one column per wavelength"}})
 async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
-                   est: Estimation = Depends(_SURFACES_ESTIMATION), regions: Regions = Depends(_REGIONS),
+                   est: AnalyzeEstimation = Depends(_SURFACES_ESTIMATION), regions: Regions = Depends(_REGIONS),
                    inp: Input = Depends(_INPUT), settings: Settings = Depends(get_settings)):
     """Reflectance spectra at points, rectangle means or a coarse grid, with
     per-estimate warnings. At most ``WANDELL_MAX_SURFACE_REGIONS`` points,
@@ -366,15 +382,11 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
         res["method"] = run.estimate.method
         res["camera"] = pipeline.camera_json(run.camera)
         res["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
+        res["lights"] = pipeline.lights_json(run.estimate, "each surface is estimated under the map's light at "
+                                                           "its pixel")
         # the body is rendered here too, not on the event loop (10,000 entries are ~1 MB)
         if format == "csv":
-            buf = io.StringIO()
-            w = csv.writer(buf)
-            w.writerow(["kind", "where", "warnings"] + [f"{x:g}" for x in res["wavelengths"]])
-            for s in res["surfaces"]:
-                w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
-                           + [f"{v:.6g}" for v in s["reflectance"]])
-            return Response(buf.getvalue(), media_type="text/csv")
+            return Response(_surfaces_csv(res), media_type="text/csv")
         return JSONResponse(clean(res))
 
     return await run_heavy(work, request=request)

@@ -198,6 +198,8 @@ class SurfacesResult(_Answer):
     illuminant: Illuminant
     method: str
     camera: CameraInfo
+    lights: Lights | None = Field(None, description="one light or several (`spatial`); under a light map each "
+                                                    "surface is estimated under the light at its pixel")
     warnings: list[str]
 
 
