@@ -174,8 +174,12 @@ def test_rest_spatial_field(tmp_path):
         assert r.status_code == 422 and "spatial" in r.json()["detail"] and set(r.json()) == {"error", "detail"}
         r = post(spatial="auto")
         assert r.status_code == 200, r.text
-        assert r.json()["diagnostics"]["spatial_decision"] in ("one light", "light map")
-        assert "log_bayes_factor" in r.json()["diagnostics"]["spatial_test"]
+        d = r.json()["diagnostics"]
+        assert d["spatial_decision"] in ("one light", "light map")
+        if "log_bayes_factor" not in d["spatial_test"]:
+            # the learnt windows saw one light: the posterior's regions and trend were not consulted
+            assert d["spatial_decision"] == "one light" and "not consulted" in d["spatial_reason"]
+            assert "mixture_T" in d["spatial_test"]["learnt_windows"]
         r = post(spatial="true")
         assert r.status_code == 200 and r.json()["diagnostics"]["spatial_decision"] == "light map"
         lm = r.json()["light_map"]
@@ -223,3 +227,38 @@ def test_chi2_logsf_is_scipy_stats_bit_for_bit(dof):
     for x in xs:
         a, b = float(stats.chi2.logsf(x, dof)), chi2_logsf(x, dof)
         assert a == b or (np.isnan(a) and np.isnan(b)), (x, a, b)
+
+
+
+def test_auto_on_the_posterior_path_maps_only_where_posterior_and_windows_both_see_a_change():
+    """``auto`` on the light posterior's path asks the learnt windows first
+    and consults the posterior's regions and trend only where the windows
+    see a change (issue 27: the trend alone is 60-75 ms of a 1-megapixel
+    analysis image): its decision is the one of asking both and mapping
+    where both see a change (the order before), on one-light Mondrians and
+    on two-light scenes (halves and gradients, far and near pairs)."""
+    from recovery import api as A
+    from recovery.spatial import choose_light_model
+    from testing.scenes import named_camera, two_light_scene
+
+    cam = named_camera("Nikon 5100 (NPL)")
+    cases = []
+    for j, (a, b, layout) in enumerate([("A", "A", "halves"), ("D65", "D65", "gradient"), ("A", "D65", "halves"),
+                                        ("A", "D65", "gradient"), ("FL11", "D65", "halves"), ("D50", "D65", "halves")]):
+        img, _, _ = two_light_scene(np.random.default_rng(40 + j), 16, "Nikon 5100 (NPL)", a, b, layout, 96)
+        cases.append(img)
+    decided = {"one light": 0, "light map": 0}
+    for img in cases:
+        est = A.estimate_illuminant(img, cam, method="bayes", spatial="auto")
+        if est.method != "bayes":
+            continue
+        x, m, _ = A._prepare(img, cam, None, None, 0.98, 1e-3)
+        lm, _ = choose_light_model(x, m, cam, est.rgb, est.spectrum, mode="auto", grid=(2, 2))
+        win = A._window_decision(x, m, cam, est)
+        both = lm is not None and (win is None or win[0] is not None)
+        assert (est.light_map is not None) == both, est.diagnostics["spatial_reason"]
+        assert est.diagnostics["lights_found"] == (2 if both else 1)
+        decided[est.diagnostics["spatial_decision"]] += 1
+        if win is not None and win[0] is None:
+            assert "not consulted" in est.diagnostics["spatial_reason"]
+    assert decided["one light"] >= 1 and decided["light map"] >= 1, decided
