@@ -227,3 +227,22 @@ def test_wandell_batch_format_dng_writes_dngs_and_fails_a_tiff_alone(tmp_path, c
     side = json.loads((out / ".wandell" / "IMG_0001.dng.json").read_text())
     _check_dng(made, (src / "IMG_0001.dng").read_bytes(), side["illuminant"]["camera_rgb"])
     assert not (out / "linear.dng").exists()
+
+
+@pytest.mark.parametrize("fmt,refused", [("dng", "IMG_0001.dng"), ("tiff", "linear.tif")])
+def test_an_output_that_is_its_input_is_refused_and_the_original_kept(tmp_path, capsys, fmt, refused):
+    """``wandell batch IN IN``: IMG_0001.dng's DNG (a TIFF's TIFF) would be
+    named as the file itself; the item fails (``output_is_input``) and the
+    original is left byte for byte, the other items go on."""
+    import hashlib
+
+    src = tmp_path / "in"
+    src.mkdir()
+    scene_dng(src / "IMG_0001.dng", "Nikon 5100 (NPL)", "A", 64, 96, seed=8)
+    (src / "linear.tif").write_bytes(_linear_tiff())
+    before = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in src.iterdir()}
+    rc = cli.main(["batch", str(src), str(src), "--format", fmt, "--workers", "1", "-q"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "output_is_input" in err and refused in err, err
+    assert {n: hashlib.sha256((src / n).read_bytes()).hexdigest() for n in before} == before
+    assert not (src / ".wandell" / f"{refused}.json").exists()

@@ -430,6 +430,7 @@ def process_item(task: ItemTask) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         _check_cancel(task)
+        _not_the_input(task)
         with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
             if task.exactly_once:  # under the lock: a temporary of this output is an earlier run's, killed
                 remove_stale_temporaries(os.path.dirname(task.out), {os.path.basename(task.out)}, task.out)
@@ -464,6 +465,19 @@ def process_item(task: ItemTask) -> dict:
                     "error": f"insufficient_storage: the output folder is full, nothing was written "
                              f"({type(exc).__name__}: {exc})"}
         return {"status": "failed", "error": _error_text(exc)}
+
+
+def _not_the_input(task: ItemTask) -> None:
+    """Refuse (422 ``output_is_input``) an output that is the item's input
+    file: ``wandell batch IN IN --format dng`` names IMG.dng's result IMG.dng
+    (a TIFF's, IMG.tif), which would replace the original."""
+    from ..errors import ServiceError
+
+    with contextlib.suppress(OSError):
+        if os.path.samefile(task.src, task.out):
+            raise ServiceError(422, "output_is_input", f"the result of {task.name!r} would be written over the "
+                               f"file itself ({task.out}); the original is only ever read: choose another output "
+                               "folder or format")
 
 
 def _light(task: ItemTask, decoded, cam, warns):
