@@ -133,7 +133,7 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
     add_options(ap, RENDERING, defaults={"format": None},
                 describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg; white-balance: taken from OUT's "
                                     "extension (.tif, .png, .jpg), and an error if this disagrees; batch: default "
-                                    "tiff"})
+                                    "tiff; batch also takes dng: each RAW as OUT_DIR/NAME.dng, white balance inside"})
     ap.add_argument("-q", "--quiet", action="store_true",
                     help="no progress bar and no summary table; failures, notes and warnings still go to stderr")
     if batch:

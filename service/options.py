@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 from .errors import ServiceError
 
-__all__ = ["Format", "FORMATS", "MEDIA_TYPES", "IMAGE_FORMATS", "RENDER_FORMATS", "PREVIEW_FORMATS",
+__all__ = ["Format", "FORMATS", "MEDIA_TYPES", "IMAGE_FORMATS", "BATCH_FORMATS", "RENDER_FORMATS", "PREVIEW_FORMATS",
            "OUTPUTS", "RENDER_OUTPUTS", "SURFACE_MODELS", "LIGHT_MODELS", "choose_format", "check_output",
            "check_target", "check_camera_name", "check_dim", "check_region_size", "check_spatial", "estimate_options", "parse_json_field", "parse_json_list", "parse_grid",
            "parse_exposure", "parse_neutral", "EXPOSURE_HELP", "NEUTRAL_HELP", "MAX_N", "parse_wavelengths",
@@ -45,6 +45,8 @@ MEDIA_TYPES = {"png": "image/png", "tiff": "image/tiff", "jpeg": "image/jpeg", "
                "dng": "image/x-adobe-dng"}
 #: The formats of the corrected image (``/v1/white-balance`` adds ``xmp`` and ``dng``; batches and the CLI).
 IMAGE_FORMATS = ("tiff", "png", "png16", "jpeg", "jpg")
+#: A batch's results (``POST /v1/batches``): the corrected images, or each RAW as a DNG with its white inside.
+BATCH_FORMATS = IMAGE_FORMATS + ("dng",)
 #: ``/v1/render`` (spectral data): lossless only.
 RENDER_FORMATS = ("tiff", "png", "png16")
 #: ``/v1/preview``: 8-bit.

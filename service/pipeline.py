@@ -48,9 +48,9 @@ from .image_files import _SparseFile, _tiff_kwargs, _with_meta, encode_image, ti
 from .opening import (_full_linear_u16, analyze, analyze_file, decode, drain_prefetch, open_image,  # noqa: F401
                       prefetch_full_linear)
 from .options import FORMATS, MEDIA_TYPES, Format  # noqa: F401
-from .rendering import (STRIP_ENCODERS, _estimation_image, correction_matrix, crop_bounds, default_crop,  # noqa: F401
-                        exposure_gain, output_meta, render_corrected, render_encoded, render_full, write_corrected,
-                        xmp_sidecar)
+from .rendering import (NOT_A_RAW, STRIP_ENCODERS, _estimation_image, correction_matrix, crop_bounds,  # noqa: F401
+                        default_crop, dng_possible, exposure_gain, output_meta, render_corrected, render_encoded,
+                        render_full, white_balanced_dng, write_corrected, xmp_sidecar)
 from .report import (MATRIX_COLORIMETRY, _temperature_tint_xy, analysis_json, camera_json, estimate_summary,  # noqa: F401
                      illuminant_json, light_cct_duv, light_xy, lights_json, profile_of, rendering_choice,
                      rendering_json, temperature_tint)

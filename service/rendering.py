@@ -238,6 +238,51 @@ def xmp_sidecar(decoded, run: EstimateRun) -> tuple[str, dict, dict]:
     return _xmp(tt["temperature"], tt["tint"], summary), tt, summary
 
 
+#: Why a linear image (TIFF, PNG) has no DNG (``format=dng``: 422 ``not_a_raw``).
+NOT_A_RAW = ("format=dng needs a camera RAW (a DNG, NEF, CR2, ARW, ...); this file is a linear image "
+             "(TIFF/PNG), which has no raw data to put in a DNG: ask for tiff, png16, png or jpeg")
+
+
+def dng_possible(data: bytes, decoded) -> None:
+    """Raise 422 ``not_a_raw`` (:data:`NOT_A_RAW`) unless ``data`` is a DNG
+    or ``decoded`` a camera RAW: what :func:`white_balanced_dng` needs, known
+    before the estimate is made."""
+    from .dngxmp import is_dng
+
+    if decoded.kind != "raw" and not is_dng(data):
+        raise ServiceError(422, "not_a_raw", NOT_A_RAW)
+
+
+def white_balanced_dng(data: bytes, decoded, xmp: str, neutral) -> bytes:
+    """``format=dng`` (``POST /v1/white-balance`` and batches): the upload
+    ``data`` as a DNG with the white balance inside, the sidecar's packet
+    ``xmp`` (:func:`xmp_sidecar`) and the light's camera RGB ``neutral`` as
+    AsShotNeutral: a DNG's copy, its raw data untouched
+    (:func:`service.dngxmp.dng_with_white`), or another camera RAW's raw data
+    written as a DNG (:func:`service.dngwrite.raw_as_dng`). 422 ``not_a_raw``
+    for a linear image, ``dng_failed`` for a RAW that cannot be one.
+
+    References
+    ----------
+    Adobe, *Digital Negative (DNG) Specification* 1.4.0.0 (2012): AsShotNeutral, the XMP packet in IFD 0.
+    """
+    from .dngwrite import raw_as_dng
+    from .dngxmp import NotADng, dng_with_white
+
+    try:
+        return dng_with_white(data, xmp, neutral)
+    except NotADng:
+        pass
+    except ValueError as e:
+        raise ServiceError(422, "dng_failed", f"no DNG copy of this DNG: {e}") from None
+    dng_possible(data, decoded)
+    try:
+        return raw_as_dng(data, xmp, neutral, make=decoded.make, model=decoded.model,
+                          color_matrix=decoded.color_matrix)
+    except ValueError as e:          # NotConvertible among them
+        raise ServiceError(422, "dng_failed", f"this RAW cannot be written as a DNG: {e}") from None
+
+
 def output_meta(decoded, output: str, estimate: dict | None) -> dict:
     """What an output file carries: the ICC profile of ``output`` (sRGB,
     linear sRGB, Display P3, and the spectral displays' own, linear), the

@@ -20,6 +20,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENDPOINTS = ("/v1/analyze", "/v1/white-balance", "/v1/preview", "/v1/surfaces", "/v1/batches", "/v1/render")
 #: Where an endpoint narrows (or widens) a field's values on purpose: (path, name) -> values.
 NARROWED = {("/v1/white-balance", "format"): {"tiff", "png", "png16", "jpeg", "jpg", "xmp", "dng"},
+            ("/v1/batches", "format"): {"tiff", "png", "png16", "jpeg", "jpg", "dng"},
             ("/v1/preview", "format"): {"jpeg", "jpg", "png"},
             ("/v1/surfaces", "format"): {"json", "csv"},
             ("/v1/render", "format"): {"tiff", "png", "png16"},

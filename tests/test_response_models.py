@@ -151,7 +151,7 @@ def test_openapi_shows_fields_media_types_and_markdown(client):
     for path in ("/v1/batches/{batch_id}/items/by-index/{index}", "/v1/batches/{batch_id}/items/by-name/{name}",
                  "/v1/batches/{batch_id}/items/{item}"):
         content = spec["paths"][path]["get"]["responses"]["200"]["content"]
-        assert set(content) == {"image/tiff", "image/png", "image/jpeg"}, (path, content)
+        assert set(content) == {"image/tiff", "image/png", "image/jpeg", "image/x-adobe-dng"}, (path, content)
     assert set(spec["paths"]["/v1/batches/{batch_id}/zip"]["get"]["responses"]["200"]["content"]) == {
         "application/zip"}
     text = spec["info"]["description"] + "".join(

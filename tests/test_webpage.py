@@ -372,6 +372,42 @@ def test_batch_view_shows_progress_and_items(page, server, tmp_path):
     assert len(after) == len(bid) - 1
 
 
+def test_batch_form_offers_the_dng_with_the_white_balance_inside(page, server, tmp_path):
+    """Issue 30, item 3: the batch's format choice offers DNG; a DNG's item
+    downloads as NAME.dng (the bytes /v1/white-balance format=dng answers,
+    which LibRaw reads), a linear TIFF's item fails alone, saying why."""
+    import httpx
+    import tifffile
+
+    options = page.eval_on_selector_all("#opt-format option", "os => os.map(o => o.value)")
+    assert options == ["tiff", "png", "png16", "jpeg", "dng"]
+    page.select_option("#opt-format", "dng")
+    tif = tmp_path / "linear.tif"
+    tifffile.imwrite(tif, (np.random.default_rng(1).random((60, 90, 3)) * 60000).astype(np.uint16), photometric="rgb")
+    dng = _dng(tmp_path / "a.dng", "A", 6)
+    page.set_input_files("#batch-files", [str(dng), str(tif)])
+    page.click("#batch-run")
+    page.wait_for_selector("#batch-view", state="visible", timeout=30_000)
+    page.wait_for_selector("#batch-cancel", state="hidden", timeout=180_000)
+    rows = page.eval_on_selector_all("#batch-table tbody tr",
+                                     "rs => rs.map(r => Array.from(r.cells, c => c.innerText))")
+    by_name = {r[0]: r for r in rows}
+    assert by_name["a.dng"][1] == "done", by_name
+    assert by_name["linear.tif"][1] == "failed" and "not_a_raw" in by_name["linear.tif"][3], by_name
+    assert "ask for tiff" in by_name["linear.tif"][3]
+    with page.expect_download() as dl:
+        page.click("#batch-table tbody tr.item-done a")
+    assert dl.value.suggested_filename == "a.dng"
+    got = tmp_path / "got.dng"
+    dl.value.save_as(got)
+    one = httpx.post(server + "/v1/white-balance", files={"file": ("a.dng", dng.read_bytes())},
+                     data={"format": "dng"}, timeout=120)
+    assert one.status_code == 200 and got.read_bytes() == one.content
+    with rawpy.imread(str(dng)) as a, rawpy.imread(str(got)) as b:
+        np.testing.assert_array_equal(b.raw_image_visible, a.raw_image_visible)
+    _screenshot(page, tmp_path, "wandell-webpage-batch-dng.png")
+
+
 def test_phone_width_has_no_horizontal_scroll_and_a_click_sets_the_white(browser, server, tmp_path):
     """Issue 13, items 4 and 7: at 375 px nothing is wider than the screen
     (before the fix the options' fieldset was 395 px), with the results

@@ -191,13 +191,14 @@ def _estimate_from_json(light: dict, camera):
     return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"), diag, [])
 
 
-def _open(task: "ItemTask", prefetch: bool = False, render: bool = False) -> tuple:
+def _open(task: "ItemTask", prefetch: bool = False, render: bool = False, data: bytes | None = None) -> tuple:
     """Decode an item's file and choose its camera (:func:`service.pipeline.open_image`;
     ``prefetch``: start the demosaic on a thread for the render that follows;
-    ``render``: the render follows, later (the RAW's mosaic is kept for it))."""
+    ``render``: the render follows, later (the RAW's mosaic is kept for it));
+    ``data``: the file's bytes, read already (:func:`read_source`)."""
     from .. import pipeline
 
-    data = read_source(task)
+    data = read_source(task) if data is None else data
     decoded, cam, warns, _ = pipeline.open_image(data, task.name or os.path.basename(task.src), task,
                                                  task.options.camera, prefetch=prefetch,
                                                  keep_mosaic=prefetch or render,
@@ -416,7 +417,9 @@ def is_finished(out: str) -> bool:
 def process_item(task: ItemTask) -> dict:
     """Decode -> estimate (or take the shared light) -> correct -> encode ->
     write atomically, for one file (the white-balance pipeline of
-    :mod:`service.pipeline`: eq. 36 and 23, Wandell 1985, one 3x3 matrix).
+    :mod:`service.pipeline`: eq. 36 and 23, Wandell 1985, one 3x3 matrix);
+    ``format=dng``: the RAW as a DNG with its light inside instead
+    (:func:`_dng_result`), nothing rendered.
 
     Returns ``{"status": "done", "illuminant": ..., "adopted": bool,
     "seconds": ...}`` or ``{"status": "failed", "error": text}``, or
@@ -424,11 +427,10 @@ def process_item(task: ItemTask) -> dict:
     wrote anything (checked between the steps); never raises for a bad file
     (a corrupt file fails its item only).
     """
-    from .. import pipeline
-
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         _check_cancel(task)
+        _not_the_input(task)
         with (_item_lock(task.out) if task.exactly_once else contextlib.nullcontext()):
             if task.exactly_once:  # under the lock: a temporary of this output is an earlier run's, killed
                 remove_stale_temporaries(os.path.dirname(task.out), {os.path.basename(task.out)}, task.out)
@@ -438,44 +440,13 @@ def process_item(task: ItemTask) -> dict:
                 return {"status": "done", "illuminant": side.get("illuminant"), "adopted": True,
                         "seconds": time.perf_counter() - t0}
             fmt = FORMATS[task.options.format]
-            # the demosaic overlaps the estimate when this item may use several
-            # threads (wandell white-balance) and writes a TIFF; a pool worker
-            # (one per core) does not, nor a PNG or JPEG: those are demosaicked
-            # strip by strip as they are encoded (pipeline.render_encoded)
-            strips = fmt.encoder in pipeline.STRIP_ENCODERS
-            decoded, cam, warns = _open(task, prefetch=task.threads != 1 and not strips, render=True)
-            opts = task.options.estimate_kwargs()
-            try:
-                _check_cancel(task)
-                if task.light is None:
-                    run = pipeline.run_estimate(decoded, cam, warns, method=task.options.method, options=opts)
-                else:
-                    run = pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
-                _check_cancel(task)
-            except BaseException:
-                pipeline.drain_prefetch(decoded)
-                raise
-            render = pipeline.render_encoded if strips else pipeline.render_corrected
-            out, M, info, meta = render(decoded, run, target=task.options.target, output=task.options.output,
-                                        fmt=fmt, surface_basis=opts.get("surface_basis"), threads=task.threads,
-                                        exposure=task.options.exposure)
-            _check_cancel(task)  # the last point before anything is written
-            file_warnings = list(decoded.warnings)
-            profile = pipeline.profile_of(decoded)
-            del decoded
-            illum = _estimate_json(run.estimate, cam, profile)
-            illum["warnings"] = list(run.camera_warnings) + file_warnings + list(run.estimate.warnings)
-            side = {"name": task.name, "index": task.index, "illuminant": illum, "correction_matrix": M.tolist(),
-                    "rendering": pipeline.rendering_json(info),
-                    "options": task.options.as_dict()}
+            if fmt.encoder == "dng":    # the RAW itself with its white balance inside: nothing rendered
+                illum, side, write = _dng_result(task)
+            else:
+                illum, side, write = _rendered_result(task, fmt)
             if task.exactly_once:
                 atomic_write(meta_path(task.out, ".json"), lambda p: write_text(p, json.dumps(_clean(side))))
-            if strips:          # out: the file's bytes
-                atomic_write(task.out, lambda p: write_bytes(p, out), durable=task.exactly_once)
-            else:
-                atomic_write(task.out, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta,
-                                                                               threads=task.threads),
-                             durable=task.exactly_once)
+            atomic_write(task.out, write, durable=task.exactly_once)
             if task.write_log:
                 with open(task.write_log, "a") as f:
                     f.write(json.dumps({"name": task.name, "out": os.path.basename(task.out),
@@ -494,6 +465,100 @@ def process_item(task: ItemTask) -> dict:
                     "error": f"insufficient_storage: the output folder is full, nothing was written "
                              f"({type(exc).__name__}: {exc})"}
         return {"status": "failed", "error": _error_text(exc)}
+
+
+def _not_the_input(task: ItemTask) -> None:
+    """Refuse (422 ``output_is_input``) an output that is the item's input
+    file: ``wandell batch IN IN --format dng`` names IMG.dng's result IMG.dng
+    (a TIFF's, IMG.tif), which would replace the original."""
+    from ..errors import ServiceError
+
+    with contextlib.suppress(OSError):
+        if os.path.samefile(task.src, task.out):
+            raise ServiceError(422, "output_is_input", f"the result of {task.name!r} would be written over the "
+                               f"file itself ({task.out}); the original is only ever read: choose another output "
+                               "folder or format")
+
+
+def _light(task: ItemTask, decoded, cam, warns):
+    """The item's light: its own estimate, or the batch's shared light."""
+    from .. import pipeline
+
+    if task.light is None:
+        return pipeline.run_estimate(decoded, cam, warns, method=task.options.method,
+                                     options=task.options.estimate_kwargs())
+    return pipeline.EstimateRun(_estimate_from_json(task.light, cam), cam, list(warns))
+
+
+def _item_illuminant(run, cam, decoded) -> dict:
+    """The item's light as its sidecar and the progress document keep it, with every warning."""
+    from .. import pipeline
+
+    illum = _estimate_json(run.estimate, cam, pipeline.profile_of(decoded))
+    illum["warnings"] = list(run.camera_warnings) + list(decoded.warnings) + list(run.estimate.warnings)
+    return illum
+
+
+def _rendered_result(task: ItemTask, fmt) -> tuple:
+    """The corrected image (Wandell 1985, eq. 36 and 23: one 3x3 matrix per
+    pixel): ``(illuminant, sidecar, write)``, ``write(path)`` writing the file."""
+    from .. import pipeline
+
+    # the demosaic overlaps the estimate when this item may use several
+    # threads (wandell white-balance) and writes a TIFF; a pool worker
+    # (one per core) does not, nor a PNG or JPEG: those are demosaicked
+    # strip by strip as they are encoded (pipeline.render_encoded)
+    strips = fmt.encoder in pipeline.STRIP_ENCODERS
+    decoded, cam, warns = _open(task, prefetch=task.threads != 1 and not strips, render=True)
+    opts = task.options.estimate_kwargs()
+    try:
+        _check_cancel(task)
+        run = _light(task, decoded, cam, warns)
+        _check_cancel(task)
+    except BaseException:
+        pipeline.drain_prefetch(decoded)
+        raise
+    render = pipeline.render_encoded if strips else pipeline.render_corrected
+    out, M, info, meta = render(decoded, run, target=task.options.target, output=task.options.output,
+                                fmt=fmt, surface_basis=opts.get("surface_basis"), threads=task.threads,
+                                exposure=task.options.exposure)
+    _check_cancel(task)  # the last point before anything is written
+    illum = _item_illuminant(run, cam, decoded)
+    del decoded
+    side = {"name": task.name, "index": task.index, "illuminant": illum, "correction_matrix": M.tolist(),
+            "rendering": pipeline.rendering_json(info), "options": task.options.as_dict()}
+    if strips:          # out: the file's bytes
+        return illum, side, lambda p: write_bytes(p, out)
+    return illum, side, lambda p: pipeline.encode_image(out, fmt.encoder, p, meta=meta, threads=task.threads)
+
+
+def _dng_result(task: ItemTask) -> tuple:
+    """``format=dng``: the item's RAW as a DNG with its light inside, the
+    bytes ``POST /v1/white-balance format=dng`` answers for the same file and
+    options (:func:`service.pipeline.white_balanced_dng`: a DNG's copy with
+    the Camera Raw packet and AsShotNeutral, another RAW's raw data written
+    as a DNG); ``(illuminant, sidecar, write)``. A linear image (TIFF, PNG)
+    is refused before its estimate: 422 ``not_a_raw``, this item only.
+
+    References
+    ----------
+    Adobe, *Digital Negative (DNG) Specification* 1.4.0.0 (2012): AsShotNeutral, the XMP packet in IFD 0.
+    """
+    from .. import pipeline
+
+    data = read_source(task)
+    decoded, cam, warns = _open(task, data=data)
+    pipeline.dng_possible(data, decoded)
+    _check_cancel(task)
+    run = _light(task, decoded, cam, warns)
+    _check_cancel(task)
+    text, _, summary = pipeline.xmp_sidecar(decoded, run)
+    body = pipeline.white_balanced_dng(data, decoded, text, summary["camera_rgb"])
+    _check_cancel(task)  # the last point before anything is written
+    illum = _item_illuminant(run, cam, decoded)
+    side = {"name": task.name, "index": task.index, "illuminant": illum, "dng": summary,
+            "options": task.options.as_dict()}
+    return illum, side, lambda p: write_bytes(p, body)
 
 
 def write_bytes(path: str, data: bytes) -> None:

@@ -119,28 +119,9 @@ def _with_white(decoded, run, white: str):
 
 
 def _as_dng(data: bytes, decoded, xmp: str, summary: dict) -> bytes:
-    """``format=dng``: the upload as a DNG with the white balance inside (the
-    sidecar's packet ``xmp`` and the light's camera RGB as AsShotNeutral): a
-    DNG's copy (:func:`service.dngxmp.dng_with_white`) or another camera
-    RAW's raw data as a DNG (:func:`service.dngwrite.raw_as_dng`)."""
-    from ..dngwrite import raw_as_dng
-    from ..dngxmp import NotADng, dng_with_white
-
-    neutral = summary["camera_rgb"]
-    try:
-        return dng_with_white(data, xmp, neutral)
-    except NotADng:
-        pass
-    except ValueError as e:
-        raise ServiceError(422, "dng_failed", f"no DNG copy of this DNG: {e}") from None
-    if decoded.kind != "raw":
-        raise ServiceError(422, "not_a_raw", "format=dng needs a camera RAW (a DNG, NEF, CR2, ARW, ...); this "
-                                             "upload is a linear image: ask for tiff, png or jpeg")
-    try:
-        return raw_as_dng(data, xmp, neutral, make=decoded.make, model=decoded.model,
-                          color_matrix=decoded.color_matrix)
-    except ValueError as e:          # NotConvertible among them
-        raise ServiceError(422, "dng_failed", f"this RAW cannot be written as a DNG: {e}") from None
+    """``format=dng``: the upload as a DNG with the white balance inside
+    (:func:`service.pipeline.white_balanced_dng`, which batches use too)."""
+    return pipeline.white_balanced_dng(data, decoded, xmp, summary["camera_rgb"])
 
 
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,

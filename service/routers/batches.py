@@ -27,6 +27,7 @@ from .. import jobs
 from ..errors import ServiceError
 from ..headers import content_disposition
 from ..jsonsafe import clean
+from ..options import FORMATS, MEDIA_TYPES
 from ..schemas import BatchOptions
 from ..schemas.forms import form
 from ..schemas.responses import BatchCreated, BatchDeleted, BatchList, BatchProgress
@@ -40,8 +41,11 @@ log = logging.getLogger("service")
 
 #: What a result download is (the batch's format decides which), and the zip.
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
-_ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16-bit TIFF, PNG or JPEG",
-                    "content": {"image/tiff": _BINARY, "image/png": _BINARY, "image/jpeg": _BINARY}},
+_ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16-bit TIFF, PNG or JPEG, or "
+                                   "with format=dng the RAW as a DNG with its white balance inside (NAME.dng, "
+                                   "image/x-adobe-dng)",
+                    "content": {"image/tiff": _BINARY, "image/png": _BINARY, "image/jpeg": _BINARY,
+                                "image/x-adobe-dng": _BINARY}},
               404: {"description": "no such batch or item"}, 409: {"description": "not finished, or ambiguous"}}
 _ZIP = {200: {"description": "every finished result (with FAILURES.txt and manifest.json when items are missing)",
               "content": {"application/zip": _BINARY}},
@@ -184,7 +188,10 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
                        settings: Settings = Depends(get_settings)):
     """Start a batch: several ``files`` fields, or a ``folder`` under the
     server's batch root, with the white-balance options. Answers ``{"id"}``
-    at once (202); follow it with ``GET /v1/batches/{id}``."""
+    at once (202); follow it with ``GET /v1/batches/{id}``. With
+    ``format=dng`` each RAW's result is ``NAME.dng``, the RAW with its white
+    balance inside (what ``/v1/white-balance`` answers with ``format=dng``);
+    a linear TIFF/PNG item fails alone (``not_a_raw``)."""
     files = [f for f in (files or []) if f is not None and (f.filename or f.size)]
     if bool(files) == bool(folder):
         raise ServiceError(422, "invalid_parameter", "give either files (one or more 'files' fields) or folder")
@@ -333,8 +340,8 @@ def _item_file(store: jobs.JobStore, batch_id: str, row, key: str, kind: str):
     if row["status"] != "done" or not os.path.exists(row["out"]):
         raise ServiceError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
                        + (f": {row['error']}" if row["error"] else ""))
-    fmt = jobs.BatchOptions.from_json(store.batch(batch_id)["options"]).format
-    media = {"tiff": "image/tiff", "png": "image/png", "png16": "image/png"}.get(fmt, "image/jpeg")
+    fmt = FORMATS.get(jobs.BatchOptions.from_json(store.batch(batch_id)["options"]).format, FORMATS["jpeg"])
+    media = MEDIA_TYPES[fmt.encoder]
     return FileResponse(row["out"], media_type=media,
                         headers={"Content-Disposition": content_disposition(os.path.basename(row["out"]))})
 

@@ -27,7 +27,7 @@ from recovery.methods import METHOD_NAMES, QUALITY_NAMES
 
 from .. import options as checks
 from ..errors import ServiceError
-from ..options import FORMATS, IMAGE_FORMATS, LIGHT_MODELS, OUTPUTS, SURFACE_MODELS
+from ..options import BATCH_FORMATS, FORMATS, IMAGE_FORMATS, LIGHT_MODELS, OUTPUTS, SURFACE_MODELS
 from ..white import WHITE_HELP, check_white
 
 __all__ = ["Opt", "INPUT", "ESTIMATION", "SPATIAL", "RENDERING", "WHITE_BALANCE", "NEUTRAL", "REGIONS", "PREVIEW",
@@ -312,10 +312,18 @@ SPECTRAL = {
 }
 
 # --------------------------------------------------------------------------- batches
-#: A batch: estimation, rendering and the lighting mode.
+#: A batch: estimation, rendering and the lighting mode; its ``format`` (which
+#: replaces :data:`RENDERING`'s in the model) also takes ``dng``: each RAW as a
+#: DNG with its white balance inside, as ``/v1/white-balance format=dng``. Not a
+#: flag of its own: ``wandell batch --format`` is :data:`RENDERING`'s flag, checked by this.
 BATCH = {
     "lighting": Opt(str, "per-image", "per-image, or shared: one light estimated from all the images together",
                     choices=LIGHTING, examples=("per-image",)),
+    "format": Opt(str, "tiff", "tiff (16-bit), png (8-bit), png16, jpeg, or dng: each RAW as a DNG with its "
+                               "white balance inside (a DNG's copy, its raw data untouched; another RAW's raw data "
+                               "written as a DNG; the same file POST /v1/white-balance format=dng answers), what "
+                               "Lightroom reads for a DNG; a linear TIFF/PNG item fails (not_a_raw)",
+                  choices=BATCH_FORMATS, examples=("tiff", "dng"), check=_format, cli=False),
 }
 
 # --------------------------------------------------------------------------- XMP sidecars (command line)
