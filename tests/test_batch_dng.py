@@ -136,7 +136,7 @@ def test_a_mixed_batch_gives_each_raw_as_its_dng_and_fails_the_linear_image_alon
     z = client.get(f"/v1/batches/{bid}/zip")
     assert z.status_code == 200
     with zipfile.ZipFile(io.BytesIO(z.content)) as zf:
-        assert sorted(zf.namelist()) == ["Blackmagic.dng", "FAILURES.txt", "manifest.json", "scene.dng"]
+        assert sorted(zf.namelist()) == ["Blackmagic.dng", "FAILURES.txt", "batch.json", "manifest.json", "scene.dng"]
         for name, data in downloads.items():
             assert zf.read(name) == data
         assert "linear.tif\tfailed\tnot_a_raw" in zf.read("FAILURES.txt").decode()

@@ -79,7 +79,7 @@ def test_long_names_work_up_to_255_bytes_and_are_a_422_beyond(batch_env):
             got = c.get(f"/v1/batches/{doc['id']}/items/{it['index']}")
             assert got.status_code == 200 and got.content[:4] == b"\x89PNG"
         z = c.get(f"/v1/batches/{doc['id']}/zip")
-        assert len(zipfile.ZipFile(io.BytesIO(z.content)).namelist()) == 3
+        assert len(zipfile.ZipFile(io.BytesIO(z.content)).namelist()) == 4     # and batch.json
 
 
 def test_a_full_data_directory_is_a_507_and_the_store_stays_intact(batch_env, monkeypatch):

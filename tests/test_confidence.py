@@ -150,6 +150,7 @@ def test_a_batch_lists_its_flagged_items_first_and_the_cli_names_them(tmp_path, 
     flagged item first (keeping its index) and names it; the CLI's summary
     names it too."""
     import io
+    import json
     import time
 
     from fastapi.testclient import TestClient
@@ -180,6 +181,7 @@ def test_a_batch_lists_its_flagged_items_first_and_the_cli_names_them(tmp_path, 
                 if doc["status"] not in ("queued", "running") or time.monotonic() > t_end:
                     break
                 time.sleep(0.2)
+            z = c.get(f"/v1/batches/{bid}/zip")
     finally:
         get_settings.cache_clear()
     assert doc["status"] == "done", doc
@@ -188,6 +190,14 @@ def test_a_batch_lists_its_flagged_items_first_and_the_cli_names_them(tmp_path, 
     assert [it["index"] for it in items] == [1, 0]
     assert items[0]["illuminant"]["low_confidence"] is True and items[1]["illuminant"]["low_confidence"] is False
     assert doc["low_confidence"] == ["onecell.dng"]
+    # the zip's batch.json is the same document: the flagged item first
+    import zipfile
+
+    assert z.status_code == 200, z.text
+    with zipfile.ZipFile(io.BytesIO(z.content)) as zf:
+        zdoc = json.loads(zf.read("batch.json"))
+    assert [(it["name"], it["index"]) for it in zdoc["items"]] == [("onecell.dng", 1), ("chart.dng", 0)]
+    assert zdoc["low_confidence"] == ["onecell.dng"] and zdoc["id"] == bid
     out = io.StringIO()
     cli._summary([{"name": it["name"], "status": it["status"], "illuminant": it["illuminant"]} for it in items], out)
     text = out.getvalue()

@@ -24,6 +24,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 
 from .. import jobs
+from ..batch.summary import SUMMARY
 from ..errors import ServiceError
 from ..headers import content_disposition
 from ..jsonsafe import clean
@@ -409,7 +410,10 @@ def zip_texts(batch_id: str, rows: list[dict], zipped: dict) -> list[tuple[str, 
 
 @router.get("/batches/{batch_id}/zip", response_class=StreamingResponse, responses=_ZIP)
 def batch_zip(batch_id: str):
-    """Every finished result in one zip, streamed (not built in memory)."""
+    """Every finished result in one zip, streamed (not built in memory), with
+    ``batch.json`` (the batch's document: every item's light, confidence and
+    flag or error, the flagged ones first) and, when some item is not in it,
+    ``FAILURES.txt`` and ``manifest.json``."""
     store = get_runner().store
     if store.batch(batch_id) is None:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
@@ -418,7 +422,10 @@ def batch_zip(batch_id: str):
                if r["status"] == "done" and os.path.exists(r["out"])]
     if not entries:
         raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
-    return StreamingResponse(_zip_stream(entries, zip_texts(batch_id, rows, dict(entries))),
+    # batch.json: the batch's document (GET /v1/batches/{id}), the items flagged low confidence first
+    summary = json.dumps(clean(_progress(batch_id)), indent=1) + "\n"
+    texts = [(SUMMARY, summary)] + zip_texts(batch_id, rows, dict(entries))
+    return StreamingResponse(_zip_stream(entries, texts),
                              media_type="application/zip",
                              headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
 
