@@ -68,3 +68,27 @@ def test_the_ridge_recovers_an_exact_linear_law_and_prefers_the_smaller_ridge_th
     ww = w / w.sum()
     assert np.abs(b2).max() < 1e-3
     np.testing.assert_allclose((ww @ X) @ b2 + c2, ww @ y, atol=1e-12)
+
+
+def _result(conf_lobo, conf_loco, fail, grp):
+    return {"fold": {"conf": {"lobo": conf_lobo, "loco": conf_loco}, "fail": fail, "grp": grp}}
+
+
+def test_the_paired_bootstrap_gain_is_the_difference_of_the_printed_areas():
+    """Against itself the gain is zero in every resample; a confidence that
+    ranks every failure below every success gains 1 - the reference's area
+    (per inner benchmark, then averaged), exactly at the point estimate."""
+    from recovery import confidence as C
+
+    rng = np.random.default_rng(2)
+    n = 300
+    grp = np.repeat(np.array(["A", "B"]), n // 2)
+    fail = rng.random(n) < 0.2
+    ref_c = rng.random(n) - 0.3 * fail
+    ref = _result(ref_c, ref_c, fail, grp)
+    same = V.paired_bootstrap(ref, ref, resamples=20)
+    assert all(v["gain"] == 0.0 and v["se"] == 0.0 for v in same.values())
+    perfect = np.where(fail, 0.1, 0.9)
+    got = V.paired_bootstrap(_result(perfect, perfect, fail, grp), ref, resamples=20)
+    want = np.mean([1.0 - C.auroc(-ref_c[grp == g], fail[grp == g]) for g in ("A", "B")])
+    assert abs(got["lobo"]["gain"] - want) < 1e-12 and got["lobo"]["positive"] == 1.0
