@@ -48,7 +48,7 @@ width (:func:`ffcc_evidence`).
 
 Usage::
 
-    python -m benchmarks.flag_variants [--windows] [--leverage] [--histogram] [--ffcc] [--paired] [--only NAMES] [--quick]
+    python -m benchmarks.flag_variants [--windows] [--leverage] [--histogram] [--ffcc] [--paired] [--only NAMES] [--quick [--third K]]
 """
 
 from __future__ import annotations
@@ -515,11 +515,13 @@ def main(argv=None) -> int:
                     help="also each variant's inner gain over the shipped stumps with a paired bootstrap of the "
                          "images scored (its standard error; not a choice rule, a measure of the noise)")
     ap.add_argument("--quick", action="store_true", help="every third image (development; not the figures)")
+    ap.add_argument("--third", type=int, default=0, choices=(0, 1, 2),
+                    help="with --quick: which third (images k, k + 3, ...; the three are disjoint)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     rs = load_real(a.data)
     if a.quick:
-        rs = rs.subset(np.arange(0, len(rs.truth), 3))
+        rs = rs.subset(np.arange(a.third, len(rs.truth), 3))
     feats, tuv, Ks, gam = T.dataset_features(rs)
     regions = T.dataset_regions(rs)
     wf = window_features(rs) if a.windows else None
