@@ -44,7 +44,10 @@ log-chroma histograms of the cells and of their edges
 fitted within the same folds (:func:`histogram_evidence`); ``fd``, ``fw``
 (``--ffcc``) the same with the convolutional histogram estimator of
 :mod:`recovery.chroma_histogram` (Barron & Tsai 2017) and its posterior's
-width (:func:`ffcc_evidence`).
+width (:func:`ffcc_evidence`). ``--paired`` prints each variant's inner gain
+over the shipped stumps with a paired bootstrap of the images scored
+(:func:`paired_bootstrap`); ``--quick --third K`` scores one of three
+disjoint thirds of the images (a measure of how the gains move with them).
 
 Usage::
 
