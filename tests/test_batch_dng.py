@@ -14,7 +14,6 @@ import contextlib
 import io
 import json
 import os
-import time
 import zipfile
 
 import numpy as np
@@ -28,6 +27,7 @@ from service.settings import get_settings
 from testing.dngwriter import scene_dng
 
 from .conftest import shared_file
+from .test_batch_delete import _settle
 
 #: AsShotNeutral is written as rationals of denominator 10^6 (service.dngxmp):
 #: at most 5e-7 off on a neutral of green 1 whose channels are above 0.05,
@@ -62,14 +62,8 @@ def client(env):
         yield c
 
 
-def _wait(client, bid, timeout=300):
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        doc = client.get(f"/v1/batches/{bid}").json()
-        if doc.get("settled"):
-            return doc
-        time.sleep(0.2)
-    raise AssertionError(f"batch {bid} not settled in {timeout} s: {doc}")
+def _wait(client, bid):
+    return _settle(client, bid, timeout=300)
 
 
 def _neutral_of(dng: bytes) -> np.ndarray:
