@@ -544,7 +544,13 @@ def with_confidence(est: IlluminantEstimate) -> IlluminantEstimate:
 
 def _estimate_peer(run: EstimatorInput) -> IlluminantEstimate:
     """A classical peer (:data:`recovery.estimators.PEERS`), its spectrum fitted to its RGB."""
-    return run.run_peer(run.method)
+    est = run.run_peer(run.method)
+    d = est.diagnostics
+    if "spatial_decision" not in d:      # spatial=true too: a peer has no light map, and says so
+        d.update(spatial_decision="one light", lights_found=1,
+                 spatial_reason=f"{run.method} estimates one light for the whole image; a light map comes from "
+                                "auto, learned, bayes or maloney-wandell")
+    return est
 
 
 def _check_pinned_models(run: EstimatorInput) -> None:
@@ -834,11 +840,18 @@ def _estimate_subspace(run: EstimatorInput) -> IlluminantEstimate:
             size = _light_map_region_size(img.shape[:2], o.region_size, o.overlap, o.max_regions, diag)
             lm, ldiag = estimate_light_map(img, m, T, E.basis, d_s, size, o.overlap, min_variation)
             diag.update(ldiag)
+            diag.update(spatial_decision="light map", lights_found=2,
+                        spatial_reason="a light map was asked for (spatial=true): the subspace method on "
+                                       f"overlapping regions of {size} pixels a side, each with its own light "
+                                       "(Wandell 1985; no test of whether the light varies)")
             w = np.average(lm.weights[lm.used], axis=0)
             fit_ratio = float(np.nanmedian(lm.fit_ratio))
             null_ratio = float("nan")
         else:
             px = img[m]
+            diag.update(spatial_decision="one light", lights_found=1,
+                        spatial_reason="the literal method gives one light for the image unless spatial=true asks "
+                                       "for its light map (it does not decide from the image)")
             res = maloney_wandell_pixels(px, T, E.basis, d_s, min_variation)
             w = res.weights
             fit_ratio = res.fit_ratio

@@ -162,7 +162,8 @@ def lights_json(est, use: str) -> dict:
     decision and its reason in words; with several, ``held`` says that
     ``illuminant`` is the scene's one light and (``use``) what the map does."""
     d = est.diagnostics
-    out = {"found": 2 if lm_found(est) else 1, "decision": str(d.get("spatial_decision", "one light")),
+    out = {"found": 2 if lm_found(est) else 1,
+           "decision": str(d.get("spatial_decision", "light map" if lm_found(est) else "one light")),
            "reason": str(d.get("spatial_reason", ""))}
     if lm_found(est):
         out["held"] = f"illuminant is the scene's one light (the whole image's estimate); {use}"

@@ -262,3 +262,39 @@ def test_auto_on_the_posterior_path_maps_only_where_posterior_and_windows_both_s
         if win is not None and win[0] is None:
             assert "not consulted" in est.diagnostics["spatial_reason"]
     assert decided["one light"] >= 1 and decided["light map"] >= 1, decided
+
+
+def test_every_method_says_how_many_lights_consistently(tmp_path):
+    """Every method, asked for one light or a map: the answer's ``lights``
+    agrees with itself and with ``light_map`` (two lights exactly when a
+    map is given, the decision named accordingly) and gives a reason; a
+    classical peer asked for a map says it has none (before, the literal
+    method's map said ``found: 2`` beside ``decision: one light`` and an
+    empty reason, and a peer's reason was empty)."""
+    from fastapi.testclient import TestClient
+
+    from recovery import METHODS
+    from service.app import app
+    from testing.dngwriter import scene_dng
+
+    scene_dng(tmp_path / "g.dng", "Nikon 5100 (NPL)", "D65", 64, 96, seed=2)
+    data = (tmp_path / "g.dng").read_bytes()
+    maps = 0
+    with TestClient(app) as client:
+        for method in METHODS:
+            for spatial in ("true", "false"):
+                r = client.post("/v1/analyze", files={"file": ("g.dng", data)},
+                                data={"method": method, "spatial": spatial})
+                assert r.status_code == 200, (method, spatial, r.text)
+                j = r.json()
+                lights, mapped = j["lights"], "light_map" in j
+                assert lights["found"] == (2 if mapped else 1), (method, spatial, lights)
+                assert lights["decision"] == ("light map" if mapped else "one light"), (method, spatial, lights)
+                assert lights["reason"], (method, spatial, lights)
+                assert ("held" in lights) == mapped
+                maps += mapped
+                if spatial == "false":
+                    assert not mapped, method
+                if method in ("gray-world", "white-patch", "shades-of-gray", "gray-edge"):
+                    assert not mapped and f"{method} estimates one light" in lights["reason"]
+    assert maps >= 3      # learned, bayes and maloney-wandell give the map asked for
