@@ -162,10 +162,10 @@ def lights_json(est, use: str) -> dict:
     decision and its reason in words; with several, ``held`` says that
     ``illuminant`` is the scene's one light and (``use``) what the map does."""
     d = est.diagnostics
-    out = {"found": 2 if lm_found(est) else 1,
-           "decision": str(d.get("spatial_decision", "light map" if lm_found(est) else "one light")),
+    mapped = lm_found(est)       # the one source of found and decision: the map the answer carries
+    out = {"found": 2 if mapped else 1, "decision": "light map" if mapped else "one light",
            "reason": str(d.get("spatial_reason", ""))}
-    if lm_found(est):
+    if mapped:
         out["held"] = f"illuminant is the scene's one light (the whole image's estimate); {use}"
     return out
 

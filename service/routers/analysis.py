@@ -118,12 +118,6 @@ def _with_white(decoded, run, white: str):
     return with_white(decoded, run, white)
 
 
-def _as_dng(data: bytes, decoded, xmp: str, summary: dict) -> bytes:
-    """``format=dng``: the upload as a DNG with the white balance inside
-    (:func:`service.pipeline.white_balanced_dng`, which batches use too)."""
-    return pipeline.white_balanced_dng(data, decoded, xmp, summary["camera_rgb"])
-
-
 def _white_balance_sync(data, filename, sens, camera, method, opts, target, output, fmt, settings,
                         white="estimate", exposure=None, neutral=None, display_referred="linearise"):
     decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral, display_referred,
@@ -273,8 +267,8 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
         run = _with_white(decoded, run, white)
         text, _, summary = pipeline.xmp_sidecar(decoded, run)
         stem = os.path.splitext(download_name(file.filename, "image"))[0] or "image"
-        body = text if fmt.encoder == "xmp" else await run_heavy(_as_dng, data, decoded, text, summary,
-                                                                  request=request)
+        body = text if fmt.encoder == "xmp" else await run_heavy(pipeline.white_balanced_dng, data, decoded, text,
+                                                                  summary["camera_rgb"], request=request)
         return Response(body, media_type=MEDIA_TYPES[fmt.encoder],
                         headers={"Content-Disposition": content_disposition(f"{stem}.{fmt.extension}",
                                                                             default="image"),
@@ -335,8 +329,9 @@ def _surfaces_csv(res: dict) -> str:
 
 @router.post("/surfaces", response_model=SurfacesResult,
              responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}},
-                              "description": "JSON (format=json), or CSV (format=csv): kind, where, warnings, then "
-                                             "one column per wavelength"}})
+                              "description": "JSON (format=json), or CSV (format=csv): kind, where, warnings, "
+                                             "one column per wavelength, expected_rmse, then the band's standard "
+                                             "deviation per wavelength (std <nm>)"}})
 async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: UploadFile | None = _SENS,
                    est: AnalyzeEstimation = Depends(_SURFACES_ESTIMATION), regions: Regions = Depends(_REGIONS),
                    inp: Input = Depends(_INPUT), settings: Settings = Depends(get_settings)):

@@ -48,7 +48,8 @@ _ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16
                     "content": {"image/tiff": _BINARY, "image/png": _BINARY, "image/jpeg": _BINARY,
                                 "image/x-adobe-dng": _BINARY}},
               404: {"description": "no such batch or item"}, 409: {"description": "not finished, or ambiguous"}}
-_ZIP = {200: {"description": "every finished result (with FAILURES.txt and manifest.json when items are missing)",
+_ZIP = {200: {"description": "every finished result, batch.json (the batch's document, flagged items first), "
+                             "and FAILURES.txt and manifest.json when items are missing",
               "content": {"application/zip": _BINARY}},
         404: {"description": "no such batch"}, 409: {"description": "nothing finished yet"}}
 
