@@ -32,11 +32,13 @@ at every non-masked pixel against the true mixed light), its mean / median
 / worst 25 % over images, for: one light by the learnt estimator (today's
 default), one light by shades of gray, the best single light (the truth's
 average over the pixels: an oracle), the windows' map always on, and the
-map with the decision (the product). And the decision's confusion table.
+map with the decision (the product). And the decision's confusion table,
+and where the map's error comes from (:func:`decompose`: its level and its
+variation, each replaced by the truth in turn).
 
 Usage::
 
-    python -m benchmarks.mixed_light            # about 3 minutes
+    python -m benchmarks.mixed_light            # 7-10 minutes on 2 cores (models cached in out/)
     python -m benchmarks.mixed_light --per 150  # fewer photographs per benchmark
 """
 
@@ -218,6 +220,59 @@ def score(scenes, evs, settings_list) -> dict:
         r["maps"] = maps
         rows.append(r)
     return rows
+
+
+def true_window_uv(light: np.ndarray, ev, K: np.ndarray, valid_px: np.ndarray) -> np.ndarray:
+    """(n, 2) the true light averaged over each window's pixels (the
+    windows of :func:`recovery.light_mixture.window_evidence`), canonical
+    log-chroma; NaN where a window has no valid pixel."""
+    h, w = light.shape[:2]
+    out = np.full((len(ev.centres), 2), np.nan)
+    k = 0
+    for r in LM._starts(h, LM.WINDOW, LM.STEP):
+        for c in LM._starts(w, LM.WINDOW, LM.STEP):
+            sl = (slice(r, r + LM.WINDOW), slice(c, c + LM.WINDOW))
+            px = light[sl][valid_px[sl]]
+            if len(px):
+                out[k] = L.rgb_to_uv(K @ px.mean(axis=0))
+            k += 1
+    return out
+
+
+DECOMPOSITION = ("level alone", "level's angle from the truth's average light", "true level + estimated variation",
+                 "estimated level + true variation", "true level + true variation")
+
+
+def decompose(scenes, evs, s: LM.MixtureSettings) -> list[dict]:
+    """Where the map's error comes from, per two-light scene with a map to
+    decompose: the map's two parts (:func:`recovery.light_mixture.field_parts`),
+    each in turn replaced by the truth. The true level is the truth's
+    average light (the oracle); the true variation is the true light
+    averaged over each window, about the windows' mean, at gain 1; with
+    both true, what is left is the 3 x 3 bilinear field's own floor."""
+    out = []
+    for sc, e in zip(scenes, evs):
+        if sc["kind"] != "two lights" or not e["ok"] or e["ev"].valid.sum() < 2:
+            continue
+        K, ev, vp, light = e["K"], e["ev"], e["valid_px"], sc["light"]
+        oracle = light[vp].mean(axis=0)
+        true_level = L.rgb_to_uv(K @ oracle)
+        tw = true_window_uv(light, ev, K, vp)
+        have = ev.valid & np.all(np.isfinite(tw), axis=1)
+        true_dev = np.zeros_like(tw)
+        if have.any():
+            true_dev[have] = tw[have] - tw[have].mean(axis=0)
+        level, dev = LM.field_parts(e["uv0"], ev, s)
+
+        def err(lv, dv, g):
+            return field_error(LM.compose_field(lv, dv, ev, g), ev, K, light, vp)
+
+        out.append({DECOMPOSITION[0]: err(level, dev, 0.0),
+                    DECOMPOSITION[1]: float(angle_rows(np.linalg.solve(K, L.uv_to_rgb(level))[None], oracle[None])[0]),
+                    DECOMPOSITION[2]: err(true_level, dev, s.gain),
+                    DECOMPOSITION[3]: err(level, true_dev, 1.0),
+                    DECOMPOSITION[4]: err(true_level, true_dev, 1.0)})
+    return out
 
 
 def settings_grid():
@@ -409,11 +464,12 @@ def main(argv=None) -> int:
     chosen = {b: choose([inner_rows[(b, c)] for c in rs.datasets if c != b], grid) for b in rs.datasets}
     t_inner = time.perf_counter() - t0
     t0 = time.perf_counter()
-    outer_rows = {}
+    outer_rows, outer_evs = {}, {}
     n_ev = 0
     for b in rs.datasets:
         evs = [scene_evidence(sc, rs.matrices[rs.camera[sc["i"]]], outer_models[b]) for sc in scenes[b]]
         n_ev += len(evs)
+        outer_evs[b] = evs
         outer_rows[b] = score(scenes[b], evs, sorted(set(grid) | {chosen[b]}, key=str))
     t_outer = time.perf_counter() - t0
     # the shipped settings: the same rule on every benchmark's relit photographs, each scored by the model
@@ -461,6 +517,17 @@ def main(argv=None) -> int:
                     line.append(f"{o} {np.mean([r['maps'][s][1] for r in sel]):.2f}/"
                                 f"{np.mean([r['learned'] for r in sel]):.2f}/{np.mean([r['oracle'] for r in sel]):.2f}")
             print(f"  by {key} (decided map / one light / oracle, means): " + ", ".join(line))
+    # where the map's error comes from: each of its two parts replaced by the truth in turn
+    print("\nwhere the map's error comes from (two-light scenes with a map to decompose, each benchmark's chosen "
+          "settings, the map always on; means):")
+    print(f"  {'':48s} " + " ".join(f"{b[:10]:>10s}" for b in rs.datasets) + "     pooled")
+    dec = {b: decompose(scenes[b], outer_evs[b], chosen[b]) for b in rs.datasets}
+    report["decomposition"] = {}
+    for k in DECOMPOSITION:
+        vals = {b: float(np.mean([r[k] for r in dec[b]])) for b in rs.datasets}
+        pooled_k = float(np.mean([r[k] for b in rs.datasets for r in dec[b]]))
+        report["decomposition"][k] = {**vals, "pooled": pooled_k}
+        print(f"  {k:48s} " + " ".join(f"{vals[b]:10.2f}" for b in rs.datasets) + f" {pooled_k:10.2f}")
     print("\npooled over the left-out benchmarks")
     report["pooled"] = {}
     for kind in ("two lights", "one light"):

@@ -64,7 +64,7 @@ from .learned import (REFERENCE, LearnedModel, _spread, rgb_to_uv, uv_to_rgb, va
                       window_features)
 
 __all__ = ["WINDOW", "STEP", "MixtureSettings", "DEFAULT_SETTINGS", "WindowEvidence", "window_evidence",
-           "mixture_statistic", "light_field", "decide", "MIN_RANGE_DEG"]
+           "mixture_statistic", "field_parts", "compose_field", "light_field", "decide", "MIN_RANGE_DEG"]
 
 #: Windows of this many analysis cells (of the 64 x 64 grid the learnt model
 #: reads a whole image at) ...
@@ -194,26 +194,50 @@ def mixture_statistic(ev: WindowEvidence) -> float:
     return float(((p - pbar) ** 2 / s2).sum())
 
 
+def field_parts(uv0: np.ndarray, ev: WindowEvidence,
+                settings: MixtureSettings = DEFAULT_SETTINGS) -> tuple[np.ndarray, np.ndarray]:
+    """The two parts of :func:`light_field`: its level (2,), the whole
+    image's ``uv0`` blended with the windows' precision-weighted mean, and
+    the windows' variation about their mean (n, 2; projected on their
+    principal direction when ``settings.project``; zero where a window is
+    unusable), before the gain. With fewer than two usable windows the
+    level is ``uv0`` and the variation zero."""
+    uv0 = np.asarray(uv0, float)
+    v = ev.valid
+    dev = np.zeros((v.size, 2))
+    if v.sum() < 2:
+        return uv0, dev
+    uv, s2 = ev.uv[v], ev.var[v]
+    m, d = _principal(uv, 1.0 / s2)
+    level = (1.0 - settings.level) * uv0 + settings.level * m
+    dv = uv - m
+    if settings.project:
+        dv = (dv @ d)[:, None] * d[None, :]
+    dev[v] = dv
+    return level, dev
+
+
+def compose_field(level: np.ndarray, dev: np.ndarray, ev: WindowEvidence, gain: float) -> np.ndarray:
+    """(gr, gc, 2) ``level + gain * dev`` at the window centres (the level
+    alone where a window is unusable)."""
+    gr, gc = ev.grid
+    out = np.tile(np.asarray(level, float), (gr * gc, 1))
+    out[ev.valid] += gain * dev[ev.valid]
+    return out.reshape(gr, gc, 2)
+
+
 def light_field(uv0: np.ndarray, ev: WindowEvidence, settings: MixtureSettings = DEFAULT_SETTINGS) -> np.ndarray:
     """(gr, gc, 2) the light at the window centres (canonical log-chroma):
     the level (the whole image's ``uv0`` blended with the windows'
     precision-weighted mean, ``settings.level``) plus the windows' variation
     about their mean, projected on their principal direction and multiplied
-    by the gain (module docstring). Unusable windows get the level."""
-    gr, gc = ev.grid
-    uv0 = np.asarray(uv0, float)
-    v = ev.valid
-    if v.sum() < 2:
-        return np.tile(uv0, (gr * gc, 1)).reshape(gr, gc, 2)
-    uv, s2 = ev.uv[v], ev.var[v]
-    m, d = _principal(uv, 1.0 / s2)
-    level = (1.0 - settings.level) * uv0 + settings.level * m
-    out = np.tile(level, (gr * gc, 1))
-    dev = uv - m
-    if settings.project:
-        dev = (dev @ d)[:, None] * d[None, :]
-    out[v] = level + settings.gain * dev
-    return out.reshape(gr, gc, 2)
+    by the gain (module docstring; :func:`field_parts`). Unusable windows
+    get the level."""
+    if ev.valid.sum() < 2:
+        gr, gc = ev.grid
+        return np.tile(np.asarray(uv0, float), (gr * gc, 1)).reshape(gr, gc, 2)
+    level, dev = field_parts(uv0, ev, settings)
+    return compose_field(level, dev, ev, settings.gain)
 
 
 def field_range_deg(field_uv: np.ndarray, K: np.ndarray) -> float:

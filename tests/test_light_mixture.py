@@ -291,3 +291,59 @@ def test_field_range_is_the_largest_angle_between_two_of_its_lights():
         pairs = max(L._angle(cam[i], cam[j]) for i in range(9) for j in range(i + 1, 9))
         assert LM.field_range_deg(f, K) == pytest.approx(pairs, abs=1e-10)
     assert LM.field_range_deg(np.zeros((1, 1, 2)), np.eye(3)) == 0.0
+
+
+def test_decomposition_replaces_each_part_of_the_map_by_the_truth():
+    """benchmarks.mixed_light.decompose: with windows that read the true light
+    exactly and the level right, the map equals its two true parts, so all
+    four maps score the same; a level moved off the truth moves only the
+    rows that keep the estimated level, and by the angle it was moved."""
+    from benchmarks import mixed_light as ML
+
+    h = w = 64
+    K = np.eye(3)
+    a = np.tile(np.linspace(0, 1, w), (h, 1))               # a gradient between two lights
+    L1, L2 = np.array([0.45, 0.35, 0.20]), np.array([0.25, 0.35, 0.40])
+    light = a[..., None] * L1 + (1 - a[..., None]) * L2
+    light /= light.sum(axis=-1, keepdims=True)
+    vp = np.ones((h, w), bool)
+    cr, cc = np.meshgrid(np.arange(3) * 16 + 15.5, np.arange(3) * 16 + 15.5, indexing="ij")
+    ev0 = LM.WindowEvidence(np.zeros((9, 2)), np.full(9, 1e-3), np.c_[cr.ravel(), cc.ravel()], np.ones(9, bool),
+                            (h, w), (3, 3))
+    tw = ML.true_window_uv(light, ev0, K, vp)
+    true_level = L.rgb_to_uv(light.mean(axis=(0, 1)))
+    ev = LM.WindowEvidence(tw, np.full(9, 1e-3), ev0.centres, ev0.valid, (h, w), (3, 3))
+    s = LM.MixtureSettings(threshold=0, gain=1.0, project=False, level=1.0)
+    # the windows' equal-variance mean is the level the map takes at level 1; put the whole-image estimate there
+    scene = {"kind": "two lights", "light": light}
+    evid = {"ok": True, "K": K, "ev": ev, "valid_px": vp, "uv0": tw.mean(axis=0)}
+    (row,) = ML.decompose([scene], [evid], s)
+    both = row["true level + true variation"]
+    # the windows' mean of log-chroma is not the log-chroma of the mean light: the level is off by that much only
+    off = float(ML.angle_rows(L.uv_to_rgb(tw.mean(axis=0))[None], L.uv_to_rgb(true_level)[None])[0])
+    assert row["level's angle from the truth's average light"] == pytest.approx(off, abs=1e-9)
+    assert off < 0.5
+    assert row["true level + estimated variation"] == pytest.approx(both, abs=1e-9)   # the variation is the truth's
+    # per pixel the two maps differ by one fixed log-chroma shift, whose angle is `off` at the level and, over
+    # this field's range of lights, within a factor of two of it elsewhere: the error moves by at most that
+    assert abs(row["estimated level + true variation"] - both) <= 2 * off
+    # move the level by 3 degrees' worth of log-chroma: the rows with the true level do not move
+    moved = dict(evid, uv0=tw.mean(axis=0) + np.array([0.05, -0.05]))
+    s0 = LM.MixtureSettings(threshold=0, gain=1.0, project=False, level=0.0)
+    (row2,) = ML.decompose([scene], [moved], s0)
+    assert row2["true level + true variation"] == pytest.approx(both, abs=1e-12)
+    assert row2["true level + estimated variation"] == pytest.approx(both, abs=1e-9)
+    assert row2["estimated level + true variation"] > both + 1.0
+    assert row2["level alone"] > row2["estimated level + true variation"]
+
+
+def test_field_parts_compose_to_the_light_field():
+    rng = np.random.default_rng(5)
+    uv = np.array([0.4, 0.2]) + rng.normal(size=(9, 2)) * 0.03
+    var = rng.uniform(1e-4, 1e-3, 9)
+    var[7] = np.nan
+    ev = _evidence(uv, var)
+    for s in (LM.MixtureSettings(0, 0.5, True, 0.75), LM.MixtureSettings(0, 1.25, False, 0.0)):
+        level, dev = LM.field_parts(np.array([0.3, 0.1]), ev, s)
+        np.testing.assert_array_equal(LM.compose_field(level, dev, ev, s.gain), LM.light_field([0.3, 0.1], ev, s))
+        assert np.all(dev[7] == 0)
