@@ -34,7 +34,9 @@ default), one light by shades of gray, the best single light (the truth's
 average over the pixels: an oracle), the windows' map always on, and the
 map with the decision (the product). And the decision's confusion table,
 and where the map's error comes from (:func:`decompose`: its level and its
-variation, each replaced by the truth in turn).
+variation, each replaced by the truth in turn), and whether the confidence
+flags the answers that went wrong on these scenes (each fold's own
+confidence law, :func:`fold_flag`).
 
 Usage::
 
@@ -53,11 +55,12 @@ import numpy as np
 
 from recovery import learned as L
 from recovery import light_mixture as LM
+from recovery.confidence import FlagModel, auroc
 from recovery.estimators import shades_of_gray
 from recovery.regions import bilinear
 
 from .realdata import REAL_DIR, error_stats, load_real, usable_mask
-from .train_illuminant import build, dataset_features, fit_model, locus, usable
+from .train_illuminant import build, dataset_features, dataset_regions, fit_model, locus, usable
 
 MASKS = ("gradient", "soft-half", "blobs", "partial")
 PAIRS = {"close": (1.5, 4.0), "medium": (4.0, 10.0), "far": (10.0, 40.0)}
@@ -275,6 +278,52 @@ def decompose(scenes, evs, s: LM.MixtureSettings) -> list[dict]:
     return out
 
 
+def fold_flag(rs, feats, tuv, Ks, gam, b: str, good, cache: Path, log=print) -> FlagModel:
+    """The confidence and flag of the outer fold without benchmark ``b``:
+    fitted exactly as the shipped one is (``train_illuminant.build`` with the
+    confidence's regions: the inner out-of-fold predictions of the other two
+    benchmarks), never on ``b``; kept in ``cache`` as JSON."""
+    p = cache / f"without_{b.replace(' ', '_').replace('+', 'plus')}_flag.json"
+    if p.exists():
+        return FlagModel.from_json(p.read_text())
+    tr = np.flatnonzero((rs.dataset != b) & good)
+    log(f"fitting the confidence without {b} (once; cached in {p})")
+    m = build(rs, feats, tuv, Ks, tr, log=lambda s: None, gam=gam, regions=dataset_regions(rs))
+    p.write_text(m.flag.to_json())
+    return m.flag
+
+
+def flag_rows(scenes, evs, rows, matrices, model, flag, s: LM.MixtureSettings) -> list[dict]:
+    """Per scene: the product's answer (the decided map, or one light) and
+    its error, beside the learnt estimate's confidence and flag under the
+    fold's confidence law (:func:`fold_flag`)."""
+    out = []
+    for sc, e, r in zip(scenes, evs, rows):
+        if not e["ok"]:
+            continue
+        img = sc["image"]
+        try:
+            res = L.estimate_learned(img, usable_mask(img), matrices[sc["i"]], model=model, flag=flag)
+        except L.InsufficientSurfaceVariation:
+            continue
+        out.append({"kind": sc["kind"], "pair": sc.get("pair"), "error": r["maps"][s][1],
+                    "confidence": float(res.confidence), "low": bool(res.confidence < flag.threshold)})
+    return out
+
+
+def flag_stats(rows: list[dict], limit: float = 6.0) -> dict:
+    """AUROC of (1 - confidence) for errors above ``limit``, the share
+    flagged, and the share of the failures flagged (the catch)."""
+    err = np.array([r["error"] for r in rows])
+    conf = np.array([r["confidence"] for r in rows])
+    low = np.array([r["low"] for r in rows], bool)
+    failed = err > limit
+    a = auroc(1.0 - conf, failed) if 0 < failed.sum() < failed.size else float("nan")
+    return {"n": int(err.size), "failures": float(failed.mean()) if err.size else float("nan"), "auroc": a,
+            "flagged": float(low.mean()) if err.size else float("nan"),
+            "catch": float(low[failed].mean()) if failed.any() else float("nan")}
+
+
 def settings_grid():
     return [LM.MixtureSettings(t, g, p, lv) for t in THRESHOLDS for g in GAINS for p in PROJECT for lv in LEVELS]
 
@@ -445,6 +494,7 @@ def main(argv=None) -> int:
                           loc, sigma=om.sigma, conf=om.confidence_coef, gam=gam[tr])
             m.save(p)
             inner_models[key] = m
+    flags = {b: fold_flag(rs, feats, tuv, Ks, gam, b, good, cache) for b in rs.datasets}
     print(f"models ready ({time.perf_counter() - t_all:.0f} s)")
 
     picks = {b: np.sort(rng.choice(np.flatnonzero(rs.dataset == b), min(a.per, int(np.sum(rs.dataset == b))),
@@ -528,6 +578,25 @@ def main(argv=None) -> int:
         pooled_k = float(np.mean([r[k] for b in rs.datasets for r in dec[b]]))
         report["decomposition"][k] = {**vals, "pooled": pooled_k}
         print(f"  {k:48s} " + " ".join(f"{vals[b]:10.2f}" for b in rs.datasets) + f" {pooled_k:10.2f}")
+    # does the confidence say when the answer (map or one light) went wrong on these scenes?
+    print("\nthe confidence on these scenes (each fold's own confidence law, fitted as the shipped one on the other "
+          "two benchmarks' single-light photographs; the error of the product's answer, the decided map or one "
+          "light; a failure is above 6 degrees): n, failures, AUROC of (1 - confidence), flagged, caught")
+    fr = {b: flag_rows(scenes[b], outer_evs[b], outer_rows[b], {sc["i"]: rs.matrices[rs.camera[sc["i"]]]
+                                                                for sc in scenes[b]},
+                       outer_models[b], flags[b], chosen[b]) for b in rs.datasets}
+    report["confidence"] = {}
+    groups = [("single-light", lambda r: r["kind"] == "one light"), ("two-light", lambda r: r["kind"] == "two lights")]
+    groups += [(f"  {p} pairs", lambda r, p=p: r["pair"] == p) for p in PAIRS]
+    for b in list(rs.datasets) + ["pooled"]:
+        rows_b = [r for c in rs.datasets for r in fr[c]] if b == "pooled" else fr[b]
+        report["confidence"][b] = {}
+        print(f"  {b}" + (f" (flag threshold {flags[b].threshold:.3f})" if b != "pooled" else ""))
+        for name, keep in groups:
+            st = flag_stats([r for r in rows_b if keep(r)])
+            report["confidence"][b][name.strip()] = st
+            print(f"    {name:16s} {st['n']:5d} {st['failures']:6.1%} {st['auroc']:6.3f} {st['flagged']:6.1%} "
+                  f"{st['catch']:6.1%}")
     print("\npooled over the left-out benchmarks")
     report["pooled"] = {}
     for kind in ("two lights", "one light"):

@@ -347,3 +347,21 @@ def test_field_parts_compose_to_the_light_field():
         level, dev = LM.field_parts(np.array([0.3, 0.1]), ev, s)
         np.testing.assert_array_equal(LM.compose_field(level, dev, ev, s.gain), LM.light_field([0.3, 0.1], ev, s))
         assert np.all(dev[7] == 0)
+
+
+def test_flag_stats_counts_failures_flags_and_catches():
+    """benchmarks.mixed_light.flag_stats on six answers: two failures (above
+    6 degrees), one of them flagged, and one correct answer flagged."""
+    from benchmarks import mixed_light as ML
+
+    rows = [{"error": e, "confidence": c, "low": lo} for e, c, lo in
+            [(1.0, 0.9, False), (2.0, 0.8, False), (7.0, 0.2, True), (9.0, 0.6, False), (3.0, 0.3, True),
+             (0.5, 0.95, False)]]
+    st = ML.flag_stats(rows)
+    assert st["n"] == 6
+    assert st["failures"] == pytest.approx(2 / 6)
+    assert st["flagged"] == pytest.approx(2 / 6)
+    assert st["catch"] == pytest.approx(1 / 2)
+    # AUROC: of the 2 x 4 (failure, success) pairs, the failure is less confident in 7 (0.6 > 0.3 is the miss)
+    assert st["auroc"] == pytest.approx(7 / 8)
+    assert np.isnan(ML.flag_stats(rows[:2])["auroc"])       # no failure: no ranking to score
