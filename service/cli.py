@@ -49,7 +49,7 @@ import threading
 
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
-from .schemas.fields import BATCH, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
+from .schemas.fields import BATCH, BATCH_FORMATS, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
 
 
 def _lazy_module(name: str):
@@ -130,10 +130,10 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
                                                     "the file)"})
     if batch is None:
         return
-    add_options(ap, RENDERING, defaults={"format": None},
+    add_options(ap, RENDERING, defaults={"format": None}, choices={"format": BATCH_FORMATS} if batch else None,
                 describe={"format": "tiff (16-bit), png (8-bit), png16, jpeg; white-balance: taken from OUT's "
                                     "extension (.tif, .png, .jpg), and an error if this disagrees; batch: default "
-                                    "tiff; batch also takes dng: each RAW as OUT_DIR/NAME.dng, white balance inside"})
+                                    "tiff, or dng: each RAW as OUT_DIR/NAME.dng, its white balance inside"})
     ap.add_argument("-q", "--quiet", action="store_true",
                     help="no progress bar and no summary table; failures, notes and warnings still go to stderr")
     if batch:

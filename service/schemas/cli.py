@@ -31,20 +31,22 @@ def _is_int(annotation) -> bool:
     return int in args
 
 
-def add_options(parser, fields: dict, *, include=None, exclude=(), defaults=None, describe=None) -> list[str]:
+def add_options(parser, fields: dict, *, include=None, exclude=(), defaults=None, describe=None,
+                choices=None) -> list[str]:
     """Add the CLI options (those with ``Opt.cli``) of ``fields`` (a group of
     :mod:`service.schemas.fields`) to ``parser``; returns their names.
-    ``defaults``/``describe``: another default or help text per option for
-    this command."""
-    defaults, describe = defaults or {}, describe or {}
+    ``defaults``/``describe``/``choices``: another default, help text or
+    list of accepted values per option for this command."""
+    defaults, describe, choices = defaults or {}, describe or {}, choices or {}
     names = []
     for name, opt in fields.items():
         if not opt.cli or (include is not None and name not in include) or name in exclude:
             continue
         default = defaults.get(name, opt.given_default)
         text = describe.get(name, opt.description)
-        if opt.choices:
-            text += f" ({choices_help(opt.choices)})"
+        accepted = choices.get(name, opt.choices)
+        if accepted:
+            text += f" ({choices_help(accepted)})"
         if default is not None:
             text += f"; default: {default}"
         if opt.type is bool:
