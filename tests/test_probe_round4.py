@@ -1,0 +1,59 @@
+"""Round 4 of probing the service as a hostile-but-realistic user would
+(docs/probe_round4.md): each test is the minimal reproduction of one fault
+found, through the real ASGI stack (FastAPI's TestClient), and holds once
+the fault is fixed."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.schemas import responses as R
+from testing.dngwriter import scene_dng
+
+
+@pytest.fixture(scope="module")
+def dng() -> bytes:
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 64, 96, seed=1)
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    mp.setenv("WANDELL_DATA_DIR", str(tmp_path_factory.mktemp("store")))
+    from service.app import app
+    from service.routers import batches
+    from service.settings import get_settings
+
+    get_settings.cache_clear()
+    batches.stop_runner()
+    with TestClient(app, base_url="http://127.0.0.1") as c:
+        yield c
+    batches.stop_runner()
+    mp.undo()
+    get_settings.cache_clear()
+
+
+def _strict(text: str):
+    def bad(name):
+        raise ValueError(f"non-finite JSON constant {name}")
+    return json.loads(text, parse_constant=bad)
+
+
+@pytest.mark.parametrize("fmt", ["xmp", "dng"])
+def test_response_json_answers_json_whatever_the_format(client, dng, fmt):
+    """``response=json`` is "the estimate and correction matrix only"
+    (README, the field's description), but with ``format=xmp`` or
+    ``format=dng`` the answer was the sidecar (application/rdf+xml) or the
+    DNG: a client asking for JSON got a file it cannot parse."""
+    r = client.post("/v1/white-balance", files={"file": ("s.dng", dng)},
+                    data={"format": fmt, "response": "json"})
+    assert r.status_code == 200, r.text[:300]
+    assert r.headers["content-type"].startswith("application/json"), r.headers["content-type"]
+    R.WhiteBalanceResult.model_validate(_strict(r.text))
