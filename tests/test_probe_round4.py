@@ -57,3 +57,23 @@ def test_response_json_answers_json_whatever_the_format(client, dng, fmt):
     assert r.status_code == 200, r.text[:300]
     assert r.headers["content-type"].startswith("application/json"), r.headers["content-type"]
     R.WhiteBalanceResult.model_validate(_strict(r.text))
+
+
+def test_a_repeated_form_field_is_refused_not_resolved_to_its_last_value(client, dng):
+    """``method=auto&method=bayes`` ran bayes with a 200 (FastAPI keeps the
+    last value), as a misspelled field was ignored before issue 29: the
+    user cannot tell which of the two was used. Now a 422 naming the field;
+    a list field (a batch's ``files``) still takes one value per part."""
+    f = {"file": ("s.dng", dng)}
+    r = client.post("/v1/analyze", files=f, data={"method": ["auto", "bayes"]})
+    assert r.status_code == 422, r.text[:300]
+    body = _strict(r.text)
+    assert body["error"] == "repeated_field" and "'method'" in body["detail"]
+    r = client.post("/v1/white-balance", files=[("file", ("a.dng", dng)), ("file", ("b.dng", dng))],
+                    data={"format": "png"})
+    assert r.status_code == 422 and "'file'" in r.json()["detail"], r.text[:300]
+    r = client.delete("/v1/batches/0123456789abcdef?remove=true&remove=false")
+    assert r.status_code == 422 and r.json()["error"] == "repeated_field", r.text[:300]
+    r = client.post("/v1/batches", files=[("files", ("a.dng", dng)), ("files", ("b.dng", dng))],
+                    data={"format": "jpeg"})
+    assert r.status_code == 202, r.text[:300]
