@@ -77,3 +77,20 @@ def test_a_repeated_form_field_is_refused_not_resolved_to_its_last_value(client,
     r = client.post("/v1/batches", files=[("files", ("a.dng", dng)), ("files", ("b.dng", dng))],
                     data={"format": "jpeg"})
     assert r.status_code == 202, r.text[:300]
+
+
+@pytest.mark.parametrize("dims", [{"light_dim": "auto"}, {"surface_dim": "auto", "spatial": "true"}])
+def test_automatic_model_order_on_an_image_with_no_usable_pixel_is_a_422(client, dims):
+    """``method=maloney-wandell`` with ``surface_dim`` or ``light_dim``
+    ``auto`` (BIC) on an image whose every pixel is masked (all saturated
+    here) was a 500: ``recovery.model_order.select_dimensions`` took the
+    maximum of an empty array. The same request without ``auto`` was the
+    422 ``insufficient_surface_variation`` it is now."""
+    from testing.dngwriter import write_dng
+
+    buf = io.BytesIO()
+    write_dng(buf, np.full((48, 64), 16383, np.uint16), black_level=512, white_level=16383)
+    r = client.post("/v1/analyze", files={"file": ("sat.dng", buf.getvalue())},
+                    data={"method": "maloney-wandell", **dims})
+    assert r.status_code == 422, r.text[:300]
+    assert _strict(r.text)["error"] == "insufficient_surface_variation"
