@@ -62,10 +62,17 @@ def select_dimensions(pixels: np.ndarray, camera, light_model_for, surface_model
     -------
     (D(S), D(E)) chosen, and one row per candidate with its RSS, number of
     parameters, BIC and the light weights (or the reason it could not run).
+
+    Raises
+    ------
+    InsufficientSurfaceVariation
+        ``pixels`` has no rows (every pixel masked).
     """
     px = np.asarray(pixels, float)
     C = camera.channels
     n, nobs = px.shape[0], px.size
+    if n == 0:      # every pixel masked (saturated, dark): nothing to choose from
+        raise InsufficientSurfaceVariation("no usable pixels (all masked as dark, saturated or non-finite)")
     scale = np.max(np.abs(px)) or 1.0
     px = px / scale
     if candidates is None:

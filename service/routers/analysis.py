@@ -261,7 +261,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
                            f"combined with white={white!r}")
     data, sens = await _inputs(file, sensitivities, settings)
     await file.close()
-    if fmt.encoder in ("xmp", "dng"):
+    if fmt.encoder in ("xmp", "dng") and response != "json":   # response=json: the estimate whatever the format
         decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
                                        where, inp.display_referred, request=request)
         run = _with_white(decoded, run, white)

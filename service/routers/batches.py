@@ -367,6 +367,34 @@ class _Sink:
         return data
 
 
+class _ZipResponse(StreamingResponse):
+    """A batch's zip, counted in :data:`_zipping` from when it is made until
+    it is sent or given up: its results are opened one after the other while
+    it streams, so ``DELETE ?remove=true`` waits for it (409 ``downloading``)
+    instead of removing the files under it (the client got a cut, unreadable
+    zip and the log a traceback)."""
+
+    def __init__(self, batch_id: str, *args, **kw):
+        super().__init__(*args, **kw)
+        self.batch_id = batch_id
+        with _zipping_lock:
+            _zipping[batch_id] = _zipping.get(batch_id, 0) + 1
+
+    async def __call__(self, scope, receive, send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            with _zipping_lock:
+                _zipping[self.batch_id] -= 1
+                if _zipping[self.batch_id] <= 0:
+                    del _zipping[self.batch_id]
+
+
+#: batch id -> zip downloads of it being sent now
+_zipping: dict[str, int] = {}
+_zipping_lock = threading.Lock()
+
+
 def _zip_stream(entries: list[tuple[str, str]], texts: list[tuple[str, str]] = ()):
     sink = _Sink()
     with zipfile.ZipFile(sink, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
@@ -426,9 +454,8 @@ def batch_zip(batch_id: str):
     # batch.json: the batch's document (GET /v1/batches/{id}), the items flagged low confidence first
     summary = json.dumps(clean(_progress(batch_id)), indent=1) + "\n"
     texts = [(SUMMARY, summary)] + zip_texts(batch_id, rows, dict(entries))
-    return StreamingResponse(_zip_stream(entries, texts),
-                             media_type="application/zip",
-                             headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
+    return _ZipResponse(batch_id, _zip_stream(entries, texts), media_type="application/zip",
+                        headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
 
 
 @router.get("/batches", response_model=BatchList)
@@ -458,7 +485,8 @@ def cancel_batch_only(batch_id: str):
 
 
 @router.delete("/batches/{batch_id}", response_model=BatchDeleted | BatchProgress,
-               responses={409: {"description": "cancelled, but running items have not stopped yet: try again"}})
+               responses={409: {"description": "cancelled, but running items have not stopped yet, or its zip "
+                                               "is being downloaded: try again"}})
 def delete_batch(batch_id: str, remove: bool = Query(
         False, description="also delete the batch and its files once it is over (without it a DELETE only "
                            "cancels, and never deletes results)", examples=[True])):
@@ -470,7 +498,8 @@ def delete_batch(batch_id: str, remove: bool = Query(
     and settled) is deleted and the answer says how many bytes were freed;
     its URLs are 404 from then on; a batch still queued or running is
     cancelled first (``deleted: false``): send it again once ``settled``;
-    until then it is a 409 ``not_settled``."""
+    until then it is a 409 ``not_settled``, and while its zip is being
+    downloaded a 409 ``downloading``."""
     runner = get_runner()
     b = runner.store.batch(batch_id)
     if b is None:
@@ -482,6 +511,11 @@ def delete_batch(batch_id: str, remove: bool = Query(
         return JSONResponse(clean({**_progress(batch_id), "deleted": False,
                                    "note": "over already: nothing to cancel; DELETE with ?remove=true removes the "
                                            "batch and its files"}))
+    with _zipping_lock:
+        zipping = _zipping.get(batch_id, 0)
+    if zipping:
+        raise ServiceError(409, "downloading", f"batch {batch_id!r} is being downloaded as a zip ({zipping} "
+                           "download(s) in progress); DELETE it again with ?remove=true when they end")
     freed = runner.store.delete_batch(batch_id)
     if freed is None:
         raise ServiceError(409, "not_settled", f"batch {batch_id!r} is cancelled but its running items have not "

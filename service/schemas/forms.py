@@ -72,24 +72,41 @@ def _dependency(param, kind, model, include, exclude, choices, defaults, prefix,
     return dependency
 
 
-def _declared(dependant, query: set, body: set) -> None:
-    """The query and body (form) field names a route's dependency tree declares."""
+def _declared(dependant, query: set, body: set, many: set) -> None:
+    """The query and body (form) field names a route's dependency tree
+    declares; ``many``: those that take a list (given once per value)."""
     query.update(f.alias for f in dependant.query_params)
     body.update(f.alias for f in dependant.body_params)
+    many.update(f.alias for f in (*dependant.query_params, *dependant.body_params)
+                if "list[" in str(f.field_info.annotation))
     for sub in dependant.dependencies:
-        _declared(sub, query, body)
+        _declared(sub, query, body, many)
 
 
 _ACCEPTED: dict = {}   # route -> (query names, form names)
 
 
-def _accepted(route) -> tuple[set, set]:
+def _accepted(route) -> tuple[set, set, set]:
     got = _ACCEPTED.get(id(route))
     if got is None or got[0] is not route:
-        query, body = set(), set()
-        _declared(route.dependant, query, body)
-        got = _ACCEPTED[id(route)] = (route, query, body)
-    return got[1], got[2]
+        query, body, many = set(), set(), set()
+        _declared(route.dependant, query, body, many)
+        got = _ACCEPTED[id(route)] = (route, query, body, many)
+    return got[1], got[2], got[3]
+
+
+def _repeated(items, many: set) -> list[str]:
+    """Names given more than once that take one value (FastAPI keeps the
+    last one: ``method=auto&method=bayes`` ran bayes with a 200)."""
+    seen: dict = {}
+    for k, _ in items:
+        seen[k] = seen.get(k, 0) + 1
+    return sorted(k for k, n in seen.items() if n > 1 and k not in many)
+
+
+def _repeated_text(where: str, names: list[str]) -> str:
+    return (f"{where} field{'s' if len(names) > 1 else ''} {', '.join(map(repr, names))} given more than once; "
+            "each takes one value: give it once")
 
 
 def _unknown_text(where: str, names: list[str], accepted: set) -> str:
@@ -108,17 +125,23 @@ async def reject_unknown_fields(request: Request) -> None:
     the accepted ones, instead of being ignored (``taget=A`` rendered D65
     with a 200). The form is the one FastAPI has parsed already (Starlette
     keeps it on the request), so nothing is read twice. Routes left out of
-    the OpenAPI document (the web page, its assets) are not checked."""
+    the OpenAPI document (the web page, its assets) are not checked. A
+    field that takes one value given twice is a 422 ``repeated_field``
+    (FastAPI would keep the last one)."""
     route = request.scope.get("route")
     if route is None or not getattr(route, "include_in_schema", False) or not hasattr(route, "dependant"):
         return
-    query, body = _accepted(route)
+    query, body, many = _accepted(route)
     unknown = sorted({k for k in request.query_params.keys() if k not in query})
     if unknown:
         raise ServiceError(422, "unknown_field", _unknown_text("query", unknown, query))
+    if repeated := _repeated(request.query_params.multi_items(), many):
+        raise ServiceError(422, "repeated_field", _repeated_text("query", repeated))
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if body and ctype in ("multipart/form-data", "application/x-www-form-urlencoded"):
         form_data = await request.form()
         unknown = sorted({k for k in form_data.keys() if k not in body})
         if unknown:
             raise ServiceError(422, "unknown_field", _unknown_text("form", unknown, body))
+        if repeated := _repeated(form_data.multi_items(), many):
+            raise ServiceError(422, "repeated_field", _repeated_text("form", repeated))
