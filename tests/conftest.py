@@ -153,6 +153,41 @@ def load_real_once():
     return load
 
 
+def scene_dng_bytes(height: int, width: int, camera: str = "Nikon 5100 (NPL)", light: str = "D65",
+                    seed: int = 1) -> bytes:
+    """A small synthetic scene as DNG bytes (:func:`testing.dngwriter.scene_dng`)."""
+    import io
+
+    from testing.dngwriter import scene_dng
+
+    buf = io.BytesIO()
+    scene_dng(buf, camera, light, height, width, seed=seed)
+    return buf.getvalue()
+
+
+def isolated_app_client(store: Path, **client_kw):
+    """Yield a TestClient of the real app on a store of its own (``store``;
+    settings re-read, the process-wide batch runner stopped before and
+    after), for a module-scoped fixture."""
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+    from service.routers import batches
+    from service.settings import get_settings
+
+    mp = pytest.MonkeyPatch()
+    mp.setenv("WANDELL_DATA_DIR", str(store))
+    get_settings.cache_clear()
+    batches.stop_runner()
+    try:
+        with TestClient(app, **client_kw) as c:
+            yield c
+    finally:
+        batches.stop_runner()
+        mp.undo()
+        get_settings.cache_clear()
+
+
 @contextlib.contextmanager
 def running_server(env: dict | None = None, timeout: float = 60.0):
     """``python -m service`` (as the README starts it) on a free loopback

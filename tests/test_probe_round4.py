@@ -10,34 +10,20 @@ import json
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
 
 from service.schemas import responses as R
-from testing.dngwriter import scene_dng
+
+from .conftest import isolated_app_client, scene_dng_bytes
 
 
 @pytest.fixture(scope="module")
 def dng() -> bytes:
-    buf = io.BytesIO()
-    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 64, 96, seed=1)
-    return buf.getvalue()
+    return scene_dng_bytes(64, 96)
 
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
-    mp.setenv("WANDELL_DATA_DIR", str(tmp_path_factory.mktemp("store")))
-    from service.app import app
-    from service.routers import batches
-    from service.settings import get_settings
-
-    get_settings.cache_clear()
-    batches.stop_runner()
-    with TestClient(app, base_url="http://127.0.0.1") as c:
-        yield c
-    batches.stop_runner()
-    mp.undo()
-    get_settings.cache_clear()
+    yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
 
 
 def _strict(text: str):

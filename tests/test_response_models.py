@@ -15,35 +15,21 @@ import typing
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
 from pydantic import BaseModel
 
 from service.schemas import responses as R
-from testing.dngwriter import scene_dng
+
+from .conftest import isolated_app_client, scene_dng_bytes
 
 
 @pytest.fixture(scope="module")
 def dng() -> bytes:
-    buf = io.BytesIO()
-    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 96, 128, seed=1)
-    return buf.getvalue()
+    return scene_dng_bytes(96, 128)
 
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
-    mp.setenv("WANDELL_DATA_DIR", str(tmp_path_factory.mktemp("store")))
-    from service.app import app
-    from service.routers import batches
-    from service.settings import get_settings
-
-    get_settings.cache_clear()
-    batches.stop_runner()
-    with TestClient(app) as c:
-        yield c
-    batches.stop_runner()
-    mp.undo()
-    get_settings.cache_clear()
+    yield from isolated_app_client(tmp_path_factory.mktemp("store"))
 
 
 def _model_of(annotation):
