@@ -73,22 +73,17 @@ _FLOOR = 2e-3
 def window_features(rs) -> np.ndarray:
     """(N, 9, F, 2) the classical estimates of each image's 3 x 3 windows
     (NaN where a window is unusable), as :func:`recovery.light_mixture.window_evidence` reads them."""
-    from recovery.light_mixture import MIN_WINDOW_CELLS, STEP, WINDOW, _starts
+    from recovery.light_mixture import MIN_WINDOW_CELLS, window_slices
 
     out = np.full((len(rs.truth), 9, len(L.FEATURE_NAMES), 2), np.nan)
     for i, (img, cam) in enumerate(zip(rs.images, rs.camera)):
         can, ok, _, _ = L.canonical_analysis(img, usable_mask(img), rs.matrices[cam], L.BRADFORD)
-        h, w = ok.shape
-        k = 0
-        for r in _starts(h, WINDOW, STEP):
-            for c in _starts(w, WINDOW, STEP):
-                sl = (slice(r, min(h, r + WINDOW)), slice(c, min(w, c + WINDOW)))
-                if k < 9 and int(ok[sl].sum()) >= MIN_WINDOW_CELLS:
-                    try:
-                        out[i, k] = L.features(can[sl], ok[sl])
-                    except L.InsufficientSurfaceVariation:
-                        pass
-                k += 1
+        for k, sl in enumerate(window_slices(ok.shape)[0][:9]):
+            if int(ok[sl].sum()) >= MIN_WINDOW_CELLS:
+                try:
+                    out[i, k] = L.features(can[sl], ok[sl])
+                except L.InsufficientSurfaceVariation:
+                    pass
     return out
 
 

@@ -229,16 +229,11 @@ def true_window_uv(light: np.ndarray, ev, K: np.ndarray, valid_px: np.ndarray) -
     """(n, 2) the true light averaged over each window's pixels (the
     windows of :func:`recovery.light_mixture.window_evidence`), canonical
     log-chroma; NaN where a window has no valid pixel."""
-    h, w = light.shape[:2]
     out = np.full((len(ev.centres), 2), np.nan)
-    k = 0
-    for r in LM._starts(h, LM.WINDOW, LM.STEP):
-        for c in LM._starts(w, LM.WINDOW, LM.STEP):
-            sl = (slice(r, r + LM.WINDOW), slice(c, c + LM.WINDOW))
-            px = light[sl][valid_px[sl]]
-            if len(px):
-                out[k] = L.rgb_to_uv(K @ px.mean(axis=0))
-            k += 1
+    for k, sl in enumerate(LM.window_slices(light.shape)[0]):
+        px = light[sl][valid_px[sl]]
+        if len(px):
+            out[k] = L.rgb_to_uv(K @ px.mean(axis=0))
     return out
 
 

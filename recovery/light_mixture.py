@@ -63,7 +63,7 @@ import numpy as np
 from .learned import (REFERENCE, LearnedModel, _spread, rgb_to_uv, uv_to_rgb, variance_from_spread,
                       window_features)
 
-__all__ = ["WINDOW", "STEP", "MixtureSettings", "DEFAULT_SETTINGS", "WindowEvidence", "window_evidence",
+__all__ = ["WINDOW", "STEP", "MixtureSettings", "DEFAULT_SETTINGS", "WindowEvidence", "window_slices", "window_evidence",
            "mixture_statistic", "field_parts", "compose_field", "light_field", "decide", "MIN_RANGE_DEG"]
 
 #: Windows of this many analysis cells (of the 64 x 64 grid the learnt model
@@ -125,6 +125,17 @@ def _starts(n: int, size: int, step: int) -> list[int]:
     return s
 
 
+def window_slices(shape, window: int = WINDOW, step: int = STEP) -> tuple[list[tuple[slice, slice]], tuple]:
+    """The overlapping windows of an (h, w) analysis grid, row by row:
+    ``(slices, (rows, cols))``, each window ``window`` cells on a side (less
+    where the grid is smaller), every ``step`` cells, the last flush with
+    the grid's edge."""
+    h, w = shape[:2]
+    rs, cs = _starts(h, window, step), _starts(w, window, step)
+    return ([(slice(r, min(h, r + window)), slice(c, min(w, c + window))) for r in rs for c in cs],
+            (len(rs), len(cs)))
+
+
 def window_evidence(can: np.ndarray, ok: np.ndarray, model: LearnedModel, gamut_fraction: float = 0.0,
                     window: int = WINDOW, step: int = STEP) -> WindowEvidence:
     """Each overlapping window's light by the learnt model.
@@ -144,18 +155,12 @@ def window_evidence(can: np.ndarray, ok: np.ndarray, model: LearnedModel, gamut_
         model's limit the reference estimate stands, as for the whole image)
     """
     h, w = ok.shape
-    rs, cs = _starts(h, window, step), _starts(w, window, step)
-    n = len(rs) * len(cs)
+    wins, grid = window_slices((h, w), window, step)
+    n = len(wins)
     uv = np.full((n, 2), np.nan)
     var = np.full(n, np.nan)
-    centres = np.zeros((n, 2))
+    centres = np.array([((a.start + a.stop - 1) / 2.0, (b.start + b.stop - 1) / 2.0) for a, b in wins])
     valid = np.zeros(n, bool)
-    wins = []
-    for r in rs:
-        for c in cs:
-            sl = (slice(r, min(h, r + window)), slice(c, min(w, c + window)))
-            centres[len(wins)] = ((sl[0].start + sl[0].stop - 1) / 2.0, (sl[1].start + sl[1].stop - 1) / 2.0)
-            wins.append(sl)
     enough = [k for k, sl in enumerate(wins) if int(ok[sl].sum()) >= MIN_WINDOW_CELLS]
     idx, feats = [], []
     if enough:
@@ -170,7 +175,7 @@ def window_evidence(can: np.ndarray, ok: np.ndarray, model: LearnedModel, gamut_
         uv[idx] = u
         var[idx] = variance_from_spread(_spread(f, u), model.sigma)
         valid[idx] = True
-    return WindowEvidence(uv, var, centres, valid, (h, w), (len(rs), len(cs)))
+    return WindowEvidence(uv, var, centres, valid, (h, w), grid)
 
 
 def _principal(uv: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

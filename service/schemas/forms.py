@@ -83,7 +83,7 @@ def _declared(dependant, query: set, body: set, many: set) -> None:
         _declared(sub, query, body, many)
 
 
-_ACCEPTED: dict = {}   # route -> (query names, form names)
+_ACCEPTED: dict = {}   # id(route) -> (route, query names, form names, names that take a list)
 
 
 def _accepted(route) -> tuple[set, set, set]:
@@ -98,10 +98,9 @@ def _accepted(route) -> tuple[set, set, set]:
 def _repeated(items, many: set) -> list[str]:
     """Names given more than once that take one value (FastAPI keeps the
     last one: ``method=auto&method=bayes`` ran bayes with a 200)."""
-    seen: dict = {}
-    for k, _ in items:
-        seen[k] = seen.get(k, 0) + 1
-    return sorted(k for k, n in seen.items() if n > 1 and k not in many)
+    from collections import Counter
+
+    return sorted(k for k, n in Counter(k for k, _ in items).items() if n > 1 and k not in many)
 
 
 def _repeated_text(where: str, names: list[str]) -> str:
