@@ -8,9 +8,13 @@ Every item ends exactly once whatever happens to the process that runs it
 - a graceful stop (SIGTERM, Ctrl-C: :meth:`BatchRunner.stop`) puts the items
   in flight back to ``pending`` (journalled), run again after the restart;
 - a worker lost (a pool worker killed, a Dask worker or client lost) puts
-  its item back to ``pending``, at most :data:`~service.batch.store.MAX_ATTEMPTS`
-  runs, then ``failed`` with the reason; a broken pool or a closed Dask
-  client is replaced at the next step;
+  its item back to ``pending``; a broken pool or a closed Dask client is
+  replaced at the next step. On the local pool, the items that were in flight
+  when it broke are not charged: they run again one at a time, alone in the
+  pool, before anything else (culprit isolation), and only an item whose
+  worker dies while it runs alone is charged, ``failed`` as ``worker_killed``
+  after :data:`~service.batch.store.MAX_ATTEMPTS` such runs. On Dask, any
+  item whose worker is lost is charged, at most ``MAX_ATTEMPTS`` runs;
 - a result that cannot be recorded (the store's disk full, the store
   locked) is kept and recorded at a later step, so no item stays
   ``running``; an item whose output could not be written for want of space
@@ -104,6 +108,15 @@ class BatchRunner:
         self._next_idle_check = 0.0
         self._next_cleanup = 0.0
         self._last_log: dict = {}
+        #: what a pool worker runs for an item. Tests put here a function that ends its worker for
+        #: some items (``testing.faults``); settable from Python only (no request, option or variable)
+        self.item_fn = process_item
+        #: culprit isolation: items in flight when the local pool broke, (batch, idx) -> how often
+        #: their worker was lost while they ran alone; they run one at a time before anything else
+        self._suspects: dict = {}
+        self._solo = None                  # the suspect running alone now
+        #: items failed as ``worker_killed`` (their worker died each time they ran alone), since start
+        self.worker_kills = 0
 
     @property
     def executor(self):
@@ -200,7 +213,8 @@ class BatchRunner:
                "executor": getattr(self._executor, "kind", None) or ("dask" if self.config.dask_scheduler
                                                                       else "local"),
                "executor_rebuilds": self.executor_rebuilds, "unrecorded_results": len(self._unrecorded),
-               "records_deferred": self.records_deferred, "disk_full_retries": self.disk_full_retries}
+               "records_deferred": self.records_deferred, "disk_full_retries": self.disk_full_retries,
+               "isolating": len(self._suspects), "worker_kills": self.worker_kills}
         if self.executor_error:
             doc["runner_error"] = self.executor_error
             doc["since"] = self.error_since
@@ -373,6 +387,11 @@ class BatchRunner:
         capacity = self._capacity()
         if capacity is None:
             return
+        if self._suspects and self._local():   # a pool broke: find which item ended its worker first
+            self._isolation_step()
+            for bid in active:
+                self._finish(bid)
+            return
         for bid in active:
             b = self.store.batch(bid)
             if b is None or b["status"] != "running":
@@ -389,7 +408,7 @@ class BatchRunner:
             if room > 0:
                 for row in self.store.claim(bid, room):
                     try:
-                        fut = self.executor.submit(process_item, self._task(row, options, light))
+                        fut = self.executor.submit(self.item_fn, self._task(row, options, light))
                     except Exception as e:  # a broken pool or closed client: back to pending, replaced next step
                         self._record(self.store.requeue_item, bid, row["idx"],
                                      f"executor_error: {type(e).__name__}: {e}")
@@ -425,11 +444,83 @@ class BatchRunner:
             with contextlib.suppress(Exception):
                 self._finish(args[0])
 
+    def _local(self) -> bool:
+        """Whether items run on the local process pool (where culprit isolation applies)."""
+        if self._executor is not None:
+            return getattr(self._executor, "kind", "local") == "local"
+        return not self.config.dask_scheduler
+
+    def _isolation_step(self) -> None:
+        """Culprit isolation: once nothing is in flight, run one suspect (an
+        item in flight when the pool broke) alone in the pool. A suspect no
+        longer pending (cancelled, removed, finished) is dropped."""
+        with self._lock:
+            if self._solo is not None or self._inflight or any(
+                    not f.done() for est, lf in self._light_jobs.values() for f in
+                    [f for _, f in est] + ([lf] if lf is not None else [])):
+                return
+            keys = sorted(self._suspects)
+        for key in keys:
+            bid, idx = key
+            b, row = self.store.batch(bid), self.store.item_by_index(bid, idx)
+            if row is None or row["status"] not in ("pending", "running") or b is None \
+                    or b["status"] not in ("queued", "running"):
+                with self._lock:
+                    self._suspects.pop(key, None)
+                continue
+            if row["status"] != "pending" or not self.store.claim(bid, 1, idx):  # a requeue not yet recorded
+                continue
+            light = json.loads(b["light"]) if b["light"] else None
+            task = self._task(row, BatchOptions.from_json(b["options"]), light)
+            try:
+                fut = self.executor.submit(self.item_fn, task)
+            except Exception as e:   # a broken pool: back to pending, still a suspect
+                self._record(self.store.requeue_item, bid, idx, f"executor_error: {type(e).__name__}: {e}")
+                return
+            with self._lock:
+                self._inflight[key] = fut
+                self._solo = key
+            fut.add_done_callback(lambda f, k=key: self._done(k, f))
+            return
+
+    def _lost_in_pool(self, key, solo: bool, e: BaseException) -> None:
+        """A local pool worker died under item ``key``: not charged unless it
+        ran alone (then it was the culprit); failed as ``worker_killed`` once
+        its worker died in ``max_attempts`` runs alone."""
+        bid, idx = key
+        with self._lock:
+            n = self._suspects.get(key, 0) + int(solo)
+            give_up = solo and n >= self.config.max_attempts
+            if give_up:
+                self._suspects.pop(key, None)
+            else:
+                if key not in self._suspects:
+                    self._log_once("isolate", "a pool worker died: the items that were in flight run again one "
+                                   "at a time, alone in the pool, to find which one ended it")
+                self._suspects[key] = n
+        if give_up:
+            self.worker_kills += 1
+            self._record(self.store.requeue_item, bid, idx, f"worker_lost: {type(e).__name__}", None,
+                         f"worker_killed: processing this item ended its worker process {n} times when it ran "
+                         f"alone in the pool ({type(e).__name__}: the file may crash the decoder, or need more "
+                         "memory than a worker may take)")
+        else:
+            self._record(self.store.requeue_item, bid, idx, f"worker_lost: {type(e).__name__}: {e}"
+                         + (" (it ran alone)" if solo else "; it runs again alone in the pool"))
+        self._record(self._finish, bid)
+        self._wake.set()
+
     def _done(self, key, fut) -> None:
         bid, idx = key
         with self._lock:
             self._inflight.pop(key, None)
+            solo = self._solo == key
+            if solo:
+                self._solo = None
         stopping = self._stop.is_set()
+        if stopping or fut.cancelled() or fut.exception() is None:   # not a worker death: no longer a suspect
+            with self._lock:
+                self._suspects.pop(key, None)
         if fut.cancelled():  # dropped before it started
             if stopping:
                 self._record(self.store.requeue_item, bid, idx, "stopped: the server stopped before it ran")
@@ -443,6 +534,8 @@ class BatchRunner:
             reason = f"worker_lost: {type(e).__name__}: {e}"
             if stopping:
                 self._record(self.store.requeue_item, bid, idx, reason)
+            elif self._local() and _worker_lost(e):
+                self._lost_in_pool(key, solo, e)
             else:
                 self._record(self.store.requeue_item, bid, idx, reason, self.config.max_attempts)
                 self._record(self._finish, bid)

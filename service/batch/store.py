@@ -562,11 +562,11 @@ class JobStore:
             return db.execute("UPDATE batches SET status = 'running', started = COALESCE(started, ?) "
                               "WHERE id = ? AND status = 'queued'", (time.time(), batch_id)).rowcount == 1
 
-    def claim(self, batch_id: str, limit: int) -> list:
-        """Move up to ``limit`` pending items to running; returns them."""
+    def claim(self, batch_id: str, limit: int, idx: int | None = None) -> list:
+        """Move up to ``limit`` pending items (or only item ``idx``) to running; returns them."""
         with self._tx() as db:
-            rows = db.execute("SELECT * FROM items WHERE batch_id = ? AND status = 'pending' ORDER BY idx LIMIT ?",
-                              (batch_id, limit)).fetchall()
+            rows = db.execute("SELECT * FROM items WHERE batch_id = ? AND status = 'pending' AND (? IS NULL OR "
+                              "idx = ?) ORDER BY idx LIMIT ?", (batch_id, idx, idx, limit)).fetchall()
             for r in rows:
                 db.execute("UPDATE items SET status = 'running', attempts = attempts + 1, started = ? "
                            "WHERE batch_id = ? AND idx = ? AND status = 'pending'", (time.time(), batch_id, r["idx"]))
@@ -588,11 +588,13 @@ class JobStore:
                           error=None if ok else str(result.get("error")))
         return n == 1
 
-    def requeue_item(self, batch_id: str, idx: int, reason: str, max_attempts: int | None = None) -> str | None:
+    def requeue_item(self, batch_id: str, idx: int, reason: str, max_attempts: int | None = None,
+                     give_up: str | None = None) -> str | None:
         """``running`` -> ``pending`` again: its worker went away before it
         answered (a graceful stop, a killed pool worker, a lost Dask worker
         or client). With ``max_attempts``, an item already run that many
-        times is ``failed`` instead, with ``reason`` and the count. Returns
+        times is ``failed`` instead, with ``reason`` and the count; with
+        ``give_up``, it is ``failed`` with that text. Returns
         the new status (None: the item was no longer running). Journalled,
         so a store rebuilt from the folders finds it pending too."""
         with self._tx() as db:
@@ -605,8 +607,8 @@ class JobStore:
                 db.execute("UPDATE items SET status = 'cancelled', finished = ? WHERE batch_id = ? AND idx = ? "
                            "AND status = 'running'", (time.time(), batch_id, idx))
                 err, status = None, "cancelled"
-            elif max_attempts is not None and row["attempts"] >= max_attempts:
-                err = f"{reason} (run {row['attempts']} times, each time its worker was lost)"
+            elif give_up is not None or max_attempts is not None and row["attempts"] >= max_attempts:
+                err = give_up or f"{reason} (run {row['attempts']} times, each time its worker was lost)"
                 db.execute("UPDATE items SET status = 'failed', error = ?, finished = ? WHERE batch_id = ? "
                            "AND idx = ? AND status = 'running'", (err, time.time(), batch_id, idx))
                 status = "failed"
