@@ -34,11 +34,15 @@ mid-batch until an item's end has met it, and 2 s more; at most 60 s),
 mid-batch until an item's output or state change has met it, and 2 s more;
 at most 60 s, then freed), ``scheduler_lost`` (the Dask
 scheduler and worker killed, back after 25 s: longer than the client's
-20 s reconnection timeout).
+20 s reconnection timeout), ``culprit`` (one item of the batch, the third,
+kills its pool worker with SIGKILL each time it runs, as a file that crashes
+the decoder or meets the OOM killer would, through the test-only
+:func:`testing.faults.process_or_die`; the others must end done, it alone
+``failed`` as ``worker_killed``).
 
 Prints one line per fault with the totals over its runs, and exits 1 if any
 item was stuck or duplicated, or failed under a fault that must not fail
-items.
+items (under ``culprit``: if any item but the culprit failed, or it did not).
 """
 
 from __future__ import annotations
@@ -57,7 +61,10 @@ import threading
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-FAULTS = ("stop", "kill9", "worker_killed", "store_lost", "store_locked", "disk_full", "scheduler_lost")
+FAULTS = ("stop", "kill9", "worker_killed", "store_lost", "store_locked", "disk_full", "scheduler_lost",
+          "culprit")
+#: faults under which exactly one item must fail (the others done): the item that kills its worker
+ONE_FAILS = ("culprit",)
 
 
 def _inputs(folder: str, n: int) -> list[tuple[str, str]]:
@@ -173,6 +180,10 @@ def run_once(fault: str, work: str, srcs: list, dask: dict | None = None) -> dic
             dask["start"]()
         else:
             runner = _runner(data)
+            if fault == "culprit":
+                from testing.faults import process_or_die
+
+                runner.item_fn = process_or_die({srcs[min(2, len(srcs) - 1)][0]})
             runner.start()
             _wait_running(store, bid)
             if fault in ("stop", "store_lost"):
@@ -208,6 +219,10 @@ def run_once(fault: str, work: str, srcs: list, dask: dict | None = None) -> dic
         _settle(runner.store, bid)
         got = _count(runner.store, bid)
         got["hit"] = int(hit if hit is not None else got["requeued"] > 0)
+        if fault == "culprit":   # the culprit failed as worker_killed, and no other item failed
+            bad = [r["name"] for r in runner.store.items(bid) if r["status"] == "failed"]
+            killed = [r["name"] for r in runner.store.items(bid) if (r["error"] or "").startswith("worker_killed")]
+            got["wrong_failed"] = int(bad != killed or len(killed) != 1)
         runner.stop()
         return got
     finally:
@@ -257,7 +272,8 @@ def main(argv=None) -> int:
     try:
         for fault in faults:
             runs = args.dask_runs if fault == "scheduler_lost" and args.dask_runs is not None else args.runs
-            total = {"done": 0, "failed": 0, "stuck": 0, "duplicated": 0, "locks_left": 0, "requeued": 0, "hit": 0}
+            total = {"done": 0, "failed": 0, "stuck": 0, "duplicated": 0, "locks_left": 0, "requeued": 0, "hit": 0,
+                     "wrong_failed": 0}
             dask = _dask_cluster(base) if fault == "scheduler_lost" else None
             t0 = time.monotonic()
             try:
@@ -271,16 +287,19 @@ def main(argv=None) -> int:
                         print(f"{fault:15s} skipped: {e}", flush=True)
                         break
                     for k in total:
-                        total[k] += got[k]
+                        total[k] += got.get(k, 0)
                     shutil.rmtree(work, ignore_errors=True)
                 else:
                     n = runs * len(srcs)
                     print(f"{fault:15s} {runs} runs x {len(srcs)} items: done {total['done']}/{n}, failed "
                           f"{total['failed']}, stuck {total['stuck']}, duplicated {total['duplicated']}, lock files "
                           f"left {total['locks_left']}, re-queued {total['requeued']} times, the fault reached items in "
-                          f"{total['hit']} of {runs} runs  "
+                          f"{total['hit']} of {runs} runs"
+                          + (f", runs where another item failed or the culprit did not: {total['wrong_failed']}"
+                             if fault in ONE_FAILS else "") + "  "
                           f"({time.monotonic() - t0:.0f} s)", flush=True)
-                    bad |= bool(total["stuck"] or total["duplicated"] or total["failed"])
+                    bad |= bool(total["stuck"] or total["duplicated"] or total["wrong_failed"]
+                                or total["failed"] != (runs if fault in ONE_FAILS else 0))
             finally:
                 if dask:
                     dask["kill"]()

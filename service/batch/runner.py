@@ -511,12 +511,23 @@ class BatchRunner:
         self._wake.set()
 
     def _done(self, key, fut) -> None:
-        bid, idx = key
+        """An item's future ended: record its state (:meth:`_settle`). It
+        leaves the in-flight set only once recorded, so a stop that looks
+        at the set meanwhile re-queues it itself (a no-op if done twice)."""
         with self._lock:
-            self._inflight.pop(key, None)
             solo = self._solo == key
             if solo:
                 self._solo = None
+        try:
+            self._settle(key, fut, solo)
+        finally:
+            with self._lock:
+                if self._inflight.get(key) is fut:
+                    del self._inflight[key]
+            self._wake.set()
+
+    def _settle(self, key, fut, solo: bool) -> None:
+        bid, idx = key
         stopping = self._stop.is_set()
         if stopping or fut.cancelled() or fut.exception() is None:   # not a worker death: no longer a suspect
             with self._lock:
