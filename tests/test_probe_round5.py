@@ -5,6 +5,7 @@ faults found by probing ``python -m service``, each with its regression test."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -86,3 +87,168 @@ def test_suspects_run_alone_and_nothing_else_runs_meanwhile(tmp_path, dngs):
         runner.stop()
     assert doc["counts"]["done"] == 3 and doc["counts"]["failed"] == 1, doc["counts"]
     assert seen > 0 and most == 1
+
+
+# --------------------------------------------------------------------------- faults found by probing the server
+
+def _start_server(env: dict, log_path: str):
+    """``python -m service`` (as users start it) on a free port."""
+    import socket
+    import subprocess
+    import sys
+
+    import httpx
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    full = {**os.environ, "WANDELL_HOST": "127.0.0.1", "WANDELL_PORT": str(port), "WANDELL_BATCH_WORKERS": "1",
+            **env}
+    proc = subprocess.Popen([sys.executable, "-m", "service"], env=full, stdout=open(log_path, "w"),
+                            stderr=subprocess.STDOUT, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    base = f"http://127.0.0.1:{port}"
+    t_end = time.monotonic() + 60
+    while time.monotonic() < t_end and proc.poll() is None:
+        try:
+            if httpx.get(base + "/health", timeout=2).status_code == 200:
+                return base, proc
+        except httpx.HTTPError:
+            time.sleep(0.2)
+    proc.kill()
+    pytest.fail(f"the server did not start: {open(log_path).read()[-2000:]}")
+
+
+def _tree(path, fn):
+    for dirpath, dirs, files in os.walk(path):
+        for n in dirs + files:
+            fn(os.path.join(dirpath, n))
+    fn(path)
+
+
+@contextlib.contextmanager
+def _read_only(data: str):
+    """``data`` made read-only: its files' and folders' write bits removed;
+    as root (which permissions do not stop) a read-only bind mount of it
+    instead, or a skip where mounting is not permitted."""
+    import stat
+    import subprocess
+
+    if os.geteuid() != 0:
+        _tree(data, lambda p: os.chmod(p, os.stat(p).st_mode & ~(stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)))
+        try:
+            yield
+        finally:
+            _tree(data, lambda p: os.chmod(p, os.stat(p).st_mode | stat.S_IWUSR))
+        return
+    if subprocess.run(["mount", "--bind", data, data], capture_output=True).returncode != 0:
+        pytest.skip("running as root (permissions do not stop it) and a read-only bind mount is not permitted")
+    try:
+        if subprocess.run(["mount", "-o", "remount,bind,ro", data], capture_output=True).returncode != 0:
+            pytest.skip("running as root and the bind mount cannot be made read-only")
+        yield
+    finally:
+        subprocess.run(["umount", "-l", data], capture_output=True)
+
+
+def test_a_read_only_data_directory_serves_its_batches_read_only_and_says_so(tmp_path, dngs):
+    """A server started on a data directory whose files are read-only (a
+    restored backup, another owner's volume) used to say ``/health`` ok while
+    every batch URL was a 503 (the runner could not re-queue, so nothing
+    started). Now the finished results are served, ``/health`` is degraded
+    with ``job_store.status = read_only``, and every write (a new batch, a
+    cancel, a removal) is a 503 ``job_store_read_only``: no 500, nothing
+    changed on disk."""
+    import shutil
+    import tempfile
+
+    import httpx
+
+    data = tempfile.mkdtemp(prefix="wandell-ro-")
+    os.chmod(data, 0o755)
+    runner = jobs.BatchRunner(jobs.RunnerConfig(data, workers=1, poll_s=0.05))
+    done = _batch(runner.store, dngs, n=2)
+    runner.start()
+    try:
+        assert runner.wait(done, 300)["counts"]["done"] == 2
+    finally:
+        runner.stop()
+    queued = _batch(runner.store, dngs, n=2)          # made, never run
+    result = runner.store.item_by_index(done, 0)["out"]
+    before = {p: os.stat(p).st_mtime_ns for p in [os.path.join(data, "jobs.sqlite"), result]}
+    log = str(tmp_path / "server.log")
+    with _read_only(data):
+        base, proc = _start_server({"WANDELL_DATA_DIR": data}, log)
+        try:
+            _read_only_answers(base, done, queued, result, dngs)
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    assert {p: os.stat(p).st_mtime_ns for p in before} == before
+    text = open(log).read()
+    assert " 500 " not in text and "Traceback" not in text, text[-3000:]
+    shutil.rmtree(data, ignore_errors=True)
+
+
+def _read_only_answers(base, done, queued, result, dngs):
+    import httpx
+
+    h = httpx.get(base + "/health").json()
+    assert h["status"] == "degraded" and h["job_store"]["status"] == "read_only", h
+    assert "read_only_store" in h["job_store"]["error"]
+    assert httpx.get(f"{base}/v1/batches/{done}").json()["counts"]["done"] == 2
+    r = httpx.get(f"{base}/v1/batches/{done}/items/by-index/0")
+    assert r.status_code == 200 and r.content == open(result, "rb").read()
+    assert httpx.get(f"{base}/v1/batches/{done}/zip").status_code == 200
+    q = httpx.get(f"{base}/v1/batches/{queued}").json()
+    assert q["status"] == "queued" and q["runner_error"].startswith("read_only_store"), q
+    with open(dngs / "im0.dng", "rb") as f:
+        r = httpx.post(f"{base}/v1/batches", files={"files": ("a.dng", f.read())})
+    assert r.status_code == 503 and r.json()["error"] == "job_store_read_only", r.text
+    r = httpx.post(f"{base}/v1/batches/{queued}/cancel")
+    assert r.status_code == 503 and r.json()["error"] == "job_store_read_only", r.text
+    r = httpx.delete(f"{base}/v1/batches/{done}", params={"remove": "true"})
+    assert r.status_code == 503 and r.json()["error"] == "job_store_read_only", r.text
+
+
+def test_a_store_that_cannot_be_opened_makes_health_degraded(tmp_path):
+    """A data directory that cannot hold the store (here a regular file in
+    its place) used to leave ``/health`` ok (``not_started``) while the batch
+    endpoints answered 503: it now says ``unavailable`` and why."""
+    from .conftest import isolated_app_client
+
+    bad = tmp_path / "not-a-dir"
+    bad.write_text("x")
+    for c in isolated_app_client(bad):
+        r = c.get("/v1/batches")
+        assert r.status_code == 503 and r.json()["error"] == "job_store_unavailable"
+        h = c.get("/health").json()
+        assert h["status"] == "degraded" and h["job_store"]["status"] == "unavailable", h
+        assert "cannot be opened" in h["job_store"]["error"]
+
+
+def test_a_result_removed_by_hand_is_410_result_gone_not_409_done(tmp_path, dngs):
+    """A result file (or the whole ``out/`` folder) removed by hand while the
+    server runs: the item's download and the zip used to answer 409
+    ``not_ready`` with "item is done" / "no finished results yet". Now
+    410 ``result_gone``; the progress document is unchanged."""
+    import shutil
+
+    from .conftest import isolated_app_client
+
+    for c in isolated_app_client(tmp_path / "store"):
+        files = [("files", (f"im{i}.dng", open(dngs / f"im{i}.dng", "rb").read())) for i in range(2)]
+        bid = c.post("/v1/batches", files=files, data={"format": "png"}).json()["id"]
+        t_end = time.monotonic() + 300
+        while time.monotonic() < t_end and not (d := c.get(f"/v1/batches/{bid}").json())["settled"]:
+            time.sleep(0.2)
+        assert d["counts"]["done"] == 2, d
+        out = os.path.join(str(tmp_path / "store"), "batches", bid, "out")
+        os.unlink(os.path.join(out, "im0.png"))
+        r = c.get(f"/v1/batches/{bid}/items/by-index/0")
+        assert r.status_code == 410 and r.json()["error"] == "result_gone", r.text
+        assert c.get(f"/v1/batches/{bid}/items/by-index/1").status_code == 200
+        assert c.get(f"/v1/batches/{bid}/zip").status_code == 200       # the other result, and FAILURES.txt
+        shutil.rmtree(out)
+        r = c.get(f"/v1/batches/{bid}/zip")
+        assert r.status_code == 410 and r.json()["error"] == "result_gone", r.text
+        assert c.get(f"/v1/batches/{bid}").json()["counts"]["done"] == 2

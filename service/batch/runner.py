@@ -29,6 +29,7 @@ import contextlib
 import json
 import logging
 import os
+import sqlite3
 import threading
 import time
 from dataclasses import dataclass, field
@@ -117,6 +118,8 @@ class BatchRunner:
         self._solo = None                  # the suspect running alone now
         #: items failed as ``worker_killed`` (their worker died each time they ran alone), since start
         self.worker_kills = 0
+        #: why the store cannot be written (a read-only data directory): batches are then only read
+        self.read_only: str | None = None
 
     @property
     def executor(self):
@@ -133,8 +136,23 @@ class BatchRunner:
         self._wake.set()
 
     def start(self) -> int:
+        """Resume what a killed server left and start the runner's thread. A
+        store that opens but cannot be written (the data directory's files
+        read-only, a read-only mount) starts nothing: the batches are served
+        read-only (:attr:`read_only`, ``/health`` degraded) until a restart
+        finds it writable."""
         self._deferred.update(self.store.unregistered())
-        n = self.store.resume()
+        try:
+            n = self.store.resume()
+        except sqlite3.OperationalError as e:
+            if "readonly" not in str(e).lower():
+                raise
+            self.read_only = (f"read_only_store: the job store under {self.store.data_dir} cannot be written "
+                              f"({e}); finished results can be read, no batch can be made, run or cancelled "
+                              "until the data directory is writable and the server restarted")
+            self._set_error(self.read_only)
+            log.error("%s", self.read_only)
+            return 0
         self._thread = threading.Thread(target=self._loop, name="batch-runner", daemon=True)
         self._thread.start()
         return n

@@ -47,19 +47,24 @@ _ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16
                                    "image/x-adobe-dng)",
                     "content": {"image/tiff": _BINARY, "image/png": _BINARY, "image/jpeg": _BINARY,
                                 "image/x-adobe-dng": _BINARY}},
-              404: {"description": "no such batch or item"}, 409: {"description": "not finished, or ambiguous"}}
+              404: {"description": "no such batch or item"}, 409: {"description": "not finished, or ambiguous"},
+              410: {"description": "done, but its result file is no longer on the server (removed outside the "
+                                   "service)"}}
 _ZIP = {200: {"description": "every finished result, batch.json (the batch's document, flagged items first), "
                              "and FAILURES.txt and manifest.json when items are missing",
               "content": {"application/zip": _BINARY}},
-        404: {"description": "no such batch"}, 409: {"description": "nothing finished yet"}}
+        404: {"description": "no such batch"}, 409: {"description": "nothing finished yet"},
+        410: {"description": "items are done but none of their result files is still on the server"}}
 
 _runner: jobs.BatchRunner | None = None
 _runner_lock = threading.Lock()
+#: why the last start of the runner failed (an unusable data directory), shown by ``/health``
+_start_error: str | None = None
 
 
 def get_runner(settings: Settings | None = None) -> jobs.BatchRunner:
     """The process's batch runner (created and started on first use)."""
-    global _runner
+    global _runner, _start_error
     with _runner_lock:
         if _runner is None:
             s = settings or get_settings()
@@ -73,9 +78,10 @@ def get_runner(settings: Settings | None = None) -> jobs.BatchRunner:
                 runner = jobs.BatchRunner(cfg)
                 runner.start()
             except (OSError, sqlite3.Error) as e:  # e.g. an unwritable data directory
-                raise ServiceError(503, "job_store_unavailable", f"the batch job store under {cfg.data_dir!r} cannot "
-                               f"be opened ({type(e).__name__}: {e}); single-file endpoints still work") from None
-            _runner = runner
+                _start_error = (f"the batch job store under {cfg.data_dir!r} cannot be opened "
+                                f"({type(e).__name__}: {e}); single-file endpoints still work")
+                raise ServiceError(503, "job_store_unavailable", _start_error) from None
+            _runner, _start_error = runner, None
         return _runner
 
 
@@ -83,8 +89,10 @@ def store_health() -> dict:
     """The job store's state for ``/health``: ``ok``, ``recovered`` (a damaged
     store was moved aside at start-up: where to, and why) or ``not_started``."""
     runner = _runner
-    if runner is None:
-        return {"status": "not_started"}
+    if runner is None:   # never asked for yet, or it could not start (then the batch endpoints answer 503)
+        return {"status": "unavailable", "error": _start_error} if _start_error else {"status": "not_started"}
+    if runner.read_only:
+        return {"status": "read_only", "error": runner.read_only}
     if runner.store.recovered:
         return {"status": "recovered", **runner.store.recovered}
     return {"status": "ok"}
@@ -122,6 +130,9 @@ def store_errors():
         if "locked" in text or "busy" in text:
             raise StoreBusy(f"the batch job store is locked by another process ({e}); nothing was changed, "
                             f"try again in a few seconds") from None
+        if "readonly" in text:
+            raise ServiceError(503, "job_store_read_only", f"the batch job store cannot be written ({e}): the data "
+                               "directory is read-only; nothing was changed") from None
         if "full" in text:
             raise ServiceError(507, "insufficient_storage", f"the service's data directory is full ({e}); "
                                "nothing was changed, try again when space is freed") from None
@@ -219,6 +230,8 @@ async def create_batch(files: list[UploadFile] | None = File(None, description="
             raise ServiceError(413, "file_too_large", f"{len(big)} file(s) in the folder exceed the upload limit of "
                            f"{settings.max_upload_bytes} bytes: {', '.join(map(repr, big[:5]))}")
     runner = await run_in_threadpool(get_runner, settings)
+    if runner.read_only:
+        raise ServiceError(503, "job_store_read_only", f"no batch can be made: {runner.read_only}")
     store = runner.store
     bid = None
     try:
@@ -339,7 +352,10 @@ def _store_of(batch_id: str) -> jobs.JobStore:
 def _item_file(store: jobs.JobStore, batch_id: str, row, key: str, kind: str):
     if row is None:
         raise ServiceError(404, "not_found", f"batch {batch_id!r} has no item {key!r} (by {kind})")
-    if row["status"] != "done" or not os.path.exists(row["out"]):
+    if row["status"] == "done" and not os.path.exists(row["out"]):
+        raise ServiceError(410, "result_gone", f"item {row['name']!r} is done, but its result file is no longer on "
+                           "the server (removed outside the service); run it again in a new batch")
+    if row["status"] != "done":
         raise ServiceError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
                        + (f": {row['error']}" if row["error"] else ""))
     fmt = FORMATS.get(jobs.BatchOptions.from_json(store.batch(batch_id)["options"]).format, FORMATS["jpeg"])
@@ -449,6 +465,9 @@ def batch_zip(batch_id: str):
     rows = store.items(batch_id)
     entries = [(os.path.basename(r["out"]), r["out"]) for r in rows
                if r["status"] == "done" and os.path.exists(r["out"])]
+    if not entries and any(r["status"] == "done" for r in rows):
+        raise ServiceError(410, "result_gone", f"batch {batch_id!r} has done items, but none of their result files "
+                           "is still on the server (removed outside the service)")
     if not entries:
         raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
     # batch.json: the batch's document (GET /v1/batches/{id}), the items flagged low confidence first
@@ -505,7 +524,8 @@ def delete_batch(batch_id: str, remove: bool = Query(
     if b is None:
         raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
     if b["status"] in ("queued", "running"):
-        runner.cancel(batch_id)
+        with store_errors():
+            runner.cancel(batch_id)
         return JSONResponse(clean({**_progress(batch_id), "deleted": False}))
     if not remove:
         return JSONResponse(clean({**_progress(batch_id), "deleted": False,
@@ -516,7 +536,8 @@ def delete_batch(batch_id: str, remove: bool = Query(
     if zipping:
         raise ServiceError(409, "downloading", f"batch {batch_id!r} is being downloaded as a zip ({zipping} "
                            "download(s) in progress); DELETE it again with ?remove=true when they end")
-    freed = runner.store.delete_batch(batch_id)
+    with store_errors():
+        freed = runner.store.delete_batch(batch_id)
     if freed is None:
         raise ServiceError(409, "not_settled", f"batch {batch_id!r} is cancelled but its running items have not "
                            "stopped yet; DELETE it again with ?remove=true when GET /v1/batches/{id} says "

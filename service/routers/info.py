@@ -18,17 +18,19 @@ def health(settings: Settings = Depends(get_settings)) -> dict:
     """Liveness: the service is up and the numerical core imports;
     ``job_store`` says whether the batch store opened cleanly (``recovered``:
     a damaged one was moved aside at start-up, with where to, or a lost one
-    rebuilt from the batch folders); ``batch_runner`` whether batch items can
+    rebuilt from the batch folders; ``unavailable``: it could not be opened,
+    with why; ``read_only``: batches are only read); ``batch_runner`` whether batch items can
     run now (``degraded``: why not, e.g. no Dask worker, and since when; the
     top-level ``status`` is then ``degraded`` too, still HTTP 200)."""
     import recovery.api  # noqa: F401
 
     from .batches import runner_health, store_health
 
-    runner = runner_health()
-    return {"status": "degraded" if runner["status"] == "degraded" else "ok", "version": "0.1.0",
+    runner, store = runner_health(), store_health()
+    degraded = runner["status"] == "degraded" or store["status"] in ("unavailable", "read_only")
+    return {"status": "degraded" if degraded else "ok", "version": "0.1.0",
             "max_upload_bytes": settings.max_upload_bytes, "max_pixels": settings.max_pixels,
-            "job_store": store_health(), "batch_runner": runner}
+            "job_store": store, "batch_runner": runner}
 
 
 @router.get("/v1/cameras", response_model=None, responses={200: {"model": CameraList}})

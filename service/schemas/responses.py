@@ -382,12 +382,14 @@ class EstimateSummary(_Answer):
 class Health(_Answer):
     """``GET /health``: liveness, the upload limits, the batch store and runner."""
     model_config = _examples(("Health",))
-    status: str = Field(description="`ok`, or `degraded` when batch items cannot run now (still HTTP 200)")
+    status: str = Field(description="`ok`, or `degraded` when batch items cannot run now or the batch store "
+                                    "cannot be opened or written (still HTTP 200)")
     version: str
     max_upload_bytes: int = Field(description="WANDELL_MAX_UPLOAD_BYTES: a larger upload is a 413")
     max_pixels: int = Field(description="WANDELL_MAX_PIXELS: a larger image is a 413")
-    job_store: dict[str, Any] = Field(description="`status` ok or `recovered` (a damaged store moved aside, "
-                                                  "with where to)")
+    job_store: dict[str, Any] = Field(description="`status` ok, `recovered` (a damaged store moved aside, "
+                                                  "with where to), `not_started`, `unavailable` (it cannot be "
+                                                  "opened: `error` says why) or `read_only` (batches are only read)")
     batch_runner: dict[str, Any] = Field(description="`status` ok or `degraded` (why, since when), the executor "
                                                      "and its counters")
 
