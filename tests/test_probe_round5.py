@@ -252,3 +252,28 @@ def test_a_result_removed_by_hand_is_410_result_gone_not_409_done(tmp_path, dngs
         r = c.get(f"/v1/batches/{bid}/zip")
         assert r.status_code == 410 and r.json()["error"] == "result_gone", r.text
         assert c.get(f"/v1/batches/{bid}").json()["counts"]["done"] == 2
+
+
+def test_shared_light_with_an_image_that_kills_its_worker_ends(tmp_path, dngs):
+    """``lighting=shared``: the per-image estimation of one image kills its
+    worker each time. It used to estimate every image again after each lost
+    worker, for ever (the batch never ended, the pool broke every few
+    seconds). Now the images not yet estimated run one at a time, alone;
+    the culprit fails as ``worker_killed`` and the light is made from the
+    others, whose items end done."""
+    from testing.faults import sample_or_die
+
+    runner = jobs.BatchRunner(jobs.RunnerConfig(str(tmp_path / "data"), workers=2, poll_s=0.05))
+    runner.sample_fn = sample_or_die({"im1.dng"}, delay_s=0.0)
+    bid = runner.store.new_batch_id()
+    runner.store.create_batch(bid, jobs.batch_options(format="png", lighting="shared"),
+                              [(f"im{i}.dng", str(dngs / f"im{i}.dng")) for i in range(4)])
+    runner.start()
+    try:
+        doc = runner.wait(bid, 400)
+    finally:
+        runner.stop()
+    items = {r["name"]: r for r in runner.store.items(bid)}
+    assert doc["counts"]["done"] == 3 and doc["counts"]["failed"] == 1, doc["counts"]
+    assert items["im1.dng"]["error"].startswith("worker_killed:"), items["im1.dng"]["error"]
+    assert runner.store.batch(bid)["light"] is not None

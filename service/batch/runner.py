@@ -90,6 +90,8 @@ class BatchRunner:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._light_jobs: dict = {}        # batch -> (estimation futures, light future)
+        #: shared batches whose estimation lost a worker: {"samples": idx -> (row, estimate), "losses": idx -> n}
+        self._light_retry: dict = {}
         #: why items are not running (e.g. no Dask scheduler, no worker), shown in progress and /health
         self.executor_error: str | None = None
         #: since when (epoch seconds) the cause in :attr:`executor_error` holds
@@ -112,6 +114,7 @@ class BatchRunner:
         #: what a pool worker runs for an item. Tests put here a function that ends its worker for
         #: some items (``testing.faults``); settable from Python only (no request, option or variable)
         self.item_fn = process_item
+        self.sample_fn = estimation_sample     # the shared light's per-image estimation (the same rule)
         #: culprit isolation: items in flight when the local pool broke, (batch, idx) -> how often
         #: their worker was lost while they ran alone; they run one at a time before anything else
         self._suspects: dict = {}
@@ -206,6 +209,7 @@ class BatchRunner:
         with self._lock:
             futs = [fut for (b, _), fut in self._inflight.items() if b == batch_id]
             light = self._light_jobs.pop(batch_id, None)
+            self._light_retry.pop(batch_id, None)
         if light is not None:
             est, light_fut = light
             futs += [f for _, f in est] + ([light_fut] if light_fut is not None else [])
@@ -405,7 +409,7 @@ class BatchRunner:
         capacity = self._capacity()
         if capacity is None:
             return
-        if self._suspects and self._local():   # a pool broke: find which item ended its worker first
+        if (self._suspects or self._light_retry) and self._local():   # a pool broke: find which item ended it
             self._isolation_step()
             for bid in active:
                 self._finish(bid)
@@ -471,7 +475,16 @@ class BatchRunner:
     def _isolation_step(self) -> None:
         """Culprit isolation: once nothing is in flight, run one suspect (an
         item in flight when the pool broke) alone in the pool. A suspect no
-        longer pending (cancelled, removed, finished) is dropped."""
+        longer pending (cancelled, removed, finished) is dropped. The same
+        for a shared batch's images whose light is still to be estimated."""
+        for bid in sorted(self._light_retry):
+            b = self.store.batch(bid)
+            if b is None or b["status"] not in ("queued", "running"):
+                with self._lock:
+                    self._light_retry.pop(bid, None)
+                    self._light_jobs.pop(bid, None)
+            elif bid in self._light_jobs:     # collect the estimate that ran alone
+                self._shared_light_step(bid, BatchOptions.from_json(b["options"]))
         with self._lock:
             if self._solo is not None or self._inflight or any(
                     not f.done() for est, lf in self._light_jobs.values() for f in
@@ -500,6 +513,11 @@ class BatchRunner:
                 self._solo = key
             fut.add_done_callback(lambda f, k=key: self._done(k, f))
             return
+        for bid in sorted(self._light_retry):   # then one image of a shared batch, alone
+            b = self.store.batch(bid)
+            if b is not None and b["status"] == "running" and b["light"] is None:
+                self._shared_light_step(bid, BatchOptions.from_json(b["options"]))
+                return
 
     def _lost_in_pool(self, key, solo: bool, e: BaseException) -> None:
         """A local pool worker died under item ``key``: not charged unless it
@@ -583,15 +601,50 @@ class BatchRunner:
         self._record(self._finish, bid)
         self._wake.set()
 
+    def _light_retry_step(self, bid: str, got: list, lost: list, solo: bool) -> list | None:
+        """Shared mode after a lost worker: keep the estimates made, charge an
+        image whose worker died while it was estimated alone (``failed`` as
+        ``worker_killed`` after ``max_attempts`` such runs, and left out of
+        the light), and estimate the rest one at a time. Returns every
+        estimate once none is left to make, else None."""
+        with self._lock:
+            retry = self._light_retry.setdefault(bid, {"samples": {}, "losses": {}})
+        for r, s in got:
+            retry["samples"][r["idx"]] = (r, s)
+        for r, e in lost:
+            if not solo or self._stop.is_set():
+                continue
+            n = retry["losses"][r["idx"]] = retry["losses"].get(r["idx"], 0) + 1
+            if n >= self.config.max_attempts:
+                self.worker_kills += 1
+                self.store.fail_item(bid, r["idx"], f"worker_killed: estimating this image's light ended its worker "
+                                     f"process {n} times when it ran alone ({type(e).__name__}: the file may crash "
+                                     "the decoder, or need more memory than a worker may take)")
+        if lost:
+            self._log_once("light", f"shared light of batch {bid}: a worker was lost ({type(lost[0][1]).__name__}); "
+                           "the images not yet estimated run again one at a time")
+        left = [r for r in self.store.items(bid) if r["status"] in ("pending", "running", "done")
+                and r["idx"] not in retry["samples"]]
+        with self._lock:
+            if left:
+                self._light_jobs.pop(bid, None)
+                return None
+            self._light_retry.pop(bid, None)
+        return [rs for rs in retry["samples"].values() if self.store.item_by_index(bid, rs[0]["idx"])["status"]
+                in ("pending", "running", "done")]
+
     def _shared_light_step(self, bid: str, options: BatchOptions) -> None:
         """Shared mode: estimate every pending/running image's own light (in
         the pool), combine them into one light (:func:`shared_light`), store it. Items whose file
         cannot be read fail here, with their error."""
         with self._lock:
             fut = self._light_jobs.get(bid)
+            retry = self._light_retry.get(bid)
         if fut is None:
             rows = [r for r in self.store.items(bid) if r["status"] in ("pending", "running", "done")]
-            futs = [(r, self.executor.submit(estimation_sample, self._task(r, options, None))) for r in rows]
+            if retry is not None:   # a worker was lost: the images not yet estimated, one at a time
+                rows = [r for r in rows if r["idx"] not in retry["samples"]][:1]
+            futs = [(r, self.executor.submit(self.sample_fn, self._task(r, options, None))) for r in rows]
             with self._lock:
                 self._light_jobs[bid] = (futs, None)
             return
@@ -599,23 +652,22 @@ class BatchRunner:
         if light_fut is None:
             if not all(f.done() for _, f in futs):
                 return
-            samples, cams, lost = [], {}, None
+            got, lost = [], []
             for r, f in futs:
                 try:
-                    s = f.result()
+                    got.append((r, f.result()))
                 except BaseException as e:
-                    lost = e
-                    break
+                    lost.append((r, e))
+            if lost or retry is not None:
+                got = self._light_retry_step(bid, got, lost, solo=len(futs) == 1)
+                if got is None:   # images left to estimate, one at a time (alone in the pool: isolation step)
+                    return
+            cams: dict = {}
+            for r, s in got:
                 if s["status"] != "ok":
                     self.store.fail_item(bid, r["idx"], s["error"])
                     continue
                 cams.setdefault(s["camera"].name, []).append((r, s))
-            if lost is not None:   # a worker lost (or a stop): estimate the light again at the next step
-                with self._lock:
-                    self._light_jobs.pop(bid, None)
-                self._log_once("light", f"shared light of batch {bid}: a worker was lost "
-                               f"({type(lost).__name__}: {lost}); estimating again")
-                return
             if not cams:
                 self.store.set_light(bid, None, "no image of the batch could be read")
                 with self._lock:
