@@ -277,3 +277,32 @@ def test_shared_light_with_an_image_that_kills_its_worker_ends(tmp_path, dngs):
     assert doc["counts"]["done"] == 3 and doc["counts"]["failed"] == 1, doc["counts"]
     assert items["im1.dng"]["error"].startswith("worker_killed:"), items["im1.dng"]["error"]
     assert runner.store.batch(bid)["light"] is not None
+
+
+def test_batch_folders_left_by_a_post_cut_by_a_crash_are_removed(tmp_path, dngs):
+    """kill -9 while 20 batches were being POSTed left up to 20 batch folders
+    (uploads half written, no manifest) that no batch owned: never listed,
+    never expired, kept for ever (``benchmarks.batch_many_restart --stop
+    kill9 --during 0.38``: 11 of them). They are removed once unchanged for
+    ``orphan_age_s``; a batch, one waiting for registration and a folder
+    still being written are kept."""
+    runner = jobs.BatchRunner(jobs.RunnerConfig(str(tmp_path / "data"), workers=1, orphan_age_s=60))
+    store = runner.store
+    owned = _batch(store, dngs, n=1)
+    cut, fresh, waiting = store.new_batch_id(), store.new_batch_id(), store.new_batch_id()
+    for bid in (cut, fresh, waiting):
+        with open(os.path.join(store.batch_dir(bid), "in", "00000-a.dng"), "wb") as f:
+            f.write(b"half an upload")
+    store.defer(waiting)   # (its manifest would be there too; the marker is what keeps it)
+    old = time.time() - 3600
+    for bid in (cut, owned, waiting):
+        for d, dirs, files in os.walk(store.batch_dir(bid)):
+            for n in dirs + files + ["."]:
+                os.utime(os.path.join(d, n), (old, old))
+    assert runner.remove_orphan_folders() == [cut]
+    left = set(os.listdir(os.path.join(store.data_dir, "batches")))
+    assert left == {owned, fresh, waiting}
+    # a store rebuilt from the folders (store lost) no longer brings the cut one back as a batch
+    os.unlink(store.path)
+    rebuilt = jobs.JobStore(store.data_dir)
+    assert rebuilt.batch(cut) is None and rebuilt.batch(owned) is not None

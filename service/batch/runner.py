@@ -39,7 +39,7 @@ from ..schemas.options import BatchOptions
 from .executors import make_executor
 from .items import (ItemTask, RAW_SUFFIXES, _error_text, estimation_sample, process_item, remove_stale_lock,
                     remove_stale_temporaries, shared_light)
-from .store import MAX_ATTEMPTS, JobStore
+from .store import MAX_ATTEMPTS, UNREGISTERED, JobStore
 
 log = logging.getLogger("service.jobs")
 
@@ -68,6 +68,9 @@ class RunnerConfig:
     reconnect_s: float = 5.0
     #: seconds a finished or cancelled batch (results and all) is kept; negative: for ever
     result_retention_s: float = -1.0
+    #: seconds after its last change a batch folder the store does not know (a POST cut by a crash before
+    #: its batch was accepted) is removed
+    orphan_age_s: float = 600.0
     extra: dict = field(default_factory=dict)
 
 
@@ -329,6 +332,43 @@ class BatchRunner:
         return [bid for bid in self.store.expired_batches(self.config.result_retention_s)
                 if self.store.delete_batch(bid) is not None]
 
+    def remove_orphan_folders(self) -> list[str]:
+        """Remove the batch folders no batch owns: made by a ``POST
+        /v1/batches`` that a crash (kill -9, power loss) cut before the batch
+        was accepted, so the client never got its id (the uploads half
+        written, no manifest or no record). Nothing lists, runs or expires
+        them, so they would stay for ever, and a store rebuilt from the folders
+        would bring them back as batches nobody asked for. A folder is one
+        when the store (asked without error) does not know it, it is not
+        waiting for registration (the store busy at creation), and nothing in
+        it changed for ``orphan_age_s`` (an upload in progress keeps writing).
+        Returns their ids."""
+        import shutil
+
+        root = os.path.join(self.store.data_dir, "batches")
+        try:
+            ids = sorted(os.listdir(root))
+        except OSError:
+            return []
+        gone, now = [], time.time()
+        for bid in ids:
+            bdir = os.path.join(root, bid)
+            if bid in self._deferred or os.path.exists(os.path.join(bdir, UNREGISTERED)):
+                continue
+            try:
+                newest = max(os.lstat(os.path.join(d, n)).st_mtime for d, dirs, files in os.walk(bdir)
+                             for n in dirs + files + ["."])
+                if now - newest < self.config.orphan_age_s or self.store.batch(bid) is not None:
+                    continue
+            except (OSError, ValueError, sqlite3.Error):   # unreadable, or the store cannot say: keep it
+                continue
+            shutil.rmtree(bdir, ignore_errors=True)
+            gone.append(bid)
+        if gone:
+            log.warning("removed %d batch folder(s) that no batch owns (a creation cut by a crash): %s",
+                        len(gone), gone[:5])
+        return gone
+
     def _set_error(self, text: str | None) -> None:
         if text is None:
             self.executor_error = self.error_since = None
@@ -393,6 +433,7 @@ class BatchRunner:
                 log.error("the job store file was lost while running; batches rebuilt from their folders")
             self.remove_expired_inputs()
             self.remove_expired_batches()
+            self.remove_orphan_folders()
         self._replace_broken_executor()
         active = self.store.active_batches()[: max(1, self.config.max_concurrent_batches)]
         for bid in active:
