@@ -70,6 +70,9 @@ GAINS = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
 PROJECT = (True, False)
 #: weight of the windows' precision-weighted mean in the map's level (0: the whole image's estimate)
 LEVELS = (0.0, 0.5, 0.75, 1.0)
+#: the gain's rise with the evidence, ``max(gain, 1 - shrink / T)`` (0: the fixed gain;
+#: :meth:`recovery.light_mixture.MixtureSettings.gain_at`)
+SHRINKS = (0.0, 8.0, 16.0, 24.0, 32.0)
 
 
 def angle_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -212,9 +215,9 @@ def score(scenes, evs, settings_list) -> dict:
         maps = {}
         cache = {}
         for s in settings_list:
-            key = (s.gain, s.project, s.level)
+            key = (s.gain, s.project, s.level, s.shrink)
             if key not in cache:
-                fld = LM.light_field(e["uv0"], e["ev"], s)
+                fld = LM.light_field(e["uv0"], e["ev"], s, T)
                 rng = LM.field_range_deg(fld, K) if e["ev"].valid.sum() >= 2 else 0.0
                 cache[key] = (field_error(fld, e["ev"], K, light, vp), rng)
             always, rng = cache[key]
@@ -261,13 +264,14 @@ def decompose(scenes, evs, s: LM.MixtureSettings) -> list[dict]:
         if have.any():
             true_dev[have] = tw[have] - tw[have].mean(axis=0)
         level, dev = LM.field_parts(e["uv0"], ev, s)
+        gain = s.gain_at(LM.mixture_statistic(ev))
 
         def err(lv, dv, g):
             return field_error(LM.compose_field(lv, dv, ev, g), ev, K, light, vp)
 
         out.append({DECOMPOSITION[0]: err(level, dev, 0.0),
                     DECOMPOSITION[1]: float(angle_rows(np.linalg.solve(K, L.uv_to_rgb(level))[None], oracle[None])[0]),
-                    DECOMPOSITION[2]: err(true_level, dev, s.gain),
+                    DECOMPOSITION[2]: err(true_level, dev, gain),
                     DECOMPOSITION[3]: err(level, true_dev, 1.0),
                     DECOMPOSITION[4]: err(true_level, true_dev, 1.0)})
     return out
@@ -320,7 +324,8 @@ def flag_stats(rows: list[dict], limit: float = 6.0) -> dict:
 
 
 def settings_grid():
-    return [LM.MixtureSettings(t, g, p, lv) for t in THRESHOLDS for g in GAINS for p in PROJECT for lv in LEVELS]
+    return [LM.MixtureSettings(t, g, p, lv, k) for t in THRESHOLDS for g in GAINS for p in PROJECT for lv in LEVELS
+            for k in SHRINKS]
 
 
 #: the single-light photographs may lose at most this fraction of their
@@ -523,11 +528,12 @@ def main(argv=None) -> int:
     report = {"per_benchmark": a.per, "chosen": {b: vars(s) for b, s in chosen.items()}, "results": {},
               "shipped_choice": vars(shipped), "shipped_now": vars(LM.DEFAULT_SETTINGS)}
     print(f"settings the rule chooses on all three benchmarks (to ship): T > {shipped.threshold:g}, gain "
-          f"{shipped.gain:g}, {'projected' if shipped.project else 'free'}, level {shipped.level:g}; shipped now: "
-          f"T > {LM.DEFAULT_SETTINGS.threshold:g}, gain {LM.DEFAULT_SETTINGS.gain:g}, "
+          f"{shipped.gain:g}, shrink {shipped.shrink:g}, {'projected' if shipped.project else 'free'}, level {shipped.level:g}; shipped now: "
+          f"T > {LM.DEFAULT_SETTINGS.threshold:g}, gain {LM.DEFAULT_SETTINGS.gain:g}, shrink {LM.DEFAULT_SETTINGS.shrink:g}, "
           f"{'projected' if LM.DEFAULT_SETTINGS.project else 'free'}, level {LM.DEFAULT_SETTINGS.level:g}")
     print(f"\nsettings chosen by inner leave-one-benchmark-out (threshold on T, gain, projection): "
-          + "; ".join(f"without {b}: T > {s.threshold:g}, gain {s.gain:g}, {'projected' if s.project else 'free'}, "
+          + "; ".join(f"without {b}: T > {s.threshold:g}, gain {s.gain:g}, shrink {s.shrink:g}, "
+                                 f"{'projected' if s.project else 'free'}, "
                                  f"level {s.level:g}"
                       for b, s in chosen.items()))
     cols = ("learned", "sog", "oracle", "map always", "map decided")
