@@ -367,26 +367,6 @@ def test_flag_stats_counts_failures_flags_and_catches():
     assert np.isnan(ML.flag_stats(rows[:2])["auroc"])       # no failure: no ranking to score
 
 
-def _cast_profile(out: np.ndarray, ref: np.ndarray, eighths: int = 8) -> np.ndarray:
-    """Mean angle (degrees) per eighth of the width between an output and a
-    reference picture (linear RGB), after the one per-channel gain that
-    matches them on the right eighth (where the relit photograph keeps its
-    own light): what is left is the cast that varies across the frame."""
-    import cv2
-
-    h, w = ref.shape[:2]
-    o = cv2.resize(out, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
-    r = cv2.resize(ref, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
-    ok = (r.min(-1) > 0.01 * r.max()) & (r.max(-1) < 0.9 * r.max()) & (o.max(-1) < 0.9 * o.max())
-    col = np.arange(r.shape[1])[None, :].repeat(r.shape[0], 0) * eighths // r.shape[1]
-    fit = ok & (col == eighths - 1)
-    o = o * np.array([np.median(r[..., k][fit] / np.maximum(o[..., k][fit], 1e-12)) for k in range(3)])
-    from benchmarks.mixed_light import angle_rows
-
-    ang = angle_rows(o.reshape(-1, 3), r.reshape(-1, 3)).reshape(ok.shape)
-    return np.array([ang[ok & (col == q)].mean() for q in range(eighths)])
-
-
 def test_the_picture_follows_the_map_on_a_real_camera_file(blackmagic_dng):
     """The real CinemaDNG (9 megapixels) relit at its raw mosaic by tungsten
     over its left half (:mod:`testing.relight`; the sensor is linear, so this
@@ -425,7 +405,9 @@ def test_the_picture_follows_the_map_on_a_real_camera_file(blackmagic_dng):
     mapped, h2 = wb(data, "auto")
     assert h1["lights"]["found"] == 1
     assert h2["lights"]["found"] == 2, h2["lights"]["reason"]
-    p_one, p_map = _cast_profile(one, ref), _cast_profile(mapped, ref)
+    from benchmarks.mixed_light import cast_profile
+
+    p_one, p_map = cast_profile(one, ref), cast_profile(mapped, ref)
     assert np.all(np.isfinite(mapped))
     assert p_one[0] > 15, p_one                              # one light leaves the tungsten cast on the left
     assert p_map[0] < 0.75 * p_one[0], (p_map, p_one)
