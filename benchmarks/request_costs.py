@@ -15,6 +15,10 @@ about 1,000 to 25,000 (``max_regions`` lifted): seconds per 1,000 regions.
 Usage (from the checkout root)::
 
     .venv/bin/python -m benchmarks.request_costs [--port 8660] [--mp 10] [--skip-memory] [--skip-map]
+        [--only TEXT] [--endpoint PATH]
+
+``--only`` keeps the input kinds whose name contains TEXT (e.g. ``LinearRaw``),
+``--endpoint`` one endpoint (e.g. ``/v1/white-balance``).
 
 Linux only (``/proc``). Prints one line per case.
 """
@@ -137,7 +141,7 @@ def _linear_tiff(mp: float) -> tuple[bytes, float]:
     return buf.getvalue(), h * w / 1e6
 
 
-def _linear_dng(mp: float, float_samples: bool) -> tuple[bytes, float]:
+def _linear_dng(mp: float, float_samples: bool, compression: str = "zlib") -> tuple[bytes, float]:
     import tifffile
 
     h = int(round((mp * 1e6 * 3 / 4) ** 0.5))
@@ -155,7 +159,7 @@ def _linear_dng(mp: float, float_samples: bool) -> tuple[bytes, float]:
             (50713, "H", 2, (1, 1), True), (50714, "I", 1, 0, True),
             (50717, "I", 1, 1 if float_samples else 65535, True)]
     buf = io.BytesIO()
-    tifffile.imwrite(buf, img, photometric=34892, subfiletype=0, compression="zlib", tile=(256, 256),
+    tifffile.imwrite(buf, img, photometric=34892, subfiletype=0, compression=compression, tile=(256, 256),
                      planarconfig="contig", metadata=None, extratags=tags)
     return buf.getvalue(), h * w / 1e6
 
@@ -173,12 +177,15 @@ def _cfa_dng(mp: float) -> tuple[bytes, float]:
     return buf.getvalue(), h * w / 1e6
 
 
-def memory(port: int, mp: float) -> None:
+def memory(port: int, mp: float, only: str | None = None, endpoint: str | None = None) -> None:
     kinds = {"linear 16-bit TIFF (deflate)": ("a.tif", lambda: _linear_tiff(mp)),
              "CFA DNG (16-bit Bayer)": ("a.dng", lambda: _cfa_dng(mp)),
              "LinearRaw DNG, 16-bit, deflate tiles": ("a.dng", lambda: _linear_dng(mp, False)),
-             "LinearRaw DNG, float32, deflate tiles": ("a.dng", lambda: _linear_dng(mp, True))}
+             "LinearRaw DNG, float32, deflate tiles": ("a.dng", lambda: _linear_dng(mp, True)),
+             "LinearRaw DNG, 16-bit, deflate-32946 tiles": ("a.dng", lambda: _linear_dng(mp, False, "deflate"))}
     endpoints = (("/v1/analyze", {}), ("/v1/white-balance", {"format": "tiff"}), ("/v1/surfaces", {"grid": "4x4"}))
+    kinds = {k: v for k, v in kinds.items() if only is None or only.lower() in k.lower()}
+    endpoints = tuple(e for e in endpoints if endpoint is None or e[0] == endpoint)
     warm = _cfa_dng(0.05)[0]
     for kind, (name, make) in kinds.items():
         data, mpx = make()
@@ -221,11 +228,13 @@ def main(argv=None) -> None:
     ap.add_argument("--mp", type=float, default=10.0, help="megapixels of the memory cases (default 10)")
     ap.add_argument("--skip-memory", action="store_true")
     ap.add_argument("--skip-map", action="store_true")
+    ap.add_argument("--only", help="only the input kinds whose name contains this (e.g. LinearRaw)")
+    ap.add_argument("--endpoint", help="only this endpoint (e.g. /v1/white-balance)")
     a = ap.parse_args(argv)
     if not a.skip_map:
         light_map()
     if not a.skip_memory:
-        memory(a.port, a.mp)
+        memory(a.port, a.mp, a.only, a.endpoint)
 
 
 if __name__ == "__main__":
