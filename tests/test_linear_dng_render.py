@@ -247,3 +247,26 @@ def test_written_in_place_is_the_oriented_image(rng, flip):
     write_linear_dng(buf, img, tile=(16, 16))
     out = linear_dng_full(buf.getvalue(), 40, 56, flip)
     assert np.array_equal(out, FLIP_OPS[flip](img))
+
+
+def test_per_sample_black_levels_match_libraw(client, scene, monkeypatch):
+    """BlackLevel with one value per sample: the reader's image (from
+    deflate tiles) has each channel scaled by its own black, within the
+    samples' rounding (0.56 codes) and the output's (0.5) of the scene, and
+    is LibRaw's (from the uncompressed copy: it cannot read 16-bit deflate
+    ones) to LibRaw's truncation (one code)."""
+    import service.decode.linear_dng as L
+    from service.decode.upload import decode_upload
+
+    _, unit, neutral = scene
+    blacks = np.array([1024, 1100, 980])
+    q = np.rint(blacks + unit * (WHITE - blacks)).astype(np.uint16)
+    kw = dict(black_level=blacks, white_level=WHITE, orientation=8)
+    ours = decode_upload(_dng(q, neutral, compression="deflate", tile=(64, 64), **kw), "a.dng",
+                         max_pixels=10 ** 8, estimation_pixels=10 ** 8).full_linear()
+    monkeypatch.setattr(L, "linear_dng_estimation", lambda *a, **k: None)
+    lib = decode_upload(_dng(q, neutral, **kw), "a.dng", max_pixels=10 ** 8, estimation_pixels=10 ** 8).full_linear()
+    assert ours.shape == lib.shape
+    assert set(np.unique(lib.astype(np.int64) - ours)) <= {-1, 0}
+    expect = np.rint(np.rot90(unit, 1) * 65535)         # Orientation 8: flip 5, a quarter turn anticlockwise
+    assert np.abs(ours - expect).max() <= 1
