@@ -270,3 +270,25 @@ def test_per_sample_black_levels_match_libraw(client, scene, monkeypatch):
     assert set(np.unique(lib.astype(np.int64) - ours)) <= {-1, 0}
     expect = np.rint(np.rot90(unit, 1) * 65535)         # Orientation 8: flip 5, a quarter turn anticlockwise
     assert np.abs(ours - expect).max() <= 1
+
+
+def test_a_tile_without_data_is_never_left_uninitialised(rng):
+    """TileByteCounts 0 for tile 5 (5 tiles across 130 columns: the second
+    row's first): the upload's structure check refuses
+    such a file first; the reader itself refuses it too (a 422 naming the
+    tile), rather than leave those pixels as whatever memory held."""
+    from service.decode.linear_dng import linear_dng_full
+    from service.errors import ServiceError
+
+    img = rng.integers(0, 65536, (100, 130, 3)).astype(np.uint16)
+    buf = io.BytesIO()
+    write_linear_dng(buf, img, tile=(32, 32), compression="deflate")
+    buf.seek(0)
+    with tifffile.TiffFile(buf, mode="r+b") as tf:
+        tag = tf.pages[0].tags[325]
+        counts = list(tag.value)
+        counts[5] = 0
+        tag.overwrite(counts)
+    with pytest.raises(ServiceError) as e:
+        linear_dng_full(buf.getvalue(), 100, 130, 0, label="'x.dng'")
+    assert e.value.status == 422 and "tile 5 (rows 32-63, columns 0-31)" in e.value.detail, e.value.detail

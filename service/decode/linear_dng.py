@@ -159,7 +159,9 @@ def _segments(page):
     """``(rows array (h, w, 3) of raw samples, r0, c0)`` of each decoded strip
     or tile of ``page`` in file order; a segment that cannot be decoded
     raises :class:`_Damaged` (naming it) when its codec is one of
-    :data:`OWN_CODECS`, else :class:`_Unread` (LibRaw then decides)."""
+    :data:`OWN_CODECS`, else :class:`_Unread` (LibRaw then decides); one
+    without data raises :class:`_Damaged` (the structure check,
+    :mod:`service.decode.structure`, refuses such files first)."""
     n = 0
     it = page.segments(maxworkers=1)
     while True:
@@ -171,9 +173,9 @@ def _segments(page):
             if int(page.compression) in OWN_CODECS:
                 raise _Damaged(_describe_segment(page, n, exc)) from None
             raise _Unread() from None
+        if seg is None:        # no data (offset or byte count 0): never left as uninitialised pixels
+            raise _Damaged(_describe_segment(page, n, "it has no data"))
         n += 1
-        if seg is None:
-            continue
         a = np.asarray(seg).reshape(shape[1], shape[2], -1)[:, :, :3]
         yield a, int(index[2]), int(index[3])
 
