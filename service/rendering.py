@@ -197,6 +197,8 @@ def render_encoded(decoded, run: EstimateRun, *, target: str, output: str, fmt: 
     source = None
     if fmt.encoder in STRIP_ENCODERS and getattr(decoded, "_full_future", None) is None:
         source = strips.mosaic_rows(decoded, lambda shape: crop_bounds(decoded, shape))
+        if source is None:           # a LinearRaw DNG: its strips or tiles read as the output's strips need them
+            source = strips.linear_rows(decoded, lambda shape: crop_bounds(decoded, shape))
     if source is None:
         out, M, info, meta = render_corrected(decoded, run, target=target, output=output, fmt=fmt,
                                               surface_basis=surface_basis, threads=threads, white=white,

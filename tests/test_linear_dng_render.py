@@ -292,3 +292,56 @@ def test_a_tile_without_data_is_never_left_uninitialised(rng):
     with pytest.raises(ServiceError) as e:
         linear_dng_full(buf.getvalue(), 100, 130, 0, label="'x.dng'")
     assert e.value.status == 422 and "tile 5 (rows 32-63, columns 0-31)" in e.value.detail, e.value.detail
+
+
+@pytest.mark.parametrize("fmt", ["png", "png16", "jpeg"])
+@pytest.mark.parametrize("dtype,compression,tile", [("uint16", "deflate", (32, 48)), ("float32", "adobe_deflate", None)])
+def test_png_and_jpeg_strip_by_strip_are_the_whole_image_path(client, scene, monkeypatch, fmt, dtype, compression,
+                                                             tile):
+    """Unrotated, DefaultCropped: a PNG or JPEG made strip by strip from the
+    file's strips or tiles (``timings_ms.render``) has the pixels of the
+    whole-image path (``timings_ms.demosaic``), bit for bit: the same
+    scaling of the same samples, the same correction chunks
+    (:mod:`service.strips`)."""
+    import cv2
+
+    from service import strips
+
+    q, unit, neutral = scene
+    samples, levels = (q, dict(black_level=BLACK, white_level=WHITE)) if dtype == "uint16" else (
+        unit.astype(np.float32), {})
+    layout = dict(tile=tile) if tile else dict(rows_per_strip=16)
+    data = _dng(samples, neutral, compression=compression, **layout, **levels)
+    fields = dict(RENDER, format=fmt)
+
+    def post():
+        r = client.post("/v1/white-balance", files={"file": ("scene.dng", data, "application/octet-stream")},
+                        data=fields)
+        assert r.status_code == 200, r.text
+        img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+        return img, json.loads(r.headers["X-Illuminant"])["timings_ms"]
+
+    by_strips, t_strips = post()
+    monkeypatch.setattr(strips, "linear_rows", lambda *a, **k: None)
+    whole, t_whole = post()
+    assert "render" in t_strips and "demosaic" not in t_strips and "demosaic" in t_whole
+    assert by_strips.shape == whole.shape == (CROP[2], CROP[3], 3)
+    assert whole.max() > (100 if whole.dtype == np.uint8 else 20000)
+    assert np.array_equal(by_strips, whole)
+
+
+def test_strip_rows_are_the_full_images_rows(rng):
+    """Any rows of :class:`LinearRawRows` (strips of 7 rows or 32 x 48
+    tiles, cropped) are those rows of :func:`linear_dng_full`."""
+    from service.decode.linear_dng import LinearRawRows, linear_dng_full
+
+    img = rng.uniform(-0.01, 1.02, (100, 130, 3)).astype(np.float32)
+    for layout in (dict(rows_per_strip=7), dict(tile=(32, 48))):
+        buf = io.BytesIO()
+        write_linear_dng(buf, img, compression="deflate", predictor=True, **layout)
+        full = linear_dng_full(buf.getvalue(), 100, 130, 0)
+        rows = LinearRawRows.of(buf.getvalue(), 100, 130, 0, lambda shape: (5, 97, 3, 120))
+        assert rows.shape == (92, 117)
+        for r0, r1 in ((0, 92), (0, 1), (30, 65), (91, 92), (10, 11)):
+            assert np.array_equal(rows(r0, r1), full[5 + r0:5 + r1, 3:120]), (layout, r0, r1)
+        assert LinearRawRows.of(buf.getvalue(), 100, 130, 6, lambda shape: None) is None    # rotated

@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-__all__ = ["linear_dng_estimation", "linear_dng_full", "SATURATION_FRACTION"]
+__all__ = ["linear_dng_estimation", "linear_dng_full", "LinearRawRows", "SATURATION_FRACTION"]
 
 #: as service.decode.raw: a sample at or above this fraction of its range is saturated
 SATURATION_FRACTION = 0.98
@@ -288,6 +288,32 @@ _INVERSE_FLIP = {0: 0, 1: 1, 2: 2, 3: 3, 4: 4, 5: 6, 6: 5, 7: 7}
 _CHUNK_PIXELS = 1 << 17
 
 
+class _Scale:
+    """A layout's samples to the 16-bit scale: ``65535 (lut(v) - black_c) /
+    (white_c - black_c)`` clipped to [0, 65535] and rounded (half up), a
+    sample that is not a number 0; in float32, :data:`_CHUNK_PIXELS` at a
+    time."""
+
+    def __init__(self, lay: _Layout):
+        self.black = lay.black.astype(np.float32)
+        self.k = (65535.0 / (lay.white - lay.black)).astype(np.float32)
+        self.lut = None if lay.lut is None else lay.lut.astype(np.float32)
+
+    def into(self, dst: np.ndarray, src: np.ndarray) -> None:
+        """Write ``src`` (raw samples, (h, w, 3)) scaled into ``dst`` (uint16, same shape, any strides)."""
+        lut = self.lut
+        step = max(1, _CHUNK_PIXELS // max(1, src.shape[1]))
+        for s0 in range(0, src.shape[0], step):
+            part = src[s0:s0 + step]
+            v = lut[np.minimum(part, lut.size - 1)] if lut is not None else part.astype(np.float32)
+            v -= self.black
+            v *= self.k
+            np.nan_to_num(v, copy=False, nan=0.0, posinf=65535.0, neginf=0.0)
+            np.clip(v, 0.0, 65535.0, out=v)
+            v += np.float32(0.5)
+            dst[s0:s0 + v.shape[0]] = v          # truncation: the rounding
+
+
 def linear_dng_full(data: bytes, height: int, width: int, flip: int, label: str | None = None) -> np.ndarray:
     """The full-resolution image of a LinearRaw DNG in the plain layout:
     ``(H', W', 3)`` uint16, each sample ``v`` (through the
@@ -348,26 +374,99 @@ def linear_dng_full(data: bytes, height: int, width: int, flip: int, label: str 
         out = np.empty((oh, ow, 3), np.uint16)
         view = FLIP_OPS[_INVERSE_FLIP[flip]](out)          # ``out`` in the file's orientation
         assert view.shape == (H, W, 3)
-        black = lay.black.astype(np.float32)
-        k = (65535.0 / (lay.white - lay.black)).astype(np.float32)
-        lut = None if lay.lut is None else lay.lut.astype(np.float32)
+        scale = _Scale(lay)
         try:
             for a, r0, c0 in _segments(lay.page):
                 h, w = min(a.shape[0], H - r0), min(a.shape[1], W - c0)
-                if h <= 0 or w <= 0:
-                    continue
-                step = max(1, _CHUNK_PIXELS // max(1, w))
-                for s0 in range(0, h, step):
-                    src = a[s0:min(h, s0 + step), :w]
-                    v = lut[np.minimum(src, lut.size - 1)] if lut is not None else src.astype(np.float32)
-                    v -= black
-                    v *= k
-                    np.nan_to_num(v, copy=False, nan=0.0, posinf=65535.0, neginf=0.0)
-                    np.clip(v, 0.0, 65535.0, out=v)
-                    v += np.float32(0.5)
-                    view[r0 + s0:r0 + s0 + v.shape[0], c0:c0 + w] = v      # truncation: the rounding
+                if h > 0 and w > 0:
+                    scale.into(view[r0:r0 + h, c0:c0 + w], a[:h, :w])
         except _Damaged as exc:
             raise _corrupt(label, str(exc)) from None
         except _Unread:
             raise _corrupt(label, "the LinearRaw image's codec cannot be decoded any longer") from None
     return out
+
+
+#: the tallest strip or tile :class:`LinearRawRows` reads for a strip of the output (a taller
+#: one, e.g. a whole image in one strip, would be decoded again for every strip)
+MAX_ROWS_SEGMENT = 512
+
+
+class LinearRawRows:
+    """Rows ``r0:r1`` of the full-resolution image of a plain-layout
+    LinearRaw DNG without rotation, within ``bounds`` (the DefaultCrop:
+    ``(r0, r1, c0, c1)`` or ``None``), on demand: uint16 on the scale of
+    :func:`linear_dng_full` (the same numbers), for
+    :func:`service.strips.encode_strips` (a PNG or JPEG made strip by
+    strip, the full image never held). Each call decodes the strips or
+    tiles its rows touch (:attr:`min_rows` is their height, so a segment is
+    decoded at most twice); callable from several threads at once.
+
+    Build it with :meth:`of`, which answers ``None`` when the image is
+    rotated or its segments are taller than :data:`MAX_ROWS_SEGMENT`."""
+
+    def __init__(self, tf, lay: _Layout, data: bytes, bounds, label):
+        page = lay.page
+        self._tf, self._data, self._label = tf, data, label       # the TiffFile kept open for page.decode
+        self._decode = page.decode
+        self._offsets = [int(v) for v in page.dataoffsets]
+        self._counts = [int(v) for v in page.databytecounts]
+        self._page = page
+        self._scale = _Scale(lay)
+        self.H, self.W = lay.H, lay.W
+        if page.is_tiled:
+            self.seg_h, self.seg_w = int(page.tilelength), int(page.tilewidth)
+        else:
+            self.seg_h, self.seg_w = min(int(page.rowsperstrip or lay.H), lay.H), lay.W
+        self.across = -(-lay.W // self.seg_w)
+        self.r0, self.r1, self.c0, self.c1 = bounds if bounds is not None else (0, lay.H, 0, lay.W)
+        self.shape = (self.r1 - self.r0, self.c1 - self.c0)
+        self.min_rows = self.seg_h
+
+    @classmethod
+    def of(cls, data: bytes, height: int, width: int, flip: int, bounds_of, label: str | None = None):
+        """The rows of the DNG ``data`` (``height x width`` as LibRaw reports
+        it, LibRaw's ``flip``), cropped to ``bounds_of((height, width))``,
+        or ``None`` (rotated, segments too tall, not the plain layout)."""
+        import tifffile
+
+        if flip:
+            return None
+        try:
+            tf = tifffile.TiffFile(io.BytesIO(data))
+        except Exception:  # noqa: BLE001 - the whole-image path reports it
+            return None
+        lay = _layout(tf, height, width)
+        tall = lay is not None and (int(lay.page.tilelength) if lay.page.is_tiled else
+                                    min(int(lay.page.rowsperstrip or lay.H), lay.H)) > MAX_ROWS_SEGMENT
+        if lay is None or tall or len(lay.page.dataoffsets) != len(lay.page.databytecounts):
+            tf.close()
+            return None
+        return cls(tf, lay, data, bounds_of((lay.H, lay.W)), label)
+
+    def _segment(self, n: int):
+        off, cnt = self._offsets[n], self._counts[n]
+        if cnt <= 0 or off <= 0 or off + cnt > len(self._data):
+            raise _corrupt(self._label, _describe_segment(self._page, n, "it has no data"))
+        try:
+            seg, index, shape = self._decode(self._data[off:off + cnt], n,
+                                             jpegtables=getattr(self._page, "jpegtables", None))
+        except Exception as exc:  # noqa: BLE001 - tifffile/imagecodecs raise their own kinds
+            raise _corrupt(self._label, _describe_segment(self._page, n, exc)) from None
+        if seg is None:
+            raise _corrupt(self._label, _describe_segment(self._page, n, "it has no data"))
+        return np.asarray(seg).reshape(shape[1], shape[2], -1)[:, :, :3], int(index[2]), int(index[3])
+
+    def __call__(self, r0: int, r1: int) -> np.ndarray:
+        """Rows ``r0:r1`` of the (cropped) image, a new (r1 - r0, width, 3) uint16 array."""
+        R0, R1 = self.r0 + r0, self.r0 + r1
+        out = np.empty((R1 - R0, self.c1 - self.c0, 3), np.uint16)
+        for band in range(R0 // self.seg_h, (R1 - 1) // self.seg_h + 1):
+            for col in range(self.c0 // self.seg_w, (self.c1 - 1) // self.seg_w + 1):
+                a, ar, ac = self._segment(band * self.across + col)
+                a0, a1 = max(R0, ar), min(R1, ar + a.shape[0], self.H)
+                b0, b1 = max(self.c0, ac), min(self.c1, ac + a.shape[1], self.W)
+                if a1 > a0 and b1 > b0:
+                    self._scale.into(out[a0 - R0:a1 - R0, b0 - self.c0:b1 - self.c0],
+                                     a[a0 - ar:a1 - ar, b0 - ac:b1 - ac])
+        return out
