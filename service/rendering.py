@@ -189,7 +189,8 @@ def render_encoded(decoded, run: EstimateRun, *, target: str, output: str, fmt: 
     ``(bytes, M, info, meta)``. A PNG or JPEG of a RAW whose mosaic was kept
     (``keep_mosaic``, no demosaic started ahead) is demosaicked, corrected
     and encoded strip by strip (:mod:`service.strips`: the same pixels
-    without the full-resolution 16-bit image; timing ``render``); anything
+    without the full-resolution 16-bit image; timing ``render``), and so
+    is an unrotated LinearRaw DNG read from its strips or tiles; anything
     else through the whole image (timings ``demosaic``, ``correct``,
     ``encode``)."""
     from . import strips
