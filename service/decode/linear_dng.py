@@ -1,4 +1,5 @@
-"""The estimation image of a LinearRaw (demosaiced) DNG, read tile by tile.
+"""The estimation and full-resolution images of a LinearRaw (demosaiced)
+DNG, read from its own samples tile by tile (or strip by strip).
 
 A DNG whose raw IFD is PhotometricInterpretation 34892 (LinearRaw: three
 samples per pixel, what Adobe DNG Converter writes for demosaiced, HDR or
@@ -25,7 +26,9 @@ oriented as LibRaw orients it), written straight into its place in the
 oriented image: memory is that image (6 bytes a pixel) and one decoded
 segment with a few rows of float32 temporaries, where LibRaw's full decode
 took about 24 MiB per megapixel and failed on (16-bit integer + deflate) or
-misread (float + deflate) some of these files.
+misread (float + deflate) some of these files. :class:`LinearRawRows`
+gives the rows of that image on demand, for a PNG or JPEG made strip by
+strip (:mod:`service.strips`).
 
 Only the plain layout is read here: 8/16/32-bit unsigned or 16/32-bit float
 samples, three of them per pixel, chunky, uncompressed or deflate
