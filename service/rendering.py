@@ -221,7 +221,8 @@ def render_encoded(decoded, run: EstimateRun, *, target: str, output: str, fmt: 
     ``(bytes, M, info, meta)``. A PNG or JPEG of a RAW whose mosaic was kept
     (``keep_mosaic``, no demosaic started ahead) is demosaicked, corrected
     and encoded strip by strip (:mod:`service.strips`: the same pixels
-    without the full-resolution 16-bit image; timing ``render``); anything
+    without the full-resolution 16-bit image; timing ``render``), and so
+    is an unrotated LinearRaw DNG read from its strips or tiles; anything
     else through the whole image (timings ``demosaic``, ``correct``,
     ``encode``)."""
     from . import strips
@@ -229,6 +230,8 @@ def render_encoded(decoded, run: EstimateRun, *, target: str, output: str, fmt: 
     source = None
     if fmt.encoder in STRIP_ENCODERS and getattr(decoded, "_full_future", None) is None:
         source = strips.mosaic_rows(decoded, lambda shape: crop_bounds(decoded, shape))
+        if source is None:           # a LinearRaw DNG: its strips or tiles read as the output's strips need them
+            source = strips.linear_rows(decoded, lambda shape: crop_bounds(decoded, shape))
     if source is None:
         out, M, info, meta = render_corrected(decoded, run, target=target, output=output, fmt=fmt,
                                               surface_basis=surface_basis, threads=threads, white=white,
