@@ -504,7 +504,7 @@ def picture(raw_path: str, out_png: str | None = None) -> dict:
             im = np.where(im <= 0.0031308, 12.92 * im, 1.055 * im ** (1 / 2.4) - 0.055)
             return (im * 255 + 0.5).astype(np.uint8)[..., ::-1]
 
-        cv2.imwrite(out_png, np.concatenate([show(p_) for p_ in pics], axis=1))
+        cv2.imwrite(out_png, np.concatenate([show(p_) for p_ in pics], axis=1), [cv2.IMWRITE_JPEG_QUALITY, 85])
         res["png"] = out_png
     return res
 
@@ -518,7 +518,7 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", action="store_true", help="only the speed figures (item 5), about a minute")
     ap.add_argument("--picture", metavar="RAW", help="only the picture figure: this Bayer DNG relit by tungsten "
                     "over its left half, white-balanced with one light and with the default (about 30 s)")
-    ap.add_argument("--picture-png", default=None, help="with --picture: write the three pictures side by side here")
+    ap.add_argument("--picture-png", default=None, help="with --picture: write the three pictures side by side here (PNG or JPEG by its extension)")
     a = ap.parse_args(argv)
     t_all = time.perf_counter()
     if a.picture:

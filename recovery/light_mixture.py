@@ -95,7 +95,7 @@ class MixtureSettings:
     gain: float = 0.5           #: multiplies the windows' variation (item 3 of the module docstring)
     project: bool = False       #: project the variation on the principal direction (two lights)
     level: float = 0.75         #: weight of the windows' mean in the map's level (item 1 of the module docstring)
-    shrink: float = 0.0         #: the gain rises to ``1 - shrink / T`` where that is larger (item 3; 0: fixed)
+    shrink: float = 24.0        #: the gain rises to ``1 - shrink / T`` where that is larger (item 3; 0: fixed)
 
     def gain_at(self, T: float) -> float:
         """The gain on the windows' variation for a scene whose windows
