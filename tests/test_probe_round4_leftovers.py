@@ -18,6 +18,7 @@ import pytest
 from service.schemas import responses as R
 
 from .conftest import isolated_app_client, scene_dng_bytes
+from .test_probe_round4 import settled, zip_while
 from .test_response_models import undeclared
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -71,18 +72,6 @@ def test_batch_of_a_file_says_it_is_a_file_not_a_missing_folder(tmp_path, dng):
 # --- 2. the retention sweep during a zip download -------------------------------------
 
 
-def _settled(client, bid: str, timeout: float = 120.0) -> dict:
-    import time
-
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        doc = client.get(f"/v1/batches/{bid}").json()
-        if doc.get("settled"):
-            return doc
-        time.sleep(0.2)
-    raise AssertionError(f"batch {bid} not settled in {timeout} s: {doc}")
-
-
 def test_the_retention_sweep_does_not_remove_a_batch_whose_zip_is_being_downloaded(client, dng):
     """The result-retention sweep (``WANDELL_BATCH_RESULT_RETENTION``) removed
     an expired batch even while ``GET .../zip`` streamed it (fix 4 of round 4
@@ -96,57 +85,31 @@ def test_the_retention_sweep_does_not_remove_a_batch_whose_zip_is_being_download
     first bytes have gone out."""
     import zipfile
 
-    import anyio
-    import httpx
-
-    from service.app import app
     from service.routers import batches
 
     r = client.post("/v1/batches", files=[("files", (f"{i}.dng", dng)) for i in range(3)], data={"format": "tiff"})
     assert r.status_code == 202, r.text
     bid = r.json()["id"]
-    assert _settled(client, bid)["counts"]["done"] == 3
+    assert settled(client, bid)["counts"]["done"] == 3
     runner = batches.get_runner()
     kept_retention = runner.config.result_retention_s
-    got: dict = {"body": b"", "swept": None, "during": None}
+    swept = []
 
-    async def main():
-        transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1") as other:
-            sent = []
-
-            async def receive():      # the request, then a client that stays connected
-                if not sent:
-                    sent.append(True)
-                    return {"type": "http.request", "body": b"", "more_body": False}
-                await anyio.sleep_forever()
-
-            async def send(message):
-                if message["type"] == "http.response.start":
-                    got["status"] = message["status"]
-                elif message["type"] == "http.response.body":
-                    if got["swept"] is None:
-                        runner.config.result_retention_s = 0.0     # the batch has expired
-                        got["swept"] = runner.remove_expired_batches()
-                        got["during"] = await other.get(f"/v1/batches/{bid}")
-                    got["body"] += message.get("body", b"")
-
-            scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "GET",
-                     "scheme": "http", "path": f"/v1/batches/{bid}/zip", "raw_path": f"/v1/batches/{bid}/zip".encode(),
-                     "query_string": b"", "root_path": "", "headers": [(b"host", b"127.0.0.1")],
-                     "client": ("127.0.0.1", 50000), "server": ("127.0.0.1", 80)}
-            await app(scope, receive, send)
+    async def sweep(other):
+        runner.config.result_retention_s = 0.0     # the batch has expired
+        swept.append(runner.remove_expired_batches())
+        return await other.get(f"/v1/batches/{bid}")
 
     try:
-        anyio.run(main)
+        got = zip_while(bid, sweep)
         assert got["status"] == 200
-        assert got["swept"] == [], got["swept"]
+        assert swept == [[]], swept
         assert got["during"].status_code == 200, got["during"].text
         names = zipfile.ZipFile(io.BytesIO(got["body"])).namelist()
         assert sorted(n for n in names if n.endswith(".tif")) == ["0.tif", "1.tif", "2.tif"], names
         # the download is over: the next sweep removes it (or the runner's own loop did already)
-        swept = runner.remove_expired_batches()
-        assert swept in ([bid], []), swept
+        after = runner.remove_expired_batches()
+        assert after in ([bid], []), after
         assert client.get(f"/v1/batches/{bid}").status_code == 404
     finally:
         runner.config.result_retention_s = kept_retention
