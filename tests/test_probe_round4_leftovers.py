@@ -7,7 +7,6 @@ interleave) or the CLI as users run it, and fails without its fix."""
 from __future__ import annotations
 
 import io
-import json
 import os
 import subprocess
 import sys
@@ -17,27 +16,11 @@ import pytest
 
 from service.schemas import responses as R
 
-from .conftest import isolated_app_client, scene_dng_bytes
-from .test_probe_round4 import settled, zip_while
+# the round's fixtures (module-scoped: this module gets its own store) and helpers
+from .test_probe_round4 import _strict, client, dng, settled, zip_while  # noqa: F401
 from .test_response_models import undeclared
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-@pytest.fixture(scope="module")
-def dng() -> bytes:
-    return scene_dng_bytes(64, 96)
-
-
-@pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
-
-
-def _strict(text: str):
-    def bad(name):
-        raise ValueError(f"non-finite JSON constant {name}")
-    return json.loads(text, parse_constant=bad)
 
 
 # --- 1. `wandell batch FILE OUT` ---------------------------------------------------
