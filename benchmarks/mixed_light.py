@@ -70,6 +70,9 @@ GAINS = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
 PROJECT = (True, False)
 #: weight of the windows' precision-weighted mean in the map's level (0: the whole image's estimate)
 LEVELS = (0.0, 0.5, 0.75, 1.0)
+#: the gain's rise with the evidence, ``max(gain, 1 - shrink / T)`` (0: the fixed gain;
+#: :meth:`recovery.light_mixture.MixtureSettings.gain_at`)
+SHRINKS = (0.0, 8.0, 16.0, 24.0, 32.0)
 
 
 def angle_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -212,9 +215,9 @@ def score(scenes, evs, settings_list) -> dict:
         maps = {}
         cache = {}
         for s in settings_list:
-            key = (s.gain, s.project, s.level)
+            key = (s.gain_at(T), s.project, s.level)      # settings with the same gain here share the field
             if key not in cache:
-                fld = LM.light_field(e["uv0"], e["ev"], s)
+                fld = LM.light_field(e["uv0"], e["ev"], s, T)
                 rng = LM.field_range_deg(fld, K) if e["ev"].valid.sum() >= 2 else 0.0
                 cache[key] = (field_error(fld, e["ev"], K, light, vp), rng)
             always, rng = cache[key]
@@ -261,13 +264,14 @@ def decompose(scenes, evs, s: LM.MixtureSettings) -> list[dict]:
         if have.any():
             true_dev[have] = tw[have] - tw[have].mean(axis=0)
         level, dev = LM.field_parts(e["uv0"], ev, s)
+        gain = s.gain_at(LM.mixture_statistic(ev))
 
         def err(lv, dv, g):
             return field_error(LM.compose_field(lv, dv, ev, g), ev, K, light, vp)
 
         out.append({DECOMPOSITION[0]: err(level, dev, 0.0),
                     DECOMPOSITION[1]: float(angle_rows(np.linalg.solve(K, L.uv_to_rgb(level))[None], oracle[None])[0]),
-                    DECOMPOSITION[2]: err(true_level, dev, s.gain),
+                    DECOMPOSITION[2]: err(true_level, dev, gain),
                     DECOMPOSITION[3]: err(level, true_dev, 1.0),
                     DECOMPOSITION[4]: err(true_level, true_dev, 1.0)})
     return out
@@ -320,7 +324,8 @@ def flag_stats(rows: list[dict], limit: float = 6.0) -> dict:
 
 
 def settings_grid():
-    return [LM.MixtureSettings(t, g, p, lv) for t in THRESHOLDS for g in GAINS for p in PROJECT for lv in LEVELS]
+    return [LM.MixtureSettings(t, g, p, lv, k) for t in THRESHOLDS for g in GAINS for p in PROJECT for lv in LEVELS
+            for k in SHRINKS]
 
 
 #: the single-light photographs may lose at most this fraction of their
@@ -431,6 +436,79 @@ def speed(rs, repeats: int = 5) -> dict:
     return out
 
 
+def cast_profile(out: np.ndarray, ref: np.ndarray, parts: int = 8) -> np.ndarray:
+    """Mean angle (degrees) per ``parts``-th of the width between a picture
+    and a reference (linear RGB, the same size), after the one per-channel
+    gain that matches them on the rightmost part (where a :mod:`testing.relight`
+    photograph keeps its own light): the cast left that varies across the
+    frame. Both are reduced 16 x (area) first; pixels near black or clipping
+    are left out."""
+    import cv2
+
+    h, w = ref.shape[:2]
+    o = cv2.resize(np.asarray(out, np.float32), (w // 16, h // 16), interpolation=cv2.INTER_AREA).astype(float)
+    r = cv2.resize(np.asarray(ref, np.float32), (w // 16, h // 16), interpolation=cv2.INTER_AREA).astype(float)
+    ok = (r.min(-1) > 0.01 * r.max()) & (r.max(-1) < 0.9 * r.max()) & (o.max(-1) < 0.9 * o.max())
+    col = np.arange(r.shape[1])[None, :].repeat(r.shape[0], 0) * parts // r.shape[1]
+    fit = ok & (col == parts - 1)
+    o = o * np.array([np.median(r[..., k][fit] / np.maximum(o[..., k][fit], 1e-12)) for k in range(3)])
+    ang = angle_rows(o.reshape(-1, 3), r.reshape(-1, 3)).reshape(ok.shape)
+    return np.array([ang[ok & (col == q)].mean() for q in range(parts)])
+
+
+def picture(raw_path: str, out_png: str | None = None) -> dict:
+    """A real camera file relit at its mosaic by tungsten over its left half
+    (:func:`testing.relight.relit_dng`), white-balanced through the service
+    (``POST /v1/white-balance``, linear sRGB TIFF) with one light and with
+    the default's decision; each picture's cast across the frame against the
+    photograph's own white balance (:func:`cast_profile`). Writes the three
+    pictures side by side to ``out_png`` (sRGB, 1/8 size)."""
+    import io
+    import json
+
+    import cv2
+    import tifffile
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+    from testing.relight import raw_mosaic, relit_dng, write_raw
+
+    c = TestClient(app, base_url="http://127.0.0.1")
+
+    def wb(data, spatial):
+        r = c.post("/v1/white-balance", files={"file": ("x.dng", data)},
+                   data={"format": "tiff", "output": "linear-sRGB", "spatial": spatial})
+        r.raise_for_status()
+        return tifffile.imread(io.BytesIO(r.content)).astype(float), json.loads(r.headers["x-illuminant"])
+
+    raw = raw_mosaic(Path(raw_path).read_bytes())
+    ref, h0 = wb(write_raw(raw, raw["cfa"]), "auto")
+    data, g = relit_dng(raw, h0["illuminant"]["camera_rgb"])
+    res = {"photograph_lights": h0["lights"]["found"], "second_over_first": g.tolist(),
+           "second_light_angle_deg": float(angle_rows(g[None], np.ones((1, 3)))[0])}
+    pics = [ref]
+    for sp in ("false", "auto"):
+        o, h = wb(data, sp)
+        an = c.post("/v1/analyze", files={"file": ("x.dng", data)}, data={"spatial": sp}).json()
+        res[sp] = {"lights": h["lights"]["found"], "reason": h["lights"]["reason"],
+                   "gain": an["diagnostics"].get("spatial_test", {}).get("gain"),
+                   "cast_by_eighths": cast_profile(o, ref).tolist()}
+        pics.append(o)
+    if out_png:
+        hh, ww = ref.shape[:2]
+        top = np.percentile(cv2.resize(np.asarray(ref, np.float32), (ww // 8, hh // 8)), 99)
+
+        def show(im):
+            im = cv2.resize(np.asarray(im, np.float32), (ww // 8, hh // 8), interpolation=cv2.INTER_AREA) / top
+            im = np.clip(im, 0, 1)
+            im = np.where(im <= 0.0031308, 12.92 * im, 1.055 * im ** (1 / 2.4) - 0.055)
+            return (im * 255 + 0.5).astype(np.uint8)[..., ::-1]
+
+        cv2.imwrite(out_png, np.concatenate([show(p_) for p_ in pics], axis=1), [cv2.IMWRITE_JPEG_QUALITY, 85])
+        res["png"] = out_png
+    return res
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(REAL_DIR))
@@ -438,8 +516,25 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out")
     ap.add_argument("--cache", default="out/mixed_light_models", help="fitted models kept here between runs")
     ap.add_argument("--speed", action="store_true", help="only the speed figures (item 5), about a minute")
+    ap.add_argument("--picture", metavar="RAW", help="only the picture figure: this Bayer DNG relit by tungsten "
+                    "over its left half, white-balanced with one light and with the default (about 30 s)")
+    ap.add_argument("--picture-png", default=None, help="with --picture: write the three pictures side by side here (PNG or JPEG by its extension)")
     a = ap.parse_args(argv)
     t_all = time.perf_counter()
+    if a.picture:
+        res = picture(a.picture, a.picture_png)
+        print(f"{a.picture} relit by tungsten over its left half ({res['second_light_angle_deg']:.1f} degrees from "
+              f"its own light in camera RGB); the photograph itself: {res['photograph_lights']} light(s) found")
+        print("cast left in the white-balanced picture (linear sRGB, degrees) by eighths of the width, left to "
+              "right, after one gain matching the right eighth to the photograph's own picture:")
+        for sp, name in (("false", "one light (spatial=false)"), ("auto", "the default (spatial=auto)")):
+            r = res[sp]
+            print(f"  {name:27s} " + " ".join(f"{v:5.1f}" for v in r["cast_by_eighths"])
+                  + f"   lights {r['lights']}" + (f", gain {r['gain']:.2f}" if r["gain"] is not None and r["lights"] > 1 else ""))
+        print("  " + res["auto"]["reason"])
+        if res.get("png"):
+            print(f"wrote {res['png']}: the photograph, one light, the default")
+        return 0
     rs = load_real(a.data)
     if a.speed:
         sp = speed(rs, repeats=3)
@@ -523,11 +618,12 @@ def main(argv=None) -> int:
     report = {"per_benchmark": a.per, "chosen": {b: vars(s) for b, s in chosen.items()}, "results": {},
               "shipped_choice": vars(shipped), "shipped_now": vars(LM.DEFAULT_SETTINGS)}
     print(f"settings the rule chooses on all three benchmarks (to ship): T > {shipped.threshold:g}, gain "
-          f"{shipped.gain:g}, {'projected' if shipped.project else 'free'}, level {shipped.level:g}; shipped now: "
-          f"T > {LM.DEFAULT_SETTINGS.threshold:g}, gain {LM.DEFAULT_SETTINGS.gain:g}, "
+          f"{shipped.gain:g}, shrink {shipped.shrink:g}, {'projected' if shipped.project else 'free'}, level {shipped.level:g}; shipped now: "
+          f"T > {LM.DEFAULT_SETTINGS.threshold:g}, gain {LM.DEFAULT_SETTINGS.gain:g}, shrink {LM.DEFAULT_SETTINGS.shrink:g}, "
           f"{'projected' if LM.DEFAULT_SETTINGS.project else 'free'}, level {LM.DEFAULT_SETTINGS.level:g}")
     print(f"\nsettings chosen by inner leave-one-benchmark-out (threshold on T, gain, projection): "
-          + "; ".join(f"without {b}: T > {s.threshold:g}, gain {s.gain:g}, {'projected' if s.project else 'free'}, "
+          + "; ".join(f"without {b}: T > {s.threshold:g}, gain {s.gain:g}, shrink {s.shrink:g}, "
+                                 f"{'projected' if s.project else 'free'}, "
                                  f"level {s.level:g}"
                       for b, s in chosen.items()))
     cols = ("learned", "sog", "oracle", "map always", "map decided")

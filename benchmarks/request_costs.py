@@ -15,6 +15,11 @@ about 1,000 to 25,000 (``max_regions`` lifted): seconds per 1,000 regions.
 Usage (from the checkout root)::
 
     .venv/bin/python -m benchmarks.request_costs [--port 8660] [--mp 10] [--skip-memory] [--skip-map]
+        [--only TEXT] [--endpoint PATH] [--wb-format tiff|png|png16|jpeg]
+
+``--only`` keeps the input kinds whose name contains TEXT (e.g. ``LinearRaw``),
+``--endpoint`` one endpoint (e.g. ``/v1/white-balance``), ``--wb-format`` the
+white balance's output format (default tiff).
 
 Linux only (``/proc``). Prints one line per case.
 """
@@ -137,7 +142,7 @@ def _linear_tiff(mp: float) -> tuple[bytes, float]:
     return buf.getvalue(), h * w / 1e6
 
 
-def _linear_dng(mp: float, float_samples: bool) -> tuple[bytes, float]:
+def _linear_dng(mp: float, float_samples: bool, compression: str = "zlib") -> tuple[bytes, float]:
     import tifffile
 
     h = int(round((mp * 1e6 * 3 / 4) ** 0.5))
@@ -155,7 +160,7 @@ def _linear_dng(mp: float, float_samples: bool) -> tuple[bytes, float]:
             (50713, "H", 2, (1, 1), True), (50714, "I", 1, 0, True),
             (50717, "I", 1, 1 if float_samples else 65535, True)]
     buf = io.BytesIO()
-    tifffile.imwrite(buf, img, photometric=34892, subfiletype=0, compression="zlib", tile=(256, 256),
+    tifffile.imwrite(buf, img, photometric=34892, subfiletype=0, compression=compression, tile=(256, 256),
                      planarconfig="contig", metadata=None, extratags=tags)
     return buf.getvalue(), h * w / 1e6
 
@@ -173,12 +178,16 @@ def _cfa_dng(mp: float) -> tuple[bytes, float]:
     return buf.getvalue(), h * w / 1e6
 
 
-def memory(port: int, mp: float) -> None:
+def memory(port: int, mp: float, only: str | None = None, endpoint: str | None = None,
+           wb_format: str = "tiff") -> None:
     kinds = {"linear 16-bit TIFF (deflate)": ("a.tif", lambda: _linear_tiff(mp)),
              "CFA DNG (16-bit Bayer)": ("a.dng", lambda: _cfa_dng(mp)),
              "LinearRaw DNG, 16-bit, deflate tiles": ("a.dng", lambda: _linear_dng(mp, False)),
-             "LinearRaw DNG, float32, deflate tiles": ("a.dng", lambda: _linear_dng(mp, True))}
-    endpoints = (("/v1/analyze", {}), ("/v1/white-balance", {"format": "tiff"}), ("/v1/surfaces", {"grid": "4x4"}))
+             "LinearRaw DNG, float32, deflate tiles": ("a.dng", lambda: _linear_dng(mp, True)),
+             "LinearRaw DNG, 16-bit, deflate-32946 tiles": ("a.dng", lambda: _linear_dng(mp, False, "deflate"))}
+    endpoints = (("/v1/analyze", {}), ("/v1/white-balance", {"format": wb_format}), ("/v1/surfaces", {"grid": "4x4"}))
+    kinds = {k: v for k, v in kinds.items() if only is None or only.lower() in k.lower()}
+    endpoints = tuple(e for e in endpoints if endpoint is None or e[0] == endpoint)
     warm = _cfa_dng(0.05)[0]
     for kind, (name, make) in kinds.items():
         data, mpx = make()
@@ -192,7 +201,8 @@ def memory(port: int, mp: float) -> None:
             finally:
                 srv.stop()
             what = "" if st == 200 else f" ({json.loads(body).get('error') if body[:1] == b'{' else body[:60]})"
-            print(f"{kind:40s} {path:18s} {mpx:5.1f} MP ({len(data) / 1e6:6.1f} MB): HTTP {st}{what}, "
+            where = f"{path} {fields['format']}" if "format" in fields else path
+            print(f"{kind:40s} {where:23s} {mpx:5.1f} MP ({len(data) / 1e6:6.1f} MB): HTTP {st}{what}, "
                   f"RSS +{rise:5d} MiB = {rise / mpx:5.1f} MiB/MP, {took:5.1f} s", flush=True)
 
 
@@ -221,11 +231,14 @@ def main(argv=None) -> None:
     ap.add_argument("--mp", type=float, default=10.0, help="megapixels of the memory cases (default 10)")
     ap.add_argument("--skip-memory", action="store_true")
     ap.add_argument("--skip-map", action="store_true")
+    ap.add_argument("--only", help="only the input kinds whose name contains this (e.g. LinearRaw)")
+    ap.add_argument("--endpoint", help="only this endpoint (e.g. /v1/white-balance)")
+    ap.add_argument("--wb-format", default="tiff", help="/v1/white-balance's format (default tiff)")
     a = ap.parse_args(argv)
     if not a.skip_map:
         light_map()
     if not a.skip_memory:
-        memory(a.port, a.mp)
+        memory(a.port, a.mp, a.only, a.endpoint, a.wb_format)
 
 
 if __name__ == "__main__":

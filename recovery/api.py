@@ -145,7 +145,7 @@ def _learned_light_map(img, m, camera, est, mode: str):
     fld, evd, ev, K, ok, uv0 = got
     reason = evd.pop("reason")
     if fld is None and mode == "map":
-        fld = light_field(uv0, ev)
+        fld = light_field(uv0, ev, T=evd["mixture_T"])
         reason = "a light map was asked for (spatial=true); the evidence alone says: " + reason
     d = est.diagnostics
     d["spatial_mode"] = mode

@@ -28,7 +28,11 @@ of them:
    smaller than the light's; noise makes it larger. The variation is
    multiplied by a gain chosen by cross-validation on relit real
    photographs (:mod:`benchmarks.mixed_light`), and the field is smooth:
-   bilinear between window centres, constant beyond the outer ones.
+   bilinear between window centres, constant beyond the outer ones. The
+   gain may rise with the evidence, ``max(gain, 1 - shrink / T)`` (a
+   positive-part James-Stein factor: the variation is trusted more the
+   further ``T``, below, is above what noise gives), ``shrink`` chosen by the
+   same cross-validation (0: the fixed gain).
 
 The decision: the windows' variation along the principal direction against
 their own calibrated uncertainty (the learnt uncertainty law,
@@ -50,7 +54,9 @@ Wandell (1985) [docs/references.md#seed-002], Fig. 1 and 'A condition on
 spatial variation'. Gijsenij, Lu & Gevers (2012), Color constancy for
 multiple light sources, IEEE TIP 21(2) (estimates on patches, combined).
 Bianco & Schettini (2014), Adaptive color constancy using faces (local
-estimates, smoothed). Hussain & Akbari (2018), Color constancy for uniform
+estimates, smoothed). James & Stein (1961), Estimation with quadratic loss,
+Proc. 4th Berkeley Symp. 1; Efron & Morris (1973), Stein's estimation rule
+and its competitors, JASA 68(341) (the positive-part shrinkage factor). Hussain & Akbari (2018), Color constancy for uniform
 and non-uniform illuminant using image texture (two-light benchmarks).
 """
 
@@ -89,6 +95,24 @@ class MixtureSettings:
     gain: float = 0.5           #: multiplies the windows' variation (item 3 of the module docstring)
     project: bool = False       #: project the variation on the principal direction (two lights)
     level: float = 0.75         #: weight of the windows' mean in the map's level (item 1 of the module docstring)
+    shrink: float = 24.0        #: the gain rises to ``1 - shrink / T`` where that is larger (item 3; 0: fixed)
+
+    def gain_at(self, T: float) -> float:
+        """The gain on the windows' variation for a scene whose windows
+        disagree by ``T`` (:func:`mixture_statistic`): ``max(gain, 1 -
+        shrink / T)``, the fixed ``gain`` when ``shrink`` is 0 (module
+        docstring, item 3).
+
+        Examples
+        --------
+        >>> MixtureSettings(gain=0.5, shrink=16.0).gain_at(64.0)
+        0.75
+        >>> MixtureSettings(gain=0.5, shrink=16.0).gain_at(20.0)
+        0.5
+        """
+        if self.shrink <= 0 or not np.isfinite(T) or T <= 0:
+            return float(self.gain)
+        return float(max(self.gain, 1.0 - self.shrink / T))
 
 
 #: The shipped settings (benchmarks.mixed_light prints how they were chosen).
@@ -231,18 +255,22 @@ def compose_field(level: np.ndarray, dev: np.ndarray, ev: WindowEvidence, gain: 
     return out.reshape(gr, gc, 2)
 
 
-def light_field(uv0: np.ndarray, ev: WindowEvidence, settings: MixtureSettings = DEFAULT_SETTINGS) -> np.ndarray:
+def light_field(uv0: np.ndarray, ev: WindowEvidence, settings: MixtureSettings = DEFAULT_SETTINGS,
+                T: float | None = None) -> np.ndarray:
     """(gr, gc, 2) the light at the window centres (canonical log-chroma):
     the level (the whole image's ``uv0`` blended with the windows'
     precision-weighted mean, ``settings.level``) plus the windows' variation
     about their mean, projected on their principal direction and multiplied
-    by the gain (module docstring; :func:`field_parts`). Unusable windows
-    get the level."""
+    by the gain ``settings.gain_at(T)`` (module docstring; :func:`field_parts`;
+    ``T`` is computed when not given and the gain depends on it). Unusable
+    windows get the level."""
     if ev.valid.sum() < 2:
         gr, gc = ev.grid
         return np.tile(np.asarray(uv0, float), (gr * gc, 1)).reshape(gr, gc, 2)
     level, dev = field_parts(uv0, ev, settings)
-    return compose_field(level, dev, ev, settings.gain)
+    if settings.shrink > 0 and T is None:
+        T = mixture_statistic(ev)
+    return compose_field(level, dev, ev, settings.gain_at(T if T is not None else 0.0))
 
 
 def field_range_deg(field_uv: np.ndarray, K: np.ndarray) -> float:
@@ -268,12 +296,12 @@ def decide(ev: WindowEvidence, uv0: np.ndarray, K: np.ndarray,
     field's range across the frame and the reason, in words.
     """
     T = mixture_statistic(ev)
-    fld = light_field(uv0, ev, settings)
+    fld = light_field(uv0, ev, settings, T)
     rng = field_range_deg(fld, K) if ev.valid.sum() >= 2 else 0.0
     nv = int(ev.valid.sum())
     evidence = {"mixture_T": T, "mixture_threshold": settings.threshold, "map_range_deg": rng,
                 "map_range_threshold_deg": MIN_RANGE_DEG, "windows_used": nv, "windows": int(ev.valid.size),
-                "window_cells": WINDOW, "gain": settings.gain,
+                "window_cells": WINDOW, "gain": settings.gain_at(T), "gain_shrink": settings.shrink,
                 "level_windows_weight": settings.level}
     if nv < 2:
         evidence["reason"] = (f"one light: only {nv} of {ev.valid.size} windows have enough surfaces to read "

@@ -436,7 +436,7 @@ def correction_matrix(camera, light_rgb, light_spectrum: np.ndarray, target, spa
     y = M @ neutral
     lum = float(y[1]) if space.Gamma is None else float((space.Gamma @ y)[1])
     if not (np.isfinite(lum) and lum > 0):
-        raise InputError("the estimated light renders white with no luminance", code="unrenderable")
+        raise InputError("the light renders white with no luminance", code="unrenderable")
     if np.all(neutral > 0):
         info["neutral"] = neutral.tolist()
     return _with_exposure(M / lum, info, image, exposure, tone, space.Gamma)

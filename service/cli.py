@@ -47,6 +47,7 @@ import shlex
 import sys
 import threading
 
+from .cli_paths import EXTENSION_FORMATS, format_for, input_file, input_folder  # noqa: F401 - cli.format_for
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
 from .schemas.fields import BATCH, BATCH_FORMATS, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
@@ -577,8 +578,7 @@ def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = 
 def _cmd_batch(args) -> int:
     args.format = args.format or "tiff"
     opts = _options(args, args.lighting)
-    if not os.path.isdir(args.in_dir):
-        raise ServiceError(422, "folder_not_found", f"input folder {args.in_dir!r} does not exist")
+    input_folder(args.in_dir)
     files, ignored = scan_inputs(args.in_dir, args.recursive, args.out_dir)
     if not files:
         raise ServiceError(422, "empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}"
@@ -628,47 +628,8 @@ def _print_light_warnings(light: dict | None) -> None:
         sys.stderr.write(f"warning: {term_safe(w)}\n")
 
 
-#: Output file extensions and the formats they mean (white-balance OUT).
-EXTENSION_FORMATS = {".tif": ("tiff",), ".tiff": ("tiff",), ".png": ("png", "png16"), ".jpg": ("jpeg", "jpg"),
-                     ".jpeg": ("jpeg", "jpg")}
-
-
-def format_for(out: str, given: str | None) -> str:
-    """The output format of ``white-balance OUT``: from OUT's extension;
-    ``--format`` must agree with it (png16 is the 16-bit choice for .png);
-    a name without an extension needs ``--format``."""
-    ext = os.path.splitext(out)[1].lower()
-    if not ext:
-        if given is None:
-            raise ServiceError(422, "invalid_parameter", f"{out!r} has no extension: name it .tif, .png or "
-                               ".jpg, or give --format")
-        return given
-    if ext not in EXTENSION_FORMATS:
-        raise ServiceError(422, "invalid_parameter", f"cannot write {ext!r} files: name the output .tif/.tiff "
-                           "(16-bit TIFF), .png (8-bit; --format png16 for 16-bit) or .jpg/.jpeg")
-    allowed = EXTENSION_FORMATS[ext]
-    if given is not None and given not in allowed:
-        raise ServiceError(422, "format_mismatch", f"--format {given} disagrees with the output name {out!r} "
-                           f"({ext} is {' or '.join(allowed)}): change one of them")
-    return given or allowed[0]
-
-
-def _input_file(path: str) -> str:
-    """The FILE argument, checked before any work: a missing file or a
-    folder is a usage error (exit 2) in words, not a Python traceback or
-    an errno."""
-    if os.path.isdir(path):
-        raise ServiceError(422, "not_a_file", f"{path!r} is a folder; give one file, or use 'wandell batch "
-                           f"{path} OUT_DIR' for every RAW in it")
-    if not os.path.exists(path):
-        raise ServiceError(422, "file_not_found", f"{path!r} does not exist (current folder {os.getcwd()!r})")
-    if not os.access(path, os.R_OK):
-        raise ServiceError(422, "file_not_readable", f"{path!r} cannot be read (permission denied)")
-    return path
-
-
 def _cmd_white_balance(args) -> int:
-    _input_file(args.file)
+    input_file(args.file)
     args.format = format_for(args.out, args.format)
     opts = _options(args)
     max_pixels, est_pixels = _limits()
@@ -711,7 +672,7 @@ def _cmd_analyze(args) -> int:
     from . import pipeline
     from .jsonsafe import clean
 
-    _input_file(args.file)
+    input_file(args.file)
     opts = _options(args)
     try:
         decoded, run = pipeline.analyze_file(args.file, _settings(), camera=opts.camera, method=opts.method,

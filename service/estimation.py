@@ -27,6 +27,7 @@ class EstimateRun:
     factor: int = 1
     neutral: dict | None = None     # set by with_neutral: where the user's white came from
     requested_method: str | None = None
+    white: str | None = None        # set by with_white: the user's white as given (``white=5200/+10``)
 
 
 def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str, options: dict,

@@ -305,6 +305,40 @@ def rule_options(strategy: str, n: int | None, channel: str | None, degrees: str
     return opts
 
 
+def rule_takes(strategy: str) -> dict[str, str]:
+    """The query options of ``GET /v1/sampling`` that ``strategy`` takes, each
+    with what it accepts (from its builder's signature,
+    :data:`models.sampling.STRATEGIES`): ``n`` always, ``channel`` and
+    ``degrees`` only where the builder has them."""
+    import inspect
+
+    from models.sampling import STRATEGIES
+
+    params = inspect.signature(STRATEGIES[strategy]).parameters
+    takes = {"n": ("n, the rule's size" if "degrees" not in params
+                   else "n omitted, or equal to the sum of the degrees (they imply it)")}
+    if "channel" in params:
+        takes["n"] += " (omitted with channel=XYZ, whose orders imply it)"
+        takes["channel"] = f"channel A, C1, C2 or XYZ (default {params['channel'].default})"
+    if "degrees" in params:
+        takes["degrees"] = ("degrees=x,y,z, each 0..12, default " + ",".join(map(str, params["degrees"].default)))
+    return takes
+
+
+def rule_refusal(strategy: str, n: int | None, opts: dict, error: BaseException | str) -> ServiceError:
+    """The 422 of a sampling rule that cannot be made: what was asked (only
+    the values given, never an empty ``{}``: probe round 4), why not, and
+    what ``strategy`` accepts (:func:`rule_takes`)."""
+    takes = rule_takes(strategy)
+    given = ([f"n={n}"] if n is not None else []) + [
+        f"{k}={','.join(map(str, v)) if isinstance(v, (tuple, list)) else v}" for k, v in opts.items()]
+    asked = f"{strategy} with {' and '.join(given)}" if given else f"{strategy} with no n and no options"
+    refused = [k for k in opts if k not in takes]
+    why = (f"{strategy} takes no {' or '.join(refused)}" if refused else str(error).rstrip("."))
+    return ServiceError(422, "invalid_parameter", f"{asked}: {why}. {strategy} accepts: {'; '.join(takes.values())}"
+                        + "".join(f"; no {k}" for k in ("channel", "degrees") if k not in takes))
+
+
 EXPOSURE_HELP = ("exposure in EV, or auto (default): auto is LibRaw's auto-brightness (the 99th "
                  "percentile of the brightest display channel is display white); a number overrides it, "
                  "0 rendering the brightest neutral the sensor records as display white, each +1 doubling")

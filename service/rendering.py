@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 from recovery.api import resolve_model
+from recovery.errors import InputError
 from recovery.synthesis import correction_matrix as _recovery_correction_matrix, output_space
 from recovery.synthesis import exposure_gain as _recovery_exposure_gain
 
@@ -42,15 +43,46 @@ def correction_matrix(run: EstimateRun, target: str, output: str, surface_model:
         raise ServiceError(422, "invalid_parameter", f"output: {e}") from None
     choice = rendering_choice(run, decoded)
     S = resolve_model(surface_model, "surface", cam.channels, cam.wavelengths).basis
-    M, info = _recovery_correction_matrix(cam, est.rgb, est.spectrum, target, space, S,
-                                          profile=choice["profile"], tone=tone, exposure=exposure,
-                                          image=_estimation_image(decoded))
+    try:
+        M, info = _recovery_correction_matrix(cam, est.rgb, est.spectrum, target, space, S,
+                                              profile=choice["profile"], tone=tone, exposure=exposure,
+                                              image=_estimation_image(decoded))
+    except InputError as e:
+        if e.code != "unrenderable":
+            raise
+        raise ServiceError(422, "unrenderable", f"{light_source(run)} cannot be rendered for target {target!r} "
+                           f"on {output}: white comes out with no luminance; {_unrenderable_advice(run)}") from None
     info["color_source"] = choice["color_source"] if info["rendering"] == "dng-matrix" else cam.source
     if not np.all(np.isfinite(M)):
         # never a black image (NaN matrix) answered as a success
         raise ServiceError(422, "unrenderable", f"no finite correction from this light to target {target!r} "
                            f"on {output}; choose another target (e.g. D65) or check the estimate")
     return M, info
+
+
+def light_source(run: EstimateRun) -> str:
+    """Whose light ``run`` renders, in words for an error: the user's white
+    (``white=T/tint``), the file's as-shot white, the surface the user chose
+    as white, or the estimate (probe round 4: a user's white was refused as
+    "the estimated light")."""
+    method = getattr(run.estimate, "method", None)
+    if run.white is not None or method == "temperature-tint":
+        return f"the white you set (white={run.white!r})" if run.white else "the white you set"
+    if method == "as-shot":
+        return "the file's as-shot white (white='as-shot')"
+    if run.neutral is not None or method == "neutral-surface":
+        where = (run.neutral or {}).get("where")
+        return f"the surface you chose as white (neutral={where})" if where else "the surface you chose as white"
+    return "the estimated light"
+
+
+def _unrenderable_advice(run: EstimateRun) -> str:
+    method = getattr(run.estimate, "method", None)
+    if run.white is not None or method == "temperature-tint":
+        return "choose a temperature and tint nearer the daylight locus, or another target (e.g. D65)"
+    if method in ("as-shot", "neutral-surface") or run.neutral is not None:
+        return "choose another white (e.g. white=estimate) or another target (e.g. D65)"
+    return "choose another target (e.g. D65), or give a white (white=TEMPERATURE/TINT)"
 
 
 def _estimation_image(decoded):
@@ -189,7 +221,8 @@ def render_encoded(decoded, run: EstimateRun, *, target: str, output: str, fmt: 
     ``(bytes, M, info, meta)``. A PNG or JPEG of a RAW whose mosaic was kept
     (``keep_mosaic``, no demosaic started ahead) is demosaicked, corrected
     and encoded strip by strip (:mod:`service.strips`: the same pixels
-    without the full-resolution 16-bit image; timing ``render``); anything
+    without the full-resolution 16-bit image; timing ``render``), and so
+    is an unrotated LinearRaw DNG read from its strips or tiles; anything
     else through the whole image (timings ``demosaic``, ``correct``,
     ``encode``)."""
     from . import strips
@@ -197,6 +230,8 @@ def render_encoded(decoded, run: EstimateRun, *, target: str, output: str, fmt: 
     source = None
     if fmt.encoder in STRIP_ENCODERS and getattr(decoded, "_full_future", None) is None:
         source = strips.mosaic_rows(decoded, lambda shape: crop_bounds(decoded, shape))
+        if source is None:           # a LinearRaw DNG: its strips or tiles read as the output's strips need them
+            source = strips.linear_rows(decoded, lambda shape: crop_bounds(decoded, shape))
     if source is None:
         out, M, info, meta = render_corrected(decoded, run, target=target, output=output, fmt=fmt,
                                               surface_basis=surface_basis, threads=threads, white=white,

@@ -127,15 +127,9 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
         out["method_failed"] = failed
     out["lights"] = lights_json(est, "light_map gives the light across the frame, and white-balanced outputs "
                                      "correct each pixel by it")
-    lm = est.light_map
-    if lm is not None:  # the light at the map's centres, as fractions of the image height and width
-        rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
-        rgb = run.camera.response(lm.spectra_at(rr.ravel(), cc.ravel()))
-        rgb = rgb / np.linalg.norm(rgb, axis=1, keepdims=True)
-        eh, ew = decoded.estimation.shape[:2]
-        out["light_map"] = {"centres_row_fraction": ((lm.centres_r + 0.5) * run.factor / eh).tolist(),
-                            "centres_col_fraction": ((lm.centres_c + 0.5) * run.factor / ew).tolist(),
-                            "camera_rgb": rgb.reshape(rr.shape + (-1,)).tolist()}
+    lm = light_map_json(run, decoded)
+    if lm is not None:
+        out["light_map"] = lm
     if decoded.as_shot_neutral is not None and np.all(np.isfinite(decoded.as_shot_neutral)):
         asn = np.asarray(decoded.as_shot_neutral, float)
         ang = float(angular_error(asn, est.rgb))
@@ -150,6 +144,23 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
         if out["neutral"].get("warning"):
             out["warnings"].append(out["neutral"]["warning"])
     return out
+
+
+def light_map_json(run: EstimateRun, decoded) -> dict | None:
+    """The answer's ``light_map``: the light at the map's centres (unit camera
+    RGB), as fractions of the image height and width; ``None`` for one light.
+    Every answer whose ``lights.found`` is 2 carries it (``/v1/analyze``,
+    ``/v1/white-balance``, ``/v1/surfaces``: probe round 4)."""
+    lm = getattr(run.estimate, "light_map", None)
+    if lm is None:
+        return None
+    rr, cc = np.meshgrid(lm.centres_r, lm.centres_c, indexing="ij")
+    rgb = run.camera.response(lm.spectra_at(rr.ravel(), cc.ravel()))
+    rgb = rgb / np.linalg.norm(rgb, axis=1, keepdims=True)
+    eh, ew = decoded.estimation.shape[:2]
+    return {"centres_row_fraction": ((lm.centres_r + 0.5) * run.factor / eh).tolist(),
+            "centres_col_fraction": ((lm.centres_c + 0.5) * run.factor / ew).tolist(),
+            "camera_rgb": rgb.reshape(rr.shape + (-1,)).tolist()}
 
 
 def lm_found(est) -> bool:

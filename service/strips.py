@@ -26,7 +26,9 @@ The pixels are those of the whole-image path exactly:
   (``row_multiple`` of the encoders) and each chunk is the same.
 
 Only for a kept, scaled 2x2 Bayer mosaic (:func:`service.decode.raw._decode_raw`
-with ``keep_mosaic``) without a rotation; anything else takes the
+with ``keep_mosaic``) without a rotation, and for a LinearRaw DNG read from
+its own samples (:func:`linear_rows`: its strips or tiles decoded as the
+output's strips need them) without a rotation; anything else takes the
 whole-image path (:func:`service.pipeline.render_corrected`).
 """
 
@@ -116,6 +118,20 @@ def mosaic_rows(decoded, bounds_of) -> MosaicRows | None:
         return None
     decoded._mosaic = None
     return MosaicRows(mosaic, getattr(cv2, _OPENCV_BAYER[pattern]), bounds_of(mosaic.shape), method, pattern)
+
+
+def linear_rows(decoded, bounds_of):
+    """The rows of a LinearRaw DNG read without LibRaw (``decoded._linear_raw``,
+    :class:`service.decode.linear_dng.LinearRawRows`: its strips or tiles
+    decoded as the strips of the output need them), or ``None`` (another
+    kind of image, a rotated one, or segments too tall)."""
+    shape = getattr(decoded, "_linear_raw", None)
+    if shape is None or decoded._source is None:
+        return None
+    from .decode.linear_dng import LinearRawRows
+
+    flip = int((decoded._postprocess or {}).get("user_flip", 0) or 0)
+    return LinearRawRows.of(decoded._source, *shape, flip, bounds_of)
 
 
 def encode_strips(source: MosaicRows, kernel, fmt: str, threads: int | None = None) -> bytes:

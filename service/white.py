@@ -108,7 +108,9 @@ def with_white(decoded, run, white: str):
     if not (np.all(np.isfinite(rgb)) and np.all(rgb > 0)):
         raise ServiceError(422, "invalid_parameter", f"white {white!r}: this camera has no positive response to "
                            "that white; choose a temperature and tint nearer the daylight locus")
-    return run_with_white(run, rgb, "temperature-tint")
+    out = run_with_white(run, rgb, "temperature-tint")
+    out.white = white
+    return out
 
 
 def as_shot_temperature_tint(decoded, run) -> dict:

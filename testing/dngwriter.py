@@ -1,4 +1,5 @@
-"""Minimal uncompressed CFA DNG files, and spectral scenes to fill them.
+"""Minimal uncompressed CFA DNG files, LinearRaw DNGs (:func:`write_linear_dng`:
+compressed, tiled, float), and spectral scenes to fill them.
 
 Test fixtures for the RAW white-balance service: a scene whose every number
 is known (surfaces, light, camera), rendered through a measured camera,
@@ -71,6 +72,7 @@ __all__ = [
     "scene_dng",
     "spectral_scene",
     "write_dng",
+    "write_linear_dng",
 ]
 
 #: Canonical camera name (``models.camera_names``) -> (Make, Model) strings
@@ -85,7 +87,7 @@ CAMERA_MAKE_MODEL = {
 
 # TIFF/DNG tag codes (DNG specification 1.4, chapter 4).
 from service.dngwrite import (_COLOUR_CODE, _PHOTOMETRIC_CFA, _TAG_AS_SHOT_NEUTRAL, _TAG_BLACK_LEVEL,  # noqa: E402,F401
-                               _TAG_CALIBRATION_ILLUMINANT1, _TAG_CFA_PATTERN, _TAG_COLOR_MATRIX1, _TAG_MAKE,
+                               _TAG_BLACK_LEVEL_REPEAT_DIM, _TAG_ORIENTATION, _TAG_CALIBRATION_ILLUMINANT1, _TAG_CFA_PATTERN, _TAG_COLOR_MATRIX1, _TAG_MAKE,
                                _TAG_MODEL, _TAG_WHITE_LEVEL, _ascii, _level_tag, _pattern_letters, _rational,
                                _rationals, cfa_colour_indices)
 from service.dngwrite import write_dng as _write_dng  # noqa: E402
@@ -718,3 +720,103 @@ def scene_dng(
         noise_multiplicative=float(noise_multiplicative), noise_additive=float(noise_additive),
         seed=int(seed),
     )
+
+
+# --------------------------------------------------------------------------
+# LinearRaw (demosaiced) DNGs
+# --------------------------------------------------------------------------
+
+#: ``write_linear_dng``'s compression names -> TIFF Compression codes
+LINEAR_COMPRESSIONS = {"none": 1, "adobe_deflate": 8, "deflate": 32946}
+
+
+def write_linear_dng(path, rgb, *, black_level=0, white_level=None, color_matrix1=None,
+                     as_shot_neutral=(0.5, 1.0, 0.6), make: str = "wandell-recovery",
+                     model: str = "synthetic LinearRaw", compression: str = "none", predictor: bool = False,
+                     tile=None, rows_per_strip: int | None = 16, orientation: int = 1, default_crop=None,
+                     linearization=None) -> None:
+    """Write a LinearRaw DNG (PhotometricInterpretation 34892: three
+    demosaiced samples per pixel, chunky) of ``rgb`` with ``tifffile``: the
+    layout Adobe DNG Converter's linear option writes, in any of the
+    encodings the service reads.
+
+    Tags written: NewSubfileType 0, the image's size, BitsPerSample and
+    SampleFormat of ``rgb``'s dtype, Compression, Predictor (when asked),
+    strips (RowsPerStrip) or tiles, Orientation, Make, Model, DNGVersion
+    1.4.0.0, DNGBackwardVersion 1.1.0.0, UniqueCameraModel, ColorMatrix1,
+    CalibrationIlluminant1 21 (D65), BlackLevelRepeatDim (1, 1), BlackLevel
+    (one value or one per sample), WhiteLevel, AsShotNeutral (when given),
+    DefaultCropOrigin/Size and LinearizationTable when given.
+
+    Parameters
+    ----------
+    path : str, os.PathLike or binary file object
+    rgb : (H, W, 3) uint8, uint16, uint32, float16 or float32
+        The samples as stored (``black_level`` .. ``white_level``).
+    black_level : float or (3,) array_like
+    white_level : int, optional
+        Default: the dtype's maximum, 1 for floats.
+    color_matrix1 : (3, 3) array_like, optional
+        XYZ -> camera; default XYZ -> linear sRGB normalised as the DNG SDK does.
+    as_shot_neutral : (3,) array_like or None
+    compression : {"none", "adobe_deflate", "deflate"}
+        Compression 1, 8 or 32946 (:data:`LINEAR_COMPRESSIONS`).
+    predictor : bool
+        With deflate: horizontal differencing (2) for integers, the
+        floating-point predictor (3) for floats.
+    tile : (int, int), optional
+        Tile length and width (multiples of 16); strips of ``rows_per_strip``
+        rows otherwise.
+    orientation : int
+        TIFF Orientation (1-8).
+    default_crop : (top, left, height, width), optional
+        DefaultCropOrigin (left, top) and DefaultCropSize (width, height).
+    linearization : (N,) array_like of uint16, optional
+        LinearizationTable (integer samples).
+
+    References
+    ----------
+    Adobe, *Digital Negative (DNG) Specification* 1.4.0.0 (2012), chapter 4
+    (PhotometricInterpretation 34892, the tags above) and chapter 5.
+    """
+    import tifffile
+
+    from service.dngwrite import _srgb_color_matrix
+
+    rgb = np.ascontiguousarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"rgb must be (H, W, 3), got {rgb.shape}")
+    if compression not in LINEAR_COMPRESSIONS:
+        raise ValueError(f"compression must be one of {sorted(LINEAR_COMPRESSIONS)}, not {compression!r}")
+    if white_level is None:
+        white_level = 1 if rgb.dtype.kind == "f" else int(np.iinfo(rgb.dtype).max)
+    cm = _srgb_color_matrix() if color_matrix1 is None else np.asarray(color_matrix1, float)
+    tags = [(_TAG_MAKE, "s", 0, _ascii("make", make), True), (_TAG_MODEL, "s", 0, _ascii("model", model), True),
+            (_TAG_ORIENTATION, "H", 1, int(orientation), True),
+            (50706, "B", 4, (1, 4, 0, 0), True), (50707, "B", 4, (1, 1, 0, 0), True),
+            (50708, "s", 0, f"{make} {model}", True),
+            (_TAG_COLOR_MATRIX1, "2i", 9, _rationals(cm, signed=True), True),
+            (_TAG_CALIBRATION_ILLUMINANT1, "H", 1, 21, True),
+            (_TAG_BLACK_LEVEL_REPEAT_DIM, "H", 2, (1, 1), True),
+            _level_tag(_TAG_BLACK_LEVEL, np.atleast_1d(black_level)),
+            _level_tag(_TAG_WHITE_LEVEL, [white_level])]
+    if as_shot_neutral is not None:
+        tags.append((_TAG_AS_SHOT_NEUTRAL, "2I", 3, _rationals(as_shot_neutral, signed=False), True))
+    if default_crop is not None:
+        top, left, h, w = (int(v) for v in default_crop)
+        tags += [(50719, "I", 2, (left, top), True), (50720, "I", 2, (w, h), True)]
+    if linearization is not None:
+        lin = np.asarray(linearization, np.uint16).ravel()
+        tags.append((50712, "H", lin.size, tuple(int(v) for v in lin), True))
+    kw = dict(photometric=34892, subfiletype=0, planarconfig="contig", metadata=None, extratags=tags,
+              software="wandell-recovery", compression=None if compression == "none" else
+              {"adobe_deflate": "zlib", "deflate": "deflate"}[compression])
+    if predictor:
+        if compression == "none":
+            raise ValueError("a predictor needs a deflate compression")
+        kw["predictor"] = True
+    if tile is not None:
+        kw["tile"] = tuple(int(v) for v in tile)
+    else:
+        kw["rowsperstrip"] = int(rows_per_strip or rgb.shape[0])
+    tifffile.imwrite(path, rgb, **kw)

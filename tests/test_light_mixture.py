@@ -365,3 +365,75 @@ def test_flag_stats_counts_failures_flags_and_catches():
     # AUROC: of the 2 x 4 (failure, success) pairs, the failure is less confident in 7 (0.6 > 0.3 is the miss)
     assert st["auroc"] == pytest.approx(7 / 8)
     assert np.isnan(ML.flag_stats(rows[:2])["auroc"])       # no failure: no ranking to score
+
+
+def test_the_picture_follows_the_map_on_a_real_camera_file(blackmagic_dng):
+    """The real CinemaDNG (9 megapixels) relit at its raw mosaic by tungsten
+    over its left half (:mod:`testing.relight`; the sensor is linear, so this
+    is the scene under two lights), white-balanced as users ask for it: the
+    default finds two lights, and the picture's cast across the frame (the
+    left against the right, where the photograph keeps its own light) is
+    well under one light's. One light leaves the whole change of light in
+    the picture (the tungsten half about 30 degrees off in linear sRGB); a
+    map removes the part of it its gain keeps (the shipped gain is at least
+    0.5 on a decided map), so at least a quarter must go. The photograph
+    itself keeps one light."""
+    import json
+
+    import tifffile
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+    from testing.relight import raw_mosaic, relit_dng, write_raw
+
+    c = TestClient(app, base_url="http://127.0.0.1")
+
+    def wb(data, spatial):
+        r = c.post("/v1/white-balance", files={"file": ("x.dng", data)},
+                   data={"format": "tiff", "output": "linear-sRGB", "spatial": spatial})
+        assert r.status_code == 200, r.text
+        return tifffile.imread(io.BytesIO(r.content)).astype(float), json.loads(r.headers["x-illuminant"])
+
+    raw = raw_mosaic(blackmagic_dng)
+    base = write_raw(raw, raw["cfa"])
+    ref, head = wb(base, "auto")
+    assert head["lights"]["found"] == 1, head["lights"]["reason"]
+    first = np.asarray(head["illuminant"]["camera_rgb"], float)
+    data, g = relit_dng(raw, first)
+    assert L._angle(g, np.ones(3)) > 10       # tungsten against the photograph's light
+    one, h1 = wb(data, "false")
+    mapped, h2 = wb(data, "auto")
+    assert h1["lights"]["found"] == 1
+    assert h2["lights"]["found"] == 2, h2["lights"]["reason"]
+    from benchmarks.mixed_light import cast_profile
+
+    p_one, p_map = cast_profile(one, ref), cast_profile(mapped, ref)
+    assert np.all(np.isfinite(mapped))
+    assert p_one[0] > 15, p_one                              # one light leaves the tungsten cast on the left
+    assert p_map[0] < 0.75 * p_one[0], (p_map, p_one)
+    assert p_map[:4].mean() < 0.75 * p_one[:4].mean(), (p_map, p_one)
+
+
+def test_the_gain_rises_with_the_evidence_only_above_its_floor():
+    """``max(gain, 1 - shrink / T)``: the fixed gain with no shrink or weak
+    evidence, tending to 1 (the windows' variation taken whole) as ``T``
+    grows; the field's variation scales with it exactly."""
+    s = LM.MixtureSettings(threshold=0, gain=0.5, project=False, level=0.0, shrink=16.0)
+    assert s.gain_at(8.0) == 0.5 and s.gain_at(32.0) == 0.5
+    assert s.gain_at(64.0) == pytest.approx(0.75) and s.gain_at(1e9) == pytest.approx(1.0)
+    assert LM.MixtureSettings(gain=0.5, shrink=0.0).gain_at(1e9) == 0.5
+    assert s.gain_at(float("nan")) == 0.5 and s.gain_at(0.0) == 0.5
+    rng = np.random.default_rng(8)
+    uv = np.array([0.4, 0.2]) + np.outer(np.linspace(-1, 1, 9), [0.05, 0.02]) + rng.normal(size=(9, 2)) * 1e-3
+    ev = _evidence(uv, np.full(9, 1e-5))
+    T = LM.mixture_statistic(ev)
+    uv0 = np.array([0.4, 0.2])
+    level, dev = LM.field_parts(uv0, ev, s)
+    fld = LM.light_field(uv0, ev, s)            # T computed inside
+    np.testing.assert_allclose(fld.reshape(-1, 2), level + s.gain_at(T) * dev, atol=1e-12)
+    np.testing.assert_array_equal(fld, LM.light_field(uv0, ev, s, T))
+    assert s.gain_at(T) > 0.9                  # strong, clean evidence: nearly the whole variation
+    fld_fixed = LM.light_field(uv0, ev, LM.MixtureSettings(threshold=0, gain=0.5, project=False, level=0.0, shrink=0.0))
+    np.testing.assert_allclose(fld_fixed.reshape(-1, 2), level + 0.5 * dev, atol=1e-12)
+    _, evd = LM.decide(ev, uv0, np.eye(3), s)
+    assert evd["gain"] == pytest.approx(s.gain_at(T)) and evd["gain_shrink"] == 16.0

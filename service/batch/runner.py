@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 from ..errors import ServiceError
 from ..schemas.options import BatchOptions
+from .downloads import Downloads
 from .executors import make_executor
 from .items import (ItemTask, RAW_SUFFIXES, _error_text, estimation_sample, process_item, remove_stale_lock,
                     remove_stale_temporaries, shared_light)
@@ -126,6 +127,8 @@ class BatchRunner:
         self.worker_kills = 0
         #: why the store cannot be written (a read-only data directory): batches are then only read
         self.read_only: str | None = None
+        #: zip downloads being sent (the router counts them): the retention sweep postpones those batches
+        self.downloads = Downloads()
 
     @property
     def executor(self):
@@ -326,11 +329,19 @@ class BatchRunner:
 
     def remove_expired_batches(self) -> list[str]:
         """Delete the batches (results and all) finished or cancelled more than
-        ``result_retention_s`` ago (:meth:`JobStore.delete_batch`). Returns their ids."""
+        ``result_retention_s`` ago (:meth:`JobStore.delete_batch`). Returns their ids.
+        A batch whose zip is being downloaded (:attr:`downloads`) is kept until a
+        later sweep: its results are read while the zip streams."""
         if self.config.result_retention_s < 0:
             return []
-        return [bid for bid in self.store.expired_batches(self.config.result_retention_s)
-                if self.store.delete_batch(bid) is not None]
+        gone = []
+        for bid in self.store.expired_batches(self.config.result_retention_s):
+            with self.downloads.removing(bid) as busy:
+                if busy:
+                    log.info("batch %s expired, kept while its zip is downloaded (%d): removed later", bid, busy)
+                elif self.store.delete_batch(bid) is not None:
+                    gone.append(bid)
+        return gone
 
     def remove_orphan_folders(self) -> list[str]:
         """Remove the batch folders no batch owns: made by a ``POST

@@ -103,6 +103,10 @@ class DecodedImage:
     #: (``None``: :data:`service.decode.raw.DEMOSAIC_DEFAULT`; the pipeline
     #: sets it from the ``quality`` preset, :func:`service.decode.raw.demosaic_for`).
     demosaic: str | None = field(default=None, repr=False, compare=False)
+    #: RAW: a LinearRaw DNG in the plain layout (:mod:`service.decode.linear_dng`),
+    #: its raw image's (height, width) unoriented: :meth:`full_linear` reads its
+    #: samples tile by tile instead of LibRaw's full decode.
+    _linear_raw: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def binning(self) -> float:
@@ -113,7 +117,9 @@ class DecodedImage:
     def full_linear(self, out: str = "uint16", *, demosaic: str | None = None) -> np.ndarray:
         """The full-resolution linear camera RGB image on the estimation scale.
 
-        RAW: demosaiced by LibRaw from the file's bytes (the handle is closed
+        RAW: a LinearRaw DNG's own samples read segment by segment
+        (:func:`service.decode.linear_dng.linear_dng_full`, the same scale);
+        any other RAW demosaiced by LibRaw from the file's bytes (the handle is closed
         before returning, so only the result stays in memory) with a linear
         curve, no auto-brightening, no white balance or colour conversion
         (``output_color=raw``), the file's orientation, the data maximum not

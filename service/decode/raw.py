@@ -193,7 +193,7 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
         # unpacks anything (its full-size buffers: 35-42 MiB per megapixel, issue 28)
         from .linear_dng import linear_dng_estimation
 
-        got = linear_dng_estimation(data, int(s.height), int(s.width), estimation_pixels)
+        got = linear_dng_estimation(data, int(s.height), int(s.width), estimation_pixels, label=label)
         if got is not None:
             return _linear_dng_decoded(got, s, data, make, model, info.color_matrix, warnings)
 
@@ -309,10 +309,9 @@ def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings) -> De
     """The :class:`DecodedImage` of a LinearRaw DNG read by
     :func:`service.decode.linear_dng.linear_dng_estimation` (``got``): the
     estimation image oriented as LibRaw would (``s.flip``); the full-
-    resolution image is LibRaw's (:func:`_raw_full_linear`, which then
-    takes the black and white levels from LibRaw itself)."""
-    import rawpy
-
+    resolution image is read from the same samples too
+    (:func:`service.decode.linear_dng.linear_dng_full`, through
+    :func:`_raw_full_linear`), not by LibRaw."""
     est, sat, f, neutral, black, white = got
     flip = int(s.flip) if int(s.flip) in FLIP_OPS else 0
     if flip:
@@ -320,9 +319,7 @@ def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings) -> De
         sat = np.ascontiguousarray(FLIP_OPS[flip](sat))
     warnings.append("demosaiced (linear) DNG: the estimation image is the file's own samples"
                     + (f" averaged over {f}x{f} blocks" if f > 1 else "") + ", saturation judged on the samples")
-    post = dict(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=False, use_auto_wb=False,
-                output_color=rawpy.ColorSpace.raw, adjust_maximum_thr=0.0, bright=1.0,
-                highlight_mode=rawpy.HighlightMode.Clip, user_flip=flip)
+    post = dict(user_flip=flip)            # the orientation (DefaultCrop, the loader); LibRaw renders nothing
     full_shape = _oriented_shape(int(s.height), int(s.width), flip, float(s.pixel_aspect))
     frac = float(sat.mean()) if sat.size else 0.0
     if frac > 0.01:
@@ -332,7 +329,67 @@ def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings) -> De
         color_matrix=np.array(color_matrix, dtype=np.float64), as_shot_neutral=neutral,
         black_level=float(np.mean(black)), white_level=float(np.mean(white)),
         warnings=warnings, _source=data, _postprocess=post, _mosaic=None,
+        _linear_raw=(int(s.height), int(s.width)),
     )
+
+
+#: EXIF/TIFF Orientation (1..8) -> LibRaw's ``sizes.flip`` code (:data:`FLIP_OPS`)
+_ORIENTATION_FLIP = {1: 0, 2: 1, 3: 3, 4: 2, 5: 4, 6: 6, 7: 7, 8: 5}
+
+
+def decode_linear_dng_without_libraw(data: bytes, filename: str | None, max_pixels: int,
+                                     estimation_pixels: int | None = None) -> DecodedImage | None:
+    """A LinearRaw DNG LibRaw does not open (this build refuses compression
+    32946, deflate, for them) read from its samples alone: the size, the
+    orientation (IFD0's Orientation, as LibRaw maps it to ``flip``), Make,
+    Model and ColorMatrix from the tags, the estimation image and the full-
+    resolution one by :mod:`service.decode.linear_dng`, exactly as for a
+    file LibRaw opens (:func:`_linear_dng_decoded`). ``None`` when the file
+    is not a LinearRaw DNG in that module's plain layout with a colour
+    matrix (the caller goes on as before).
+
+    Raises
+    ------
+    ServiceError
+        413 ``too_many_pixels`` past ``max_pixels``; 422 ``corrupt_file``
+        for a damaged strip or tile, or tags the structure check refuses.
+    """
+    import types
+
+    import tifffile
+
+    from .linear_dng import _raw_page, linear_dng_estimation
+    from .structure import _check_tiff_structure, _tiff_structured
+    from .tags import _tiff_info
+
+    label = f"{filename!r}" if filename else "the upload"
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tf:
+            page = _raw_page(tf)
+            if page is None:
+                return None
+            H, W = int(page.imagelength), int(page.imagewidth)
+            p0 = tf.pages.first if hasattr(tf.pages, "first") else tf.pages[0]
+            orient = p0.tags.get(274)
+            orient = int(orient.value) if orient is not None else 1
+        info = _tiff_info(data)
+    except Exception:  # noqa: BLE001 - not readable as such: the caller's path decides
+        return None
+    if info.color_matrix is None or H < 2 or W < 2:
+        return None
+    if H * W > max_pixels:
+        raise ServiceError(413, "too_many_pixels",
+                          f"{label} declares {W}x{H} = {H * W:,} pixels; the limit is {max_pixels:,}")
+    if info.problem:
+        raise ServiceError(422, "corrupt_file", f"{label}: {info.problem}")
+    if _tiff_structured(data):
+        _check_tiff_structure(data)
+    got = linear_dng_estimation(data, H, W, estimation_pixels, label=label)
+    if got is None:
+        return None
+    s = types.SimpleNamespace(height=H, width=W, flip=_ORIENTATION_FLIP.get(orient, 0), pixel_aspect=1.0)
+    warnings = ["LibRaw does not open this DNG (its compression): it is read by tifffile alone"]
+    return _linear_dng_decoded(got, s, data, info.make, info.model, info.color_matrix, warnings)
 
 
 #: OpenCV conversion codes for each 2x2 Bayer cell (measured: a constant
@@ -476,6 +533,14 @@ def _threads() -> int:
 def _raw_full_linear(img: DecodedImage, demosaic: str | None) -> np.ndarray:
     import rawpy
 
+    if img._linear_raw is not None:      # a LinearRaw DNG: its own samples, already demosaiced
+        from .linear_dng import linear_dng_full
+
+        rgb = linear_dng_full(img._source, *img._linear_raw, int(img._postprocess.get("user_flip", 0) or 0))
+        if tuple(rgb.shape[:2]) != tuple(img.full_shape):
+            raise ServiceError(422, "corrupt_file", f"the LinearRaw image is {rgb.shape[1]}x{rgb.shape[0]}, not "
+                               f"the declared {img.full_shape[1]}x{img.full_shape[0]}")
+        return rgb
     demosaic = demosaic or DEMOSAIC_DEFAULT
     if str(demosaic).lower() in MOSAIC_DEMOSAICS:
         rgb = _opencv_full_linear(img, str(demosaic).lower())
@@ -484,7 +549,6 @@ def _raw_full_linear(img: DecodedImage, demosaic: str | None) -> np.ndarray:
         img.warnings.append(f"not a plain Bayer sensor: demosaicked by LibRaw (AHD) instead of {demosaic}")
         demosaic = "AHD"
     params = dict(img._postprocess)
-    user_wb = "user_wb" not in params        # a LinearRaw DNG read without LibRaw: its levels are LibRaw's here
     if demosaic is not None:
         try:
             params["demosaic_algorithm"] = rawpy.DemosaicAlgorithm[str(demosaic).upper()]
@@ -493,9 +557,6 @@ def _raw_full_linear(img: DecodedImage, demosaic: str | None) -> np.ndarray:
             raise ValueError(f"unknown demosaic algorithm {demosaic!r}; accepted: {names}") from None
     try:
         with rawpy.imread(io.BytesIO(img._source)) as raw:
-            if user_wb:
-                blacks, white = [float(b) for b in raw.black_level_per_channel], float(raw.white_level)
-                params["user_wb"] = [(white - min(blacks)) / (white - b) for b in blacks]
             rgb = raw.postprocess(**params)
     except (rawpy.LibRawTooBigError, rawpy.LibRawUnsufficientMemoryError, MemoryError) as exc:
         raise ServiceError(413, "too_many_pixels", f"not enough memory to demosaic the image ({exc})") from None

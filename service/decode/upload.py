@@ -11,7 +11,7 @@ from ..errors import ServiceError
 from .formats import _NOT_RAW, _extension, _sniff
 from .image import RAW_EXTENSIONS
 from .linear import _decode_png, _decode_tiff
-from .raw import _decode_raw, _librawmsg
+from .raw import _decode_raw, _librawmsg, decode_linear_dng_without_libraw
 from .structure import _check_tiff_structure, _tiff_structured
 from .tags import _tiff_info
 
@@ -101,6 +101,9 @@ def _decode_raw_or_tiff(data: bytes, fmt: str, filename: str | None, max_pixels:
         raw = rawpy.imread(io.BytesIO(data))
     except rawpy.LibRawFileUnsupportedError:
         if fmt in ("TIFF", "BigTIFF"):
+            got = decode_linear_dng_without_libraw(data, filename, max_pixels, estimation_pixels)
+            if got is not None:       # a LinearRaw DNG LibRaw refuses (deflate 32946), read from its samples
+                return got
             return _decode_tiff(data, filename, max_pixels, display_referred)
         if data[:2] in (b"II", b"MM") or _extension(filename) in RAW_EXTENSIONS:
             what = "a TIFF-like header" if data[:2] in (b"II", b"MM") else f"a {_extension(filename)} name"

@@ -358,8 +358,11 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
         res["method"] = run.estimate.method
         res["camera"] = pipeline.camera_json(run.camera)
         res["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
-        res["lights"] = pipeline.lights_json(run.estimate, "each surface is estimated under the map's light at "
-                                                           "its pixel")
+        res["lights"] = pipeline.lights_json(run.estimate, "light_map gives the light across the frame, and each "
+                                                           "surface is estimated under the map's light at its pixel")
+        light_map = pipeline.light_map_json(run, decoded)
+        if light_map is not None:   # found 2 always comes with the map it used (probe round 4)
+            res["light_map"] = light_map
         # the body is rendered here too, not on the event loop (10,000 entries are ~1 MB)
         if format == "csv":
             return Response(_surfaces_csv(res), media_type="text/csv")

@@ -384,31 +384,22 @@ class _Sink:
 
 
 class _ZipResponse(StreamingResponse):
-    """A batch's zip, counted in :data:`_zipping` from when it is made until
-    it is sent or given up: its results are opened one after the other while
-    it streams, so ``DELETE ?remove=true`` waits for it (409 ``downloading``)
-    instead of removing the files under it (the client got a cut, unreadable
-    zip and the log a traceback)."""
+    """A batch's zip, counted in the runner's :class:`~service.batch.downloads.Downloads`
+    from before its results are listed until it is sent or given up: they are
+    opened one after the other while it streams, so ``DELETE ?remove=true``
+    waits for it (409 ``downloading``) and the retention sweep postpones the
+    batch, instead of removing the files under it (the client got a cut,
+    unreadable zip and the log a traceback)."""
 
-    def __init__(self, batch_id: str, *args, **kw):
+    def __init__(self, downloads, batch_id: str, *args, **kw):
         super().__init__(*args, **kw)
-        self.batch_id = batch_id
-        with _zipping_lock:
-            _zipping[batch_id] = _zipping.get(batch_id, 0) + 1
+        self.downloads, self.batch_id = downloads, batch_id
 
     async def __call__(self, scope, receive, send) -> None:
         try:
             await super().__call__(scope, receive, send)
         finally:
-            with _zipping_lock:
-                _zipping[self.batch_id] -= 1
-                if _zipping[self.batch_id] <= 0:
-                    del _zipping[self.batch_id]
-
-
-#: batch id -> zip downloads of it being sent now
-_zipping: dict[str, int] = {}
-_zipping_lock = threading.Lock()
+            self.downloads.end(self.batch_id)
 
 
 def _zip_stream(entries: list[tuple[str, str]], texts: list[tuple[str, str]] = ()):
@@ -459,22 +450,29 @@ def batch_zip(batch_id: str):
     ``batch.json`` (the batch's document: every item's light, confidence and
     flag or error, the flagged ones first) and, when some item is not in it,
     ``FAILURES.txt`` and ``manifest.json``."""
-    store = get_runner().store
-    if store.batch(batch_id) is None:
-        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
-    rows = store.items(batch_id)
-    entries = [(os.path.basename(r["out"]), r["out"]) for r in rows
-               if r["status"] == "done" and os.path.exists(r["out"])]
-    if not entries and any(r["status"] == "done" for r in rows):
-        raise ServiceError(410, "result_gone", f"batch {batch_id!r} has done items, but none of their result files "
-                           "is still on the server (removed outside the service)")
-    if not entries:
-        raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
-    # batch.json: the batch's document (GET /v1/batches/{id}), the items flagged low confidence first
-    summary = json.dumps(clean(_progress(batch_id)), indent=1) + "\n"
-    texts = [(SUMMARY, summary)] + zip_texts(batch_id, rows, dict(entries))
-    return _ZipResponse(batch_id, _zip_stream(entries, texts), media_type="application/zip",
-                        headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
+    runner = get_runner()
+    store = runner.store
+    if not runner.downloads.begin(batch_id):   # counted before its results are listed; ended by the response
+        raise ServiceError(404, "not_found", f"batch {batch_id!r} is being removed")
+    try:
+        if store.batch(batch_id) is None:
+            raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
+        rows = store.items(batch_id)
+        entries = [(os.path.basename(r["out"]), r["out"]) for r in rows
+                   if r["status"] == "done" and os.path.exists(r["out"])]
+        if not entries and any(r["status"] == "done" for r in rows):
+            raise ServiceError(410, "result_gone", f"batch {batch_id!r} has done items, but none of their result "
+                               "files is still on the server (removed outside the service)")
+        if not entries:
+            raise ServiceError(409, "not_ready", f"batch {batch_id!r} has no finished results yet")
+        # batch.json: the batch's document (GET /v1/batches/{id}), the items flagged low confidence first
+        summary = json.dumps(clean(_progress(batch_id)), indent=1) + "\n"
+        texts = [(SUMMARY, summary)] + zip_texts(batch_id, rows, dict(entries))
+        return _ZipResponse(runner.downloads, batch_id, _zip_stream(entries, texts), media_type="application/zip",
+                            headers={"Content-Disposition": content_disposition(f"batch-{batch_id}.zip")})
+    except BaseException:
+        runner.downloads.end(batch_id)
+        raise
 
 
 @router.get("/batches", response_model=BatchList)
@@ -531,13 +529,12 @@ def delete_batch(batch_id: str, remove: bool = Query(
         return JSONResponse(clean({**_progress(batch_id), "deleted": False,
                                    "note": "over already: nothing to cancel; DELETE with ?remove=true removes the "
                                            "batch and its files"}))
-    with _zipping_lock:
-        zipping = _zipping.get(batch_id, 0)
-    if zipping:
-        raise ServiceError(409, "downloading", f"batch {batch_id!r} is being downloaded as a zip ({zipping} "
-                           "download(s) in progress); DELETE it again with ?remove=true when they end")
-    with store_errors():
-        freed = runner.store.delete_batch(batch_id)
+    with runner.downloads.removing(batch_id) as zipping:
+        if zipping:
+            raise ServiceError(409, "downloading", f"batch {batch_id!r} is being downloaded as a zip ({zipping} "
+                               "download(s) in progress); DELETE it again with ?remove=true when they end")
+        with store_errors():
+            freed = runner.store.delete_batch(batch_id)
     if freed is None:
         raise ServiceError(409, "not_settled", f"batch {batch_id!r} is cancelled but its running items have not "
                            "stopped yet; DELETE it again with ?remove=true when GET /v1/batches/{id} says "

@@ -20,7 +20,8 @@ from ..deps import read_upload
 from ..errors import ServiceError
 from ..headers import content_disposition
 from ..jsonsafe import clean
-from ..options import FORMATS, MAX_N, MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, parse_wavelengths, rule_options
+from ..options import (FORMATS, MAX_N, MEDIA_TYPES, RENDER_FORMATS, RENDER_OUTPUTS, parse_wavelengths, rule_options,
+                       rule_refusal, rule_takes)
 from ..schemas import Sampling, SpectralRendering
 from ..schemas.forms import form, query
 from ..schemas.responses import RenderReport, SamplingRule
@@ -266,6 +267,8 @@ def sampling(q: Sampling = Depends(_SAMPLING)):
     if strategy in ("auto", "full"):
         raise ServiceError(422, "unknown_strategy", f"{strategy!r} is a render mode, not a sampling rule")
     opts = rule_options(strategy, n, channel, degrees)
+    if any(k not in rule_takes(strategy) for k in opts):   # e.g. channel for quasi-gauss-xyz
+        raise rule_refusal(strategy, n, opts, "")
     grid = models.DEFAULT_WAVELENGTHS
     cmfs = models.observer("XYZ", grid)
     light = None
@@ -278,7 +281,7 @@ def sampling(q: Sampling = Depends(_SAMPLING)):
     try:
         rule = cached_rule(strategy, n, grid, opts, light, cmfs)
     except (ValueError, TypeError, KeyError) as e:
-        raise ServiceError(422, "invalid_parameter", f"{strategy} with n={n} {opts}: {e}") from None
+        raise rule_refusal(strategy, n, opts, e) from None
     except (AttributeError, ImportError, NotImplementedError) as e:
         raise ServiceError(422, "strategy_unavailable", f"strategy {strategy!r} is not available in this "
                        f"build: {e}") from None

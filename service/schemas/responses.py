@@ -199,7 +199,11 @@ class SurfacesResult(_Answer):
     method: str
     camera: CameraInfo
     lights: Lights | None = Field(None, description="one light or several (`spatial`); under a light map each "
-                                                    "surface is estimated under the light at its pixel")
+                                                    "surface is estimated under the light at its pixel, and "
+                                                    "`light_map` gives that map")
+    light_map: LightMap | None = Field(None, description="present exactly when `lights.found` is 2: the light "
+                                                         "at the map's centres, the one the surfaces were "
+                                                         "estimated under (as in `/v1/analyze`)")
     warnings: list[str]
 
 

@@ -1,0 +1,65 @@
+"""The ``wandell`` command's checks of its path arguments, before any work
+(moved out of :mod:`service.cli`, which is at its line limit).
+
+A missing FILE or IN_DIR, a folder given as FILE, a file given as IN_DIR, or
+an output name whose extension the command cannot write are usage errors
+(exit 2) in words, raised as :class:`~service.errors.ServiceError`, not a
+Python traceback or an errno. Only :mod:`os` is imported: ``wandell --help``
+stays light.
+"""
+
+from __future__ import annotations
+
+import os
+
+from .errors import ServiceError
+
+#: Output file extensions and the formats they mean (white-balance OUT).
+EXTENSION_FORMATS = {".tif": ("tiff",), ".tiff": ("tiff",), ".png": ("png", "png16"), ".jpg": ("jpeg", "jpg"),
+                     ".jpeg": ("jpeg", "jpg")}
+
+
+def format_for(out: str, given: str | None) -> str:
+    """The output format of ``white-balance OUT``: from OUT's extension;
+    ``--format`` must agree with it (png16 is the 16-bit choice for .png);
+    a name without an extension needs ``--format``."""
+    ext = os.path.splitext(out)[1].lower()
+    if not ext:
+        if given is None:
+            raise ServiceError(422, "invalid_parameter", f"{out!r} has no extension: name it .tif, .png or "
+                               ".jpg, or give --format")
+        return given
+    if ext not in EXTENSION_FORMATS:
+        raise ServiceError(422, "invalid_parameter", f"cannot write {ext!r} files: name the output .tif/.tiff "
+                           "(16-bit TIFF), .png (8-bit; --format png16 for 16-bit) or .jpg/.jpeg")
+    allowed = EXTENSION_FORMATS[ext]
+    if given is not None and given not in allowed:
+        raise ServiceError(422, "format_mismatch", f"--format {given} disagrees with the output name {out!r} "
+                           f"({ext} is {' or '.join(allowed)}): change one of them")
+    return given or allowed[0]
+
+
+def input_file(path: str) -> str:
+    """The FILE argument of ``analyze`` and ``white-balance``: a missing
+    file, a folder or an unreadable file is a usage error."""
+    if os.path.isdir(path):
+        raise ServiceError(422, "not_a_file", f"{path!r} is a folder; give one file, or use 'wandell batch "
+                           f"{path} OUT_DIR' for every RAW in it")
+    if not os.path.exists(path):
+        raise ServiceError(422, "file_not_found", f"{path!r} does not exist (current folder {os.getcwd()!r})")
+    if not os.access(path, os.R_OK):
+        raise ServiceError(422, "file_not_readable", f"{path!r} cannot be read (permission denied)")
+    return path
+
+
+def input_folder(path: str) -> str:
+    """The IN_DIR argument of ``batch``: a file there is named as a file
+    (with the command for one file, ``wandell white-balance``), not as a
+    folder that does not exist (probe round 4); a missing path says so."""
+    if os.path.isfile(path) or (os.path.exists(path) and not os.path.isdir(path)):
+        raise ServiceError(422, "not_a_folder", f"input folder {path!r} is a file, not a folder; give the folder "
+                           f"that holds the RAWs, or use 'wandell white-balance {path} OUT' for this one file")
+    if not os.path.isdir(path):
+        raise ServiceError(422, "folder_not_found", f"input folder {path!r} does not exist "
+                           f"(current folder {os.getcwd()!r})")
+    return path
