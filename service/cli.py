@@ -415,7 +415,7 @@ def _stop_now(executor) -> None:
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
               dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
               quiet: bool = False, recursive: bool = False, xmp: dict | None = None,
-              info: dict | None = None) -> list[dict]:
+              info: dict | None = None, item_fn=None) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
     ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
@@ -440,7 +440,12 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     are written before the command exits) and no ``.lock`` file behind.
 
     ``info`` (a dict, filled in): ``shared_light``, the light of a shared batch. ``OUT_DIR/batch.json``:
-    :mod:`service.batch.summary`, the items flagged low confidence first."""
+    :mod:`service.batch.summary`, the items flagged low confidence first.
+
+    An item whose worker dies abruptly breaks the local pool and every item in flight with it: those
+    run again one at a time, each alone (:func:`service.batch.executors.run_alone`), and only one whose
+    worker dies while alone fails, as ``worker_killed``. ``item_fn`` (Python only; default
+    :func:`service.jobs.process_item`): what runs an item, for the tests' fault injection."""
     import io
 
     from .batch import summary as batch_summary   # before Ctrl-C can land in its import
@@ -491,15 +496,35 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
                 if light is None and rows[t.name]["status"] == "pending":
                     rows[t.name].update(status="failed", error="the shared light could not be estimated")
                     count["failed"] += 1
-        futs = {executor.submit(jobs.process_item, t): t for t in todo}
         from concurrent.futures import as_completed
+        from concurrent.futures.process import BrokenProcessPool
 
-        for fut in as_completed(futs):
-            t = futs[fut]
-            try:
-                res = fut.result()
-            except BaseException as e:  # a worker lost
-                res = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
+        from .batch.executors import run_alone
+
+        fn = item_fn or jobs.process_item
+        futs = {executor.submit(fn, t): t for t in todo}
+        suspects = []
+
+        def outcomes():
+            for fut in as_completed(futs):
+                try:
+                    yield futs[fut], fut.result()
+                except BrokenProcessPool:   # the local pool broke: this item may be innocent
+                    suspects.append(futs[fut])
+                except BaseException as e:  # a worker lost
+                    yield futs[fut], {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
+            if suspects and own:             # a new pool for what is left (the sidecars)
+                executor.shutdown(wait=False)
+                ctrl_c.executor = executor_box[0] = jobs.make_executor(workers or None, None)
+            for t in suspects:
+                res, deaths = run_alone(fn, t)
+                yield t, res if res is not None else {
+                    "status": "failed", "error": f"worker_killed: processing this image ended its worker process "
+                    f"{deaths} times when it ran alone (a crash in decoding it, or not enough memory)"}
+
+        executor_box = [executor]
+        for t, res in outcomes():
+            executor = executor_box[0]
             res.pop("retry", None)
             rows[t.name].update(res)
             rows[t.name].pop("adopted", None)
@@ -508,11 +533,14 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
             if xmp is not None and res["status"] == "done":   # its sidecar now, not after the whole batch
                 xmp_jobs[t.name] = batch_xmp.submit_sidecar(t, rows[t.name], options, out_dir, executor, xmp,
                                                             _settings())
+        executor = executor_box[0]
         if xmp is not None:
             batch_xmp.batch_sidecars(tasks, rows, options, out_dir, executor, xmp, xmp_jobs, _settings())
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        if own:        # the pool in use now (a new one when culprit isolation replaced a broken one)
+            executor = ctrl_c.executor
         try:
             bar.close()
             if interrupted and own:

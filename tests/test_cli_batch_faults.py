@@ -103,3 +103,31 @@ def test_an_xmp_batch_loads_the_sidecar_code_before_its_pool_starts(tmp_path):
                        timeout=300)
     assert "SEEN ['module'] 0" in p.stdout, (p.stdout, p.stderr)     # loaded (not importlib's _LazyModule), done
     assert (src / "a.xmp").is_file() or glob.glob(str(src / "a*.xmp")), os.listdir(src)
+
+
+def test_an_image_that_kills_its_worker_fails_alone_and_the_others_are_done(tmp_path):
+    """One RAW whose processing kills its worker process (a decoder crash,
+    the OOM killer; :func:`testing.faults.process_or_die`) broke the local
+    pool and failed every image in flight with it, and a rerun met it again.
+    Now the images in flight run again one at a time, each alone, and only
+    the one whose worker dies alone fails, as ``worker_killed``; each other
+    image is written once and its row says done."""
+    from service import cli
+    from testing.faults import process_or_die
+
+    d = tmp_path / "shoot"
+    d.mkdir()
+    for k, name in enumerate(("a", "b", "c")):
+        scene_dng(d / f"{name}.dng", "Nikon 5100 (NPL)", "D65", 120, 160, seed=k)
+    out = tmp_path / "out"
+    rows = cli.run_batch(str(d), str(out), jobs.batch_options(format="png"), workers=2, quiet=True,
+                         item_fn=process_or_die({"b.dng"}, delay_s=0.5))
+    by = {r["name"]: r for r in rows}
+    assert by["b.dng"]["status"] == "failed", by["b.dng"]
+    assert by["b.dng"]["error"].startswith("worker_killed:"), by["b.dng"]["error"]
+    assert "3 times" in by["b.dng"]["error"]
+    for n in ("a.dng", "c.dng"):
+        assert by[n]["status"] == "done", by[n]
+        assert (out / n.replace(".dng", ".png")).is_file()
+    assert not (out / "b.png").exists()
+    assert not glob.glob(str(out / "*.lock")) and not glob.glob(str(out / "*.part"))

@@ -232,3 +232,29 @@ def make_executor(workers: int | None = None, scheduler: str | None = None, time
         b = _CONNECTING.setdefault(scheduler, Bounded(f"Dask scheduler {scheduler}"))
         return b.call(lambda: DaskExecutor(scheduler, timeout=timeout), timeout + 5.0)
     return LocalExecutor(workers or default_workers())
+
+
+def run_alone(fn, task, attempts: int = 3):
+    """``fn(task)`` alone in a pool of one worker of its own (a new one for
+    each try), tried again while its worker dies abruptly (a crash of a
+    native decoder, the OOM killer), at most ``attempts`` times: culprit
+    isolation for an item that was in flight when a shared pool broke, so
+    that an innocent item is not failed with the one that killed the pool
+    (:class:`service.batch.runner.BatchRunner` does the same on the
+    server). Returns ``(result, deaths)``: ``result`` None when the worker
+    died every time. A Ctrl-C ends the worker (:meth:`LocalExecutor.terminate`)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    deaths = 0
+    for _ in range(max(1, int(attempts))):
+        pool = LocalExecutor(1)
+        try:
+            return pool.submit(fn, task).result(), deaths
+        except BrokenProcessPool:
+            deaths += 1
+        except BaseException:
+            pool.terminate()
+            raise
+        finally:
+            pool.shutdown(wait=False)
+    return None, deaths
