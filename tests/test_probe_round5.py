@@ -25,11 +25,28 @@ def dngs(tmp_path_factory):
     return d
 
 
-def _batch(store, d, n=6):
+def _batch(store, d, n=6, **options):
     bid = store.new_batch_id()
-    store.create_batch(bid, jobs.batch_options(format="png"), [(f"im{i}.dng", str(d / f"im{i}.dng"))
-                                                             for i in range(n)])
+    store.create_batch(bid, jobs.batch_options(format="png", **options), [(f"im{i}.dng", str(d / f"im{i}.dng"))
+                                                                        for i in range(n)])
     return bid
+
+
+def _run_with_fault(tmp_path, make_batch, **fault):
+    """A two-worker runner with ``fault`` (``item_fn=`` or ``sample_fn=``,
+    :mod:`testing.faults`) set from Python, the batch ``make_batch(store)``
+    run to its end. Returns the runner, the batch's id, its progress
+    document and its items by name."""
+    runner = jobs.BatchRunner(jobs.RunnerConfig(str(tmp_path / "data"), workers=2, poll_s=0.05))
+    for k, v in fault.items():
+        setattr(runner, k, v)
+    bid = make_batch(runner.store)
+    runner.start()
+    try:
+        doc = runner.wait(bid, 400)
+    finally:
+        runner.stop()
+    return runner, bid, doc, {r["name"]: r for r in runner.store.items(bid)}
 
 
 def test_an_item_that_kills_its_worker_fails_alone_and_the_others_end_done(tmp_path, dngs):
@@ -39,15 +56,8 @@ def test_an_item_that_kills_its_worker_fails_alone_and_the_others_end_done(tmp_p
     only the culprit is charged, and it fails as ``worker_killed`` after
     MAX_ATTEMPTS runs alone; the five innocent items end done, each written
     once."""
-    runner = jobs.BatchRunner(jobs.RunnerConfig(str(tmp_path / "data"), workers=2, poll_s=0.05))
-    runner.item_fn = process_or_die({"im2.dng"})
-    bid = _batch(runner.store, dngs)
-    runner.start()
-    try:
-        doc = runner.wait(bid, 400)
-    finally:
-        runner.stop()
-    items = {r["name"]: r for r in runner.store.items(bid)}
+    runner, bid, doc, items = _run_with_fault(tmp_path, lambda store: _batch(store, dngs),
+                                              item_fn=process_or_die({"im2.dng"}))
     assert doc["counts"]["done"] == 5 and doc["counts"]["failed"] == 1, doc["counts"]
     bad = items["im2.dng"]
     assert bad["status"] == "failed"
@@ -256,17 +266,8 @@ def test_shared_light_with_an_image_that_kills_its_worker_ends(tmp_path, dngs):
     others, whose items end done."""
     from testing.faults import sample_or_die
 
-    runner = jobs.BatchRunner(jobs.RunnerConfig(str(tmp_path / "data"), workers=2, poll_s=0.05))
-    runner.sample_fn = sample_or_die({"im1.dng"}, delay_s=0.0)
-    bid = runner.store.new_batch_id()
-    runner.store.create_batch(bid, jobs.batch_options(format="png", lighting="shared"),
-                              [(f"im{i}.dng", str(dngs / f"im{i}.dng")) for i in range(4)])
-    runner.start()
-    try:
-        doc = runner.wait(bid, 400)
-    finally:
-        runner.stop()
-    items = {r["name"]: r for r in runner.store.items(bid)}
+    runner, bid, doc, items = _run_with_fault(tmp_path, lambda store: _batch(store, dngs, 4, lighting="shared"),
+                                              sample_fn=sample_or_die({"im1.dng"}, delay_s=0.0))
     assert doc["counts"]["done"] == 3 and doc["counts"]["failed"] == 1, doc["counts"]
     assert items["im1.dng"]["error"].startswith("worker_killed:"), items["im1.dng"]["error"]
     assert runner.store.batch(bid)["light"] is not None
