@@ -47,6 +47,7 @@ import shlex
 import sys
 import threading
 
+from .cli_light import shared_light_of
 from .cli_paths import EXTENSION_FORMATS, format_for, input_file, input_folder  # noqa: F401 - cli.format_for
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
@@ -415,7 +416,7 @@ def _stop_now(executor) -> None:
 def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: int = 0,
               dask_scheduler: str | None = None, executor=None, stream=None, force: bool = False,
               quiet: bool = False, recursive: bool = False, xmp: dict | None = None,
-              info: dict | None = None, item_fn=None) -> list[dict]:
+              info: dict | None = None, item_fn=None, sample_fn=None) -> list[dict]:
     """Correct every RAW in ``in_dir`` into ``out_dir``; returns one row per
     file (``name``, ``status`` done/skipped/failed, ``illuminant``,
     ``error``, ``seconds``, ``note``). Finished outputs are skipped (with a
@@ -444,8 +445,9 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
 
     An item whose worker dies abruptly breaks the local pool and every item in flight with it: those
     run again one at a time, each alone (:func:`service.batch.executors.run_alone`), and only one whose
-    worker dies while alone fails, as ``worker_killed``. ``item_fn`` (Python only; default
-    :func:`service.jobs.process_item`): what runs an item, for the tests' fault injection."""
+    worker dies while alone fails, as ``worker_killed`` (so too in the shared light's estimation). ``item_fn``,
+    ``sample_fn`` (Python only; default :func:`service.jobs.process_item`, ``estimation_sample``): what runs
+    an item and estimates an image for the shared light, for the tests' fault injection."""
     import io
 
     from .batch import summary as batch_summary   # before Ctrl-C can land in its import
@@ -487,7 +489,10 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
         if own:
             executor = ctrl_c.executor = jobs.make_executor(workers or None, dask_scheduler or None)
         if todo and options.lighting == "shared":
-            light = _shared_light(tasks, options, out_dir, executor, rows, count, force)
+            light = shared_light_of(tasks, options, out_dir, executor, rows, count, force, sample_fn)
+            if own and getattr(executor, "broken", None):      # an image killed its worker: a new pool
+                executor.shutdown(wait=False)
+                executor = ctrl_c.executor = jobs.make_executor(workers or None, None)
             if info is not None:
                 info["shared_light"] = light
             todo = [t for t in todo if rows[t.name]["status"] == "pending"]
@@ -569,38 +574,6 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     if interrupted:
         raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
-
-
-def _shared_light(tasks, options, out_dir, executor, rows, count, force: bool = False) -> dict | None:
-    """One light from all input images (finished ones included, so a resumed
-    run corrects with the same light), kept in ``OUT_DIR/.wandell``."""
-    path = os.path.join(out_dir, ".wandell", "shared-light.json")
-    key = {"inputs": [t.name for t in tasks], "options": json.loads(options.to_json())}
-    if os.path.exists(path) and not force:
-        with open(path) as f:
-            saved = json.load(f)
-        if saved.get("key") == key:
-            return saved["light"]
-    futs = [(t, executor.submit(jobs.estimation_sample, t)) for t in tasks]
-    samples = []
-    for t, f in futs:
-        s = f.result()
-        if s["status"] != "ok":
-            if rows[t.name]["status"] == "pending":
-                rows[t.name].update(status="failed", error=s["error"])
-                count["failed"] += 1
-            continue
-        samples.append(s)
-    if not samples:
-        return None
-    cam = samples[0]["camera"].name
-    if any(s["camera"].name != cam for s in samples):
-        raise ServiceError(422, "camera_mismatch", "shared lighting pools images of one camera; this folder "
-                           f"mixes {sorted({s['camera'].name for s in samples})}")
-    light = executor.submit(jobs.shared_light, samples, options).result()
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    jobs.atomic_write(path, lambda p: jobs.write_text(p, json.dumps({"key": key, "light": light})))
-    return light
 
 
 def _cmd_batch(args) -> int:

@@ -131,3 +131,28 @@ def test_an_image_that_kills_its_worker_fails_alone_and_the_others_are_done(tmp_
         assert (out / n.replace(".dng", ".png")).is_file()
     assert not (out / "b.png").exists()
     assert not glob.glob(str(out / "*.lock")) and not glob.glob(str(out / "*.part"))
+
+
+def test_shared_light_with_an_image_that_kills_its_worker_is_made_from_the_others(tmp_path):
+    """``--lighting shared``: the estimation of one image kills its worker
+    (:func:`testing.faults.sample_or_die`). The broken pool raised out of the
+    whole command. Now the images in flight are estimated again, each alone;
+    the culprit fails as ``worker_killed``, the light is made from the
+    others, and their images are corrected with it on a new pool."""
+    from service import cli
+    from testing.faults import sample_or_die
+
+    d = tmp_path / "shoot"
+    d.mkdir()
+    for k, name in enumerate(("a", "b", "c")):
+        scene_dng(d / f"{name}.dng", "Nikon 5100 (NPL)", "D65", 120, 160, seed=k)
+    out = tmp_path / "out"
+    info: dict = {}
+    rows = cli.run_batch(str(d), str(out), jobs.batch_options(format="png", lighting="shared"), workers=2,
+                         quiet=True, info=info, sample_fn=sample_or_die({"b.dng"}, delay_s=0.2))
+    by = {r["name"]: r for r in rows}
+    assert by["b.dng"]["status"] == "failed" and by["b.dng"]["error"].startswith("worker_killed:"), by["b.dng"]
+    assert info["shared_light"] is not None
+    for n in ("a.dng", "c.dng"):
+        assert by[n]["status"] == "done", by[n]
+        assert (out / n.replace(".dng", ".png")).is_file()
