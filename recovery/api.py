@@ -398,6 +398,11 @@ class EstimatorInput:
         d["light_model"] = peer_model.name + " (spectrum fitted to the rgb estimate)"
         if why:
             d["decision"] = f"fallback to {name}: {why}"
+            # one light, whatever the method had said of a map before it failed (a literal map's
+            # "a light map was asked for" with no map, or nothing at all: probe round 6)
+            d.update(spatial_decision="one light", lights_found=1,
+                     spatial_reason=f"one light: the method asked for could not run ({why}); its fallback, {name}, "
+                                    "estimates one light for the whole image")
         return _finish(rgb, spd, w, camera, peer_model, name, d, list(self.warns))
 
 
@@ -755,6 +760,15 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
         mapped = _learned_light_map(img, m, camera, est, run.spatial_mode)
         if mapped is not None:
             return mapped
+    if run.spatial_mode == "map":
+        # spatial=true is always a map (docs/mixed_light.md), also where the learnt windows cannot read the
+        # image: the light posterior's regions make it, as with a region_size (probe round 6)
+        est = _maybe_light_map(img, m, camera, est, "map", run.region_size)
+        est.diagnostics["spatial_reason"] += ("; the learnt estimator's windows cannot read this image (e.g. its "
+                                              "colour matrix sends it outside their training range), so the map is "
+                                              "the light posterior's regions")
+        est.diagnostics["lights_found"] = 2 if est.light_map is not None else 1
+        return est
     est.diagnostics["spatial_decision"] = "one light"
     est.diagnostics["lights_found"] = 1
     est.diagnostics["spatial_reason"] = (

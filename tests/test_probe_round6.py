@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from .conftest import isolated_app_client, scene_dng_bytes
@@ -71,3 +72,82 @@ def test_a_rerun_of_batch_xmp_does_not_take_its_own_dng_copies_as_photographs(tm
     (src / "a.xmp").unlink()
     r = _cli("batch", "--format", "png", "--workers", "1", str(src), str(out))
     assert r.returncode == 0 and "a.wandell.png" in {p.name for p in out.iterdir()}, (r.stdout, r.stderr)
+
+
+# --- 2. spatial: what the answer says of the map ------------------------------------------
+
+def _two_light_tiff(rows: int = 200, cols: int = 300) -> bytes:
+    """A linear 16-bit TIFF (no camera metadata: the generic camera) of
+    random colours, its left half under a yellowish light and its right
+    half under a bluish one (camera RGB gains 1, 1, 0.4 and 0.4, 1, 1)."""
+    import io
+
+    import numpy as np
+    import tifffile
+
+    img = np.random.default_rng(0).random((rows, cols, 3)) * 30000 + 1000
+    half = cols // 2
+    img[:, :half] *= (1.0, 1.0, 0.4)
+    img[:, half:] *= (0.4, 1.0, 1.0)
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, img.astype(np.uint16))
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("method, data", [("maloney-wandell", "two_lights"), ("auto", "three_pixels")])
+def test_a_fallback_says_one_light_and_why_not_a_map_it_did_not_make(client, method, data):
+    """``method=maloney-wandell&spatial=true`` where the literal method
+    cannot run (here its light gives a non-positive camera response) falls
+    back to shades-of-gray with one light, but ``lights.reason`` still read
+    "a light map was asked for (spatial=true): the subspace method on
+    overlapping regions of 50 pixels a side, each with its own light" beside
+    ``found: 1`` (and ``diagnostics.spatial_decision`` said "light map");
+    ``auto`` on a 3x3 image (the learnt estimator cannot run) gave an empty
+    reason. Now both say one light, that the method asked for could not run,
+    why, and which fallback made the light."""
+    import io
+
+    import numpy as np
+    import tifffile
+
+    if data == "two_lights":
+        body = _two_light_tiff()
+    else:
+        buf = io.BytesIO()
+        tifffile.imwrite(buf, (np.random.default_rng(0).random((3, 3, 3)) * 30000 + 1000).astype(np.uint16))
+        body = buf.getvalue()
+    r = client.post("/v1/analyze", files={"file": ("x.tif", body)}, data={"method": method, "spatial": "true"})
+    assert r.status_code == 200, r.text[:300]
+    b = _strict(r.text)
+    assert b["method"] == "shades-of-gray" and b["diagnostics"]["decision"].startswith("fallback to"), b["method"]
+    assert b["lights"]["found"] == 1 and "light_map" not in b
+    assert b["diagnostics"]["spatial_decision"] == "one light", b["diagnostics"]["spatial_decision"]
+    reason = b["lights"]["reason"]
+    assert reason.startswith("one light") and "could not run" in reason and "shades-of-gray" in reason, reason
+    assert "overlapping regions" not in reason, reason
+
+
+def test_spatial_true_is_a_map_where_the_learnt_windows_cannot_read_the_image(client):
+    """``spatial=true`` is "always a map" (docs/mixed_light.md, the field's
+    description), but on a TIFF the learnt estimator cannot read (the
+    generic camera: outside its training range) the answer was one light,
+    "its windows cannot tell whether the light varies", on a picture whose
+    halves are under clearly different lights. Now the light posterior's
+    regions make the map, as they do for ``method=bayes`` and for a
+    ``region_size``; ``/v1/white-balance`` corrects by it."""
+    body = _two_light_tiff()
+    r = client.post("/v1/analyze", files={"file": ("two.tif", body)}, data={"spatial": "true"})
+    assert r.status_code == 200, r.text[:300]
+    b = _strict(r.text)
+    assert b["lights"]["found"] == 2 and b["lights"]["decision"] == "light map", b["lights"]
+    lm = b["light_map"]
+    rgb = np.asarray(lm["camera_rgb"], float)
+    assert np.all(np.isfinite(rgb)) and rgb.shape[-1] == 3
+    # the map sees the two halves: blue over red is higher on the right than on the left
+    ratio = rgb[..., 2] / rgb[..., 0]
+    assert ratio[:, -1].mean() > ratio[:, 0].mean(), ratio
+    r = client.post("/v1/white-balance", files={"file": ("two.tif", body)}, data={"spatial": "true", "format": "png"})
+    assert r.status_code == 200, r.text[:300]
+    assert _strict(r.headers["x-illuminant"])["lights"]["found"] == 2
+    r = client.post("/v1/analyze", files={"file": ("two.tif", body)}, data={"spatial": "false"})
+    assert _strict(r.text)["lights"]["found"] == 1
