@@ -151,3 +151,28 @@ def test_spatial_true_is_a_map_where_the_learnt_windows_cannot_read_the_image(cl
     assert _strict(r.headers["x-illuminant"])["lights"]["found"] == 2
     r = client.post("/v1/analyze", files={"file": ("two.tif", body)}, data={"spatial": "false"})
     assert _strict(r.text)["lights"]["found"] == 1
+
+
+# --- 3. the light posterior's regions: bounded like the literal map's ---------------------
+
+@pytest.mark.parametrize("method", ["bayes", "auto"])
+def test_a_region_size_for_the_posterior_map_is_bounded_by_the_light_map_region_limit(client, dng, env_settings,
+                                                                                        method):
+    """``spatial=true&region_size=8`` with ``method=bayes`` (or ``auto``,
+    whose map is the posterior's when a region size is asked for) made a
+    grid of regions, each with its own light posterior, of any size: 8,772
+    regions on Blackmagic.dng's accurate analysis image took 17-22 s (0.4 s
+    without the region size), where ``WANDELL_MAX_LIGHT_MAP_REGIONS`` bounds
+    the literal method's map to 4,096 (docs/limits.md). Now the same limit
+    bounds the posterior's regions: past it a 413 ``too_many_regions``
+    naming it, before any region is analysed; under it a map as before."""
+    env_settings(max_light_map_regions=16)
+    f = {"file": ("s.dng", dng)}     # 64 x 96: a 32 x 48 analysis image, 4 x 6 regions of 8
+    r = client.post("/v1/analyze", files=f, data={"method": method, "spatial": "true", "region_size": "8"})
+    assert r.status_code == 413, r.text[:300]
+    body = _strict(r.text)
+    assert body["error"] == "too_many_regions"
+    assert "WANDELL_MAX_LIGHT_MAP_REGIONS" in body["detail"] and "24 regions" in body["detail"], body["detail"]
+    r = client.post("/v1/analyze", files=f, data={"method": method, "spatial": "true", "region_size": "16"})
+    assert r.status_code == 200, r.text[:300]      # 2 x 3 regions
+    assert _strict(r.text)["lights"]["found"] == 2
