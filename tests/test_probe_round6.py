@@ -176,3 +176,25 @@ def test_a_region_size_for_the_posterior_map_is_bounded_by_the_light_map_region_
     r = client.post("/v1/analyze", files=f, data={"method": method, "spatial": "true", "region_size": "16"})
     assert r.status_code == 200, r.text[:300]      # 2 x 3 regions
     assert _strict(r.text)["lights"]["found"] == 2
+
+
+# --- 4. the XMP sidecar and format=dng of a white the user set ----------------------------
+
+def test_a_white_the_user_set_without_a_temperature_is_named_as_the_users(client):
+    """``format=xmp`` with ``white=50000/+150`` on a TIFF (the generic
+    camera) was refused as "the estimated light is too far from the
+    Planckian locus": the light was the user's white, not an estimate (round
+    4 fixed the same confusion for rendering, not for the sidecar). Now the
+    422 ``no_temperature`` names the user's white and what to change; with
+    ``format=dng`` a TIFF is ``not_a_raw`` whatever the white, as it is for
+    a white that has a temperature."""
+    body = _two_light_tiff(40, 60)
+    r = client.post("/v1/white-balance", files={"file": ("t.tif", body)},
+                    data={"white": "50000/+150", "format": "xmp"})
+    assert r.status_code == 422, r.text[:300]
+    b = _strict(r.text)
+    assert b["error"] == "no_temperature", b
+    assert "the white you set (white='50000/+150')" in b["detail"] and "estimated" not in b["detail"], b["detail"]
+    for white in ("50000/+150", "5000/+10"):
+        r = client.post("/v1/white-balance", files={"file": ("t.tif", body)}, data={"white": white, "format": "dng"})
+        assert r.status_code == 422 and _strict(r.text)["error"] == "not_a_raw", (white, r.text[:300])
