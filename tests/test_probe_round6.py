@@ -198,3 +198,29 @@ def test_a_white_the_user_set_without_a_temperature_is_named_as_the_users(client
     for white in ("50000/+150", "5000/+10"):
         r = client.post("/v1/white-balance", files={"file": ("t.tif", body)}, data={"white": white, "format": "dng"})
         assert r.status_code == 422 and _strict(r.text)["error"] == "not_a_raw", (white, r.text[:300])
+
+
+# --- 5. a sensitivities CSV of very many columns ---------------------------------------------
+
+def test_a_sensitivities_csv_with_too_many_channel_columns_is_refused_before_it_is_resampled(client, dng):
+    """A sensitivities CSV of three wavelengths and 2,000,000 channel
+    columns (12 MB, under the CSV's 64,000,000-value limit) was resampled
+    channel by channel before the image's 3 channels refused it: 20 s and
+    +1.9 GB of server memory for one request (``/v1/analyze`` and
+    ``/v1/surfaces``), bounded by no documented limit. Now more than
+    ``recovery.cameras.MAX_CSV_CHANNELS`` (64) channel columns are a 422
+    ``bad_csv`` saying so, before any resampling; 4 columns still reach the
+    camera check (the image has 3 channels)."""
+    from recovery.cameras import MAX_CSV_CHANNELS
+
+    def csv(n):
+        return "".join(f"{w}," + ",".join(["1"] * n) + "\n" for w in (400, 550, 700)).encode()
+
+    for path, extra in (("/v1/analyze", {}), ("/v1/surfaces", {"grid": "2x2"})):
+        r = client.post(path, files={"file": ("s.dng", dng), "sensitivities": ("s.csv", csv(MAX_CSV_CHANNELS + 1))},
+                        data=extra)
+        assert r.status_code == 422, r.text[:300]
+        b = _strict(r.text)
+        assert b["error"] == "bad_csv" and f"more than {MAX_CSV_CHANNELS}" in b["detail"], b
+    r = client.post("/v1/analyze", files={"file": ("s.dng", dng), "sensitivities": ("s.csv", csv(4))})
+    assert r.status_code == 422 and "has 4" in _strict(r.text)["detail"], r.text[:300]
