@@ -176,6 +176,21 @@ def _learned_light_map(img, m, camera, est, mode: str):
     return est
 
 
+def _region_grid(shape, region_size: int | None, max_regions: int | None = None) -> tuple[int, int]:
+    """The light posterior's grid of regions: 2 x 2, or tiles of
+    ``region_size``; more than ``max_regions`` of them raises
+    :class:`~recovery.errors.TooManyRegions`."""
+    from .errors import TooManyRegions
+
+    h, w = shape
+    grid = (2, 2) if not region_size else (max(1, -(-h // int(region_size))), max(1, -(-w // int(region_size))))
+    if max_regions and grid[0] * grid[1] > max_regions:
+        raise TooManyRegions(f"region_size={region_size} makes {grid[0] * grid[1]} regions ({grid[0]} x {grid[1]}) "
+                             f"on the {h}x{w} analysis image, more than the limit of {max_regions} light-map regions "
+                             "per request (WANDELL_MAX_LIGHT_MAP_REGIONS); use a larger region_size or leave it out")
+    return grid
+
+
 def _maybe_light_map(img, m, camera, est, mode: str, region_size: int | None = None,
                      max_regions: int | None = None):
     """One light or a light map (:func:`recovery.spatial.choose_light_model`):
@@ -188,15 +203,9 @@ def _maybe_light_map(img, m, camera, est, mode: str, region_size: int | None = N
     :class:`~recovery.errors.TooManyRegions` before any is analysed (each
     region's light posterior costs about 2 ms: 8,772 regions of 8 pixels on
     Blackmagic.dng's accurate analysis image took 17-20 s; probe round 6)."""
-    from .errors import TooManyRegions
     from .spatial import choose_light_model
 
-    h, w = img.shape[:2]
-    grid = (2, 2) if not region_size else (max(1, -(-h // int(region_size))), max(1, -(-w // int(region_size))))
-    if max_regions and grid[0] * grid[1] > max_regions:
-        raise TooManyRegions(f"region_size={region_size} makes {grid[0] * grid[1]} regions ({grid[0]} x {grid[1]}) "
-                             f"on the {h}x{w} analysis image, more than the limit of {max_regions} light-map regions "
-                             "per request (WANDELL_MAX_LIGHT_MAP_REGIONS); use a larger region_size or leave it out")
+    grid = _region_grid(img.shape[:2], region_size, max_regions)
     lm, ev = choose_light_model(img, m, camera, est.rgb, est.spectrum, mode=mode, grid=grid)
     est.diagnostics["spatial_decision"] = ev["light_model"]
     est.diagnostics["spatial_reason"] = ev["light_model_reason"]
@@ -503,6 +512,9 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
     options = EstimationOptions(method, spatial_mode, region_size, surface_basis, light_basis, surface_dim,
                                 light_dim, d_s, d_e, order_auto, overlap, min_variation, subspace_tolerance,
                                 on_failure, fallback, p, sigma, max_regions)
+    if region_size and spatial_mode != "uniform" and getattr(METHOD_TABLE.get(method), "runs", None) in (
+            "auto", "learned", "posterior"):
+        _region_grid(img.shape[:2], region_size, max_regions)  # refused before any estimate, whatever the image
     run = EstimatorInput(Evidence(img, m, dict(info), []), camera, options)
     return with_confidence(ESTIMATORS[method](run))
 

@@ -155,9 +155,9 @@ def test_spatial_true_is_a_map_where_the_learnt_windows_cannot_read_the_image(cl
 
 # --- 3. the light posterior's regions: bounded like the literal map's ---------------------
 
-@pytest.mark.parametrize("method", ["bayes", "auto"])
+@pytest.mark.parametrize("method, spatial", [("bayes", "true"), ("auto", "true"), ("bayes", "auto")])
 def test_a_region_size_for_the_posterior_map_is_bounded_by_the_light_map_region_limit(client, dng, env_settings,
-                                                                                        method):
+                                                                                        method, spatial):
     """``spatial=true&region_size=8`` with ``method=bayes`` (or ``auto``,
     whose map is the posterior's when a region size is asked for) made a
     grid of regions, each with its own light posterior, of any size: 8,772
@@ -165,17 +165,21 @@ def test_a_region_size_for_the_posterior_map_is_bounded_by_the_light_map_region_
     without the region size), where ``WANDELL_MAX_LIGHT_MAP_REGIONS`` bounds
     the literal method's map to 4,096 (docs/limits.md). Now the same limit
     bounds the posterior's regions: past it a 413 ``too_many_regions``
-    naming it, before any region is analysed; under it a map as before."""
+    naming it, before any estimate (with ``spatial=auto`` too, whether or
+    not this image's windows would have asked for the regions); under it
+    the answer is as before."""
     env_settings(max_light_map_regions=16)
     f = {"file": ("s.dng", dng)}     # 64 x 96: a 32 x 48 analysis image, 4 x 6 regions of 8
-    r = client.post("/v1/analyze", files=f, data={"method": method, "spatial": "true", "region_size": "8"})
+    r = client.post("/v1/analyze", files=f, data={"method": method, "spatial": spatial, "region_size": "8"})
     assert r.status_code == 413, r.text[:300]
     body = _strict(r.text)
     assert body["error"] == "too_many_regions"
     assert "WANDELL_MAX_LIGHT_MAP_REGIONS" in body["detail"] and "24 regions" in body["detail"], body["detail"]
-    r = client.post("/v1/analyze", files=f, data={"method": method, "spatial": "true", "region_size": "16"})
+    r = client.post("/v1/analyze", files=f, data={"method": method, "spatial": spatial, "region_size": "16"})
     assert r.status_code == 200, r.text[:300]      # 2 x 3 regions
-    assert _strict(r.text)["lights"]["found"] == 2
+    assert _strict(r.text)["lights"]["found"] == (2 if spatial == "true" else 1)
+    r = client.post("/v1/analyze", files=f, data={"method": method, "spatial": "false", "region_size": "8"})
+    assert r.status_code == 200, r.text[:300]      # one light: no regions
 
 
 # --- 4. the XMP sidecar and format=dng of a white the user set ----------------------------
