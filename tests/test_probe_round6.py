@@ -228,3 +228,19 @@ def test_a_sensitivities_csv_with_too_many_channel_columns_is_refused_before_it_
         assert b["error"] == "bad_csv" and f"more than {MAX_CSV_CHANNELS}" in b["detail"], b
     r = client.post("/v1/analyze", files={"file": ("s.dng", dng), "sensitivities": ("s.csv", csv(4))})
     assert r.status_code == 422 and "has 4" in _strict(r.text)["detail"], r.text[:300]
+
+
+@pytest.mark.parametrize("given, named", [({"neutral": "[0, 0, 8, 8]"}, "neutral"),
+                                          ({"white": "5000/+10"}, "white="), ({"white": "as-shot"}, "white=as-shot")])
+def test_a_white_given_with_spatial_true_says_why_one_light(client, dng, given, named):
+    """``spatial=true`` with ``neutral`` (or ``white=as-shot`` or a
+    Temperature/Tint) answers one light, the one given, with no map: right,
+    but ``lights.reason`` was empty (in the JSON and in ``X-Illuminant``), so
+    the user who asked for a map was not told why there is none. Now the
+    reason names the white given and where a map comes from."""
+    for data in ({"response": "json"}, {"format": "png"}):
+        r = client.post("/v1/white-balance", files={"file": ("s.dng", dng)}, data={"spatial": "true", **given, **data})
+        assert r.status_code == 200, r.text[:300]
+        lights = (_strict(r.text) if "response" in data else _strict(r.headers["x-illuminant"]))["lights"]
+        assert lights["found"] == 1 and lights["reason"].startswith("one light: "), lights
+        assert named in lights["reason"] and "light map comes from the estimate" in lights["reason"], lights
