@@ -48,7 +48,7 @@ import sys
 import threading
 
 from .cli_light import shared_light_of
-from .cli_paths import (COPY_HINT, EXTENSION_FORMATS, dng_copies, format_for, input_file,  # noqa: F401 - cli.format_for
+from .cli_paths import (EXTENSION_FORMATS, dng_copies, format_for, input_file,  # noqa: F401 - cli.format_for
                         input_folder)
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
@@ -326,8 +326,7 @@ def scan_inputs(in_dir: str, recursive: bool = False, out_dir: str | None = None
             if name.startswith("."):
                 continue
             path, relp = os.path.join(here, name), os.path.join(rel, name) if rel else name
-            if name in copies:              # --xmp's copies of RAWs here: inputs again on a rerun (round 6)
-                ignored.append((relp, "copy"))
+            if name in copies:      # --xmp's copies of RAWs here (were inputs again on a rerun: round 6), as sidecars
                 continue
             if os.path.isdir(path):
                 if skip is not None and os.path.realpath(path) == skip:
@@ -358,7 +357,7 @@ def _ignored_text(ignored: list, limit: int = 10) -> str:
     """The summary's lines for what the batch did not process."""
     out = []
     for kind, what, hint in (("folder", "subfolder", " (--recursive processes them, mirroring the tree)"),
-                             ("not RAW", "file", " not RAW/TIFF/PNG (by name)"), ("copy", "file", COPY_HINT)):
+                             ("not RAW", "file", " not RAW/TIFF/PNG (by name)")):
         names = [n for n, k in ignored if k == kind]
         if names:
             shown = ", ".join(names[:limit]) + (f", and {len(names) - limit} more" if len(names) > limit else "")

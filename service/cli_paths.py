@@ -68,17 +68,15 @@ def input_folder(path: str) -> str:
 #: The suffix of the DNG copy ``--xmp`` writes beside a RAW (:func:`service.sidecars.dng_copy_path`).
 DNG_COPY_SUFFIX = ".wandell.dng"
 
-#: How the summary names the copies a batch leaves out (:func:`dng_copies`).
-COPY_HINT = " written by --xmp (NAME.wandell.dng, the copy of a RAW processed here)"
-
-
 def dng_copies(names, raw_suffixes) -> set:
     """The names among ``names`` (one folder's entries) that are the DNG
     copies ``--xmp`` writes beside a RAW, ``IMG_0001.wandell.dng`` beside
     ``IMG_0001.dng`` or ``IMG_0001.nef``: a rerun of ``wandell batch IN OUT
     --xmp`` took them as new photographs (an output and a copy of the copy
-    each time). A ``.wandell.dng`` whose original is not in the folder is
-    not one of them (it is processed).
+    each time). They are left out silently, as the sidecars are (the
+    output of a RAW processed here, not a photograph the batch skipped). A
+    ``.wandell.dng`` whose original is not in the folder is not one of them
+    (it is processed).
 
     >>> sorted(dng_copies(["a.dng", "a.wandell.dng", "b.wandell.dng", "c.NEF", "c.wandell.dng"], (".dng", ".nef")))
     ['a.wandell.dng', 'c.wandell.dng']
