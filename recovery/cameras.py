@@ -130,12 +130,18 @@ def generic_camera(wavelengths=None):
                    "(each channel peak-normalised); approximate for any real camera",))
 
 
+#: Most channel columns a sensitivities CSV may have: a 2,000,000-column CSV
+#: of 12 MB (inside the CSV's value limit) took 20 s and 1.9 GB before the
+#: image's 3 channels refused it (probe round 6).
+MAX_CSV_CHANNELS = 64
+
+
 def camera_from_csv(data: bytes, wavelengths=None, name: str = "uploaded"):
     """A camera from an uploaded CSV of spectral sensitivities.
 
     Format: one row per wavelength, first column the wavelength in nm
     (strictly increasing, covering the analysis grid, default 400-700 nm),
-    then one column per channel (at least 3); an optional header row of
+    then one column per channel (at least 3, at most :data:`MAX_CSV_CHANNELS`); an optional header row of
     names; separators ``,``, ``;`` (decimal commas allowed then), tab or
     spaces; blank lines and lines starting with ``#`` are skipped. The
     columns are resampled to the grid (``models.resample``), negative values
@@ -178,6 +184,9 @@ def camera_from_csv(data: bytes, wavelengths=None, name: str = "uploaded"):
     if arr.shape[1] < 4:
         raise InputError(f"need a wavelength column and at least 3 channel columns; found {arr.shape[1] - 1} "
                          "channel column(s)", code="bad_csv")
+    if arr.shape[1] - 1 > MAX_CSV_CHANNELS:
+        raise InputError(f"{arr.shape[1] - 1} channel columns, more than {MAX_CSV_CHANNELS}: give one column "
+                         "per camera channel (an RGB camera has 3) after the wavelength column", code="bad_csv")
     if arr.shape[0] < 2:
         raise InputError("need at least two wavelengths", code="bad_csv")
     wl = arr[:, 0]

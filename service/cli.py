@@ -48,7 +48,8 @@ import sys
 import threading
 
 from .cli_light import shared_light_of
-from .cli_paths import EXTENSION_FORMATS, format_for, input_file, input_folder  # noqa: F401 - cli.format_for
+from .cli_paths import (EXTENSION_FORMATS, dng_copies, format_for, input_file,  # noqa: F401 - cli.format_for
+                        input_folder)
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
 from .schemas.fields import BATCH, BATCH_FORMATS, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
@@ -319,10 +320,14 @@ def scan_inputs(in_dir: str, recursive: bool = False, out_dir: str | None = None
 
     def walk(rel: str) -> None:
         here = os.path.join(in_dir, rel) if rel else in_dir
-        for name in sorted(os.listdir(here)):
+        names = sorted(os.listdir(here))
+        copies = dng_copies(names, jobs.RAW_SUFFIXES)
+        for name in names:
             if name.startswith("."):
                 continue
             path, relp = os.path.join(here, name), os.path.join(rel, name) if rel else name
+            if name in copies:      # --xmp's copies of RAWs here (were inputs again on a rerun: round 6), as sidecars
+                continue
             if os.path.isdir(path):
                 if skip is not None and os.path.realpath(path) == skip:
                     continue

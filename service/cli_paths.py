@@ -63,3 +63,23 @@ def input_folder(path: str) -> str:
         raise ServiceError(422, "folder_not_found", f"input folder {path!r} does not exist "
                            f"(current folder {os.getcwd()!r})")
     return path
+
+
+#: The suffix of the DNG copy ``--xmp`` writes beside a RAW (:func:`service.sidecars.dng_copy_path`).
+DNG_COPY_SUFFIX = ".wandell.dng"
+
+def dng_copies(names, raw_suffixes) -> set:
+    """The names among ``names`` (one folder's entries) that are the DNG
+    copies ``--xmp`` writes beside a RAW, ``IMG_0001.wandell.dng`` beside
+    ``IMG_0001.dng`` or ``IMG_0001.nef``: a rerun of ``wandell batch IN OUT
+    --xmp`` took them as new photographs (an output and a copy of the copy
+    each time). They are left out silently, as the sidecars are (the
+    output of a RAW processed here, not a photograph the batch skipped). A
+    ``.wandell.dng`` whose original is not in the folder is not one of them
+    (it is processed).
+
+    >>> sorted(dng_copies(["a.dng", "a.wandell.dng", "b.wandell.dng", "c.NEF", "c.wandell.dng"], (".dng", ".nef")))
+    ['a.wandell.dng', 'c.wandell.dng']
+    """
+    stems = {os.path.splitext(n)[0] for n in names if n.lower().endswith(raw_suffixes)}
+    return {n for n in names if n.endswith(DNG_COPY_SUFFIX) and n[:-len(DNG_COPY_SUFFIX)] in stems}

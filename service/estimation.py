@@ -126,6 +126,12 @@ def method_failure(est: IlluminantEstimate, requested: str | None = None) -> dic
     return {"method": "maloney-wandell", "reasons": reasons} if reasons else None
 
 
+#: Whose white a run fixed by :func:`run_with_white` renders, by its method.
+_GIVEN_WHITE = {"as-shot": "the file's as-shot white (white=as-shot)",
+                "temperature-tint": "the white you set (white=TEMPERATURE/TINT)",
+                "neutral-surface": "the surface you chose as white (neutral)"}
+
+
 def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
     """The same image and camera with the light fixed to a given camera RGB
     (the file's as-shot white, or a surface the user says is white): the
@@ -139,8 +145,13 @@ def run_with_white(run: EstimateRun, camera_rgb, method: str) -> EstimateRun:
                            f"values, got {np.round(rgb, 6).tolist()}")
     model = resolve_model(None, "light", min(3, run.camera.channels), run.camera.wavelengths)
     w, spd = _spectrum_from_rgb(rgb, run.camera, model)
+    who = _GIVEN_WHITE.get(method, "the white given")
     est = _finish(rgb, spd, w, run.camera, model, method,
-                  {"light_model": model.name + " (spectrum fitted to the given white)"}, [])
+                  {"light_model": model.name + " (spectrum fitted to the given white)",
+                   # lights.reason was empty (probe round 6), also where spatial=true asked for a map
+                   "spatial_decision": "one light", "lights_found": 1,
+                   "spatial_reason": f"one light: {who} is one light for the whole image (a light map comes from "
+                                     "the estimate, without neutral or white)"}, [])
     return EstimateRun(est, run.camera, list(run.camera_warnings), dict(run.timings_ms), run.factor)
 
 

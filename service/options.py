@@ -174,9 +174,10 @@ def estimate_options(method: str, surface_dim, light_dim, region_size: int | Non
     mode = check_spatial(spatial)
     if mode is not None:
         opts["spatial"] = mode
-    if method == "maloney-wandell" and mode is True:
-        # the literal light map's bound (413 past it); read only where it applies (the CLI's other
-        # commands start without pydantic-settings, issue 19)
+    if (method == "maloney-wandell" and mode is True) or "region_size" in opts:
+        # the light map's bound (413 past it): the literal map's regions, and the light posterior's
+        # regions of a region_size asked for (probe round 6); read only where it applies (the CLI's
+        # other commands start without pydantic-settings, issue 19)
         from .settings import get_settings
 
         opts["max_regions"] = get_settings().max_light_map_regions

@@ -243,8 +243,14 @@ def temperature_tint(decoded, run: EstimateRun) -> dict:
     ``no_temperature`` for a light far from the Planckian locus."""
     tt = _temperature_tint_xy(run.estimate, profile_of(decoded))
     if tt.get("temperature") is None:
-        raise ServiceError(422, "no_temperature", "the estimated light is too far from the Planckian locus for a "
-                           "temperature/tint white balance")
+        from .rendering import light_source    # rendering imports this module
+
+        who = light_source(run)      # a user's white was refused as "the estimated light" (probe round 6)
+        advice = ("" if who == "the estimated light" else
+                  "; choose a temperature and tint nearer the daylight locus" if who.startswith("the white you set")
+                  else "; choose another white")
+        raise ServiceError(422, "no_temperature", f"{who} is too far from the Planckian locus for a "
+                           f"temperature/tint white balance{advice}")
     return tt
 
 

@@ -48,7 +48,8 @@ class Settings(BaseSettings):
     #: POST /v1/surfaces answers at most this many points + rectangles + grid cells (413 too_many_regions)
     max_surface_regions: int = 10_000
     #: method=maloney-wandell&spatial=true makes at most this many regions: the default region side grows to
-    #: fit, an explicit region_size past it is a 413 too_many_regions (about 2 s per 1,000 regions, docs/limits.md)
+    #: fit, an explicit region_size past it is a 413 too_many_regions (about 2 s per 1,000 regions, docs/limits.md);
+    #: the light posterior's regions of an explicit region_size too (same 413)
     max_light_map_regions: int = 4096
     #: Host header names served besides the bound host, localhost and 127.0.0.1 (comma-separated; others: 400)
     allowed_hosts: str = ""

@@ -264,6 +264,8 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     if fmt.encoder in ("xmp", "dng") and response != "json":   # response=json: the estimate whatever the format
         decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
                                        where, inp.display_referred, request=request)
+        if fmt.encoder == "dng":       # not_a_raw first, whatever the white (probe round 6)
+            pipeline.dng_possible(data, decoded)
         run = _with_white(decoded, run, white)
         text, _, summary = pipeline.xmp_sidecar(decoded, run)
         stem = os.path.splitext(download_name(file.filename, "image"))[0] or "image"
