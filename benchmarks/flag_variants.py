@@ -44,14 +44,19 @@ log-chroma histograms of the cells and of their edges
 fitted within the same folds (:func:`histogram_evidence`); ``fd``, ``fw``
 (``--ffcc``) the same with the convolutional histogram estimator of
 :mod:`recovery.chroma_histogram` (Barron & Tsai 2017) and its posterior's
-width (:func:`ffcc_evidence`). ``--paired`` prints each variant's inner gain
+width (:func:`ffcc_evidence`); ``bd``, ``bw`` (``--bayes``) the light
+posterior's (:func:`recovery.bayes.estimate_bayes`, the camera derived from
+its colour matrix as for a RAW upload; it learns nothing from the
+photographs, so one run serves every fold) disagreement with the learnt
+answer and its own width: its posterior spread, entropy and confidence
+(:func:`bayes_evidence`). ``--paired`` prints each variant's inner gain
 over the shipped stumps with a paired bootstrap of the images scored
 (:func:`paired_bootstrap`); ``--quick --third K`` scores one of three
 disjoint thirds of the images (a measure of how the gains move with them).
 
 Usage::
 
-    python -m benchmarks.flag_variants [--windows] [--leverage] [--histogram] [--ffcc] [--paired] [--only NAMES] [--quick [--third K]]
+    python -m benchmarks.flag_variants [--windows] [--leverage] [--histogram] [--ffcc] [--bayes [--bayes-cache F]] [--paired] [--only NAMES] [--quick [--third K]]
 """
 
 from __future__ import annotations
@@ -304,9 +309,60 @@ def ffcc_evidence(hist, tuv, dataset, camera, fit_rows, rows, uv, log=print) -> 
     return {"fd": fd, "fw": fw}, uv + d
 
 
-def extra_evidence(model, feats, rows, uv, ref_rows, wf=None, system=None) -> dict:
+def bayes_evidence(rs, Ks, cache=None, log=print) -> dict:
+    """The light posterior of every image (:func:`recovery.bayes.estimate_bayes`
+    with the default candidates and reflectances; the camera from its colour
+    matrix, :func:`recovery.cameras.camera_from_matrix`, as a RAW upload of a
+    camera without measured sensitivities gets): ``uv`` (N, 2) its estimate in
+    the canonical log-chroma of :func:`benchmarks.train_illuminant.dataset_features`
+    (NaN after a fallback), ``w`` (N, 3) its log posterior spread (degrees), its
+    posterior entropy and the logit of its own confidence, and ``time`` (N,)
+    seconds per image. ``cache``: an ``.npz`` read when it exists, written
+    otherwise (about 10 minutes for the 7,524 photographs on one core)."""
+    from pathlib import Path
+
+    from benchmarks.realdata import usable_mask
+    from recovery.bayes import estimate_bayes
+    from recovery.cameras import camera_from_matrix
+
+    n = len(rs.truth)
+    if cache is not None and Path(cache).exists():
+        with np.load(cache) as z:
+            d = {k: z[k] for k in z.files}
+        if len(d["rgb"]) != n:
+            raise SystemExit(f"{cache} holds {len(d['rgb'])} images, not {n} (--quick needs its own cache)")
+    else:
+        cams = {k: camera_from_matrix(m) for k, m in rs.matrices.items()}
+        d = {"rgb": np.full((n, 3), np.nan), "spread": np.full(n, np.nan), "entropy": np.full(n, np.nan),
+             "conf": np.full(n, np.nan), "time": np.zeros(n), "fallback": np.zeros(n, bool)}
+        t0 = time.perf_counter()
+        for i in range(n):
+            a = time.perf_counter()
+            r, spec, g = estimate_bayes(rs.images[i], usable_mask(rs.images[i]), cams[rs.camera[i]])
+            d["rgb"][i], d["fallback"][i] = r, spec is None
+            d["spread"][i] = g.get("posterior_spread_deg", np.nan)
+            d["entropy"][i] = g.get("posterior_entropy", np.nan)
+            d["conf"][i] = g.get("confidence", np.nan)
+            d["time"][i] = time.perf_counter() - a
+            if i % 1000 == 999:
+                log(f"  light posterior: {i + 1} images, {time.perf_counter() - t0:.0f} s")
+        if cache is not None:
+            np.savez(cache, **d)
+    rgb = np.where(d["fallback"][:, None], np.nan, d["rgb"])
+    uv = np.full((n, 2), np.nan)
+    for i in range(n):
+        if np.all(np.isfinite(rgb[i])):
+            uv[i] = L.rgb_to_uv(np.clip(Ks[rs.camera[i]] @ rgb[i], 1e-9, None))
+    c = np.clip(np.nan_to_num(d["conf"], nan=0.0), 1e-4, 1 - 1e-4)
+    w = np.stack([np.log(np.nan_to_num(d["spread"], nan=90.0) + 0.05), np.nan_to_num(d["entropy"], nan=5.0),
+                  np.log(c / (1 - c))], axis=1)
+    return {"uv": uv, "w": w, "time": d["time"]}
+
+
+def extra_evidence(model, feats, rows, uv, ref_rows, wf=None, system=None, bz=None) -> dict:
     """The further evidence of images ``rows`` whose estimates ``uv``
-    ``model`` made; ``ref_rows`` its training images (the nearest-neighbour references)."""
+    ``model`` made; ``ref_rows`` its training images (the nearest-neighbour references);
+    ``bz`` the light posterior's (:func:`bayes_evidence`)."""
     f = feats[rows]
     d = np.linalg.norm(f - uv[:, None, :], axis=-1)
     out = {"dist": np.log(d + _FLOOR)}
@@ -318,6 +374,10 @@ def extra_evidence(model, feats, rows, uv, ref_rows, wf=None, system=None) -> di
     out["knn"] = np.log(np.sort(D, axis=1)[:, :10].mean(1) + 1e-3)[:, None]
     if system is not None:
         out.update(leverage_evidence(model, feats, rows, uv, system))
+    if bz is not None:
+        db = np.linalg.norm(bz["uv"][rows] - uv, axis=1)
+        out["bd"] = np.log(np.where(np.isfinite(db), db, 1.0) + _FLOOR)[:, None]
+        out["bw"] = bz["w"][rows]
     if wf is not None:
         w = wf[rows]
         valid = np.all(np.isfinite(w), axis=(2, 3))
@@ -358,7 +418,7 @@ class Law:
         return 1.0 / (1.0 + np.exp(-np.clip(a, -50, 50)))
 
 
-def folds(rs, feats, tuv, Ks, gam, regions, wf, log=print, leverage=False, hf=None, ch=None) -> dict:
+def folds(rs, feats, tuv, Ks, gam, regions, wf, log=print, leverage=False, hf=None, ch=None, bz=None) -> dict:
     """Per left-out benchmark: the inner out-of-fold rows, errors, benchmarks,
     ten inputs and further evidence, and the same for the left-out images."""
     good = T.usable(feats)
@@ -374,7 +434,7 @@ def folds(rs, feats, tuv, Ks, gam, regions, wf, log=print, leverage=False, hf=No
         for g, m in oof["models"].items():
             sel = rs.dataset[tr] == g
             sy = training_system(m, feats, tuv, rs.dataset, rs.camera, tr[~sel]) if leverage else None
-            ev = extra_evidence(m, feats, tr[sel], oof["uv"][sel], tr[~sel], wf, sy)
+            ev = extra_evidence(m, feats, tr[sel], oof["uv"][sel], tr[~sel], wf, sy, bz)
             if hf is not None:
                 hev, h, r = histogram_evidence(hf, tuv, feats, rs.dataset, rs.camera, tr[~sel], tr[sel], oof["uv"][sel])
                 ev.update(hev)
@@ -394,7 +454,7 @@ def folds(rs, feats, tuv, Ks, gam, regions, wf, log=print, leverage=False, hf=No
         u = res["usable"]
         x_te = T.flag_inputs(model, feats, res["uv"][u], gam, regions, te[u])
         ex_te = extra_evidence(model, feats, te[u], res["uv"][u], tr, wf,
-                               training_system(model, feats, tuv, rs.dataset, rs.camera, tr) if leverage else None)
+                               training_system(model, feats, tuv, rs.dataset, rs.camera, tr) if leverage else None, bz)
         if hf is not None:
             hev, h, r = histogram_evidence(hf, tuv, feats, rs.dataset, rs.camera, tr, te[u], res["uv"][u])
             ex_te.update(hev)
@@ -507,6 +567,10 @@ def main(argv=None) -> int:
     ap.add_argument("--ffcc", action="store_true",
                     help="also the disagreement of a convolutional log-chroma histogram estimator (FFCC) with the "
                          "learnt one, and its posterior's width (slow: one L-BFGS fit per fold)")
+    ap.add_argument("--bayes", action="store_true",
+                    help="also the light posterior's disagreement with the learnt answer and its width (about 10 "
+                         "minutes for the posteriors, once: see --bayes-cache)")
+    ap.add_argument("--bayes-cache", default=None, help="an .npz of the light posteriors: read if it exists, else written")
     ap.add_argument("--only", default=None,
                     help="comma-separated variant names as printed (e.g. 'base; stumps 200,base+lev; stumps 200')")
     ap.add_argument("--paired", action="store_true",
@@ -525,9 +589,10 @@ def main(argv=None) -> int:
     wf = window_features(rs) if a.windows else None
     hf = histogram_features(rs) if a.histogram else None
     ch = T.dataset_histograms(rs) if a.ffcc else None
+    bz = bayes_evidence(rs, Ks, a.bayes_cache) if a.bayes else None
     print(f"evidence of {len(rs.truth)} images: {time.perf_counter() - t0:.0f} s")
     with T.single_threaded():
-        F = folds(rs, feats, tuv, Ks, gam, regions, wf, leverage=a.leverage, hf=hf, ch=ch)
+        F = folds(rs, feats, tuv, Ks, gam, regions, wf, leverage=a.leverage, hf=hf, ch=ch, bz=bz)
     variants = [(["base"], Law("logistic")), (["base", "dist"], Law("logistic")), (["base", "z"], Law("logistic")),
                 (["base", "knn"], Law("logistic")), (["base"], Law("stumps", 50)), (["base"], Law("stumps", 100)),
                 (["base"], Law("stumps", 200)), (["base"], Law("stumps", 400)), (["base", "knn"], Law("stumps"))]
@@ -547,6 +612,11 @@ def main(argv=None) -> int:
         variants += [(["base", "fd"], Law("stumps")), (["base", "fd"], Law("logistic")),
                      (["base", "fd", "fw"], Law("stumps")), (["base", "fw"], Law("stumps")), (["fd"], Law("logistic")),
                      (["fd", "fw"], Law("logistic"))]
+    if bz is not None:
+        variants += [(["base", "bd"], Law("stumps")), (["base", "bd"], Law("logistic")),
+                     (["base", "bw"], Law("stumps")), (["base", "bd", "bw"], Law("stumps")),
+                     (["base", "bd", "bw"], Law("logistic")), (["bd"], Law("logistic")), (["bw"], Law("logistic")),
+                     (["bd", "bw"], Law("logistic"))]
     if ch is not None and hf is not None:
         variants += [(["base", "hd", "fd", "fw"], Law("stumps"))]
     only = None if a.only is None else {v.strip() for v in a.only.split(",")}
