@@ -76,12 +76,11 @@ def measured_sensitivities(path: Path, wl: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(wl, w, rgb[:, c]) for c in range(3)], axis=1)
 
 
-def matrix_scene_bytes(sens: np.ndarray, light: str, layout: str, seed: int) -> tuple[bytes, np.ndarray]:
-    """The scenes of :func:`scene_bytes` seen by a camera of measured
-    sensitivities ``sens`` (400-700 nm, 5 nm) that the file describes only by
-    its ColorMatrix1: the least-squares XYZ -> camera fit over the 267
-    reflectances of ``models`` under D65, normalised as the DNG SDK does
-    (the way a camera maker's matrix is made)."""
+def least_squares_matrix(sens: np.ndarray) -> np.ndarray:
+    """The ColorMatrix1 a camera of measured sensitivities ``sens`` (400-700
+    nm, 5 nm) would carry: the least-squares XYZ -> camera fit over the 267
+    reflectances of ``models`` under D65, normalised as the DNG SDK does (the
+    way a camera maker's matrix is made)."""
     import models
     from testing import dngwriter as W
 
@@ -92,7 +91,17 @@ def matrix_scene_bytes(sens: np.ndarray, light: str, layout: str, seed: int) -> 
     cmfs = models.observer("CIE 1931 2 Degree Standard Observer", wl)
     xyz, cam = (refl * d65 * dl) @ cmfs, (refl * d65 * dl) @ sens
     mt, *_ = np.linalg.lstsq(xyz, cam, rcond=None)
-    cm = W._normalise_color_matrix(mt.T)
+    return W._normalise_color_matrix(mt.T)
+
+
+def matrix_scene(sens: np.ndarray, light: str, layout: str, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The scene of :func:`matrix_scene_bytes` before its mosaic: the 96 x 144
+    linear camera image (float32, 1 % noise) and the true light (camera RGB)."""
+    import models
+    from testing import dngwriter as W
+
+    wl = models.wavelength_grid(400, 700, 5)
+    dl = models.wavelength_step(wl)
     rng = np.random.default_rng([seed, 7])
     if layout == "grid":
         pick = np.arange(24)
@@ -100,7 +109,7 @@ def matrix_scene_bytes(sens: np.ndarray, light: str, layout: str, seed: int) -> 
         shading = np.ones(24)
         surf = models.reflectance_set("colorchecker", wl)
     else:
-        surf = refl
+        surf = models.reflectance_set("all", wl)
         pick = rng.choice(surf.shape[0], 16, replace=False)
         labels = W._mondrian_labels(96, 144, 16, rng)
         shading = rng.uniform(0.5, 1.0, 16)
@@ -111,11 +120,22 @@ def matrix_scene_bytes(sens: np.ndarray, light: str, layout: str, seed: int) -> 
     k = 0.9 / patch[np.unique(labels)].max()
     img = (k * patch)[labels].astype(np.float32)
     img *= 1 + np.float32(0.01) * rng.standard_normal(img.shape, dtype=np.float32)
+    return img, e @ sens
+
+
+def matrix_scene_bytes(sens: np.ndarray, light: str, layout: str, seed: int) -> tuple[bytes, np.ndarray]:
+    """The scenes of :func:`scene_bytes` seen by a camera of measured
+    sensitivities ``sens`` (400-700 nm, 5 nm) that the file describes only by
+    its ColorMatrix1 (:func:`least_squares_matrix`); the image is
+    :func:`matrix_scene`'s, mosaicked."""
+    from testing import dngwriter as W
+
+    img, truth = matrix_scene(sens, light, layout, seed)
     cfa = np.clip(np.rint(512 + np.clip(W.mosaic(img), 0, 1) * (16383 - 512)), 0, 16383).astype(np.uint16)
     buf = io.BytesIO()
-    W.write_dng(buf, cfa, black_level=512, white_level=16383, color_matrix1=cm, make="Unknown maker",
-                model="Matrix-only camera")
-    return buf.getvalue(), e @ sens
+    W.write_dng(buf, cfa, black_level=512, white_level=16383, color_matrix1=least_squares_matrix(sens),
+                make="Unknown maker", model="Matrix-only camera")
+    return buf.getvalue(), truth
 
 
 def angle(a, b) -> float:

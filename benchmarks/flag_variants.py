@@ -316,9 +316,9 @@ def bayes_evidence(rs, Ks, cache=None, log=print) -> dict:
     camera without measured sensitivities gets): ``uv`` (N, 2) its estimate in
     the canonical log-chroma of :func:`benchmarks.train_illuminant.dataset_features`
     (NaN after a fallback), ``w`` (N, 3) its log posterior spread (degrees), its
-    posterior entropy and the logit of its own confidence, and ``time`` (N,)
-    seconds per image. ``cache``: an ``.npz`` read when it exists, written
-    otherwise (about 10 minutes for the 7,524 photographs on one core)."""
+    posterior entropy and the logit of its own confidence. ``cache``: an
+    ``.npz`` of the posteriors (with each image's seconds, ``time``) read when
+    it exists, written otherwise (41 s for the 7,524 photographs on one core)."""
     from pathlib import Path
 
     from benchmarks.realdata import usable_mask
@@ -348,15 +348,13 @@ def bayes_evidence(rs, Ks, cache=None, log=print) -> dict:
                 log(f"  light posterior: {i + 1} images, {time.perf_counter() - t0:.0f} s")
         if cache is not None:
             np.savez(cache, **d)
-    rgb = np.where(d["fallback"][:, None], np.nan, d["rgb"])
-    uv = np.full((n, 2), np.nan)
-    for i in range(n):
-        if np.all(np.isfinite(rgb[i])):
-            uv[i] = L.rgb_to_uv(np.clip(Ks[rs.camera[i]] @ rgb[i], 1e-9, None))
+    rgb = np.where(d["fallback"][:, None], np.nan, d["rgb"])           # NaN rows stay NaN
+    K = np.stack([Ks[c] for c in rs.camera])
+    uv = L.rgb_to_uv(np.clip(np.einsum("nij,nj->ni", K, rgb), 1e-9, None))
     c = np.clip(np.nan_to_num(d["conf"], nan=0.0), 1e-4, 1 - 1e-4)
     w = np.stack([np.log(np.nan_to_num(d["spread"], nan=90.0) + 0.05), np.nan_to_num(d["entropy"], nan=5.0),
                   np.log(c / (1 - c))], axis=1)
-    return {"uv": uv, "w": w, "time": d["time"]}
+    return {"uv": uv, "w": w}
 
 
 def extra_evidence(model, feats, rows, uv, ref_rows, wf=None, system=None, bz=None) -> dict:
@@ -568,8 +566,8 @@ def main(argv=None) -> int:
                     help="also the disagreement of a convolutional log-chroma histogram estimator (FFCC) with the "
                          "learnt one, and its posterior's width (slow: one L-BFGS fit per fold)")
     ap.add_argument("--bayes", action="store_true",
-                    help="also the light posterior's disagreement with the learnt answer and its width (about 10 "
-                         "minutes for the posteriors, once: see --bayes-cache)")
+                    help="also the light posterior's disagreement with the learnt answer and its width (under a "
+                         "minute for the posteriors; --bayes-cache keeps them)")
     ap.add_argument("--bayes-cache", default=None, help="an .npz of the light posteriors: read if it exists, else written")
     ap.add_argument("--only", default=None,
                     help="comma-separated variant names as printed (e.g. 'base; stumps 200,base+lev; stumps 200')")

@@ -14,8 +14,9 @@ Two sets, in one run:
   benchmarks that is also among the 47 measured cameras (Canon EOS-1Ds
   Mark III, EOS 600D, Nikon D810; the EOS 5DS for the 5DS R) is left out of
   the prior that describes it;
-* chart and Mondrian scenes (:mod:`benchmarks.chart_scenes`' lights and
-  layouts, pixels rather than DNGs) seen by every 4th of the 47 measured
+* the chart and Mondrian scenes of :mod:`benchmarks.chart_scenes`
+  (:func:`benchmarks.chart_scenes.matrix_scene`: its lights and layouts,
+  the image before its mosaic) seen by every 4th of the 47 measured
   cameras, described by their least-squares matrix; the scene's camera is
   left out of the prior.
 
@@ -52,14 +53,9 @@ def cameras_for(color_matrix, exclude=()):
     return a, b
 
 
-def angle(a, b) -> float:
-    a = np.asarray(a, float) / np.linalg.norm(a)
-    b = np.asarray(b, float) / np.linalg.norm(b)
-    return float(np.degrees(2 * np.arctan2(np.linalg.norm(a - b), np.linalg.norm(a + b))))
-
-
 def real_photographs(step: int = 1) -> None:
     from recovery.bayes import estimate_bayes
+    from recovery.metrics import angular_error
 
     from .realdata import REAL_DIR, load_real, usable_mask
 
@@ -71,7 +67,7 @@ def real_photographs(step: int = 1) -> None:
         mk = usable_mask(rs.images[i])
         for j in range(2):
             r, _, _ = estimate_bayes(rs.images[i], mk, cams[rs.camera[i]][j])
-            err[n, j] = angle(r, rs.truth[i])
+            err[n, j] = angular_error(r, rs.truth[i])
     print("\n## Real photographs (mean / median degrees)\n")
     print("| | matrix-derived (shipped) | camera posterior mean | posterior mean better on |")
     print("|---|---|---|---|")
@@ -85,15 +81,12 @@ def real_photographs(step: int = 1) -> None:
 def chart_scenes(every: int = 4, seeds=(1,)) -> None:
     import models
     from recovery.bayes import estimate_bayes
-    from testing import dngwriter as W
+    from recovery.metrics import angular_error
 
-    from .chart_scenes import LIGHTS, measured_sensitivities, rawtoaces_cameras
+    from .chart_scenes import LIGHTS, LAYOUTS, least_squares_matrix, matrix_scene, measured_sensitivities, \
+        rawtoaces_cameras
 
     wl = models.wavelength_grid(400, 700, 5)
-    dl = models.wavelength_step(wl)
-    refl = models.reflectance_set("all", wl)
-    d65 = models.illuminant("D65", wl)
-    cmfs = models.observer("CIE 1931 2 Degree Standard Observer", wl)
     print("\n## Chart and Mondrian scenes, cameras known by their least-squares matrix (mean / median degrees)\n")
     print("| camera | matrix-derived (shipped) | camera posterior mean |")
     print("|---|---|---|")
@@ -102,26 +95,13 @@ def chart_scenes(every: int = 4, seeds=(1,)) -> None:
         h = json.loads(path.read_text())["header"]
         name = f"{h['manufacturer']} {h['model']}"
         sens = measured_sensitivities(path, wl)
-        xyz, cam = (refl * d65 * dl) @ cmfs, (refl * d65 * dl) @ sens
-        mt, *_ = np.linalg.lstsq(xyz, cam, rcond=None)
-        pair = cameras_for(W._normalise_color_matrix(mt.T), (name,))
+        pair = cameras_for(least_squares_matrix(sens), (name,))
         per = []
         for seed in seeds:
             for light in LIGHTS:
-                for layout in ("grid", "mondrian"):
-                    rng = np.random.default_rng([seed, 7])
-                    if layout == "grid":
-                        surf, pick, shading = models.reflectance_set("colorchecker", wl), np.arange(24), np.ones(24)
-                    else:
-                        surf = refl
-                        pick = rng.choice(surf.shape[0], 16, replace=False)
-                        shading = rng.uniform(0.5, 1.0, 16)
-                    e = models.illuminant(light, wl) * dl
-                    R = np.vstack([surf[pick], np.full((1, wl.size), 0.05)])
-                    patch = np.append(shading, 1.0)[:, None] * ((R * e) @ sens)
-                    px = np.repeat(patch / patch.max() * 0.9, 50, axis=0)     # 50 pixels a patch, 1 % noise
-                    px = px * (1 + 0.01 * rng.standard_normal(px.shape))
-                    per.append([angle(estimate_bayes(px, None, c)[0], e @ sens) for c in pair])
+                for layout in LAYOUTS:
+                    img, truth = matrix_scene(sens, light, layout, seed)    # chart_scenes' scene, not mosaicked
+                    per.append([angular_error(estimate_bayes(img, None, c)[0], truth) for c in pair])
         per = np.array(per)
         tot.append(per)
         print(f"| {name} | {per[:, 0].mean():.2f} / {np.median(per[:, 0]):.2f} | {per[:, 1].mean():.2f} / "

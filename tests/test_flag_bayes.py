@@ -10,6 +10,7 @@ import pytest
 
 from benchmarks import flag_variants as V
 from recovery import learned as L
+from recovery.metrics import angular_error
 
 from .conftest import unavailable
 
@@ -46,10 +47,7 @@ def test_the_posterior_is_read_in_the_learnt_estimators_log_chroma(photos, tmp_p
         c = diag["confidence"]
         np.testing.assert_allclose(bz["w"][i, 2], np.log(c / (1 - c)), atol=1e-9)
     # a light estimate: the posterior's median error on these benchmarks is 2.8-3.7 degrees, worst 25 % above 6
-    def angle(a, b):
-        return np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
-
-    ang = [angle(L.uv_to_rgb(u), Ks[c] @ t) for u, t, c in zip(bz["uv"], photos.truth, photos.camera)]
+    ang = angular_error(L.uv_to_rgb(bz["uv"]), np.stack([Ks[c] @ t for t, c in zip(photos.truth, photos.camera)]))
     assert np.median(ang) < 10
     # the cache gives the same evidence without estimating again
     again = V.bayes_evidence(photos, Ks, cache, log=lambda s: None)
