@@ -382,3 +382,26 @@ def test_a_colorchecker_from_a_cameras_matrix_meets_the_real_chart_target_on_the
     assert med[("matrix", "shipped prior")] < med[("matrix", "eq. 36")]
     assert med[("generic", "shipped prior")] < med[("generic", "eq. 36")]
     assert len(rec[("matrix", "shipped prior")]["rmse"]) == 2 * 3 * len(bs.LIGHTS)
+
+
+def test_scene_adapted_priors_reduce_to_the_shipped_one_and_their_likelihood_is_the_mixtures():
+    """``benchmarks.surface_adapt`` (tried, not shipped): with equal weights the re-weighted posterior mean is
+    the product's (:func:`recovery.surface_prior._mixture_moments`), a huge smoothing ``alpha`` leaves the
+    weights equal, and the scene log-likelihood is the sum over responses of the log of the mixture's
+    density, checked against scipy's Gaussian density."""
+    from scipy.stats import multivariate_normal
+
+    from benchmarks import surface_adapt as sa
+
+    rng = np.random.default_rng(3)
+    R = np.clip(rng.uniform(0, 1, (40, WL.size)), 0, 1)
+    prior = sp.learn_prior(R, WL, bandwidth=0.3)
+    A = sp.lighting_operator(rng.uniform(0, 1, (WL.size, 3)), np.ones(WL.size), models.wavelength_step(WL))
+    y = R[:5] @ A.T * 1.01
+    m0 = sp._mixture_moments(prior, A, y, None)[0]
+    np.testing.assert_allclose(sa.weighted_mean(prior, A, y, np.zeros(40))[0], m0, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sa.reweighted_mean(prior, A, y, 1e12, 3), m0, rtol=1e-8, atol=1e-10)
+    _, AR, G = sa._component_terms(prior, A)
+    direct = sum(np.log(np.mean([multivariate_normal(AR[i], G).pdf(ys) for i in range(40)])) for ys in y)
+    const = -0.5 * y.size * np.log(2 * np.pi)          # scene_log_likelihood leaves out the constant
+    assert sa.scene_log_likelihood(prior, A, y) + const == pytest.approx(direct, rel=1e-9, abs=1e-9)
