@@ -68,16 +68,40 @@ class GainField:
             self._cols[key] = np.ascontiguousarray((1 - t) * self.gains[:, j0] + t * self.gains[:, j1])
         return self._cols[key]
 
-    def rows(self, r0: int, r1: int, c0: int, W: int) -> np.ndarray:
+    def _steps(self, c0: int, W: int) -> np.ndarray:
+        """(gr - 1, W, 3) differences between consecutive centre rows of :meth:`_columns`."""
+        key = ("d", c0, W)
+        if key not in self._cols:
+            colg = self._columns(c0, W)
+            self._cols[key] = np.ascontiguousarray(colg[1:] - colg[:-1])
+        return self._cols[key]
+
+    def rows(self, r0: int, r1: int, c0: int, W: int, out: np.ndarray | None = None) -> np.ndarray:
         """(r1 - r0, W, 3) float32 gains of image rows ``r0 .. r1 - 1`` and
-        columns ``c0 .. c0 + W - 1``."""
+        columns ``c0 .. c0 + W - 1`` (written into ``out`` when given, a
+        float32 buffer of at least that many rows).
+
+        Between centre rows ``i`` and ``i + 1`` a row at fraction ``t`` gets
+        ``g_i + t (g_{i+1} - g_i)``: one multiply and one add per value, in
+        place, for each run of rows between the same two centres (the
+        bilinear weights ``(1 - t) g_i + t g_{i+1}``, fewer passes)."""
         colg = self._columns(c0, W)
         gr = colg.shape[0]
+        n = r1 - r0
         fr = np.interp(np.arange(r0, r1, dtype=float), self.cr, np.arange(gr, dtype=float))
-        i0 = np.floor(fr).astype(int)
-        i1 = np.minimum(i0 + 1, gr - 1)
-        t = (fr - i0)[:, None, None].astype(np.float32)
-        return (1 - t) * colg[i0] + t * colg[i1]
+        i0 = np.minimum(np.floor(fr).astype(int), gr - 1)
+        t = (fr - i0).astype(np.float32)
+        g = np.empty((n, W, 3), np.float32) if out is None else out[:n]
+        steps = self._steps(c0, W) if gr > 1 else None
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(i0)) + 1, [n]])
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            k = int(i0[a])
+            if k >= gr - 1 or not np.any(t[a:b]):
+                g[a:b] = colg[k]
+            else:
+                np.multiply(t[a:b, None, None], steps[k][None], out=g[a:b])
+                g[a:b] += colg[k]
+        return g
 
     def apply(self, rgb16: np.ndarray, r0: int = 0, c0: int = 0, block: int = 128,
               threads: int = 1) -> np.ndarray:
@@ -89,12 +113,18 @@ class GainField:
         threads gives the same pixels."""
         import cv2
 
+        import threading
+
         h, W = rgb16.shape[:2]
+        local = threading.local()                # one gains buffer per thread, reused block after block
 
         def one(a):
             b = min(h, a + block)
             part = rgb16[a:b]
-            g = self.rows(r0 + a, r0 + b, c0, W)
+            buf = getattr(local, "buf", None)
+            if buf is None:
+                buf = local.buf = np.empty((min(block, h), W, 3), np.float32)
+            g = self.rows(r0 + a, r0 + b, c0, W, out=buf)
             if part.flags.c_contiguous:
                 cv2.multiply(part, g, dst=part, dtype=cv2.CV_16U)
             else:
