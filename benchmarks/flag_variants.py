@@ -397,22 +397,30 @@ def extra_evidence(model, feats, rows, uv, ref_rows, wf=None, system=None, bz=No
 
 
 class Law:
-    """A confidence law: ``"logistic"`` (:func:`recovery.confidence.fit_logistic`)
-    or ``"stumps"`` (:func:`recovery.confidence.fit_stumps`, ``rounds``)."""
+    """A confidence law: ``"logistic"`` (:func:`recovery.confidence.fit_logistic`),
+    ``"stumps"`` (:func:`recovery.confidence.fit_stumps`, ``rounds``) or ``"trees2"``
+    (:func:`recovery.confidence.fit_trees`, depth 2, ``rounds``, ``rate``)."""
 
-    def __init__(self, kind: str, rounds: int = 200):
-        self.kind, self.rounds = kind, rounds
+    def __init__(self, kind: str, rounds: int = 200, rate: float = 0.1):
+        self.kind, self.rounds, self.rate = kind, rounds, rate
 
     def fit(self, x, ok3, w):
         if self.kind == "stumps":
             self.c0, self.st = C.fit_stumps(x, ok3, w, rounds=self.rounds)
+        elif self.kind == "trees2":
+            self.c0, self.st = C.fit_trees(x, ok3, w, rounds=self.rounds, rate=self.rate)
         else:
             self.m, self.s = x.mean(0), x.std(0) + 1e-9
             self.c = C.fit_logistic((x - self.m) / self.s, ok3, w, T.FLAG_SETTINGS["l2"])
         return self
 
     def confidence(self, x):
-        a = C.stump_score(x, self.c0, self.st) if self.kind == "stumps" else self.c[0] + ((x - self.m) / self.s) @ self.c[1:]
+        if self.kind == "stumps":
+            a = C.stump_score(x, self.c0, self.st)
+        elif self.kind == "trees2":
+            a = C.tree_score(x, self.c0, self.st)
+        else:
+            a = self.c[0] + ((x - self.m) / self.s) @ self.c[1:]
         return 1.0 / (1.0 + np.exp(-np.clip(a, -50, 50)))
 
 
@@ -557,6 +565,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(REAL_DIR))
     ap.add_argument("--windows", action="store_true", help="also the 3 x 3 windows' evidence (slow)")
+    ap.add_argument("--trees", action="store_true", help="also boosted trees of depth 2 on the ten inputs")
     ap.add_argument("--leverage", action="store_true",
                     help="also the estimator's own uncertainty: its leverage and its ensemble's spread")
     ap.add_argument("--histogram", action="store_true",
@@ -594,6 +603,10 @@ def main(argv=None) -> int:
     variants = [(["base"], Law("logistic")), (["base", "dist"], Law("logistic")), (["base", "z"], Law("logistic")),
                 (["base", "knn"], Law("logistic")), (["base"], Law("stumps", 50)), (["base"], Law("stumps", 100)),
                 (["base"], Law("stumps", 200)), (["base"], Law("stumps", 400)), (["base", "knn"], Law("stumps"))]
+    if a.trees:
+        variants += [(["base"], Law("trees2", 50)), (["base"], Law("trees2", 75)), (["base"], Law("trees2", 100)),
+                     (["base"], Law("trees2", 150)), (["base"], Law("trees2", 200)), (["base"], Law("trees2", 200, 0.05)),
+                     (["base", "knn"], Law("trees2", 100)), (["base", "dist"], Law("trees2", 100))]
     if wf is not None:
         variants += [(["base", "win"], Law("logistic")), (["base", "win"], Law("stumps"))]
     if a.leverage:
@@ -623,7 +636,8 @@ def main(argv=None) -> int:
     print(f"{'variant':34s} {'LOBO':>6s} {'LOCO':>6s} | " + " | ".join(f"{b[:16]:>16s}" for b in F))
     ref = None
     for keys, law in variants:
-        name = "+".join(keys) + f"; {law.kind}" + (f" {law.rounds}" if law.kind == "stumps" else "")
+        name = ("+".join(keys) + f"; {law.kind}" + (f" {law.rounds}" if law.kind in ("stumps", "trees2") else "")
+                + (f" rate {law.rate:g}" if law.rate != 0.1 else ""))
         if only is not None and name not in only:
             continue
         r = score(F, keys, law)

@@ -535,14 +535,24 @@ def outside_calibration(rs, feats, tuv, Ks, idx, gam, settings=SETTINGS, min_ima
 #: training benchmarks 0.786 against the logistic law's 0.773, by
 #: leave-one-benchmark-out 0.770 against 0.770; the rounds (200 of 50, 100,
 #: 200, 400) by the inner leave-one-benchmark-out.
+#:
+#: ``trees`` (in place of ``stumps``): boosted trees of depth 2
+#: (:func:`recovery.confidence.fit_trees`), tried 2026-12-06 and **not**
+#: taken by this rule (``python -m benchmarks.flag_variants --trees
+#: --paired``): inner gain over the stumps +0.013 +- 0.002 by
+#: leave-one-benchmark-out, +0.018 +- 0.002 by leave-one-camera-out, at the
+#: bar the stumps set for any change (the spread between the two protocols,
+#: 0.016: below it by the first), and on three disjoint thirds of the images
+#: +0.002 / +0.007, -0.008 / +0.001, +0.011 / +0.016 (docs/confidence.md).
 FLAG_SETTINGS = {"l2": 1e-3, "max_flag": 0.15, "stumps": {"rounds": 200, "rate": 0.1, "bins": 32, "lam": 1.0}}
 
 
 def fit_flag(rs, idx, oof, log=print, peers=None) -> C.FlagModel:
     """The confidence and flag, fitted on the inner out-of-fold predictions
     ``oof`` of images ``idx`` (:func:`select_and_calibrate` with regions):
-    P(error < 3 deg) by boosted stumps (``FLAG_SETTINGS["stumps"]``; the
-    logistic regression without them), each benchmark and camera weighing
+    P(error < 3 deg) by boosted stumps (``FLAG_SETTINGS["stumps"]``; boosted
+    trees of depth 2 with ``"trees"`` instead, the logistic regression with
+    neither), each benchmark and camera weighing
     the same; the threshold by :func:`recovery.confidence.choose_threshold`."""
     err = oof["err"]
     fm = C.fit_flag_model(oof["x"], err < 3.0, err > 6.0, rs.dataset[idx],
@@ -552,7 +562,7 @@ def fit_flag(rs, idx, oof, log=print, peers=None) -> C.FlagModel:
                                         + ", ".join(sorted(set(rs.dataset[idx].tolist()))),
                            "images": int(len(idx)), "settings": FLAG_SETTINGS,
                            "command": "python -m benchmarks.train_illuminant"},
-                          stumps=FLAG_SETTINGS.get("stumps"))
+                          stumps=FLAG_SETTINGS.get("stumps"), trees=FLAG_SETTINGS.get("trees"))
     log(f"    confidence: threshold {fm.threshold:.3f}; inner out-of-fold AUROC (error > 6 deg) "
         + ", ".join(f"{g} {C.auroc(-fm.confidence(oof['x'][rs.dataset[idx] == g]), err[rs.dataset[idx] == g] > 6):.2f}"
                     for g in sorted(set(rs.dataset[idx].tolist()))))

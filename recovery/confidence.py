@@ -39,9 +39,11 @@ nonlinear law, deterministic) on these, fitted on the *out-of-fold*
 predictions of the training procedure's inner leave-one-benchmark-out (each
 benchmark predicted by a model that never saw it), so the probability is
 calibrated for photographs of benchmarks never seen. A logistic regression
-on the same inputs (:func:`fit_logistic`, the law before) is kept as an
-option: the stumps ranked the failures better in the inner
-cross-validation (docs/confidence.md). ``low_confidence`` is ``confidence <
+on the same inputs (:func:`fit_logistic`, the law before) and boosted trees
+of depth 2 (:func:`fit_trees`, tried after) are kept as options: the
+stumps ranked the failures better than the logistic law in the inner
+cross-validation, and the trees' gain over the stumps did not clear the
+bar set for a change (docs/confidence.md). ``low_confidence`` is ``confidence <
 threshold``, the threshold chosen on the same out-of-fold predictions
 (:func:`choose_threshold`). Both ship in
 ``recovery/data/learned_confidence.json``, built by ``python -m
@@ -67,6 +69,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["INPUT_NAMES", "FlagModel", "confidence_inputs", "fit_logistic", "fit_stumps", "stump_score",
+           "fit_trees", "tree_score",
            "choose_threshold", "auroc",
            "load_flag_model", "DEFAULT_FLAG_PATH", "quadrants", "region_estimates"]
 
@@ -279,6 +282,109 @@ def stump_score(x, constant: float, stumps) -> np.ndarray:
     return np.cumsum(np.c_[np.full(len(x), float(constant)), v], axis=1)[:, -1]
 
 
+
+def _best_split(b, g, h, rows, edges, lam):
+    """The split of largest gain among ``rows`` (bool mask) of the binned
+    inputs ``b``: ``(gain over no split, input, bin, left value, right
+    value)``, or None (no input has two bins)."""
+    best = None
+    G0, H0 = g[rows].sum(), h[rows].sum()
+    for j in range(b.shape[1]):
+        m = len(edges[j]) + 1
+        if m < 2:
+            continue
+        G, H = np.bincount(b[rows, j], g[rows], m), np.bincount(b[rows, j], h[rows], m)
+        gl, hl = np.cumsum(G)[:-1], np.cumsum(H)[:-1]
+        gr, hr = G0 - gl, H0 - hl
+        gain = gl ** 2 / (hl + lam) + gr ** 2 / (hr + lam) - G0 ** 2 / (H0 + lam)
+        t = int(np.argmax(gain))
+        if best is None or gain[t] > best[0]:
+            best = (gain[t], j, t, -gl[t] / (hl[t] + lam), -gr[t] / (hr[t] + lam))
+    return best
+
+
+def fit_trees(x, y, weights=None, rounds: int = 100, rate: float = 0.1, bins: int = 32,
+              lam: float = 1.0) -> tuple[float, np.ndarray]:
+    """Gradient-boosted trees of depth 2 for the log-odds of ``y`` (0/1) on
+    ``x`` (N, k): as :func:`fit_stumps` (the same binning at inner
+    quantiles, Newton steps of the weighted logistic loss, leaves
+    ``-G / (H + lam)`` shrunk by ``rate``), but each round splits the root
+    and then each of its two halves on that half's own best split (a half
+    whose best split gains nothing keeps one value), so one round can say
+    "a large spread matters where few cells are usable". Deterministic.
+
+    Returns ``(constant, trees)``, ``trees`` (rounds, 10): the root's input
+    and threshold, the left half's input and threshold, the right half's,
+    and the four leaves' values (left-left, left-right, right-left,
+    right-right; "left" is below the threshold) (:func:`tree_score`). A half
+    without a split has input 0, threshold 0 and its value in both leaves.
+
+    References
+    ----------
+    Friedman (2001), Greedy function approximation: a gradient boosting
+    machine, Annals of Statistics 29(5). Chen & Guestrin (2016), XGBoost,
+    KDD (the Newton step, ``lam``, the gain of a split).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> x = rng.normal(size=(2000, 2))
+    >>> y = (x[:, 0] > 0) ^ (x[:, 1] > 0)                 # no sum of single splits can say this
+    >>> c, t = fit_trees(x, y, rounds=100)
+    >>> c1, s1 = fit_stumps(x, y, rounds=100)
+    >>> xt = rng.normal(size=(2000, 2)); yt = (xt[:, 0] > 0) ^ (xt[:, 1] > 0)      # new points
+    >>> round(float(np.mean((tree_score(xt, c, t) > 0) == yt)), 2), round(float(np.mean((stump_score(xt, c1, s1) > 0) == yt)), 2)
+    (0.92, 0.58)
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    w = np.ones(len(y)) if weights is None else np.asarray(weights, float)
+    w = w / w.mean()
+    n, k = x.shape
+    edges = [np.unique(np.quantile(x[:, j], np.linspace(0.0, 1.0, bins + 1)[1:-1])) for j in range(k)]
+    b = np.stack([np.searchsorted(edges[j], x[:, j], side="right") for j in range(k)], axis=1)
+    p0 = float(np.clip(np.average(y, weights=w), 1e-3, 1 - 1e-3))
+    c0 = float(np.log(p0 / (1 - p0)))
+    f = np.full(n, c0)
+    out = np.zeros((rounds, 10))
+    every = np.ones(n, bool)
+    for r in range(rounds):
+        p = 1.0 / (1.0 + np.exp(-f))
+        g, h = w * (p - y), w * p * (1 - p)
+        root = _best_split(b, g, h, every, edges, lam)
+        if root is None:
+            return c0, out[:r]
+        _, j0, t0, vl, vr = root
+        left = b[:, j0] <= t0
+        row, leaves = [j0, edges[j0][t0]], []
+        for half, v in ((left, vl), (~left, vr)):
+            sub = _best_split(b, g, h, half, edges, lam) if half.sum() > 1 else None
+            if sub is None or not sub[0] > 0:
+                row += [0, 0.0]
+                leaves += [v, v]
+            else:
+                row += [sub[1], edges[sub[1]][sub[2]]]
+                leaves += [sub[3], sub[4]]
+        out[r] = row + [rate * v for v in leaves]
+        f += _tree_values(x, out[r:r + 1])[:, 0]
+    return c0, out
+
+
+def _tree_values(x, trees) -> np.ndarray:
+    """(N, R) the value of each tree of :func:`fit_trees` at inputs ``x``."""
+    t = np.asarray(trees, float).reshape(-1, 10)
+    left = x[:, t[:, 0].astype(int)] < t[:, 1]
+    ll = x[:, t[:, 2].astype(int)] < t[:, 3]
+    rl = x[:, t[:, 4].astype(int)] < t[:, 5]
+    return np.where(left, np.where(ll, t[:, 6], t[:, 7]), np.where(rl, t[:, 8], t[:, 9]))
+
+
+def tree_score(x, constant: float, trees) -> np.ndarray:
+    """(N,) log-odds of :func:`fit_trees`' model at inputs ``x`` (N, k)."""
+    x = np.atleast_2d(np.asarray(x, float))
+    v = _tree_values(x, trees)
+    return np.cumsum(np.c_[np.full(len(x), float(constant)), v], axis=1)[:, -1]
+
 @dataclass(frozen=True)
 class FlagModel:
     """The calibrated confidence and the flag (see the module docstring).
@@ -288,13 +394,15 @@ class FlagModel:
     names : the inputs (:data:`INPUT_NAMES`)
     mean, scale : (k,) their standardisation (the logistic law's)
     coef : (k + 1,) the logistic law of P(error < 3 deg) on the standardised
-        inputs; with ``stumps``, ``[constant]`` of the boosted stumps
+        inputs; with ``trees`` or ``stumps``, ``[constant]`` of the boosted law
     threshold : confidence below which an estimate is flagged
     peers : method -> P(error < 3 deg) of a classical estimator on the
         development photographs (the confidence a requested peer reports)
     info : what it was fitted on, and how
     stumps : (R, 4) boosted stumps (:func:`fit_stumps`) on the raw inputs, or
-        None for the logistic law
+        None
+    trees : (R, 10) boosted trees of depth 2 (:func:`fit_trees`) on the raw
+        inputs, or None; with neither, the logistic law
     """
 
     names: tuple
@@ -305,11 +413,14 @@ class FlagModel:
     peers: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict, compare=False)
     stumps: np.ndarray | None = None
+    trees: np.ndarray | None = None
 
     def confidence(self, x) -> np.ndarray:
         """(N,) P(error < 3 deg) for inputs (N, k) (:func:`confidence_inputs`)."""
         x = np.atleast_2d(np.asarray(x, float))
-        if self.stumps is not None:
+        if self.trees is not None:
+            a = tree_score(x, float(self.coef[0]), self.trees)
+        elif self.stumps is not None:
             a = stump_score(x, float(self.coef[0]), self.stumps)
         else:
             a = self.coef[0] + ((x - self.mean) / self.scale) @ self.coef[1:]
@@ -322,35 +433,44 @@ class FlagModel:
              "info": self.info}
         if self.stumps is not None:
             d["stumps"] = [[int(j), float(t), float(lo), float(hi)] for j, t, lo, hi in np.asarray(self.stumps)]
+        if self.trees is not None:
+            d["trees"] = [[int(r[0]), float(r[1]), int(r[2]), float(r[3]), int(r[4]), float(r[5])]
+                          + [float(v) for v in r[6:]] for r in np.asarray(self.trees)]
         return json.dumps(d, indent=1, sort_keys=True)
 
     @classmethod
     def from_json(cls, text: str) -> "FlagModel":
         d = json.loads(text)
-        st = d.get("stumps")
+        st, tr = d.get("stumps"), d.get("trees")
         return cls(tuple(d["names"]), np.asarray(d["mean"], float), np.asarray(d["scale"], float),
                    np.asarray(d["coef"], float), float(d["threshold"]), dict(d.get("peers", {})), d.get("info", {}),
-                   None if st is None else np.asarray(st, float).reshape(-1, 4))
+                   None if st is None else np.asarray(st, float).reshape(-1, 4),
+                   None if tr is None else np.asarray(tr, float).reshape(-1, 10))
 
 
 def fit_flag_model(x, ok3, failed, groups, weights=None, l2: float = 1e-3, max_flag: float = 0.15,
-                   peers=None, info=None, stumps: dict | None = None) -> FlagModel:
+                   peers=None, info=None, stumps: dict | None = None, trees: dict | None = None) -> FlagModel:
     """Fit :class:`FlagModel` on out-of-fold inputs ``x`` (N, k), outcomes
     ``ok3`` (error under 3 degrees) and ``failed`` (above 6), the threshold
     by :func:`choose_threshold` per group (benchmark): the logistic law
-    (ridge ``l2``), or with ``stumps`` (keyword arguments of
+    (ridge ``l2``), or with ``trees`` (keyword arguments of
+    :func:`fit_trees`) boosted trees of depth 2, or with ``stumps`` (of
     :func:`fit_stumps`) boosted stumps."""
     x = np.asarray(x, float)
     mean, scale = x.mean(axis=0), x.std(axis=0) + 1e-9
-    if stumps is not None:
+    st = tr = None
+    if trees is not None:
+        c0, tr = fit_trees(x, ok3, weights, **trees)
+        coef = np.array([c0])
+    elif stumps is not None:
         c0, st = fit_stumps(x, ok3, weights, **stumps)
-        coef, st = np.array([c0]), st
+        coef = np.array([c0])
     else:
-        coef, st = fit_logistic((x - mean) / scale, ok3, weights, l2), None
-    fm = FlagModel(tuple(INPUT_NAMES), mean, scale, coef, 0.0, dict(peers or {}), dict(info or {}), st)
+        coef = fit_logistic((x - mean) / scale, ok3, weights, l2)
+    fm = FlagModel(tuple(INPUT_NAMES), mean, scale, coef, 0.0, dict(peers or {}), dict(info or {}), st, tr)
     t, rec = choose_threshold(fm.confidence(x), failed, groups, max_flag)
     return FlagModel(fm.names, mean, scale, coef, t, fm.peers, {**fm.info, "threshold_choice": rec,
-                                                                 "max_flag_rate": max_flag, "l2": l2}, st)
+                                                                 "max_flag_rate": max_flag, "l2": l2}, st, tr)
 
 
 @lru_cache(maxsize=4)

@@ -2,7 +2,7 @@
 
 What they achieve on benchmarks never seen is measured by ``python -m
 benchmarks.real_photos`` (docs/confidence.md); here the pieces: the
-logistic fit, the boosted stumps, the ROC area, the threshold rule, the shipped file, and that
+logistic fit, the boosted stumps and trees, the ROC area, the threshold rule, the shipped file, and that
 the product computes for one photograph exactly the inputs the training
 computed for it."""
 
@@ -91,6 +91,53 @@ def test_stump_scores_are_the_stumps_added_one_by_one():
     np.testing.assert_array_equal(C.stump_score(x, c0, st), f)
 
 
+def test_boosted_trees_recover_an_interaction_that_stumps_cannot():
+    """P(y) 0.9 where the first input is above 0 and the second below 0, 0.1
+    elsewhere, three inputs of noise (20,000 draws): the depth-2 trees'
+    probability in each of the four quadrants (away from the edges) is within
+    4 binomial standard errors plus 0.03 (what 100 shrunk rounds leave) of
+    the truth; boosted stumps, a sum of one-input steps, cannot: the best
+    law additive in the two halves' log-odds gives 0.188 / 0.812 / 0.012
+    where the truth is 0.1 / 0.9 / 0.1 (0.088 off), so the stumps miss by
+    more than 0.06 (that less 4 binomial standard errors) in some quadrant;
+    the fit is the same on a second call."""
+    rng = np.random.default_rng(7)
+    x = rng.normal(size=(20000, 5))
+    hot = (x[:, 0] > 0) & (x[:, 1] < 0)
+    y = rng.uniform(size=20000) < np.where(hot, 0.9, 0.1)
+    c0, tr = C.fit_trees(x, y)
+    p = 1 / (1 + np.exp(-C.tree_score(x, c0, tr)))
+    cs, st = C.fit_stumps(x, y, rounds=100)
+    ps = 1 / (1 + np.exp(-C.stump_score(x, cs, st)))
+    worst_stumps = 0.0
+    for s0 in (1, -1):
+        for s1 in (1, -1):
+            q = (s0 * x[:, 0] > 0.3) & (s1 * x[:, 1] > 0.3)
+            truth = 0.9 if (s0 > 0 and s1 < 0) else 0.1
+            se = np.sqrt(truth * (1 - truth) / q.sum())
+            assert abs(p[q].mean() - truth) < 4 * se + 0.03, (s0, s1, p[q].mean(), truth)
+            worst_stumps = max(worst_stumps, abs(ps[q].mean() - truth))
+    assert worst_stumps > 0.06
+    c1, tr1 = C.fit_trees(x, y)
+    assert c1 == c0
+    np.testing.assert_array_equal(tr1, tr)
+
+
+def test_tree_scores_are_the_trees_added_one_by_one_and_survive_json():
+    rng = np.random.default_rng(8)
+    x = rng.normal(size=(500, 3))
+    c0, tr = C.fit_trees(x, (x[:, 1] > 0) & (x[:, 2] > 0.5 * rng.normal(size=500)), rounds=30)
+    f = np.full(len(x), c0)
+    for j0, t0, jl, tl, jr, tr_, a, b, c, d in tr:
+        left = x[:, int(j0)] < t0
+        f += np.where(left, np.where(x[:, int(jl)] < tl, a, b), np.where(x[:, int(jr)] < tr_, c, d))
+    np.testing.assert_array_equal(C.tree_score(x, c0, tr), f)
+    fm = C.FlagModel(tuple(C.INPUT_NAMES[:3]), np.zeros(3), np.ones(3), np.array([c0]), 0.5, trees=tr)
+    back = C.FlagModel.from_json(fm.to_json())
+    np.testing.assert_array_equal(back.trees, tr)
+    np.testing.assert_array_equal(back.confidence(x), fm.confidence(x))
+
+
 def test_the_confidence_is_a_finite_probability_whatever_the_inputs():
     """The shipped law on extreme and ordinary inputs: finite, in [0, 1];
     its JSON round trip gives the same numbers."""
@@ -108,7 +155,10 @@ def test_the_shipped_confidence_says_what_it_was_fitted_on():
     fm = C.load_flag_model()
     assert fm is not None, "recovery/data/learned_confidence.json is missing (python -m benchmarks.train_illuminant)"
     assert fm.names == C.INPUT_NAMES
-    if fm.stumps is None:
+    if fm.trees is not None:                     # FLAG_SETTINGS["trees"] (tried, not shipped)
+        assert len(fm.coef) == 1 and fm.trees.shape[1] == 10 and fm.stumps is None
+        assert set(fm.trees[:, [0, 2, 4]].astype(int).ravel()) <= set(range(len(C.INPUT_NAMES)))
+    elif fm.stumps is None:
         assert len(fm.coef) == len(C.INPUT_NAMES) + 1
     else:
         assert len(fm.coef) == 1 and fm.stumps.shape[1] == 4

@@ -507,6 +507,11 @@ def test_rebuilding_the_model_gives_the_shipped_one(real, same_fits):
         assert new.flag.stumps.shape == flag.stumps.shape
         np.testing.assert_array_equal(new.flag.stumps[:, 0], flag.stumps[:, 0])
         np.testing.assert_allclose(new.flag.stumps[:, 1:], flag.stumps[:, 1:], rtol=1e-9, atol=1e-12)
+    assert (new.flag.trees is None) == (flag.trees is None)
+    if flag.trees is not None:                   # the trees' inputs exactly, thresholds and values to rounding
+        assert new.flag.trees.shape == flag.trees.shape
+        np.testing.assert_array_equal(new.flag.trees[:, [0, 2, 4]], flag.trees[:, [0, 2, 4]])
+        np.testing.assert_allclose(new.flag.trees, flag.trees, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(new.flag.coef, flag.coef, rtol=1e-9, atol=1e-12)
     for i in range(0, len(rs.truth), 251):
         m = rs.matrices[rs.camera[i]]
