@@ -220,6 +220,21 @@ def choose_threshold(conf, failed, groups, max_flag: float = 0.15) -> tuple[floa
     return best, rec
 
 
+def _boosting_start(x, y, weights, bins: int):
+    """What :func:`fit_stumps` and :func:`fit_trees` start from: the inputs
+    and outcomes as floats, the weights rescaled to average 1, each input's
+    ``bins - 1`` inner quantiles and every value's bin, and the constant
+    log-odds of the weighted outcome rate."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    w = np.ones(len(y)) if weights is None else np.asarray(weights, float)
+    w = w / w.mean()
+    edges = [np.unique(np.quantile(x[:, j], np.linspace(0.0, 1.0, bins + 1)[1:-1])) for j in range(x.shape[1])]
+    b = np.stack([np.searchsorted(edges[j], x[:, j], side="right") for j in range(x.shape[1])], axis=1)
+    p0 = float(np.clip(np.average(y, weights=w), 1e-3, 1 - 1e-3))
+    return x, y, w, edges, b, float(np.log(p0 / (1 - p0)))
+
+
 def fit_stumps(x, y, weights=None, rounds: int = 200, rate: float = 0.1, bins: int = 32,
                lam: float = 1.0) -> tuple[float, np.ndarray]:
     """Gradient-boosted stumps for the log-odds of ``y`` (0/1) on ``x`` (N, k):
@@ -239,15 +254,8 @@ def fit_stumps(x, y, weights=None, rounds: int = 200, rate: float = 0.1, bins: i
     machine, Annals of Statistics 29(5). Chen & Guestrin (2016), XGBoost,
     KDD (the Newton step and its ``lam``).
     """
-    x = np.asarray(x, float)
-    y = np.asarray(y, float)
-    w = np.ones(len(y)) if weights is None else np.asarray(weights, float)
-    w = w / w.mean()
+    x, y, w, edges, b, c0 = _boosting_start(x, y, weights, bins)
     n, k = x.shape
-    edges = [np.unique(np.quantile(x[:, j], np.linspace(0.0, 1.0, bins + 1)[1:-1])) for j in range(k)]
-    b = np.stack([np.searchsorted(edges[j], x[:, j], side="right") for j in range(k)], axis=1)
-    p0 = float(np.clip(np.average(y, weights=w), 1e-3, 1 - 1e-3))
-    c0 = float(np.log(p0 / (1 - p0)))
     f = np.full(n, c0)
     out = np.zeros((rounds, 4))
     for r in range(rounds):
@@ -336,15 +344,8 @@ def fit_trees(x, y, weights=None, rounds: int = 100, rate: float = 0.1, bins: in
     >>> round(float(np.mean((tree_score(xt, c, t) > 0) == yt)), 2), round(float(np.mean((stump_score(xt, c1, s1) > 0) == yt)), 2)
     (0.92, 0.58)
     """
-    x = np.asarray(x, float)
-    y = np.asarray(y, float)
-    w = np.ones(len(y)) if weights is None else np.asarray(weights, float)
-    w = w / w.mean()
+    x, y, w, edges, b, c0 = _boosting_start(x, y, weights, bins)
     n, k = x.shape
-    edges = [np.unique(np.quantile(x[:, j], np.linspace(0.0, 1.0, bins + 1)[1:-1])) for j in range(k)]
-    b = np.stack([np.searchsorted(edges[j], x[:, j], side="right") for j in range(k)], axis=1)
-    p0 = float(np.clip(np.average(y, weights=w), 1e-3, 1 - 1e-3))
-    c0 = float(np.log(p0 / (1 - p0)))
     f = np.full(n, c0)
     out = np.zeros((rounds, 10))
     every = np.ones(n, bool)
