@@ -37,3 +37,33 @@ def test_auto_on_matrix_described_mondrians_does_not_pick_the_worse_model():
                         assert "uniform patches" in choice and "matrix-derived" in choice, choice
     mean = {m: float(np.mean(v)) for m, v in errs.items()}
     assert mean["auto"] <= 1.1 * min(mean["learned"], mean["bayes"]), mean
+
+
+def test_auto_keeps_the_better_model_with_lights_and_surfaces_the_posterior_never_saw():
+    """The chart scenes above use lights and reflectances the light posterior is built from. Here the
+    lights are measured sources outside its candidates (colour-science's light sources: TL-84, metal
+    halide, a white LED, ...) and the surfaces outside its surface density (the preferred-memory-colour
+    patches and the CIE 2017 samples), two shipped cameras described only by a least-squares matrix.
+    ``python -m benchmarks.chart_scenes --heldout`` measured 1.76 degrees for the posterior against the
+    learnt estimator's 3.68 on 120 such scenes; here too ``auto`` must be within 1.1 x the better."""
+    import models
+    from benchmarks.chart_scenes import heldout_content, least_squares_matrix, matrix_scene
+    from recovery import estimate_illuminant
+    from recovery.cameras import camera_from_matrix
+
+    wl = models.wavelength_grid(400, 700, 5)
+    lights, surf = heldout_content(wl)
+    assert len(lights) == 10 and surf.shape == (129, wl.size)
+    errs = {m: [] for m in ("auto", "learned", "bayes")}
+    for name in ("Nikon 5100 (NPL)", "Canon EOS 5D Mark II"):
+        sens = models.camera_sensitivities(models.canonical_camera_name(name), wl)
+        cam = camera_from_matrix(least_squares_matrix(sens), wl)
+        for light in ("Philips TL-84", "Metal Halide", "Phosphor LED YAG"):
+            for layout in ("grid", "mondrian"):
+                img, truth = matrix_scene(sens, lights[light], layout, 0, surf)
+                for m in errs:
+                    est = estimate_illuminant(np.clip(img, 0, 1), cam, m, spatial=False, white_level=1.0)
+                    errs[m].append(angle(est.rgb, truth))
+    mean = {m: float(np.mean(v)) for m, v in errs.items()}
+    assert all(np.isfinite(v) for v in mean.values())
+    assert mean["auto"] <= 1.1 * min(mean["learned"], mean["bayes"]), mean
