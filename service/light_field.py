@@ -28,6 +28,8 @@ Spectral sharpening (the diagonal model in a camera's space).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 __all__ = ["GainField", "gain_field"]
@@ -112,8 +114,6 @@ class GainField:
         its own row and column only, so any cut into blocks, strips or
         threads gives the same pixels."""
         import cv2
-
-        import threading
 
         h, W = rgb16.shape[:2]
         local = threading.local()                # one gains buffer per thread, reused block after block
