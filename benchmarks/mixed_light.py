@@ -31,8 +31,11 @@ single-light ones separately: the mean per-pixel angle per image (the light
 at every non-masked pixel against the true mixed light), its mean / median
 / worst 25 % over images, for: one light by the learnt estimator (today's
 default), one light by shades of gray, the best single light (the truth's
-average over the pixels: an oracle), the windows' map always on, and the
-map with the decision (the product). And the decision's confusion table,
+average over the pixels: an oracle), the windows' map always on, the
+map with the decision (the product), and the best decision (each scene's
+map or one light, whichever is better there: an oracle of the decision
+alone, the bound any rule on the image has with these maps). And the
+decision's confusion table,
 and where the map's error comes from (:func:`decompose`: its level and its
 variation, each replaced by the truth in turn), and whether the confidence
 flags the answers that went wrong on these scenes (each fold's own
@@ -626,7 +629,9 @@ def main(argv=None) -> int:
                                  f"{'projected' if s.project else 'free'}, "
                                  f"level {s.level:g}"
                       for b, s in chosen.items()))
-    cols = ("learned", "sog", "oracle", "map always", "map decided")
+    # "best decision": each scene's map or one light, whichever is better there (an oracle of the decision
+    # alone: what no rule on the image can beat with these maps)
+    cols = ("learned", "sog", "oracle", "map always", "map decided", "best decision")
     print("\nmean per-pixel angle per image (degrees): mean / median / worst 25 % over images")
     pooled = {k: {c: [] for c in cols} for k in ("two lights", "one light")}
     conf_all = {k: [0, 0] for k in ("two lights", "one light")}
@@ -637,7 +642,8 @@ def main(argv=None) -> int:
             rows = [r for r in outer_rows[b] if r["kind"] == kind]
             vals = {"learned": [r["learned"] for r in rows], "sog": [r["sog"] for r in rows],
                     "oracle": [r["oracle"] for r in rows], "map always": [r["maps"][s][0] for r in rows],
-                    "map decided": [r["maps"][s][1] for r in rows]}
+                    "map decided": [r["maps"][s][1] for r in rows],
+                    "best decision": [min(r["maps"][s][0], r["learned"]) for r in rows]}
             n_map = int(sum(r["maps"][s][2] for r in rows))
             conf_all[kind][0] += len(rows) - n_map
             conf_all[kind][1] += n_map
