@@ -60,7 +60,6 @@ def scene_bytes(camera: str, light: str, layout: str, seed: int, matrix_only: bo
 
 
 RAWTOACES = Path(__file__).resolve().parents[2] / "shared" / "data" / "cameras" / "rawtoaces"
-CAMERAS_JSON = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "cameras.json"
 
 
 def rawtoaces_cameras(every: int = 4) -> list[Path]:
@@ -174,7 +173,7 @@ def heldout(every: int = 8, log=print) -> dict:
     in-sample (:data:`LIGHTS`, ``models``' reflectances) or held out (:func:`heldout_content`) in
     lights, surfaces or both, seen by measured sensitivities and described only by a matrix: the
     least-squares one (every ``every``-th of the 47 measured cameras) or the published LibRaw/Adobe one
-    (the three cameras that have both, ``../shared/data/real/cameras.json``; two seeds). Estimated by
+    (the three cameras that have both, :func:`benchmarks.surfaces.published_matrices`; two seeds). Estimated by
     :func:`recovery.estimate_illuminant` on the linear image (the path ``/v1/analyze`` takes after
     decoding; ``spatial=False``). Returns ``{(condition, description): {method: errors}, ...}`` plus
     the share handed to the posterior under ``"auto_to_bayes"``."""
@@ -190,18 +189,13 @@ def heldout(every: int = 8, log=print) -> dict:
              "held-out lights, in-sample surfaces": (h_lights, in_surf),
              "in-sample lights, held-out surfaces": (in_lights, h_surf),
              "held-out lights and surfaces": (h_lights, h_surf)}
-    cams = [(measured_sensitivities(p, wl), least_squares_matrix(measured_sensitivities(p, wl)), (0,))
-            for p in rawtoaces_cameras(every)]
-    if CAMERAS_JSON.is_file():
-        from models.surface_data import camera_set
+    from benchmarks.surfaces import published_matrices
+    from models.surface_data import camera_set
 
-        names, S = camera_set(wl)
-        norm = {n.replace("-", " ").lower(): i for i, n in enumerate(names)}
-        published = [(S[norm[c.replace("-", " ").lower()]], np.array(d["xyz_to_camera_D65"], float), (0, 1))
-                     for c, d in json.loads(CAMERAS_JSON.read_text()).items()
-                     if c.replace("-", " ").lower() in norm]
-    else:
-        published = []
+    sens_ls = [measured_sensitivities(p, wl) for p in rawtoaces_cameras(every)]
+    cams = [(sens, least_squares_matrix(sens), (0,)) for sens in sens_ls]
+    names, S = camera_set(wl)
+    published = [(S[i], M, (0, 1)) for i, M in published_matrices(names).items()]
     out = {}
     for cond, (lights, surf) in conds.items():
         for desc, group in (("least-squares matrix", cams), ("published matrix", published)):

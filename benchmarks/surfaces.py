@@ -297,20 +297,25 @@ def run_scenes(R, lab, cams, cam_names, matrices, hypers, strict, quick, seed=0)
 
 cams_all = None
 
+def published_matrices(names, path=None) -> dict:
+    """The published (LibRaw/Adobe) XYZ -> camera matrices of the cameras ``names`` (the 47 measured
+    ones) that ``../shared/data/real/cameras.json`` (or ``path``) holds, ``{index in names: (3, 3)}``;
+    empty without the file."""
+    path = CAMERAS_JSON if path is None else Path(path)
+    if not path.is_file():
+        return {}
+    norm = {n.replace("-", " ").lower(): i for i, n in enumerate(names)}
+    return {norm[c.replace("-", " ").lower()]: np.array(d["xyz_to_camera_D65"], float)
+            for c, d in json.loads(path.read_text()).items() if c.replace("-", " ").lower() in norm}
+
+
 def load_matrices(names, cams) -> dict:
-    """The published (LibRaw/Adobe) XYZ -> camera matrices of the models among the 47 measured cameras,
-    ``{index: (3, 3)}``, from ``../shared/data/real/cameras.json`` (empty without it); prints how far each is
-    from the least-squares matrix of the camera's measured sensitivities."""
-    matrices = {}
-    if not CAMERAS_JSON.exists():
+    """:func:`published_matrices`, printing how far each is from the least-squares matrix of the camera's
+    measured sensitivities ``cams`` (on :data:`WL`)."""
+    matrices = published_matrices(names)
+    if not matrices:
         print("no ../shared/data/real/cameras.json: the matrix case is skipped")
         return matrices
-    real = json.loads(CAMERAS_JSON.read_text())
-    norm = {n.replace("-", " ").lower(): i for i, n in enumerate(names)}
-    for cname, d in real.items():
-        i = norm.get(cname.replace("-", " ").lower())
-        if i is not None:
-            matrices[i] = np.array(d["xyz_to_camera_D65"], float)
     print(f"matrix cameras (LibRaw/Adobe matrices for models among the 47): "
           f"{', '.join(names[i] for i in matrices)}")
     Qt = sp.matrix_operator(WL)
@@ -344,6 +349,7 @@ def chart_proxy(names, cams, matrices, seed=0) -> dict:
     from models._colour import sd_to_array
     from recovery.api import estimate_illuminant, surfaces_from_estimate
     from recovery.cameras import camera_from_matrix, generic_camera
+    from recovery.metrics import angular_error
 
     rng = np.random.default_rng(seed)
     gcam = generic_camera(WL)
@@ -361,8 +367,7 @@ def chart_proxy(names, cams, matrices, seed=0) -> dict:
                 for cname, cam in (("matrix", camera_from_matrix(M, WL, names[i] + " (matrix)")),
                                    ("generic", gcam)):
                     est = estimate_illuminant(img, cam, "auto", spatial=False)
-                    lerr = float(np.degrees(np.arccos(np.clip(np.dot(est.rgb, r_true) / np.linalg.norm(r_true),
-                                                              -1, 1))))
+                    lerr = float(angular_error(est.rgb, r_true))
                     for how, kw in (("shipped prior", {}), ("prior without the ColorChecker set", {"prior": without}),
                                     ("eq. 36", {"surface_estimator": "pinv"})):
                         res = surfaces_from_estimate(img, cam, est, camera_exclude=(names[i],), **kw)

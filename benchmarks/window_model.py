@@ -8,8 +8,8 @@ grid's side) are read by the learnt model fitted on *whole* photographs. A windo
 scene, so its classical estimates are noisier and differently distributed; would a model fitted on windows
 read them better? Leave one benchmark out: on the other two, the whole-image model (:func:`fit_model` with
 the shipped model's ridges, on the whole photographs) and a window model (the same fit on every usable
-window of those photographs, each window labelled with its photograph's measured light; a photograph's
-windows share its weight); on the left-out benchmark's single-light photographs, each usable window's
+window of those photographs, each window labelled with its photograph's measured light and weighing as
+much as any other window of its camera, as photographs do in the whole-image fit); on the left-out benchmark's single-light photographs, each usable window's
 error, each whole photograph's, and the error of the windows' mean per photograph (what the map's level
 leans on). Not shipped (docs/mixed_light.md, "A model fitted on windows").
 """

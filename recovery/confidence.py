@@ -341,8 +341,10 @@ def fit_trees(x, y, weights=None, rounds: int = 100, rate: float = 0.1, bins: in
     >>> c, t = fit_trees(x, y, rounds=100)
     >>> c1, s1 = fit_stumps(x, y, rounds=100)
     >>> xt = rng.normal(size=(2000, 2)); yt = (xt[:, 0] > 0) ^ (xt[:, 1] > 0)      # new points
-    >>> round(float(np.mean((tree_score(xt, c, t) > 0) == yt)), 2), round(float(np.mean((stump_score(xt, c1, s1) > 0) == yt)), 2)
-    (0.92, 0.58)
+    >>> acc_trees = float(np.mean((tree_score(xt, c, t) > 0) == yt))          # 0.92 when written
+    >>> acc_stumps = float(np.mean((stump_score(xt, c1, s1) > 0) == yt))      # 0.58: little better than chance
+    >>> acc_trees > 0.85, acc_stumps < 0.65
+    (True, True)
     """
     x, y, w, edges, b, c0 = _boosting_start(x, y, weights, bins)
     n, k = x.shape
