@@ -87,3 +87,19 @@ def test_the_preview_is_corrected_as_the_downloads_are():
     assert abs(warmth["false"][0] - warmth["true"][0]) > 0.04, warmth      # the map is applied
     r = client.post("/v1/preview", files=files, data={"wb": "corrected", "spatial": "sometimes"})
     assert r.status_code == 422 and "spatial" in r.json()["detail"]
+
+
+def test_the_page_explains_its_light_map_and_points_a_dng_to_the_dng_download():
+    """Two things the page left to guesswork: the light map was a grid of
+    pale colours with no key, and the XMP help told a DNG's owner to type
+    Temperature/Tint by hand although the page offers the DNG with the white
+    balance inside (what the README says to open in Lightroom)."""
+    import re
+    from pathlib import Path
+
+    html = (Path(__file__).resolve().parents[1] / "service" / "static" / "index.html").read_text(encoding="utf-8")
+    lights = html.split('id="lights"', 1)[1].split("</section>", 1)[0]
+    key = re.sub(r"\s+", " ", lights.split('id="lights-key"', 1)[1])
+    assert "coloured by its light" in key and "bluer" in key
+    xmp = re.sub(r"\s+", " ", html.split("What the XMP sidecar does", 1)[1].split("</details>", 1)[0])
+    assert "DNG with this white balance inside" in xmp and "IMG_0001.wandell.dng" in xmp
