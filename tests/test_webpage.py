@@ -1153,3 +1153,65 @@ def test_two_lights_found_and_drawn_where_they_are(page, server, tmp_path):
     pc = page.eval_on_selector("#light-map", pixel, [lm["centres_row_fraction"][cool[0]], lm["centres_col_fraction"][cool[1]]])
     assert pw[0] - pw[2] > pc[0] - pc[2] + 30, (pw, pc)
     _screenshot(page, tmp_path, "wandell-webpage-two-lights.png")
+
+
+# ---------------------------------------------------------------------------
+# Newcomer audit (2026-12-06; docs/web_page.md)
+# ---------------------------------------------------------------------------
+
+def test_always_one_light_reaches_the_picture_the_downloads_and_the_surfaces(page, server, tmp_path):
+    """*Several lights: always one light* on a two-light scene: the words said
+    one light, but the picture, the downloads and a surface read were still
+    the light map's (only /v1/analyze got ``spatial``; /v1/preview did not
+    take it). Now the picture shown is /v1/preview's one-light image, the
+    JPEG downloaded is /v1/white-balance's with ``spatial=false``, and the
+    surface is read under the one light."""
+    import httpx
+
+    dng = _two_light_dng(tmp_path / "two.dng")
+    files = {"file": ("two.dng", dng.read_bytes())}
+    page.select_option("#opt-spatial", "false")
+    page.set_input_files("#file", str(dng))
+    page.wait_for_selector("#status:has-text('Done')", timeout=120_000)
+    _wait_rendered(page)
+    assert page.is_hidden("#lights")
+    one = httpx.post(server + "/v1/preview", files=files, timeout=120,
+                     data={"wb": "corrected", "white": "estimate", "format": "jpeg", "max_side": "1024",
+                           "target": "D65", "spatial": "false"})
+    assert one.status_code == 200, one.text
+    assert base64.b64decode(page.evaluate(_IMG_BYTES, "#img-corrected")) == one.content
+    with page.expect_download(timeout=180_000) as dl:
+        page.click("#dl-jpeg")
+    full = httpx.post(server + "/v1/white-balance", files=files, timeout=180,
+                      data={"format": "jpeg", "target": "D65", "white": "estimate", "spatial": "false"})
+    assert Path(dl.value.path()).read_bytes() == full.content
+    page.check("#pick-surface")
+    page.locator("#viewer").scroll_into_view_if_needed()
+    img = page.eval_on_selector("#img-corrected", "i => { const b = i.getBoundingClientRect(); "
+                                                  "return [b.left, b.top, b.width, b.height]; }")
+    with page.expect_response(lambda q: q.url.endswith("/v1/surfaces"), timeout=120_000) as resp:
+        page.mouse.click(img[0] + img[2] * 0.7, img[1] + img[3] * 0.5)
+    page.wait_for_selector("#surface-words:has-text('Expected error')", timeout=120_000)
+    assert "light_map" not in resp.value.json()
+    assert "under Auto's light" in page.text_content("#surface-words")
+
+
+def test_technical_details_account_for_every_pixel_left_out(page, server, tmp_path):
+    """The README's CinemaDNG: "It used 140,169 of 140,352 analysis pixels
+    (84 dark or saturated left out)" left 99 pixels unexplained (those the
+    loader masks: a clipped raw sample in their block). The reasons given
+    now add up to what was left out."""
+    import httpx
+
+    from .conftest import shared_file
+
+    dng = shared_file("data/raw/Blackmagic.dng")
+    _open(page, server, dng)
+    d = httpx.post(server + "/v1/analyze", files={"file": ("b.dng", dng.read_bytes())},
+                   timeout=120).json()["diagnostics"]
+    line = next(t for t in page.eval_on_selector_all("#diag-details li", "ls => ls.map((l) => l.textContent)")
+                if t.startswith("It used"))
+    used, total = (int(x.replace(",", "")) for x in re.findall(r"([\d,]+) of ([\d,]+)", line)[0])
+    assert (used, total) == (d["pixels_used"], d["pixels_total"]), line
+    counts = [int(x.replace(",", "")) for x in re.findall(r"([\d,]+) [a-z]", line.split("left out:", 1)[1])]
+    assert sum(counts) == total - used and len(counts) >= 2, line

@@ -168,11 +168,23 @@ def _estimate_json(est, camera, profile=None) -> dict:
                 low_confidence=bool(low) if isinstance(low, bool) else (conf is not None and conf < LOW_CONFIDENCE))
 
 
+def _flag_threshold(est) -> float:
+    """The confidence below which ``est`` is flagged low confidence: the
+    learnt flag's own threshold when it has one
+    (``diagnostics["confidence_flag_threshold"]``), else
+    :data:`recovery.api.LOW_CONFIDENCE` (what :func:`_estimate_json` and
+    ``recovery.api`` use then)."""
+    from recovery.api import LOW_CONFIDENCE
+
+    t = est.diagnostics.get("confidence_flag_threshold")
+    return float(t) if isinstance(t, (int, float)) and not isinstance(t, bool) else LOW_CONFIDENCE
+
+
 def _estimate_from_json(light: dict, camera):
     """The shared light as an estimate for ``camera``: the light's own camera
     RGB when it was estimated for this camera (shared lighting pools one
     camera), else the camera's response to the light's spectrum (eq. 1:
-    rho_k = sum_n E R_k); its confidence is the shared estimate's."""
+    rho_k = sum_n E R_k); its confidence and flag are the shared estimate's."""
     import numpy as np
 
     from recovery import IlluminantEstimate
@@ -188,6 +200,8 @@ def _estimate_from_json(light: dict, camera):
     diag = {"lighting": "shared"}
     if isinstance(light.get("confidence"), (int, float)):
         diag["confidence"] = float(light["confidence"])
+    if isinstance(light.get("low_confidence"), bool):       # the shared light's flag (shared_light)
+        diag["low_confidence"] = light["low_confidence"]
     return IlluminantEstimate(rgb, spd, camera.wavelengths, light.get("method", "shared"), diag, [])
 
 
@@ -595,7 +609,8 @@ def estimation_sample(task: ItemTask, pixels: int | None = None) -> dict:
                                     options=task.options.estimate_kwargs())
         profile = pipeline.profile_of(decoded)
         return {"status": "ok", "estimate": _clean(_estimate_json(run.estimate, cam, profile)),
-                "warnings": list(run.estimate.warnings), "camera": cam, "profile": profile}
+                "warnings": list(run.estimate.warnings), "camera": cam, "profile": profile,
+                "flag_threshold": _flag_threshold(run.estimate)}
     except ItemCancelled:
         return {"status": "cancelled", "error": "cancelled: the batch was cancelled"}
     except MemoryError:
@@ -638,7 +653,9 @@ def shared_light(samples: list, options: BatchOptions) -> dict:
     images' lights to the shared one (the just-visible error of
     :data:`service.pipeline.VISIBLE_WB_ERROR_DEG`): images that agree keep
     their confidence, images that disagree lower it, and above 3 degrees a
-    warning says so. Returns the light as JSON (``camera_rgb``,
+    warning says so. It is flagged ``low_confidence`` below the images'
+    own flag thresholds, weighted alike (one image is flagged as in
+    per-image mode). Returns the light as JSON (``camera_rgb``,
     ``spectrum``, ``cct``..., ``confidence``, ``images``: how many were
     combined, ``image_angles_deg``: each image's light to the shared one)."""
     import numpy as np
@@ -670,6 +687,13 @@ def shared_light(samples: list, options: BatchOptions) -> dict:
     diag = {"lighting": "shared"}
     if have_conf:
         diag["confidence"] = float(w @ np.array(confs, float)) / (1.0 + (rms / VISIBLE_WB_ERROR_DEG) ** 2)
+        # flagged as the images are: below their own thresholds (the learnt flag's, else 0.5), weighted
+        # alike, so one image, or N identical ones, is flagged exactly as in per-image mode
+        from recovery.api import LOW_CONFIDENCE
+
+        thresholds = np.array([s.get("flag_threshold", LOW_CONFIDENCE) for s in samples], float)
+        diag["confidence_flag_threshold"] = float(w @ thresholds)
+        diag["low_confidence"] = bool(diag["confidence"] < diag["confidence_flag_threshold"])
     methods = {e.get("method") for e in ests}
     est = IlluminantEstimate(rgb, spd, wl, methods.pop() if len(methods) == 1 else "shared", diag, warnings)
     light = _estimate_json(est, cam, samples[0].get("profile"))

@@ -24,7 +24,7 @@ from ..deps import read_upload
 from ..errors import ServiceError
 from ..jsonsafe import clean
 from ..options import FORMATS, MEDIA_TYPES, PREVIEW_FORMATS
-from ..schemas import Estimation, Neutral, Preview, Rendering, WhiteBalanceRendering
+from ..schemas import AnalyzeEstimation, Neutral, Preview, Rendering, WhiteBalanceRendering
 from ..schemas.forms import form
 from ..schemas.options import PREVIEW_MAX_SIDE, PREVIEW_SIDE_RANGE  # noqa: F401 (the preview limits, named here too)
 from ..settings import Settings, get_settings
@@ -40,7 +40,8 @@ STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "style.css": "text/c
 #: The form fields of ``/v1/preview`` (service.schemas); the estimation and
 #: rendering ones matter only for ``wb=corrected``, whose target is checked then.
 _PREVIEW = form(Preview)
-_PREVIEW_ESTIMATION = form(Estimation, include=("camera", "method", "quality"), prefix="corrected only: ")
+_PREVIEW_ESTIMATION = form(AnalyzeEstimation, include=("camera", "method", "quality", "spatial"),
+                           prefix="corrected only: ")
 _PREVIEW_RENDERING = form(Rendering, prefix="corrected only: ", lazy=("target",), choices={"format": PREVIEW_FORMATS},
                           defaults={"format": "jpeg"}, describe={"format": "jpeg or png (8-bit)"})
 _NEUTRAL = form(Neutral, prefix="corrected only: ")
@@ -150,9 +151,17 @@ def corrected_preview(decoded, run, target: str, output: str, surface_basis, max
     """The corrected image, downsized: the 3x3 matrix of ``/v1/white-balance``
     (:func:`service.pipeline.correction_matrix`, Wandell 1985, eq. 23 and 36)
     applied to the area-downsized estimation image (binned CFA cells for a
-    RAW, no demosaic needed at preview size), encoded 8-bit."""
+    RAW, no demosaic needed at preview size), encoded 8-bit. Under a light
+    map each pixel is first white-balanced by the light there, as the
+    downloads are (:func:`service.rendering.light_gain_field`; the
+    estimation image spans the full frame, so the field maps onto it)."""
+    from ..rendering import light_gain_field
+
     M, minfo = pipeline.correction_matrix(run, target, output, surface_basis, decoded=decoded, exposure=exposure)
     small = _to_uint16(downsize_linear(decoded.estimation, max_side))
+    field = light_gain_field(decoded, run, small.shape[:2])
+    if field is not None:
+        field.apply(small)
     out = pipeline.apply_matrix_inplace(small, M, minfo["encoding"], 8, neutral=minfo.get("neutral"),
                                        shoulder=minfo.get("shoulder"), curve=minfo.get("curve"))
     return out, {"wb": "corrected", "target": target, "output": output, "method": run.estimate.method,
@@ -198,7 +207,7 @@ def crop_preview(img: np.ndarray, full_shape, box) -> np.ndarray:
 async def preview(request: Request, file: UploadFile = File(..., description="RAW file (anything LibRaw reads) or linear "
                                                            "16-bit TIFF/PNG"),
                   pv: Preview = Depends(_PREVIEW),
-                  est: Estimation = Depends(_PREVIEW_ESTIMATION), rend: Rendering = Depends(_PREVIEW_RENDERING),
+                  est: AnalyzeEstimation = Depends(_PREVIEW_ESTIMATION), rend: Rendering = Depends(_PREVIEW_RENDERING),
                   nt: Neutral = Depends(_NEUTRAL), wh: WhiteBalanceRendering = Depends(_PREVIEW_WHITE),
                   settings: Settings = Depends(get_settings)):
     """A small 8-bit preview for the web page: the original as the camera's

@@ -101,8 +101,9 @@ class _Batch(_Estimating):
 Input = _model("Input", OptionModel, "What is done with a display-referred upload (service.decode.icc).", INPUT)
 Estimation = _model("Estimation", _Estimating, "How the light is estimated (every endpoint that estimates, batches, "
                     "the CLI).", ESTIMATION)
-AnalyzeEstimation = _model("AnalyzeEstimation", Estimation, "``/v1/analyze``, ``/v1/white-balance`` and "
-                           "``/v1/surfaces``: the estimation options and one light or a light map.", SPATIAL)
+AnalyzeEstimation = _model("AnalyzeEstimation", Estimation, "``/v1/analyze``, ``/v1/white-balance``, "
+                           "``/v1/surfaces`` and ``/v1/preview``: the estimation options and one light or a light "
+                           "map.", SPATIAL)
 Rendering = _model("Rendering", OptionModel, "How the corrected image is rendered and written.", RENDERING)
 WhiteBalanceRendering = _model("WhiteBalanceRendering", Rendering, "``/v1/white-balance``: also the white "
                                "rendered and the kind of answer.", WHITE_BALANCE)

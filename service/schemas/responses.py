@@ -276,19 +276,21 @@ class BatchProgress(_Answer):
     id: str
     status: str = Field(description="`queued`, `running`, `done` or `cancelled`")
     settled: bool = Field(description="the batch is over and every count final")
-    lighting: str | None
-    options: dict[str, Any]
+    lighting: str | None = Field(description="`per-image` or `shared` (one light for every image)")
+    options: dict[str, Any] = Field(description="the batch's options as given (null: the default)")
     counts: BatchCounts
-    rate_per_minute: float | None
-    time_left_s: float | None
-    elapsed_s: float
-    rate: float | None
-    eta_s: float | None
-    created: float
-    items: list[BatchItem]
-    phase: str | None = None
-    shared_light: dict[str, Any] | None = None
-    shared_light_error: str | None = None
+    rate_per_minute: float | None = Field(description="items finished per minute so far (null before the first)")
+    time_left_s: float | None = Field(description="estimated seconds until every item is finished (null: unknown)")
+    elapsed_s: float = Field(description="seconds since the batch started")
+    rate: float | None = Field(description="the same as rate_per_minute (a short name the web page reads)")
+    eta_s: float | None = Field(description="the same as time_left_s (a short name the web page reads)")
+    created: float = Field(description="when the batch was created (epoch seconds)")
+    items: list[BatchItem] = Field(description="every item, the ones flagged low confidence first (each keeps "
+                                               "its index)")
+    phase: str | None = Field(None, description="what a shared-lighting batch does before its items run")
+    shared_light: dict[str, Any] | None = Field(None, description="lighting=shared: the one light, with its "
+                                                                  "confidence and low_confidence")
+    shared_light_error: str | None = Field(None, description="lighting=shared: why no shared light was found")
     runner_error: str | None = Field(None, description="why no item runs now (`executor_unavailable`, "
                                                        "`waiting_for_workers`, `insufficient_storage`); "
                                                        "time_left_s is then null")

@@ -239,8 +239,14 @@ function diagnosticsInWords(j) {
   if (d.confidence_rule) details.push(`Confidence rule: ${d.confidence_rule}.`);
   if (typeof d.pixels_used === "number" && typeof d.pixels_total === "number") {
     let s = `It used ${d.pixels_used.toLocaleString("en")} of ${d.pixels_total.toLocaleString("en")} analysis pixels`;
-    const excluded = d.pixels_dark_or_saturated ?? ((d.pixels_dark || 0) + (d.pixels_saturated || 0));
-    if (excluded) s += ` (${excluded.toLocaleString("en")} dark or saturated left out)`;
+    // every pixel left out, by why, adding up to total - used (the rest: masked by the loader, a clipped
+    // raw sample in their block, or unusable to the estimator)
+    const why = typeof d.pixels_dark_or_saturated === "number" ? [[d.pixels_dark_or_saturated, "dark or saturated"]]
+      : [[d.pixels_dark || 0, "dark"], [d.pixels_saturated || 0, "saturated"]];
+    why.push([d.pixels_nonfinite || 0, "not finite"]);
+    why.push([d.pixels_total - d.pixels_used - why.reduce((a, [k]) => a + k, 0), "masked (a clipped raw sample nearby)"]);
+    const parts = why.filter(([k]) => k > 0).map(([k, w]) => `${k.toLocaleString("en")} ${w}`);
+    if (parts.length) s += `; left out: ${parts.join(", ")}`;
     details.push(s + ".");
   }
   if (typeof d.posterior_spread_deg === "number") {
@@ -453,9 +459,11 @@ function chooseFile(file) {
   if (file) run();
 }
 
+// The estimation options of every request about the one file (analysis, previews, downloads,
+// surfaces), so the picture, the words and the downloads come from the same light (or light map).
 function estimationFields(o) {
   const f = {};
-  for (const k of ["camera", "method", "quality"]) if (o[k]) f[k] = o[k];
+  for (const k of ["camera", "method", "quality", "spatial"]) if (o[k]) f[k] = o[k];
   return f;
 }
 
@@ -496,6 +504,7 @@ async function run() {
   if (!current) return;
   const file = current.file;
   const opts = options();
+  if ($("opt-spatial").value) opts.spatial = $("opt-spatial").value;   // one file only (not a batch option)
   current.options = opts;
   current.seq++;
   view.full = null;
@@ -506,7 +515,6 @@ async function run() {
   const t0 = performance.now();
   const analyzeOpts = estimationFields(opts);
   if (current.neutral) analyzeOpts.neutral = JSON.stringify(current.neutral);
-  if ($("opt-spatial").value) analyzeOpts.spatial = $("opt-spatial").value;
   if (current.wb.mode === "as-shot" && current.neutral) current.wb = {mode: "auto"};
   try {
     const [analysis, before, corrected] = await Promise.all([
@@ -968,8 +976,9 @@ async function readSurface(x, y) {
   const seq = current.seq;
   $("surface").hidden = false;
   $("surface-words").textContent = "Reading the surface there…";
-  const f = {rects: JSON.stringify([rect])};
-  for (const k of ["camera", "method"]) if (current.options[k]) f[k] = current.options[k];
+  // /v1/surfaces takes no quality (it analyses at the default resolution); the light map choice it takes
+  const {quality, ...est} = estimationFields(current.options);
+  const f = Object.assign(est, {rects: JSON.stringify([rect])});
   try {
     const j = await post("/v1/surfaces", formFor(current.file, f)).then((resp) => resp.json());
     if (!current || current.seq !== seq) return;
@@ -982,7 +991,8 @@ async function readSurface(x, y) {
         "(on measured surfaces kept aside)."
       : "No band: the literal method (eq. 36) gives none.";
     const warn = s.warnings.length ? ` Check: ${s.warnings.join("; ")}.` : "";
-    $("surface-words").textContent = `Surface at ${where}, under Auto's light. ${trust}${warn}`;
+    const light = j.light_map ? "under the light the light map finds there" : "under Auto's light";
+    $("surface-words").textContent = `Surface at ${where}, ${light}. ${trust}${warn}`;
     $("surface-words").dataset.expectedRmse = String(s.expected_rmse);
     $("surface-words").dataset.rect = JSON.stringify(rect);
   } catch (err) {
