@@ -1,0 +1,127 @@
+"""Round 7 of probing, as a hostile client and as a new user
+(docs/probe_round7.md): each test is the minimal reproduction of one fault
+found, through the command line as users run it (``python -m service.cli``)
+or the real ASGI stack (FastAPI's TestClient), and holds once the fault is
+fixed."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from .conftest import scene_dng_bytes
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def dng() -> bytes:
+    return scene_dng_bytes(64, 96)
+
+
+def _cli(*args: str, timeout: float = 300):
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env, cwd=ROOT)
+
+
+# --- 1. wandell batch DIR DIR, run again ----------------------------------------------------
+
+def test_a_rerun_of_batch_into_its_own_input_folder_does_not_take_its_outputs_as_photographs(tmp_path, dng):
+    """``wandell batch DIR DIR`` (the corrected pictures beside the RAWs) is
+    accepted; run again (a rerun, as after Ctrl-C or to add photographs), it
+    took its own outputs for new photographs: ``a.png`` failed as an 8-bit
+    image (exit 1), and with ``png16`` each output was corrected again into
+    ``a (2).png``, one generation more each run. Its outputs (those with a
+    record in ``DIR/.wandell``) are now left out, as the sidecars are."""
+    src = tmp_path / "shoot"
+    src.mkdir()
+    for name in ("a.dng", "b.dng"):
+        (src / name).write_bytes(dng)
+    for fmt in ("png", "png16"):
+        args = ("batch", "--format", fmt, "--workers", "1", "--force", str(src), str(src))
+        r = _cli(*args)
+        assert r.returncode == 0, (r.stdout, r.stderr)
+        first = sorted(p.name for p in src.iterdir())
+        assert first == [".wandell", "a.dng", "a.png", "b.dng", "b.png", "batch.json"], first
+        r = _cli(*args[:-3], str(src), str(src))          # the same command without --force: a rerun
+        assert r.returncode == 0, (fmt, r.stdout, r.stderr)
+        assert "0 done, 2 skipped" in r.stdout and "2 in all" in r.stdout, (fmt, r.stdout)
+        assert "not processed" not in r.stdout, r.stdout      # batch.json is ours too
+        assert sorted(p.name for p in src.iterdir()) == first, "its outputs were processed as photographs"
+    # a PNG of the user's own (no record of ours) in the folder is still a photograph
+    (src / "c.png").write_bytes((src / "a.png").read_bytes())
+    r = _cli("batch", "--format", "png16", "--workers", "1", str(src), str(src))
+    assert "c.png" in r.stdout and "3 in all" in r.stdout, (r.stdout, r.stderr)
+
+
+# --- 2. output paths that are files or folders ----------------------------------------------
+
+def test_an_output_folder_that_is_a_file_is_a_usage_error_in_words(tmp_path, dng):
+    """``wandell batch IN OUT`` with OUT an existing file (or a path through
+    one) printed Python's ``[Errno 17] File exists: 'OUT'`` and exited 1,
+    the status of "some file failed"; ``wandell white-balance FILE OUT``
+    with OUT an existing folder failed the file with ``IsADirectoryError:
+    [Errno 21] ... .part' -> 'OUT'``. Both are usage errors (exit 2) saying
+    what is wrong, before any work."""
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "a.dng").write_bytes(dng)
+    afile = tmp_path / "notes.txt"
+    afile.write_text("mine\n")
+    for out in (afile, afile / "sub"):
+        r = _cli("batch", "--workers", "1", str(src), str(out))
+        assert r.returncode == 2, (out, r.returncode, r.stdout, r.stderr)
+        assert "not_a_folder" in r.stderr and str(afile) in r.stderr and "Errno" not in r.stderr, r.stderr
+    assert afile.read_text() == "mine\n"
+    folder = tmp_path / "x.png"
+    folder.mkdir()
+    for out in (folder, afile / "x.png"):
+        r = _cli("white-balance", str(src / "a.dng"), str(out))
+        assert r.returncode == 2, (out, r.returncode, r.stdout, r.stderr)
+        assert "Errno" not in r.stderr + r.stdout and ("not_a_file" in r.stderr or "not_a_folder" in r.stderr), \
+            r.stderr
+    assert list(folder.iterdir()) == []
+
+
+# --- 3. --workers --------------------------------------------------------------------------
+
+def test_batch_workers_are_bounded_not_spawned_by_the_hundred_thousand(tmp_path, dng):
+    """``wandell batch --workers 100000`` on one photograph started a pool of
+    100,000 spawned Python processes (every worker is started at once): on
+    the 2-core machine it had not finished after 300 s, memory climbing.
+    ``--workers -1`` was taken silently. Now both are usage errors (exit 2)
+    naming the accepted range, at once; the local pool itself never starts
+    more than that bound (``WANDELL_BATCH_WORKERS`` goes through it too)."""
+    from service.batch.executors import max_local_workers
+
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "a.dng").write_bytes(dng)
+    limit = max_local_workers()
+    for n in ("100000", "-1", str(limit + 1)):
+        t0 = time.monotonic()
+        r = _cli("batch", "--workers", n, str(src), str(tmp_path / "out"), timeout=120)
+        assert r.returncode == 2, (n, r.returncode, r.stdout, r.stderr)
+        assert "--workers" in r.stderr and f"0..{limit}" in r.stderr, r.stderr
+        assert time.monotonic() - t0 < 60
+    assert not (tmp_path / "out").exists()
+    r = _cli("batch", "--workers", "1", "--format", "png", str(src), str(tmp_path / "out"))
+    assert r.returncode == 0, (r.stdout, r.stderr)
+
+
+def test_the_local_pool_is_clamped_to_its_bound():
+    """The server's pool (``WANDELL_BATCH_WORKERS``) is made by the same
+    class: a huge count starts at most :func:`max_local_workers` processes."""
+    from service.batch.executors import LocalExecutor, max_local_workers
+
+    pool = LocalExecutor(10 ** 6)
+    try:
+        assert pool.workers == max_local_workers()
+        assert len(pool._pool._processes) <= max_local_workers()
+    finally:
+        pool.terminate(kill=True)
