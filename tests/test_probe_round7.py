@@ -125,3 +125,32 @@ def test_the_local_pool_is_clamped_to_its_bound():
         assert len(pool._pool._processes) <= max_local_workers()
     finally:
         pool.terminate(kill=True)
+
+
+# --- 4. a file field that is not a file ----------------------------------------------------
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    from .conftest import isolated_app_client
+
+    yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
+
+
+@pytest.mark.parametrize("path, field", [("/v1/analyze", "file"), ("/v1/white-balance", "file"),
+                                         ("/v1/batches", "files")])
+def test_a_file_field_sent_as_text_says_it_must_be_a_file_not_a_python_type(client, dng, path, field):
+    """A ``file`` part without a file name (as ``curl -F file=<PHOTO``
+    sends it) was a 422 whose detail was pydantic's "Value error, Expected
+    UploadFile, received: <class 'str'>". It is still a 422
+    ``invalid_parameter`` naming the field, and now says what to send. (A
+    browser's empty file input, ``filename=""``, was and is "Field
+    required", or for a batch "give either files ... or folder".)"""
+    for disposition in (f'name="{field}"', f'name="{field}"; filename=""'):
+        body = (b"--B\r\nContent-Disposition: form-data; " + disposition.encode() + b"\r\n\r\n"
+                + (dng if "filename" not in disposition else b"") + b"\r\n--B--\r\n")
+        r = client.post(path, content=body, headers={"content-type": "multipart/form-data; boundary=B"})
+        assert r.status_code == 422, (disposition, r.status_code, r.text)
+        err = r.json()
+        assert err["error"] == "invalid_parameter" and "<class" not in err["detail"], err
+        if "filename" not in disposition:     # (an empty one is "Field required", or files-or-folder)
+            assert err["detail"].startswith(field) and "must be a file" in err["detail"], err
