@@ -6,6 +6,7 @@ fixed."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -154,3 +155,31 @@ def test_a_file_field_sent_as_text_says_it_must_be_a_file_not_a_python_type(clie
         assert err["error"] == "invalid_parameter" and "<class" not in err["detail"], err
         if "filename" not in disposition:     # (an empty one is "Field required", or files-or-folder)
             assert err["detail"].startswith(field) and "must be a file" in err["detail"], err
+
+
+# --- 5. /v1/surfaces: one limit for points, rectangles and grid cells ----------------------
+
+def _points(n: int) -> str:
+    return json.dumps([[i % 64, (i // 64) % 96] for i in range(n)])
+
+
+def test_surface_points_are_bounded_by_the_documented_setting_alone(client, dng, env_settings):
+    """``WANDELL_MAX_SURFACE_REGIONS`` (README: points + rectangles + grid
+    cells per request, 413 ``too_many_regions`` over it) was not the only
+    bound: ``points`` or ``rects`` alone were capped at 10,000 by the
+    parser, a 422 ``invalid_parameter`` "at most 10000 entries", while 5,000
+    points and 5,001 rectangles were the documented 413. A server whose
+    setting is raised refused 10,001 points all the same. Now the setting
+    decides, whichever lists the regions come in (the 1,000,000-character
+    limit of a JSON field still bounds the parsing)."""
+    r = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={"points": _points(10001)})
+    assert r.status_code == 413 and r.json()["error"] == "too_many_regions", r.text
+    assert "WANDELL_MAX_SURFACE_REGIONS" in r.json()["detail"]
+    rects = json.dumps([[0, 0, 1, 1]] * 10001)
+    r = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={"rects": rects})
+    assert r.status_code == 413 and r.json()["error"] == "too_many_regions", r.text
+    env_settings(max_surface_regions=10002)
+    r = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={"points": _points(10001),
+                                                                          "format": "csv"})
+    assert r.status_code == 200, r.text[:300]
+    assert len(r.text.strip().splitlines()) == 10001 + 1          # a header and a row per point
