@@ -119,6 +119,10 @@ def output_file(path: str) -> str:
     if blocker is not None:
         raise ServiceError(422, "not_a_folder", f"output {path!r} cannot be written: {blocker!r} is a file, "
                            "not a folder")
+    if os.path.isfile(path) and not os.stat(path).st_mode & 0o222:
+        # the output is written beside and renamed over: a file made read-only was replaced (round 7)
+        raise ServiceError(422, "output_read_only", f"output {path!r} exists and is read-only; it is kept: "
+                           "make it writable (chmod u+w) or remove it to replace it, or name another output")
     return path
 
 

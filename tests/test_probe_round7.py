@@ -183,3 +183,23 @@ def test_surface_points_are_bounded_by_the_documented_setting_alone(client, dng,
                                                                           "format": "csv"})
     assert r.status_code == 200, r.text[:300]
     assert len(r.text.strip().splitlines()) == 10001 + 1          # a header and a row per point
+
+
+# --- 6. an existing read-only output ---------------------------------------------------------
+
+def test_white_balance_keeps_an_existing_read_only_output(tmp_path, dng):
+    """``wandell white-balance FILE OUT`` writes OUT beside and renames it
+    over: an OUT the user had made read-only (``chmod a-w``) was replaced
+    without a word (exit 0). It is kept now, a usage error (exit 2) saying
+    why and what to do; a writable OUT is still replaced."""
+    src = tmp_path / "a.dng"
+    src.write_bytes(dng)
+    out = tmp_path / "a.png"
+    out.write_bytes(b"the user's own picture")
+    out.chmod(0o444)
+    r = _cli("white-balance", str(src), str(out))
+    assert r.returncode == 2 and "output_read_only" in r.stderr and "read-only" in r.stderr, (r.stdout, r.stderr)
+    assert out.read_bytes() == b"the user's own picture"
+    out.chmod(0o644)
+    r = _cli("white-balance", str(src), str(out))
+    assert r.returncode == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", (r.stdout, r.stderr)
