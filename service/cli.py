@@ -48,8 +48,8 @@ import sys
 import threading
 
 from .cli_light import shared_light_of
-from .cli_paths import (EXTENSION_FORMATS, dng_copies, format_for, input_file,  # noqa: F401 - cli.format_for
-                        input_folder)
+from .cli_paths import (EXTENSION_FORMATS, check_workers, dng_copies, format_for,  # noqa: F401 - cli.format_for
+                        input_file, input_folder, output_file, output_folder, own_outputs)
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
 from .schemas.fields import BATCH, BATCH_FORMATS, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
@@ -143,7 +143,8 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
         ap.add_argument("--force", action="store_true",
                         help="compute finished outputs again (default: skip them, resumable)")
         add_options(ap, BATCH)
-        ap.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
+        ap.add_argument("--workers", type=int, default=0,
+                        help="local worker processes (0: one per core; at most 4 per core)")
         ap.add_argument("-r", "--recursive", action="store_true",
                         help="also the RAWs of IN_DIR's subfolders, their outputs in the same subfolders of "
                              "OUT_DIR (default: subfolders are listed as not processed)")
@@ -321,7 +322,7 @@ def scan_inputs(in_dir: str, recursive: bool = False, out_dir: str | None = None
     def walk(rel: str) -> None:
         here = os.path.join(in_dir, rel) if rel else in_dir
         names = sorted(os.listdir(here))
-        copies = dng_copies(names, jobs.RAW_SUFFIXES)
+        copies = dng_copies(names, jobs.RAW_SUFFIXES) | own_outputs(here, names)   # OUT_DIR = IN_DIR: round 7
         for name in names:
             if name.startswith("."):
                 continue
@@ -585,6 +586,8 @@ def _cmd_batch(args) -> int:
     args.format = args.format or "tiff"
     opts = _options(args, args.lighting)
     input_folder(args.in_dir)
+    output_folder(args.out_dir)
+    check_workers(args.workers, jobs.max_local_workers())
     files, ignored = scan_inputs(args.in_dir, args.recursive, args.out_dir)
     if not files:
         raise ServiceError(422, "empty_folder", f"no RAW/TIFF/PNG files in {args.in_dir!r}"
@@ -636,6 +639,7 @@ def _print_light_warnings(light: dict | None) -> None:
 
 def _cmd_white_balance(args) -> int:
     input_file(args.file)
+    output_file(args.out)
     args.format = format_for(args.out, args.format)
     opts = _options(args)
     max_pixels, est_pixels = _limits()

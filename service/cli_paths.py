@@ -83,3 +83,70 @@ def dng_copies(names, raw_suffixes) -> set:
     """
     stems = {os.path.splitext(n)[0] for n in names if n.lower().endswith(raw_suffixes)}
     return {n for n in names if n.endswith(DNG_COPY_SUFFIX) and n[:-len(DNG_COPY_SUFFIX)] in stems}
+
+
+def _through_a_file(path: str) -> str | None:
+    """The nearest existing path above ``path`` (itself included) when it is
+    not a folder (so nothing can be made at ``path``), else None."""
+    p = os.path.abspath(path)
+    while not os.path.exists(p):
+        parent = os.path.dirname(p)
+        if parent == p:
+            return None
+        p = parent
+    return None if os.path.isdir(p) else p
+
+
+def output_folder(path: str) -> str:
+    """The OUT_DIR argument of ``batch``: an existing file, or a path through
+    one, is a usage error in words (was Python's ``[Errno 17] File exists``,
+    exit 1: probe round 7)."""
+    blocker = _through_a_file(path)
+    if blocker is not None:
+        raise ServiceError(422, "not_a_folder", f"output folder {path!r} cannot be made: {blocker!r} is a file, "
+                           "not a folder; give a folder (it is made if missing)")
+    return path
+
+
+def output_file(path: str) -> str:
+    """The OUT argument of ``white-balance``: an existing folder, or a path
+    through a file, is a usage error in words (was ``IsADirectoryError:
+    [Errno 21]`` as a failed file: probe round 7)."""
+    if os.path.isdir(path):
+        raise ServiceError(422, "not_a_file", f"output {path!r} is a folder; name the file to write, e.g. "
+                           f"{os.path.join(path, 'IMG_0001.tif')!r}")
+    blocker = _through_a_file(os.path.dirname(os.path.abspath(path)))
+    if blocker is not None:
+        raise ServiceError(422, "not_a_folder", f"output {path!r} cannot be written: {blocker!r} is a file, "
+                           "not a folder")
+    if os.path.isfile(path) and not os.stat(path).st_mode & 0o222:
+        # the output is written beside and renamed over: a file made read-only was replaced (round 7)
+        raise ServiceError(422, "output_read_only", f"output {path!r} exists and is read-only; it is kept: "
+                           "make it writable (chmod u+w) or remove it to replace it, or name another output")
+    return path
+
+
+def own_outputs(folder: str, names) -> set:
+    """The names among ``names`` (``folder``'s entries) that are outputs a
+    batch wrote there: each has its record ``.wandell/NAME.json`` beside it
+    (:func:`service.batch.items.meta_path`). ``wandell batch DIR DIR`` puts
+    the outputs beside the RAWs, and a rerun took them for new photographs
+    (an 8-bit PNG failed, a 16-bit one was corrected again into ``NAME
+    (2).png``: probe round 7); they are left out silently, as the sidecars
+    are, and so is the batch's summary ``batch.json`` there. A file of the
+    same kind without a record is a photograph."""
+    records = os.path.join(folder, ".wandell")
+    if not os.path.isdir(records):
+        return set()
+    return {n for n in names if n == "batch.json" or os.path.isfile(os.path.join(records, n + ".json"))}
+
+
+def check_workers(workers: int, limit: int) -> int:
+    """``--workers``: 0 (one per core) up to ``limit``
+    (:func:`service.batch.executors.max_local_workers`); every worker is a
+    process started at once, so 100,000 was 100,000 processes (probe round
+    7), and a negative count was taken silently."""
+    if not 0 <= workers <= limit:
+        raise ServiceError(422, "invalid_parameter", f"--workers {workers}: give 0 (one per core) or a number of "
+                           f"worker processes in 0..{limit} (at most 4 per core)")
+    return workers

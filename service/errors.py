@@ -154,7 +154,12 @@ def install_error_handlers(app) -> None:
         parts = []
         for e in exc.errors():
             loc = ".".join(str(x) for x in e.get("loc", ()) if x not in ("body", "query", "form"))
-            parts.append(f"{loc}: {e.get('msg')}")
+            msg = str(e.get("msg"))
+            if "Expected UploadFile" in msg:   # was "Expected UploadFile, received: <class 'str'>" (probe round 7)
+                name = str(next((x for x in e.get("loc", ()) if x not in ("body", "query", "form")), loc))
+                msg = (f"must be a file: a form part with a file name (curl -F {name}=@PHOTO.dng); a text field or "
+                       "a part without a file name (or with an empty one) was given")
+            parts.append(f"{loc}: {msg}")
         return error_response(422, "invalid_parameter", "; ".join(parts) or "invalid request")
 
     @app.exception_handler(StarletteHTTPException)

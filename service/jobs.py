@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from .batch.executors import (  # noqa: F401
     DaskExecutor, LocalExecutor, _dask_call, _sigint_ignored, default_data_dir, default_workers,
-    make_executor,
+    make_executor, max_local_workers,
 )
 from .batch.items import (  # noqa: F401
     ItemCancelled, ItemTask, RAW_SUFFIXES, SHARED_SPREAD_WARN_DEG, THREAD_ENV, _PARTS, _TEMPORARY,

@@ -28,9 +28,21 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+#: Local pool workers per core at most (every worker is a process started at once).
+WORKERS_PER_CORE = 4
+
+
+def max_local_workers() -> int:
+    """The most workers a local pool starts: :data:`WORKERS_PER_CORE` per
+    core (``wandell batch --workers`` refuses more; the server's
+    ``WANDELL_BATCH_WORKERS`` is clamped to it). 100,000 asked for were
+    100,000 processes (probe round 7)."""
+    return WORKERS_PER_CORE * default_workers()
+
+
 class LocalExecutor:
     """A process pool (spawn: no fork of a threaded server), each worker
-    capped at one numerical thread."""
+    capped at one numerical thread, at most :func:`max_local_workers`."""
 
     kind = "local"
 
@@ -38,7 +50,7 @@ class LocalExecutor:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        self.workers = max(1, int(workers))
+        self.workers = max(1, min(int(workers), max_local_workers()))
         self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_pool_worker_init)
         # start every worker now, with SIGINT ignored from their first
