@@ -101,6 +101,8 @@ def test_upload_batch_end_to_end_with_a_corrupt_file(client, env):
     assert img.shape == (160, 240, 3)
     bad = client.get(f"/v1/batches/{bid}/items/broken.dng")
     assert bad.status_code == 409 and "corrupt_file" in bad.json()["detail"]
+    # a failed item's result will never come: its own code, not not_ready (which says "wait"; probe round 7)
+    assert bad.json()["error"] == "item_failed" and "new batch" in bad.json()["detail"], bad.text
     assert client.get(f"/v1/batches/{bid}/items/nope.dng").status_code == 404
     z = client.get(f"/v1/batches/{bid}/zip")
     assert z.status_code == 200 and z.headers["content-type"] == "application/zip"

@@ -47,7 +47,9 @@ _ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16
                                    "image/x-adobe-dng)",
                     "content": {"image/tiff": _BINARY, "image/png": _BINARY, "image/jpeg": _BINARY,
                                 "image/x-adobe-dng": _BINARY}},
-              404: {"description": "no such batch or item"}, 409: {"description": "not finished, or ambiguous"},
+              404: {"description": "no such batch or item"}, 409: {"description": "not finished yet (`not_ready`), failed or cancelled "
+                                                                           "without a result (`item_failed`, `item_cancelled`), or "
+                                                                           "ambiguous (`ambiguous_item`)"},
               410: {"description": "done, but its result file is no longer on the server (removed outside the "
                                    "service)"}}
 _ZIP = {200: {"description": "every finished result, batch.json (the batch's document, flagged items first), "
@@ -355,6 +357,11 @@ def _item_file(store: jobs.JobStore, batch_id: str, row, key: str, kind: str):
     if row["status"] == "done" and not os.path.exists(row["out"]):
         raise ServiceError(410, "result_gone", f"item {row['name']!r} is done, but its result file is no longer on "
                            "the server (removed outside the service); run it again in a new batch")
+    if row["status"] in ("failed", "cancelled"):
+        # settled without a result: waiting will not bring one (not_ready would say it might)
+        raise ServiceError(409, f"item_{row['status']}", f"item {row['name']!r} is {row['status']} and has no result"
+                           + (f": {row['error']}" if row["error"] else "")
+                           + ("; run it again in a new batch" if row["status"] == "failed" else ""))
     if row["status"] != "done":
         raise ServiceError(409, "not_ready", f"item {row['name']!r} is {row['status']}"
                        + (f": {row['error']}" if row["error"] else ""))
