@@ -188,9 +188,15 @@ def _settings():
     model disk cache's variables (:func:`_model_disk_cache`) are not settings."""
     if not any(k.upper().startswith("WANDELL_") and k.upper() not in _NOT_SETTINGS for k in os.environ):
         return _DefaultLimits()
-    from .settings import get_settings
+    from pydantic import ValidationError
 
-    return get_settings()
+    from .settings import get_settings, settings_problem
+
+    try:
+        return get_settings()
+    except ValidationError as e:        # a WANDELL_* variable out of range: a usage error in words
+        sys.stderr.write("".join(f"wandell: {line}\n" for line in settings_problem(e).splitlines()))
+        raise SystemExit(2) from None
 
 
 def _limits():
