@@ -26,7 +26,7 @@ most 1.1 x the better of ``learned`` and ``bayes``, per description.
 
 Usage::
 
-    python -m benchmarks.chart_scenes [--seeds 2] [--quick] [--heldout]
+    python -m benchmarks.chart_scenes [--seeds 2] [--quick] [--heldout] [--off-set]
 """
 
 from __future__ import annotations
@@ -218,6 +218,83 @@ def heldout(every: int = 8, log=print) -> dict:
     return out
 
 
+def tinted_lights(wl) -> dict:
+    """Lights off the Planckian locus, not among the light posterior's candidates: D65, D50 and A times a
+    smooth filter ``1 + s (g - mean g)``, ``g`` a Gaussian of 45 nm at 535 nm (a plus-green gel for ``s`` > 0,
+    a minus-green one for ``s`` < 0; ``s`` = +-0.4, +-0.8: Duv about +-0.01 to +-0.04, the tint of a poor
+    fluorescent or LED lamp up to a film gel); each of mean 1."""
+    import models
+
+    g = np.exp(-0.5 * ((np.asarray(wl, float) - 535.0) / 45.0) ** 2)
+    out = {}
+    for base in ("D65", "D50", "A"):
+        e = models.illuminant(base, wl)
+        for s in (-0.8, -0.4, 0.4, 0.8):
+            f = e * (1.0 + s * (g - g.mean()))
+            out[f"{base} tint {s:+.1f}"] = f / f.mean()
+    return out
+
+
+#: (off_set_prior, off_set_step) compared by :func:`off_set_study`; (0, -) is the candidates alone
+OFF_SET_CONFIGS = ((0.0, 0.02), (0.01, 0.02), (0.01, 0.04), (0.03, 0.02), (0.03, 0.04), (0.1, 0.02), (0.1, 0.04))
+
+
+def off_set_study(every: int = 8, configs=OFF_SET_CONFIGS, log=print) -> dict:
+    """Lights off the light posterior's candidate set (:func:`recovery.bayes.estimate_bayes`'s
+    ``off_set_prior``, ``off_set_step``) on the scenes of :func:`matrix_scene` (grid and Mondrian, one seed)
+    seen by every ``every``-th of the 47 measured cameras described by their least-squares matrix, in four
+    sets: in-sample lights (:data:`LIGHTS`), held-out measured lights, held-out lights and surfaces
+    (:func:`heldout_content`) and :func:`tinted_lights`. Returns ``{set: {config: (errors, confidences,
+    ms per estimate)}}``."""
+    import models
+    from recovery.bayes import estimate_bayes
+    from recovery.cameras import camera_from_matrix
+
+    wl = models.wavelength_grid(400, 700, 5)
+    h_lights, h_surf = heldout_content(wl)
+    sets = {"in-sample": ({n: n for n in LIGHTS}, None), "held-out lights": (h_lights, None),
+            "held-out lights and surfaces": (h_lights, h_surf), "tinted lights": (tinted_lights(wl), None)}
+    cams = [measured_sensitivities(p, wl) for p in rawtoaces_cameras(every)]
+    out = {}
+    for name, (lights, surf) in sets.items():
+        rec = {c: ([], [], 0.0) for c in configs}
+        for sens in cams:
+            cam = camera_from_matrix(least_squares_matrix(sens), wl)
+            for light in lights.values():
+                for layout in LAYOUTS:
+                    img, truth = matrix_scene(sens, light, layout, 0, surf)
+                    for c in configs:
+                        t0 = time.perf_counter()
+                        rgb, _, d = estimate_bayes(np.clip(img, 0, 1), None, cam, white_level=1.0,
+                                                   off_set_prior=c[0], off_set_step=c[1])
+                        e, q, t = rec[c]
+                        rec[c] = (e + [angle(rgb, truth)], q + [d["confidence"]], t + time.perf_counter() - t0)
+        out[name] = {c: (np.array(e), np.array(q), 1000 * t / max(len(e), 1)) for c, (e, q, t) in rec.items()}
+        log(f"  {name}: {len(rec[configs[0]][0])} scenes")
+    return out
+
+
+def _print_off_set(res: dict) -> None:
+    configs = list(next(iter(res.values())))
+    names = list(res)
+    lab = lambda c: "candidates alone" if c[0] == 0 else f"off-set {c[0]:g}, step {c[1]:g}"
+    print("\nmean / median degrees (ms per estimate)\n")
+    print("| posterior | " + " | ".join(names) + " | mean of the sets |\n|---|" + "---|" * (len(names) + 1))
+    for c in configs:
+        means = [res[n][c][0].mean() for n in names]
+        print(f"| {lab(c)} | " + " | ".join(f"{res[n][c][0].mean():.2f} / {np.median(res[n][c][0]):.2f} "
+                                           f"({res[n][c][2]:.0f})" for n in names) + f" | {np.mean(means):.2f} |")
+    print("\neach set left out in turn, the setting with the lowest mean over the other sets:\n")
+    for k in names:
+        best = min(configs, key=lambda c: np.mean([res[n][c][0].mean() for n in names if n != k]))
+        print(f"* {k}: {lab(best)} -> {res[k][best][0].mean():.2f} (candidates alone {res[k][configs[0]][0].mean():.2f})")
+    print("\nclaimed confidence / share under 3 degrees, per set (the posterior's spread law, "
+          "recovery.bayes.CONFIDENCE_COEF or OFF_SET_CONFIDENCE_COEF):\n")
+    for c in configs:
+        print(f"* {lab(c)}: " + "; ".join(f"{n} {res[n][c][1].mean():.2f} / {np.mean(res[n][c][0] < 3):.2f}"
+                                          for n in names))
+
+
 def angle(a, b) -> float:
     a = np.asarray(a, float) / np.linalg.norm(a)
     b = np.asarray(b, float) / np.linalg.norm(b)
@@ -293,7 +370,15 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="one camera, four lights, one seed (development)")
     ap.add_argument("--heldout", action="store_true", help="only the scenes with lights and surfaces outside the "
                     "light posterior's sets and cameras with published matrices (:func:`heldout`)")
+    ap.add_argument("--off-set", action="store_true", help="only the light posterior with lights off its "
+                    "candidate set against the candidates alone (:func:`off_set_study`)")
     a = ap.parse_args(argv)
+    if a.off_set:
+        t0 = time.perf_counter()
+        res = off_set_study(every=8)
+        print(f"\n({time.perf_counter() - t0:.0f} s; shipped: recovery.api.OFF_SET_LIGHTS on scenes of flat patches)")
+        _print_off_set(res)
+        return 0
     if a.heldout:
         t0 = time.perf_counter()
         res = heldout(every=8)

@@ -483,3 +483,25 @@ def load_flag_model(path: str | None = None) -> FlagModel | None:
     if not p.exists():
         return None
     return FlagModel.from_json(p.read_text())
+
+
+#: The light posterior's rate of errors under 3 degrees on the development
+#: photographs (``python -m benchmarks.posterior_real --write``).
+POSTERIOR_RATE_PATH = Path(__file__).resolve().parent / "data" / "posterior_real_rate.json"
+
+
+@lru_cache(maxsize=1)
+def posterior_real_rate() -> dict | None:
+    """The light posterior (:func:`recovery.bayes.estimate_bayes`) on real
+    photographs: ``rate_under_3deg`` (each benchmark weighing the same),
+    ``per_benchmark``, ``auroc_spread`` (how well its spread ranks its errors
+    there: about 0.5, i.e. not at all) and ``claimed_confidence`` (what its
+    spread-based confidence claims on them); None when the file is absent.
+
+    Its spread-based confidence (:data:`recovery.bayes.CONFIDENCE_COEF`) is
+    calibrated on synthetic scenes of flat measured surfaces, where it holds;
+    on a real scene the product reports this measured rate instead, as it
+    does for a classical peer (issue 27, item 4; ``docs/confidence.md``)."""
+    if not POSTERIOR_RATE_PATH.exists():
+        return None
+    return json.loads(POSTERIOR_RATE_PATH.read_text())

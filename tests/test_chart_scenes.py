@@ -67,3 +67,38 @@ def test_auto_keeps_the_better_model_with_lights_and_surfaces_the_posterior_neve
     mean = {m: float(np.mean(v)) for m, v in errs.items()}
     assert all(np.isfinite(v) for v in mean.values())
     assert mean["auto"] <= 1.1 * min(mean["learned"], mean["bayes"]), mean
+
+
+def test_auto_keeps_the_better_model_under_lights_tinted_off_the_locus():
+    """Lights tinted off the Planckian locus (D65 and A through a plus- or minus-green filter, Duv about
+    +-0.02 to +-0.04: a poor fluorescent or LED, a film gel) are outside the light posterior's candidates,
+    which held it at 7.3 degrees on these 16 chart and Mondrian scenes (the learnt estimator 5.2), so
+    ``auto`` missed item 3's 1.1 x. On scenes of flat patches the posterior now admits lights off its set
+    (``recovery.api.OFF_SET_LIGHTS``; ``python -m benchmarks.chart_scenes --off-set``: 5.18 -> 2.21 degrees
+    on 144 such scenes): measured 3.7 here. Required: within 1.1 x the better of the learnt estimator and the
+    candidates-only posterior, and under 0.7 x the latter (measured 0.50)."""
+    import models
+    from benchmarks.chart_scenes import least_squares_matrix, matrix_scene, tinted_lights
+    from recovery import estimate_illuminant
+    from recovery.bayes import estimate_bayes
+    from recovery.cameras import camera_from_matrix
+
+    wl = models.wavelength_grid(400, 700, 5)
+    lights = tinted_lights(wl)
+    errs = {"auto": [], "learned": [], "candidates alone": []}
+    for name in ("Nikon 5100 (NPL)", "Canon EOS 5D Mark II"):
+        sens = models.camera_sensitivities(models.canonical_camera_name(name), wl)
+        cam = camera_from_matrix(least_squares_matrix(sens), wl)
+        for light in ("D65 tint +0.8", "D65 tint -0.8", "A tint +0.8", "A tint -0.8"):
+            for layout in ("grid", "mondrian"):
+                img = np.clip(matrix_scene(sens, lights[light], layout, 0)[0], 0, 1)
+                truth = matrix_scene(sens, lights[light], layout, 0)[1]
+                est = estimate_illuminant(img, cam, "auto", spatial=False, white_level=1.0)
+                assert est.method == "bayes" and est.diagnostics["off_set_lights"] is True
+                errs["auto"].append(angle(est.rgb, truth))
+                errs["learned"].append(angle(estimate_illuminant(img, cam, "learned", spatial=False,
+                                                                 white_level=1.0).rgb, truth))
+                errs["candidates alone"].append(angle(estimate_bayes(img, None, cam, white_level=1.0)[0], truth))
+    mean = {m: float(np.mean(v)) for m, v in errs.items()}
+    assert mean["auto"] <= 1.1 * min(mean["learned"], mean["candidates alone"]), mean
+    assert mean["auto"] <= 0.7 * mean["candidates alone"], mean
