@@ -1,0 +1,74 @@
+"""Probe of the Python API at the numerical extremes (docs/probe_pyapi.md).
+
+Each test pins one fault the probe found: it failed with the code before its
+fix and passes after it. The contract is the one of ``tests/test_stability.py``:
+every result of the public API is finite or an explicit
+:class:`recovery.RecoveryError` naming what was wrong.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import models
+from recovery import Camera, InputError, analyze, estimate_illuminant, render
+
+WL = models.DEFAULT_WAVELENGTHS
+
+
+def mondrian(cam: Camera, size: int = 32, k: int = 16, block: int = 4, seed: int = 0) -> np.ndarray:
+    """``k`` shipped reflectances under D65 in ``block``-pixel squares, shaded, scaled to 0.9, with
+    the development benchmark's noise (1 % multiplicative, 0.0005 additive), clipped to [0, 1]."""
+    rng = np.random.default_rng(seed)
+    refl = models.reflectance_set("all", cam.wavelengths)
+    idx = rng.choice(len(refl), k, replace=False)
+    labels = rng.integers(0, k, (size // block, size // block)).repeat(block, 0).repeat(block, 1)
+    rho = cam.response(refl[idx] * models.illuminant("D65", cam.wavelengths)) * rng.uniform(0.5, 1.0, k)[:, None]
+    img = rho[labels]
+    img = img / img.max() * 0.9
+    img = img * (1 + 0.01 * rng.standard_normal(img.shape)) + 0.0005 * rng.standard_normal(img.shape)
+    return np.clip(img, 0.0, 1.0)
+
+
+@pytest.fixture(scope="module")
+def nikon() -> Camera:
+    return Camera.named("Nikon 5100 (NPL)")
+
+
+@pytest.fixture(scope="module")
+def scene(nikon) -> np.ndarray:
+    img = mondrian(nikon)
+    img.flags.writeable = False
+    return img
+
+
+# --------------------------------------------------------------------------- 1: SLSQP segfault
+def test_adjust_light_with_one_pixel_1e300_times_the_rest_does_not_crash_the_interpreter():
+    """``render(..., gamut="adjust-light")`` of an image with one pixel at
+    1e300 (the rest near 1) killed the Python process with a segmentation
+    fault inside SciPy's SLSQP: the gamut constraints of the other pixels were
+    rows of 1e-300. Run in a child process so a crash fails this test, not the
+    suite. The answer is the documented error (the rendering exceeds float32)."""
+    code = textwrap.dedent(f"""
+        import numpy as np
+        from recovery import Camera, InputError, estimate_illuminant, render
+        from tests.test_probe_pyapi import mondrian
+        cam = Camera.named("Nikon 5100 (NPL)")
+        img = mondrian(cam)
+        img[0, 0] = 1e300
+        est = estimate_illuminant(img, cam, "auto")
+        try:
+            render(img, cam, est, "D65", "sRGB", gamut="adjust-light")
+        except InputError as e:
+            print("InputError:", e)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         cwd=str(__import__("pathlib").Path(__file__).resolve().parents[1]))
+    assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
+    assert "InputError: rendered values exceed the float32 range" in out.stdout, out.stdout
+
