@@ -327,6 +327,8 @@ def _spectrum_from_rgb(rgb, camera: Camera, model: LinearModel):
 
 def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_map=None):
     rgb = np.asarray(rgb, float)
+    if np.all(np.isfinite(rgb)) and np.abs(rgb).max() > 1e150:  # its norm would overflow: rgb / inf was 0
+        rgb = rgb / np.abs(rgb).max()
     n = np.linalg.norm(rgb)
     if not (np.all(np.isfinite(rgb)) and n > 0):
         raise InsufficientSurfaceVariation(f"{method}: no finite light estimate")

@@ -72,3 +72,17 @@ def test_adjust_light_with_one_pixel_1e300_times_the_rest_does_not_crash_the_int
     assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
     assert "InputError: rendered values exceed the float32 range" in out.stdout, out.stdout
 
+
+
+# --------------------------------------------------------------------------- 2: rgb of norm overflow
+def test_an_estimate_whose_rgb_norm_overflows_is_still_unit_norm(nikon, scene):
+    """Gray edge on an image with one pixel at -1e300 (masked as dark, but its
+    edges reach past the mask's erosion) gives a camera rgb near 1e299 whose
+    norm overflows to inf: ``rgb / norm`` was [0, 0, 0], ``wb_multipliers``
+    NaN, while ``rgb`` is documented as unit norm."""
+    img = np.array(scene)
+    img[0, 0] = -1e300
+    est = estimate_illuminant(img, nikon, "gray-edge")
+    assert np.all(np.isfinite(est.rgb)) and abs(np.linalg.norm(est.rgb) - 1) < 1e-12, est.rgb
+    assert np.all(np.isfinite(est.wb_multipliers)) and np.all(est.wb_multipliers > 0), est.wb_multipliers
+
