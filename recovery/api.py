@@ -1101,7 +1101,7 @@ class AnalysisResult:
                                              self.camera.dlambda)
 
     def _points(self, points):
-        pts = np.asarray(points, dtype=int).reshape(-1, 2)
+        pts = _pixel_points(points)
         h, w = self.image.shape[:2]
         if np.any(pts < 0) or np.any(pts[:, 0] >= h) or np.any(pts[:, 1] >= w):
             raise InputError(f"points must lie inside the {h}x{w} image")
@@ -1172,10 +1172,37 @@ class AnalysisResult:
     def reflectance(self, points) -> np.ndarray:
         """Reflectance spectra at ``[(row, col), ...]``, ``(P, N)`` on
         ``camera.wavelengths``: the prior's posterior mean, or eq. 36 then
-        eq. 11 with ``surface_estimator="pinv"``."""
+        eq. 11 with ``surface_estimator="pinv"``. ``points`` are integer
+        pixel coordinates inside the image (integral floats are taken); other
+        shapes, fractions, NaN or non-numbers are an :class:`InputError`."""
         if self.surface_estimator == "prior":
             return self.surface_estimates(points).mean
         return self.surface_weights(points) @ self.surface_model.basis.T
+
+
+def _pixel_points(points) -> np.ndarray:
+    """``[(row, col), ...]`` (or one ``(row, col)``) as a ``(P, 2)`` integer
+    array. Integral floats are taken (``3.0``); anything else is an
+    :class:`InputError` naming what was given: a ``(P, 3)`` array was read as
+    pairs of its flattened values, ``1.7`` as 1, and NaN, huge or non-numeric
+    coordinates raised numpy's own errors (probe pyapi7)."""
+    try:
+        arr = np.asarray(points)
+    except (ValueError, TypeError) as e:
+        raise InputError(f"points must be (row, col) pairs of integers: {e}") from None
+    if arr.size == 0:
+        return np.zeros((0, 2), int)
+    if arr.dtype.kind not in "iuf" or arr.ndim == 0 or arr.shape[-1] != 2:
+        raise InputError(f"points must be (row, col) pairs of integers, shape (P, 2); got {arr.dtype} of shape "
+                         f"{arr.shape}")
+    arr = arr.reshape(-1, 2)
+    if arr.dtype.kind == "f":
+        if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
+            bad = arr[~np.all(np.isfinite(arr) & (arr == np.round(arr)), axis=1)]
+            raise InputError(f"points must be integer pixel coordinates (row, col); got {bad.tolist()[:5]}")
+    if np.any(np.abs(arr) > np.iinfo(np.int64).max // 2):
+        raise InputError("points lie outside any image (coordinates beyond 2**62)")
+    return arr.astype(np.int64)
 
 
 #: Lights x cameras drawn for the bands when the light or the camera is uncertain.

@@ -86,3 +86,35 @@ def test_an_estimate_whose_rgb_norm_overflows_is_still_unit_norm(nikon, scene):
     assert np.all(np.isfinite(est.rgb)) and abs(np.linalg.norm(est.rgb) - 1) < 1e-12, est.rgb
     assert np.all(np.isfinite(est.wb_multipliers)) and np.all(est.wb_multipliers > 0), est.wb_multipliers
 
+
+# --------------------------------------------------------------------------- 3: points
+@pytest.fixture(scope="module")
+def results(nikon, scene):
+    return {est: analyze(scene, nikon, "gray-world", surface_estimator=est) for est in ("prior", "pinv")}
+
+
+@pytest.mark.parametrize("estimator", ["prior", "pinv"])
+@pytest.mark.parametrize("points", [[(1, 2, 3), (4, 5, 6)], [(1.7, 2.2)], [(np.nan, 0)], [(np.inf, 0)],
+                                    [(10 ** 30, 0)], [(1e30, 0)], [("a", "b")], None, 5, [1, 2, 3], [(1 + 1j, 2)]],
+                         ids=["P-by-3", "fraction", "nan", "inf", "huge-int", "huge-float", "str", "None", "scalar",
+                              "odd", "complex"])
+def test_points_that_are_not_integer_pairs_are_an_input_error(results, estimator, points):
+    """``reflectance``/``surface_estimates`` took ``np.asarray(points,
+    int).reshape(-1, 2)``: a (2, 3) array was read as three made-up pairs
+    (an answer for points not asked for), ``(1.7, 2.2)`` as pixel (1, 2), and
+    NaN, inf, 10**30, strings or None raised numpy's ValueError /
+    OverflowError / TypeError instead of the documented InputError."""
+    res = results[estimator]
+    for fn in (res.reflectance, res.surface_estimates):
+        with pytest.raises(InputError, match="points"):
+            fn(points)
+
+
+@pytest.mark.parametrize("points", [[(3, 4)], (3, 4), np.array([[3.0, 4.0]]), np.array([[3, 4]], np.uint8)])
+def test_integer_points_in_any_form_give_the_same_answer(results, points):
+    """What was accepted and meant stays: a list of pairs, one pair,
+    integral floats, unsigned integers."""
+    for res in results.values():
+        np.testing.assert_array_equal(res.reflectance(points), res.reflectance([(3, 4)]))
+    assert results["prior"].reflectance([]).shape == (0, WL.size)
+
