@@ -278,6 +278,21 @@ class IlluminantEstimate:
         return float(cct), float(duv)
 
 
+def _usable_mask(mask, shape) -> np.ndarray:
+    """``mask`` as the ``(H, W)`` bool array of the pixels to use: booleans, or
+    numbers read as nonzero = use. A mask of another shape, with NaN, or not of
+    numbers is an :class:`InputError` (a NaN or a string was taken as True, and
+    with ``quality`` a wrongly shaped mask raised an IndexError: probe pyapi7)."""
+    mk = np.asarray(mask)
+    if mk.shape != tuple(shape):
+        raise InputError(f"mask shape {mk.shape} does not match image {tuple(shape)}")
+    if mk.dtype.kind not in "biuf":
+        raise InputError(f"mask must be booleans (or numbers, nonzero = use), not {mk.dtype}")
+    if mk.dtype.kind == "f" and not np.all(np.isfinite(mk)):
+        raise InputError("mask contains NaN or Inf; use booleans (True = use the pixel)")
+    return mk.astype(bool, copy=False)
+
+
 def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark_fraction):
     img = np.asarray(image)
     if img.ndim != 3:
@@ -292,10 +307,7 @@ def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark
     finite = np.all(np.isfinite(img), axis=2)
     m = finite.copy()
     if mask is not None:
-        mk = np.asarray(mask, bool)
-        if mk.shape != img.shape[:2]:
-            raise InputError(f"mask shape {mk.shape} does not match image {img.shape[:2]}")
-        m &= mk
+        m &= _usable_mask(mask, img.shape[:2])
     vals = img[finite]
     scale = float(np.max(vals)) if vals.size else 0.0
     if not scale > 0:
@@ -984,7 +996,8 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
         resampled; the returned spectrum is on ``camera.wavelengths``)
     **kwargs
         Options of the estimators: ``surface_basis``, ``light_basis``,
-        ``surface_dim``, ``light_dim``, ``mask``, ``white_level``,
+        ``surface_dim``, ``light_dim``, ``mask`` (``(H, W)`` booleans, True =
+        use the pixel; numbers are read as nonzero = True), ``white_level``,
         ``saturation_fraction``, ``dark_fraction``, ``spatial``,
         ``region_size``, ``overlap``, ``min_variation``,
         ``subspace_tolerance``, ``on_failure``, ``fallback``, ``p``,
@@ -1024,6 +1037,8 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
             nonfinite = 0
             if arr.size and not np.isfinite(arr).all():  # the fast whole-array test first
                 nonfinite = int((~np.isfinite(arr).all(axis=2)).sum())
+            if kwargs.get("mask") is not None:
+                kwargs["mask"] = _usable_mask(kwargs["mask"], arr.shape[:2])
             img, mk, f = block_average(arr, kwargs.get("mask"), int(knobs["analysis_pixels"]))
             if f > 1 and mk is not None:
                 kwargs["mask"] = mk

@@ -118,3 +118,34 @@ def test_integer_points_in_any_form_give_the_same_answer(results, points):
         np.testing.assert_array_equal(res.reflectance(points), res.reflectance([(3, 4)]))
     assert results["prior"].reflectance([]).shape == (0, WL.size)
 
+
+# --------------------------------------------------------------------------- 4: masks
+@pytest.mark.parametrize("quality", [None, "balanced"])
+@pytest.mark.parametrize("mask", ["nan", "str", "object", "flat", "scalar"])
+def test_a_mask_that_is_not_booleans_of_the_image_shape_is_an_input_error(nikon, mask, quality):
+    """A NaN or string mask was taken as True everywhere (``np.asarray(mask,
+    bool)``), silently; with ``quality`` (block averaging first) a flat or
+    scalar mask raised numpy's IndexError and a string mask a ValueError."""
+    img = np.repeat(np.repeat(mondrian(nikon), 12, 0), 12, 1)      # 384 x 384: block-averaged by "balanced"
+    h, w = img.shape[:2]
+    mk = {"nan": np.full((h, w), np.nan), "str": np.full((h, w), "x"), "object": np.full((h, w), None, object),
+          "flat": np.ones(h * w, bool), "scalar": True}[mask]
+    with pytest.raises(InputError, match="mask"):
+        estimate_illuminant(img, nikon, "gray-world", mask=mk, quality=quality)
+
+
+def test_a_numeric_mask_means_the_same_with_and_without_block_averaging(nikon):
+    """Numbers are read as nonzero = use, before block averaging too: under
+    ``quality`` a 2 x 2 block of a uint8 0/255 mask with one 255 averaged to
+    127.5 > 1 and was kept, where the same mask as booleans (and the docs: "a
+    block is masked out if any of its pixels is") leaves it out, so the two
+    masks gave different lights."""
+    img = np.repeat(np.repeat(mondrian(nikon), 12, 0), 12, 1)
+    img[:, 192:] *= np.array([1.0, 0.6, 0.3])                        # the right half under another light
+    keep = np.zeros(img.shape[:2], bool)
+    keep[:, :191] = True                                              # the 2 x 2 blocks at cols 190-191: half kept
+    for quality in (None, "balanced"):
+        as_bool = estimate_illuminant(img, nikon, "gray-world", mask=keep, quality=quality, spatial=False)
+        as_u8 = estimate_illuminant(img, nikon, "gray-world", mask=keep.astype(np.uint8) * 255, quality=quality,
+                                    spatial=False)
+        np.testing.assert_array_equal(as_u8.rgb, as_bool.rgb)
