@@ -450,6 +450,42 @@ class EstimatorInput:
 _Run = EstimatorInput
 
 
+def _real(value) -> float | None:
+    """``value`` as a float when it is a real number (not a bool), else None."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return None
+    return float(value)
+
+
+#: The largest gray-edge ``sigma`` taken (pixels of the analysis image): the
+#: filter has 8 sigma + 1 taps, so its cost grows with sigma (sigma=1e6 took
+#: 39 s on a 32 x 32 image), and past ~100 px no edge is left to measure.
+MAX_EDGE_SIGMA = 100.0
+
+
+def _check_numeric_options(*, p, sigma, overlap, region_size) -> None:
+    """The estimators' numerical options, checked where they enter: each
+    outside its range was a ZeroDivisionError (``p=0``), numpy's or the
+    filters' bare ValueError (``sigma``, ``overlap``), a TypeError
+    (``region_size=3.5``) or a 39 s filter (``sigma=1e6``): probe pyapi7."""
+    v = _real(p)
+    if v is None or not v > 0:                       # NaN fails too
+        raise InputError(f"p (the Minkowski norm of shades-of-gray and gray-edge) must be a number > 0 "
+                         f"(inf: the maximum), not {p!r}")
+    v = _real(sigma)
+    if v is None or not 0 < v <= MAX_EDGE_SIGMA:
+        raise InputError(f"sigma (gray-edge's Gaussian, in pixels) must be a number in (0, {MAX_EDGE_SIGMA:g}], "
+                         f"not {sigma!r}")
+    v = _real(overlap)
+    if v is None or not 0 <= v < 1:
+        raise InputError(f"overlap (the literal light map's fractional overlap) must be in [0, 1), not {overlap!r}")
+    if region_size is not None:
+        v = _real(region_size)
+        if v is None or not (np.isfinite(v) and v >= 0 and v == int(v)):
+            raise InputError(f"region_size must be a whole number of pixels (0 or None: the default), "
+                             f"not {region_size!r}")
+
+
 def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
                         light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
                         mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
@@ -481,12 +517,15 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         method makes its map (overlapping regions, Fig. 1) only when asked
     region_size, overlap : region side in pixels (default a quarter of the
         shorter side for the literal method, a 2 x 2 grid for ``auto``) and
-        the literal method's fractional overlap
+        the literal method's fractional overlap, in [0, 1)
     min_variation : a region is used only if ``s_D(S)/s_1`` exceeds this
     subspace_tolerance : ``s_{D(S)+1}/s_D(S)`` above it warns that the data
         are not confined to a subspace (the paper's first failure mode)
     on_failure : ``"fallback"`` (declared in diagnostics) or ``"raise"``
     fallback : the peer used when the subspace method cannot run
+    p, sigma : the peers' Minkowski norm (> 0; ``inf``: the maximum) and
+        gray edge's Gaussian (pixels, in (0, :data:`MAX_EDGE_SIGMA`]); other
+        values are an :class:`InputError`
     max_regions : at most this many regions in the literal method's light
         map (None: no limit). The default region size grows until the map
         fits (said in ``diagnostics["region_size_coarsened"]``); an explicit
@@ -513,6 +552,7 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         raise InputError("on_failure must be 'fallback' or 'raise'")
     if fallback not in PEERS:
         raise InputError(f"fallback must be one of {list(PEERS)}")
+    _check_numeric_options(p=p, sigma=sigma, overlap=overlap, region_size=region_size)
     from .spatial import parse_spatial
 
     spatial_mode = parse_spatial(spatial)
@@ -1026,6 +1066,10 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
         if "spatial" in knobs:
             kwargs.setdefault("spatial", knobs.pop("spatial"))
     if analysis_pixels is not None:
+        v = _real(analysis_pixels)
+        if v is None or not (np.isfinite(v) and v >= 0 and v == int(v)):
+            raise InputError(f"analysis_pixels must be a whole number of pixels (None or 0: all of them), "
+                             f"not {analysis_pixels!r}")
         knobs["analysis_pixels"] = analysis_pixels
     if wavelength_step is not None:
         knobs["wavelength_step"] = wavelength_step
@@ -1034,6 +1078,8 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
     if knobs.get("analysis_pixels"):
         arr = np.asarray(image)
         if arr.ndim == 3:
+            if arr.dtype.kind not in "iuf":         # before np.isfinite, which a str or object array breaks
+                raise InputError(f"image dtype {arr.dtype} is not real-valued (integers or floats)")
             nonfinite = 0
             if arr.size and not np.isfinite(arr).all():  # the fast whole-array test first
                 nonfinite = int((~np.isfinite(arr).all(axis=2)).sum())

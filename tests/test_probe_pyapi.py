@@ -149,3 +149,55 @@ def test_a_numeric_mask_means_the_same_with_and_without_block_averaging(nikon):
         as_u8 = estimate_illuminant(img, nikon, "gray-world", mask=keep.astype(np.uint8) * 255, quality=quality,
                                     spatial=False)
         np.testing.assert_array_equal(as_u8.rgb, as_bool.rgb)
+
+
+# --------------------------------------------------------------------------- 5: numerical options
+@pytest.mark.parametrize("option, value", [("p", 0), ("p", -1), ("p", float("nan")), ("p", "6"),
+                                           ("sigma", 0), ("sigma", -1), ("sigma", float("nan")), ("sigma", 1e6),
+                                           ("overlap", 1), ("overlap", -0.5), ("overlap", float("nan")),
+                                           ("region_size", 3.5), ("region_size", -4), ("region_size", "16")])
+def test_numerical_options_out_of_range_are_an_input_error_naming_them(nikon, scene, option, value):
+    """``p=0`` raised ZeroDivisionError; ``sigma`` <= 0 or NaN and ``overlap``
+    outside [0, 1) the filters' / tiler's bare ValueError; ``region_size=3.5`` a
+    TypeError from slicing; ``sigma=1e6`` ran a 8,000,001-tap filter (39 s on a
+    32 x 32 image). Each is now an InputError naming the option, before any
+    estimate."""
+    for method in ("shades-of-gray", "gray-edge", "maloney-wandell"):
+        with pytest.raises(InputError, match=option):
+            estimate_illuminant(scene, nikon, method, spatial=True, **{option: value})
+
+
+@pytest.mark.parametrize("value", [-5, 2.5, float("nan"), float("inf"), "abc"])
+def test_analysis_pixels_that_is_not_a_pixel_count_is_an_input_error(nikon, scene, value):
+    """``analysis_pixels=-5`` or NaN raised ValueError ("cannot convert float
+    NaN to integer") from the block factor; inf an OverflowError; a string a
+    ValueError from ``int()``."""
+    with pytest.raises(InputError, match="analysis_pixels"):
+        estimate_illuminant(scene, nikon, "gray-world", analysis_pixels=value)
+
+
+@pytest.mark.parametrize("dtype", [str, object, complex])
+def test_a_non_real_image_with_a_quality_is_refused_like_without(nikon, scene, dtype):
+    """With ``quality`` (block averaging first) a str or object image raised
+    numpy's TypeError from ``np.isfinite``, and a complex image was averaged
+    as its real part (a ComplexWarning) and analysed, where without
+    ``quality`` all three are the documented InputError."""
+    img = np.repeat(np.repeat(np.array(scene), 4, 0), 4, 1).astype(dtype)
+    for quality in ("fast", None):
+        with pytest.raises(InputError, match="dtype"):
+            estimate_illuminant(img, nikon, "gray-world", quality=quality)
+
+
+def test_a_large_minkowski_p_gives_finite_multipliers_and_p_inf_is_white_patch(nikon, scene):
+    """``p=1e6`` made every channel below the common maximum underflow to 0
+    (``(x / max) ** 1e6``): shades-of-gray's rgb had zeros and
+    ``wb_multipliers`` inf. ``p=inf``, documented as white patch, gave
+    ``[max, max, max]`` (grey, whatever the image)."""
+    for method in ("shades-of-gray", "gray-edge"):
+        est = estimate_illuminant(scene, nikon, method, p=1e6)
+        assert np.all(np.isfinite(est.wb_multipliers)) and np.all(est.rgb > 0), (method, est.rgb)
+    wp = estimate_illuminant(scene, nikon, "white-patch")
+    inf = estimate_illuminant(scene, nikon, "shades-of-gray", p=float("inf"))
+    np.testing.assert_allclose(inf.rgb, wp.rgb, rtol=1e-12)
+    assert not np.allclose(inf.rgb, 3 ** -0.5)
+
