@@ -201,3 +201,27 @@ def test_a_large_minkowski_p_gives_finite_multipliers_and_p_inf_is_white_patch(n
     np.testing.assert_allclose(inf.rgb, wp.rgb, rtol=1e-12)
     assert not np.allclose(inf.rgb, 3 ** -0.5)
 
+
+# --------------------------------------------------------------------------- 6: cameras
+@pytest.mark.parametrize("case", ["unsorted", "repeated", "nan", "tiny", "huge"])
+def test_a_camera_outside_the_documented_domain_is_an_input_error(nikon, case):
+    """Unsorted or repeated wavelengths raised the grid's bare ValueError; a
+    NaN wavelength was accepted; sensitivities peaking at 1e-300 gave a bare
+    LinAlgError ("Singular matrix") from ``analyze(method="auto")`` and at
+    1e300 NaN surface estimates (mean, std, expected_rmse)."""
+    wl, s = nikon.wavelengths, nikon.sensitivities
+    args = {"unsorted": (wl[::-1], s), "repeated": (np.r_[wl[:1], wl[:-1]], s), "nan": (np.r_[np.nan, wl[1:]], s),
+            "tiny": (wl, s * 1e-300), "huge": (wl, s * 1e300)}[case]
+    with pytest.raises(InputError, match="wavelengths|sensitivities"):
+        Camera(*args)
+
+
+def test_a_camera_sensitivities_scale_within_the_bounds_still_analyses(nikon, scene):
+    """Inside the bounds a camera's scale does not matter (the light and the
+    reflectance are the same for sensitivities times 1e-90 or 1e90)."""
+    base = analyze(scene, nikon, "gray-world").reflectance([(3, 4)])
+    for gain in (1e-90, 1e90):
+        cam = Camera(nikon.wavelengths, nikon.sensitivities * gain)
+        res = analyze(scene, cam, "gray-world")
+        assert np.all(np.isfinite(res.reflectance([(3, 4)])))
+        np.testing.assert_allclose(res.reflectance([(3, 4)]), base, rtol=1e-6, atol=1e-9)
