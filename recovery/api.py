@@ -326,6 +326,21 @@ class IlluminantEstimate:
         return float(cct), float(duv)
 
 
+def _usable_mask(mask, shape) -> np.ndarray:
+    """``mask`` as the ``(H, W)`` bool array of the pixels to use: booleans, or
+    numbers read as nonzero = use. A mask of another shape, with NaN, or not of
+    numbers is an :class:`InputError` (a NaN or a string was taken as True, and
+    with ``quality`` a wrongly shaped mask raised an IndexError: probe pyapi7)."""
+    mk = np.asarray(mask)
+    if mk.shape != tuple(shape):
+        raise InputError(f"mask shape {mk.shape} does not match image {tuple(shape)}")
+    if mk.dtype.kind not in "biuf":
+        raise InputError(f"mask must be booleans (or numbers, nonzero = use), not {mk.dtype}")
+    if mk.dtype.kind == "f" and not np.all(np.isfinite(mk)):
+        raise InputError("mask contains NaN or Inf; use booleans (True = use the pixel)")
+    return mk.astype(bool, copy=False)
+
+
 def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark_fraction):
     img = np.asarray(image)
     if img.ndim != 3:
@@ -340,10 +355,7 @@ def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark
     finite = np.all(np.isfinite(img), axis=2)
     m = finite.copy()
     if mask is not None:
-        mk = np.asarray(mask, bool)
-        if mk.shape != img.shape[:2]:
-            raise InputError(f"mask shape {mk.shape} does not match image {img.shape[:2]}")
-        m &= mk
+        m &= _usable_mask(mask, img.shape[:2])
     vals = img[finite]
     scale = float(np.max(vals)) if vals.size else 0.0
     if not scale > 0:
@@ -375,6 +387,8 @@ def _spectrum_from_rgb(rgb, camera: Camera, model: LinearModel):
 
 def _finish(rgb, spectrum, weights, camera, model, method, diag, warns, light_map=None):
     rgb = np.asarray(rgb, float)
+    if np.all(np.isfinite(rgb)) and np.abs(rgb).max() > 1e150:  # its norm would overflow: rgb / inf was 0
+        rgb = rgb / np.abs(rgb).max()
     n = np.linalg.norm(rgb)
     if not (np.all(np.isfinite(rgb)) and n > 0):
         raise InsufficientSurfaceVariation(f"{method}: no finite light estimate")
@@ -484,6 +498,42 @@ class EstimatorInput:
 _Run = EstimatorInput
 
 
+def _real(value) -> float | None:
+    """``value`` as a float when it is a real number (not a bool), else None."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return None
+    return float(value)
+
+
+#: The largest gray-edge ``sigma`` taken (pixels of the analysis image): the
+#: filter has 8 sigma + 1 taps, so its cost grows with sigma (sigma=1e6 took
+#: 39 s on a 32 x 32 image), and past ~100 px no edge is left to measure.
+MAX_EDGE_SIGMA = 100.0
+
+
+def _check_numeric_options(*, p, sigma, overlap, region_size) -> None:
+    """The estimators' numerical options, checked where they enter: each
+    outside its range was a ZeroDivisionError (``p=0``), numpy's or the
+    filters' bare ValueError (``sigma``, ``overlap``), a TypeError
+    (``region_size=3.5``) or a 39 s filter (``sigma=1e6``): probe pyapi7."""
+    v = _real(p)
+    if v is None or not v > 0:                       # NaN fails too
+        raise InputError(f"p (the Minkowski norm of shades-of-gray and gray-edge) must be a number > 0 "
+                         f"(inf: the maximum), not {p!r}")
+    v = _real(sigma)
+    if v is None or not 0 < v <= MAX_EDGE_SIGMA:
+        raise InputError(f"sigma (gray-edge's Gaussian, in pixels) must be a number in (0, {MAX_EDGE_SIGMA:g}], "
+                         f"not {sigma!r}")
+    v = _real(overlap)
+    if v is None or not 0 <= v < 1:
+        raise InputError(f"overlap (the literal light map's fractional overlap) must be in [0, 1), not {overlap!r}")
+    if region_size is not None:
+        v = _real(region_size)
+        if v is None or not (np.isfinite(v) and v >= 0 and v == int(v)):
+            raise InputError(f"region_size must be a whole number of pixels (0 or None: the default), "
+                             f"not {region_size!r}")
+
+
 def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
                         light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
                         mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
@@ -515,12 +565,15 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         method makes its map (overlapping regions, Fig. 1) only when asked
     region_size, overlap : region side in pixels (default a quarter of the
         shorter side for the literal method, a 2 x 2 grid for ``auto``) and
-        the literal method's fractional overlap
+        the literal method's fractional overlap, in [0, 1)
     min_variation : a region is used only if ``s_D(S)/s_1`` exceeds this
     subspace_tolerance : ``s_{D(S)+1}/s_D(S)`` above it warns that the data
         are not confined to a subspace (the paper's first failure mode)
     on_failure : ``"fallback"`` (declared in diagnostics) or ``"raise"``
     fallback : the peer used when the subspace method cannot run
+    p, sigma : the peers' Minkowski norm (> 0; ``inf``: the maximum) and
+        gray edge's Gaussian (pixels, in (0, :data:`MAX_EDGE_SIGMA`]); other
+        values are an :class:`InputError`
     max_regions : at most this many regions in the literal method's light
         map (None: no limit). The default region size grows until the map
         fits (said in ``diagnostics["region_size_coarsened"]``); an explicit
@@ -547,6 +600,7 @@ def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis
         raise InputError("on_failure must be 'fallback' or 'raise'")
     if fallback not in PEERS:
         raise InputError(f"fallback must be one of {list(PEERS)}")
+    _check_numeric_options(p=p, sigma=sigma, overlap=overlap, region_size=region_size)
     from .spatial import parse_spatial
 
     spatial_mode = parse_spatial(spatial)
@@ -1031,7 +1085,8 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
         resampled; the returned spectrum is on ``camera.wavelengths``)
     **kwargs
         Options of the estimators: ``surface_basis``, ``light_basis``,
-        ``surface_dim``, ``light_dim``, ``mask``, ``white_level``,
+        ``surface_dim``, ``light_dim``, ``mask`` (``(H, W)`` booleans, True =
+        use the pixel; numbers are read as nonzero = True), ``white_level``,
         ``saturation_fraction``, ``dark_fraction``, ``spatial``,
         ``region_size``, ``overlap``, ``min_variation``,
         ``subspace_tolerance``, ``on_failure``, ``fallback``, ``p``,
@@ -1060,6 +1115,10 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
         if "spatial" in knobs:
             kwargs.setdefault("spatial", knobs.pop("spatial"))
     if analysis_pixels is not None:
+        v = _real(analysis_pixels)
+        if v is None or not (np.isfinite(v) and v >= 0 and v == int(v)):
+            raise InputError(f"analysis_pixels must be a whole number of pixels (None or 0: all of them), "
+                             f"not {analysis_pixels!r}")
         knobs["analysis_pixels"] = analysis_pixels
     if wavelength_step is not None:
         knobs["wavelength_step"] = wavelength_step
@@ -1068,9 +1127,13 @@ def estimate_illuminant(image, camera: Camera, method: str = "auto", *, quality:
     if knobs.get("analysis_pixels"):
         arr = np.asarray(image)
         if arr.ndim == 3:
+            if arr.dtype.kind not in "iuf":         # before np.isfinite, which a str or object array breaks
+                raise InputError(f"image dtype {arr.dtype} is not real-valued (integers or floats)")
             nonfinite = 0
             if arr.size and not np.isfinite(arr).all():  # the fast whole-array test first
                 nonfinite = int((~np.isfinite(arr).all(axis=2)).sum())
+            if kwargs.get("mask") is not None:
+                kwargs["mask"] = _usable_mask(kwargs["mask"], arr.shape[:2])
             img, mk, f = block_average(arr, kwargs.get("mask"), int(knobs["analysis_pixels"]))
             if f > 1 and mk is not None:
                 kwargs["mask"] = mk
@@ -1148,7 +1211,7 @@ class AnalysisResult:
                                              self.camera.dlambda)
 
     def _points(self, points):
-        pts = np.asarray(points, dtype=int).reshape(-1, 2)
+        pts = _pixel_points(points)
         h, w = self.image.shape[:2]
         if np.any(pts < 0) or np.any(pts[:, 0] >= h) or np.any(pts[:, 1] >= w):
             raise InputError(f"points must lie inside the {h}x{w} image")
@@ -1219,10 +1282,37 @@ class AnalysisResult:
     def reflectance(self, points) -> np.ndarray:
         """Reflectance spectra at ``[(row, col), ...]``, ``(P, N)`` on
         ``camera.wavelengths``: the prior's posterior mean, or eq. 36 then
-        eq. 11 with ``surface_estimator="pinv"``."""
+        eq. 11 with ``surface_estimator="pinv"``. ``points`` are integer
+        pixel coordinates inside the image (integral floats are taken); other
+        shapes, fractions, NaN or non-numbers are an :class:`InputError`."""
         if self.surface_estimator == "prior":
             return self.surface_estimates(points).mean
         return self.surface_weights(points) @ self.surface_model.basis.T
+
+
+def _pixel_points(points) -> np.ndarray:
+    """``[(row, col), ...]`` (or one ``(row, col)``) as a ``(P, 2)`` integer
+    array. Integral floats are taken (``3.0``); anything else is an
+    :class:`InputError` naming what was given: a ``(P, 3)`` array was read as
+    pairs of its flattened values, ``1.7`` as 1, and NaN, huge or non-numeric
+    coordinates raised numpy's own errors (probe pyapi7)."""
+    try:
+        arr = np.asarray(points)
+    except (ValueError, TypeError) as e:
+        raise InputError(f"points must be (row, col) pairs of integers: {e}") from None
+    if arr.size == 0:
+        return np.zeros((0, 2), int)
+    if arr.dtype.kind not in "iuf" or arr.ndim == 0 or arr.shape[-1] != 2:
+        raise InputError(f"points must be (row, col) pairs of integers, shape (P, 2); got {arr.dtype} of shape "
+                         f"{arr.shape}")
+    arr = arr.reshape(-1, 2)
+    if arr.dtype.kind == "f":
+        if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
+            bad = arr[~np.all(np.isfinite(arr) & (arr == np.round(arr)), axis=1)]
+            raise InputError(f"points must be integer pixel coordinates (row, col); got {bad.tolist()[:5]}")
+    if np.any(np.abs(arr) > np.iinfo(np.int64).max // 2):
+        raise InputError("points lie outside any image (coordinates beyond 2**62)")
+    return arr.astype(np.int64)
 
 
 #: Lights x cameras drawn for the bands when the light or the camera is uncertain.

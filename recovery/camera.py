@@ -27,9 +27,10 @@ class Camera:
     Parameters
     ----------
     wavelengths : (N,) array_like
-        nm, increasing.
+        nm, finite and strictly increasing (else :class:`InputError`).
     sensitivities : (N, C) array_like
-        :math:`R_k(\\lambda_n)` as columns.
+        :math:`R_k(\\lambda_n)` as columns, relative: the largest magnitude
+        must lie in 1e-100..1e100.
     name : str
     source : str
         ``measured``, ``matrix-derived``, ``uploaded`` or ``generic``.
@@ -64,7 +65,17 @@ class Camera:
             raise InputError("sensitivities contain NaN or Inf")
         if np.any(np.abs(r).sum(axis=0) == 0):
             raise InputError("a channel has zero sensitivity at every wavelength")
-        wavelength_step(wl)  # validates increasing grid
+        top = float(np.abs(r).max())
+        if not 1e-100 <= top <= 1e100:
+            # 1e-300 raised a bare LinAlgError, 1e300 gave NaN surface estimates (probe pyapi7)
+            raise InputError(f"sensitivities peak at {top:.3g}: outside 1e-100..1e100 (they are relative; "
+                             "scale them nearer 1)")
+        if not np.all(np.isfinite(wl)):
+            raise InputError("wavelengths contain NaN or Inf")
+        try:
+            wavelength_step(wl)  # validates an increasing grid of at least two
+        except ValueError as e:      # the grid's own words, as the documented error (probe pyapi7)
+            raise InputError(f"wavelengths: {e}") from None
         object.__setattr__(self, "wavelengths", wl)
         object.__setattr__(self, "sensitivities", r)
         if self.color_matrix is not None:

@@ -58,6 +58,19 @@ def white_patch(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray
     return _masked(image, mask).max(axis=0)
 
 
+def _underflowed(out: np.ndarray, px: np.ndarray, p: float, scale: float = 1.0) -> np.ndarray:
+    """``out``, the Minkowski p-norms ``top * mean((px / top) ** p) ** (1 / p)``
+    of the channels for the common maximum ``top`` (times ``scale``), with a
+    channel whose mean underflowed to 0 (a large ``p`` and a channel below the
+    common maximum: p=1e6 gave 0, then infinite white-balance multipliers)
+    normalised by its own maximum instead: the same norm without the
+    underflow. Other channels, and every channel at usual ``p``, unchanged."""
+    own = px.max(axis=0)
+    for k in np.flatnonzero((out <= 0) & (own > 0)):
+        out[k] = scale * own[k] * np.mean((px[:, k] / own[k]) ** p) ** (1.0 / p)
+    return out
+
+
 def shades_of_gray(image: np.ndarray, mask: np.ndarray | None = None, p: float = 6.0) -> np.ndarray:
     """Minkowski p-norm of each channel (Finlayson & Trezzi 2004); p=1 is
     gray world, p=inf white patch."""
@@ -65,7 +78,9 @@ def shades_of_gray(image: np.ndarray, mask: np.ndarray | None = None, p: float =
     m = px.max()
     if m <= 0:
         return px.mean(axis=0)
-    return m * np.mean((px / m) ** p, axis=0) ** (1.0 / p)
+    if np.isinf(p):
+        return px.max(axis=0)
+    return _underflowed(m * np.mean((px / m) ** p, axis=0) ** (1.0 / p), px, p)
 
 
 def gray_edge(image: np.ndarray, mask: np.ndarray | None = None, p: float = 6.0,
@@ -105,7 +120,9 @@ def gray_edge(image: np.ndarray, mask: np.ndarray | None = None, p: float = 6.0,
     if np.all(px == 0):
         raise InsufficientSurfaceVariation("gray edge: the image has no edges")
     top = px.max()
-    return scale * top * np.mean((px / top) ** p, axis=0) ** (1.0 / p)
+    if np.isinf(p):
+        return scale * px.max(axis=0)
+    return _underflowed(scale * top * np.mean((px / top) ** p, axis=0) ** (1.0 / p), px, p, scale)
 
 
 def bright_pixels(image: np.ndarray, mask: np.ndarray | None = None, fraction: float = 0.02) -> np.ndarray:

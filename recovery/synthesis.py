@@ -163,6 +163,16 @@ def adjust_light_for_gamut(pixels: np.ndarray, sensors: np.ndarray, wavelengths:
             pts = px
     elif px.shape[0] > 1000:
         pts = px[rng.choice(px.shape[0], 1000, replace=False)]
+    # A pixel's constraints are linear in it, so scaling it by a positive factor keeps the feasible
+    # lights. Pixels more than 1e150 times fainter than the brightest (no photograph's: float32 cannot
+    # hold the ratio; e.g. one pixel at 1e300) are brought up to its level: rows of 1e-300 crashed
+    # SciPy's SLSQP (a segmentation fault, probe pyapi7). Valid images have none, so are unchanged.
+    mags = np.abs(pts).max(axis=1) if pts.size else np.zeros(0)
+    top = float(mags.max()) if mags.size else 0.0
+    faint = (mags > 0) & (mags < 1e-150 * top)
+    if faint.any():
+        pts = pts.copy()
+        pts[faint] *= (top / mags[faint])[:, None]
     dl = wavelength_step(wavelengths)
     L_E = lighting_matrix_from_spectrum(light, surface_basis, sensors, dl)
     sig = pts @ np.linalg.pinv(L_E).T                                   # (Q, DS)
