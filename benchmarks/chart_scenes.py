@@ -241,13 +241,14 @@ OFF_SET_CONFIGS = ((0.0, 0.02), (0.01, 0.02), (0.01, 0.04), (0.03, 0.02), (0.03,
 
 def off_set_study(every: int = 8, configs=OFF_SET_CONFIGS, log=print) -> dict:
     """Lights off the light posterior's candidate set (:func:`recovery.bayes.estimate_bayes`'s
-    ``off_set_prior``, ``off_set_step``) on the scenes of :func:`matrix_scene` (grid and Mondrian, one seed)
+    ``off_set_prior``, ``off_set_step``; swapped into :data:`recovery.api.OFF_SET_LIGHTS`, so each is
+    measured on the product's path, ``estimate_illuminant(..., "bayes")``) on the scenes of :func:`matrix_scene` (grid and Mondrian, one seed)
     seen by every ``every``-th of the 47 measured cameras described by their least-squares matrix, in four
     sets: in-sample lights (:data:`LIGHTS`), held-out measured lights, held-out lights and surfaces
     (:func:`heldout_content`) and :func:`tinted_lights`. Returns ``{set: {config: (errors, confidences,
     ms per estimate)}}``."""
     import models
-    from recovery.bayes import estimate_bayes
+    from recovery import api, estimate_illuminant
     from recovery.cameras import camera_from_matrix
 
     wl = models.wavelength_grid(400, 700, 5)
@@ -264,11 +265,17 @@ def off_set_study(every: int = 8, configs=OFF_SET_CONFIGS, log=print) -> dict:
                 for layout in LAYOUTS:
                     img, truth = matrix_scene(sens, light, layout, 0, surf)
                     for c in configs:
-                        t0 = time.perf_counter()
-                        rgb, _, d = estimate_bayes(np.clip(img, 0, 1), None, cam, white_level=1.0,
-                                                   off_set_prior=c[0], off_set_step=c[1])
+                        shipped = api.OFF_SET_LIGHTS      # the product's path, the setting swapped in
+                        api.OFF_SET_LIGHTS = {"off_set_prior": c[0], "off_set_step": c[1]} if c[0] > 0 else {}
+                        try:
+                            t0 = time.perf_counter()
+                            est = estimate_illuminant(np.clip(img, 0, 1), cam, "bayes", spatial=False,
+                                                      white_level=1.0)
+                            dt = time.perf_counter() - t0
+                        finally:
+                            api.OFF_SET_LIGHTS = shipped
                         e, q, t = rec[c]
-                        rec[c] = (e + [angle(rgb, truth)], q + [d["confidence"]], t + time.perf_counter() - t0)
+                        rec[c] = (e + [angle(est.rgb, truth)], q + [est.diagnostics["confidence"]], t + dt)
         out[name] = {c: (np.array(e), np.array(q), 1000 * t / max(len(e), 1)) for c, (e, q, t) in rec.items()}
         log(f"  {name}: {len(rec[configs[0]][0])} scenes")
     return out
