@@ -70,8 +70,8 @@ class Settings(BaseSettings):
     #: open connections at once; more are answered 503 too_many_connections and closed at once
     #: (0 = from the process's file-descriptor limit: (RLIMIT_NOFILE - 100) / 2)
     max_connections: int = Field(0, ge=0)
-    #: seconds the uploaded inputs of a finished or cancelled batch are kept (results are kept)
-    batch_input_retention: float = Field(24 * 3600.0, ge=0, allow_inf_nan=False)
+    #: seconds the uploaded inputs of a finished or cancelled batch are kept (results are kept; negative: for ever)
+    batch_input_retention: float = Field(24 * 3600.0, allow_inf_nan=False)
     #: seconds a finished or cancelled batch is kept with its results before it is deleted (negative: for ever)
     batch_result_retention: float = Field(7 * 24 * 3600.0, allow_inf_nan=False)
 

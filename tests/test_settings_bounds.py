@@ -44,9 +44,10 @@ def test_zero_means_automatic_where_the_docs_say_so(monkeypatch):
                  "WANDELL_BODY_DEADLINE", "WANDELL_SEND_TIMEOUT"):
         monkeypatch.setenv(name, "0")
     monkeypatch.setenv("WANDELL_BATCH_RESULT_RETENTION", "-1")       # negative: kept for ever (documented)
+    monkeypatch.setenv("WANDELL_BATCH_INPUT_RETENTION", "-1")        # the same (service.batch.runner)
     s = Settings()
     assert (s.max_concurrent_work, s.batch_workers, s.max_connections, s.body_deadline, s.send_timeout,
-            s.batch_result_retention) == (0, 0, 0, 0.0, 0.0, -1.0)
+            s.batch_result_retention, s.batch_input_retention) == (0, 0, 0, 0.0, 0.0, -1.0, -1.0)
 
 
 def test_the_server_stops_at_start_in_words():
