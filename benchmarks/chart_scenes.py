@@ -265,20 +265,72 @@ def off_set_study(every: int = 8, configs=OFF_SET_CONFIGS, log=print) -> dict:
                 for layout in LAYOUTS:
                     img, truth = matrix_scene(sens, light, layout, 0, surf)
                     for c in configs:
-                        shipped = api.OFF_SET_LIGHTS      # the product's path, the setting swapped in
+                        shipped = api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE   # the product's path, swapped in,
                         api.OFF_SET_LIGHTS = {"off_set_prior": c[0], "off_set_step": c[1]} if c[0] > 0 else {}
+                        api.NEAR_NEUTRAL_SHARE = 0.0                           # on every flat scene
                         try:
                             t0 = time.perf_counter()
                             est = estimate_illuminant(np.clip(img, 0, 1), cam, "bayes", spatial=False,
                                                       white_level=1.0)
                             dt = time.perf_counter() - t0
                         finally:
-                            api.OFF_SET_LIGHTS = shipped
+                            api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE = shipped
                         e, q, t = rec[c]
                         rec[c] = (e + [angle(est.rgb, truth)], q + [est.diagnostics["confidence"]], t + dt)
         out[name] = {c: (np.array(e), np.array(q), 1000 * t / max(len(e), 1)) for c, (e, q, t) in rec.items()}
         log(f"  {name}: {len(rec[configs[0]][0])} scenes")
     return out
+
+
+def off_set_dng(every: int = 8, log=print) -> dict:
+    """The light posterior on chart (grid) and Mondrian DNGs through the service's loader
+    (:func:`service.loader.load`: mosaic, 14 bits, demosaic, the camera from its ColorMatrix1), as a RAW
+    upload is, every ``every``-th of the 47 cameras, one seed, lights in-sample (:data:`LIGHTS`), held out
+    (:func:`heldout_content`) and tinted (:func:`tinted_lights`), ``method=bayes``, with lights off the
+    candidate set never (``recovery.api.OFF_SET_LIGHTS`` emptied), always (``NEAR_NEUTRAL_SHARE`` 0) and as
+    shipped (only with near-neutral surfaces). Returns ``{(set, layout): {mode: errors}}``."""
+    import models
+    from recovery import api, estimate_illuminant
+    from service.loader import load
+
+    wl = models.wavelength_grid(400, 700, 5)
+    h_lights, _ = heldout_content(wl)
+    sets = {"in-sample": {n: n for n in LIGHTS}, "held-out lights": h_lights, "tinted lights": tinted_lights(wl)}
+    modes = {"never": ({}, api.NEAR_NEUTRAL_SHARE), "always": (api.OFF_SET_LIGHTS, 0.0),
+             "shipped": (api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE)}
+    shipped = (api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE)
+    out = {}
+    try:
+        for p in rawtoaces_cameras(every):
+            sens = measured_sensitivities(p, wl)
+            for name, lights in sets.items():
+                for light in lights.values():
+                    for layout in LAYOUTS:
+                        data, truth = matrix_scene_bytes(sens, light, layout, 0)
+                        ph = load(data)
+                        rec = out.setdefault((name, layout), {m: [] for m in modes})
+                        for mode, (cfg, share) in modes.items():
+                            api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE = cfg, share
+                            est = estimate_illuminant(ph.linear, ph.camera, "bayes", mask=ph.mask, spatial=False)
+                            rec[mode].append(angle(est.rgb, truth))
+            log(f"  {p.name.replace('_380_780_5.json', '')}: done")
+    finally:
+        api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE = shipped
+    return out
+
+
+def _print_off_set_dng(res: dict) -> None:
+    print("\nthrough the DNG pipeline (service.loader.load), method=bayes, mean degrees:\n")
+    print("| lights | layout | scenes | candidates alone | always off the set | shipped (near-neutral switch) |")
+    print("|---|---|---|---|---|---|")
+    for (name, layout), r in res.items():
+        print(f"| {name} | {layout} | {len(r['never'])} | {np.mean(r['never']):.2f} | {np.mean(r['always']):.2f} | "
+              f"{np.mean(r['shipped']):.2f} |")
+    for name in dict.fromkeys(k[0] for k in res):
+        r = {m: np.concatenate([res[(name, lay)][m] for lay in LAYOUTS if (name, lay) in res]) for m in
+             ("never", "always", "shipped")}
+        print(f"| {name} | both | {len(r['never'])} | {r['never'].mean():.2f} | {r['always'].mean():.2f} | "
+              f"{r['shipped'].mean():.2f} |")
 
 
 def _print_off_set(res: dict) -> None:
@@ -385,6 +437,7 @@ def main(argv=None) -> int:
         res = off_set_study(every=8)
         print(f"\n({time.perf_counter() - t0:.0f} s; shipped: recovery.api.OFF_SET_LIGHTS on scenes of flat patches)")
         _print_off_set(res)
+        _print_off_set_dng(off_set_dng(every=8))
         return 0
     if a.heldout:
         t0 = time.perf_counter()

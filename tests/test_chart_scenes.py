@@ -73,10 +73,11 @@ def test_auto_keeps_the_better_model_under_lights_tinted_off_the_locus():
     """Lights tinted off the Planckian locus (D65 and A through a plus- or minus-green filter, Duv about
     +-0.02 to +-0.04: a poor fluorescent or LED, a film gel) are outside the light posterior's candidates,
     which held it at 7.3 degrees on these 16 chart and Mondrian scenes (the learnt estimator 5.2), so
-    ``auto`` missed item 3's 1.1 x. On scenes of flat patches the posterior now admits lights off its set
-    (``recovery.api.OFF_SET_LIGHTS``; ``python -m benchmarks.chart_scenes --off-set``: 5.18 -> 2.21 degrees
-    on 144 such scenes): measured 3.7 here. Required: within 1.1 x the better of the learnt estimator and the
-    candidates-only posterior, and under 0.7 x the latter (measured 0.50)."""
+    ``auto`` missed item 3's 1.1 x. On scenes of flat patches with near-neutral surfaces (the charts here) the
+    posterior now admits lights off its set (``recovery.api.OFF_SET_LIGHTS``, ``NEAR_NEUTRAL_SHARE``;
+    ``python -m benchmarks.chart_scenes --off-set``): measured 4.3 here (the grids gain, the Mondrians keep the
+    candidates). Required: within 1.1 x the better of the learnt estimator and the candidates-only posterior,
+    and under 0.7 x the latter (measured 0.60)."""
     import models
     from benchmarks.chart_scenes import least_squares_matrix, matrix_scene, tinted_lights
     from recovery import estimate_illuminant
@@ -94,7 +95,9 @@ def test_auto_keeps_the_better_model_under_lights_tinted_off_the_locus():
                 img = np.clip(matrix_scene(sens, lights[light], layout, 0)[0], 0, 1)
                 truth = matrix_scene(sens, lights[light], layout, 0)[1]
                 est = estimate_illuminant(img, cam, "auto", spatial=False, white_level=1.0)
-                assert est.method == "bayes" and est.diagnostics["off_set_lights"] is True
+                assert est.method == "bayes"
+                if layout == "grid":      # the chart's grey patches pin the light: lights off the set admitted
+                    assert est.diagnostics["off_set_lights"] is True, est.diagnostics["off_set_rule"]
                 errs["auto"].append(angle(est.rgb, truth))
                 errs["learned"].append(angle(estimate_illuminant(img, cam, "learned", spatial=False,
                                                                  white_level=1.0).rgb, truth))
