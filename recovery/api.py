@@ -110,22 +110,17 @@ NEAR_NEUTRAL_SHARE = 0.15
 NEAR_NEUTRAL_DEG = 8.0
 
 
-def near_neutral_share(img, m, rgb, degrees: float = NEAR_NEUTRAL_DEG) -> float:
-    """Share of the analysis cells (:func:`recovery.learned.estimation_image`,
-    those above 5 % of the brightest) whose colour is within ``degrees`` of
-    the light ``rgb``: how much of the scene is near-neutral under it."""
-    from .learned import estimation_image
-
-    cells, ok = estimation_image(img, m)
-    c = cells[ok]
+def near_neutral_share(cells, ok, rgb, degrees: float = NEAR_NEUTRAL_DEG) -> float:
+    """Share of the usable analysis cells (``cells[ok]``, of
+    :func:`recovery.learned.estimation_image`; those above 5 % of the
+    brightest) whose colour is within ``degrees`` of the light ``rgb``: how
+    much of the scene is near-neutral under it."""
+    c = np.asarray(cells, float)[ok]
+    s = c.sum(1)
+    c = c[s > 0.05 * s.max()] if c.shape[0] else c
     if c.shape[0] == 0:
         return 0.0
-    c = c[c.sum(1) > 0.05 * c.sum(1).max()]
-    e = np.asarray(rgb, float)
-    e = e / (np.linalg.norm(e) or 1.0)
-    n = np.linalg.norm(c, axis=1)
-    cos = np.clip((c @ e) / np.where(n > 0, n, 1.0), -1.0, 1.0)
-    return float(np.mean(np.degrees(np.arccos(cos)) < degrees)) if c.shape[0] else 0.0
+    return float(np.mean(angular_error(c, np.asarray(rgb, float)[None]) < degrees))
 
 
 def _run_bayes(img, m, camera, diag, warns, run_peer, patches: float | None = None):
@@ -145,20 +140,22 @@ def _run_bayes(img, m, camera, diag, warns, run_peer, patches: float | None = No
     (:func:`recovery.confidence.posterior_real_rate`), as for a classical
     peer, and the spread's claim is kept as ``posterior_confidence``."""
     from .bayes import estimate_bayes
-    from .confidence import load_flag_model, posterior_real_rate
+    from .confidence import posterior_real_rate
 
     px = img[m]
     if px.shape[0] == 0:
         return run_peer("shades-of-gray", "no usable pixels for the light posterior")
-    if patches is None:
-        from .learned import estimation_image, uniform_patch_fraction
+    from .learned import estimation_image, uniform_patch_fraction
 
-        patches = uniform_patch_fraction(*estimation_image(img, m))
+    cells = None
+    if patches is None:
+        cells = estimation_image(img, m)
+        patches = uniform_patch_fraction(*cells)
     flat = bool(patches >= UNIFORM_PATCH_SCENE)
     rgb, spd, bdiag = estimate_bayes(img, m, camera)
     neutral, off_set = None, False
     if flat and OFF_SET_LIGHTS and bdiag.get("method", "bayes") == "bayes" and spd is not None:
-        neutral = near_neutral_share(img, m, rgb)
+        neutral = near_neutral_share(*(cells or estimation_image(img, m)), rgb)
         if neutral >= NEAR_NEUTRAL_SHARE:
             r2, s2, b2 = estimate_bayes(img, m, camera, **OFF_SET_LIGHTS)
             if b2.get("method", "bayes") == "bayes" and s2 is not None:
@@ -180,7 +177,6 @@ def _run_bayes(img, m, camera, diag, warns, run_peer, patches: float | None = No
                                 else "kept to the candidate set (without near-neutral surfaces the locus decides)"))
     rate = None if flat else posterior_real_rate()
     if rate is not None and isinstance(d.get("confidence"), (int, float)):
-        flag = load_flag_model()
         d["posterior_confidence"] = float(d["confidence"])
         d["confidence"] = float(rate["rate_under_3deg"])
         d["confidence_rule"] = (
@@ -189,7 +185,7 @@ def _run_bayes(img, m, camera, diag, warns, run_peer, patches: float | None = No
             f"({patches:.0%} < {UNIFORM_PATCH_SCENE:.0%}), and on real photographs the posterior's spread does not rank "
             f"its errors (area under the ROC curve {rate['auroc_spread']:.2f}), so its own claim "
             f"({d['posterior_confidence']:.0%}, posterior_confidence) is not used")
-        d["low_confidence"] = bool(d["confidence"] < (flag.threshold if flag is not None else LOW_CONFIDENCE))
+        d["low_confidence"] = bool(d["confidence"] < flag_threshold())
     return _finish(rgb, spd, None, camera, None, "bayes", d, list(warns))
 
 
@@ -694,7 +690,7 @@ def with_confidence(est: IlluminantEstimate) -> IlluminantEstimate:
     d = est.diagnostics
     conf = d.get("confidence")
     flag = load_flag_model()
-    threshold = flag.threshold if flag is not None else LOW_CONFIDENCE
+    threshold = flag_threshold()
     fallback = str(d.get("decision", "")).startswith("fallback to") or " fallback to " in str(d.get("decision", ""))
     if fallback:
         d["confidence"] = 0.0
@@ -957,6 +953,17 @@ def _estimate_learned(run: _Run, scene_choice: bool = False) -> IlluminantEstima
 #: Below this confidence (probability of an error under 3 degrees) an
 #: estimate is flagged as low-confidence (warnings, batches, the web page).
 LOW_CONFIDENCE = 0.5
+
+
+def flag_threshold() -> float:
+    """The confidence below which an estimate with no law of its own (a peer's
+    or the light posterior's measured rate) is flagged: the learnt flag's
+    threshold (:func:`recovery.confidence.load_flag_model`), else
+    :data:`LOW_CONFIDENCE`."""
+    from .confidence import load_flag_model
+
+    flag = load_flag_model()
+    return flag.threshold if flag is not None else LOW_CONFIDENCE
 
 
 def _light_map_region_size(shape, region_size: int | None, overlap: float, max_regions: int | None,

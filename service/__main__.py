@@ -161,17 +161,9 @@ def main(argv=None) -> None:
 
     import uvicorn
 
-    from pydantic import ValidationError
+    from .settings import settings_or_exit
 
-    from .settings import get_settings, settings_problem
-
-    try:
-        s = get_settings()
-    except ValidationError as e:        # a WANDELL_* variable out of range: say which, no traceback
-        import sys
-
-        sys.stderr.write("".join(f"python -m service: {line}\n" for line in settings_problem(e).splitlines()))
-        raise SystemExit(2) from None
+    s = settings_or_exit("python -m service")     # a WANDELL_* variable out of range: exit 2 naming it
     IdleClosingH11Protocol.max_connections = connection_cap(s.max_connections)
     logging.getLogger("asyncio").addFilter(_RateLimitedAcceptErrors())
     uvicorn.run("service.app:app", host=args.host or s.host, port=s.port if args.port is None else args.port,

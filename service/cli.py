@@ -188,15 +188,9 @@ def _settings():
     model disk cache's variables (:func:`_model_disk_cache`) are not settings."""
     if not any(k.upper().startswith("WANDELL_") and k.upper() not in _NOT_SETTINGS for k in os.environ):
         return _DefaultLimits()
-    from pydantic import ValidationError
+    from .settings import settings_or_exit
 
-    from .settings import get_settings, settings_problem
-
-    try:
-        return get_settings()
-    except ValidationError as e:        # a WANDELL_* variable out of range: a usage error in words
-        sys.stderr.write("".join(f"wandell: {line}\n" for line in settings_problem(e).splitlines()))
-        raise SystemExit(2) from None
+    return settings_or_exit("wandell")            # a WANDELL_* variable out of range: a usage error in words
 
 
 def _limits():

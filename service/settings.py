@@ -92,3 +92,17 @@ def settings_problem(exc: ValidationError) -> str:
         name = "WANDELL_" + "_".join(str(p) for p in err.get("loc", ())).upper()
         lines.append(f"invalid setting {name}={err.get('input')!r}: {err.get('msg')}")
     return "\n".join(lines) or str(exc)
+
+
+def settings_or_exit(prog: str) -> Settings:
+    """:func:`get_settings`, or, when a ``WANDELL_*`` variable is invalid, one
+    line per variable on stderr (``prog: invalid setting ...``,
+    :func:`settings_problem`) and exit status 2, without a traceback: what
+    ``python -m service`` and ``wandell`` do at start."""
+    try:
+        return get_settings()
+    except ValidationError as e:
+        import sys
+
+        sys.stderr.write("".join(f"{prog}: {line}\n" for line in settings_problem(e).splitlines()))
+        raise SystemExit(2) from None
