@@ -26,7 +26,7 @@ most 1.1 x the better of ``learned`` and ``bayes``, per description.
 
 Usage::
 
-    python -m benchmarks.chart_scenes [--seeds 2] [--quick] [--heldout] [--off-set]
+    python -m benchmarks.chart_scenes [--seeds 2] [--quick] [--heldout] [--off-set] [--switch]
 """
 
 from __future__ import annotations
@@ -128,14 +128,15 @@ def matrix_scene(sens: np.ndarray, light, layout: str, seed: int, surfaces=None)
     return img, e @ sens
 
 
-def matrix_scene_bytes(sens: np.ndarray, light: str, layout: str, seed: int) -> tuple[bytes, np.ndarray]:
+def matrix_scene_bytes(sens: np.ndarray, light: str, layout: str, seed: int,
+                       surfaces=None) -> tuple[bytes, np.ndarray]:
     """The scenes of :func:`scene_bytes` seen by a camera of measured
     sensitivities ``sens`` (400-700 nm, 5 nm) that the file describes only by
     its ColorMatrix1 (:func:`least_squares_matrix`); the image is
-    :func:`matrix_scene`'s, mosaicked."""
+    :func:`matrix_scene`'s (``surfaces`` as there), mosaicked."""
     from testing import dngwriter as W
 
-    img, truth = matrix_scene(sens, light, layout, seed)
+    img, truth = matrix_scene(sens, light, layout, seed, surfaces)
     cfa = np.clip(np.rint(512 + np.clip(W.mosaic(img), 0, 1) * (16383 - 512)), 0, 16383).astype(np.uint16)
     buf = io.BytesIO()
     W.write_dng(buf, cfa, black_level=512, white_level=16383, color_matrix1=least_squares_matrix(sens),
@@ -319,6 +320,157 @@ def off_set_dng(every: int = 8, log=print) -> dict:
     return out
 
 
+#: the switch's settings searched by :func:`switch_cv`: the window (degrees of a cell from the candidates'
+#: answer) and the share of cells inside it at or above which lights off the set are admitted (inf: never)
+SWITCH_DEGREES = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0)
+SWITCH_SHARES = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, float("inf"))
+
+
+def switch_scenes(every: int = 4, seeds: int = 2, log=print) -> list[dict]:
+    """Per scene, what the near-neutral switch (:data:`recovery.api.NEAR_NEUTRAL_SHARE`,
+    :data:`~recovery.api.NEAR_NEUTRAL_DEG`) decides from and what each side of it gives: chart (grid) and
+    Mondrian DNGs through the service's loader, as a RAW upload is (every ``every``-th of the 47 cameras,
+    ``seeds`` seeds), in four sets of lights and surfaces (in-sample, held-out measured lights, held-out lights
+    and surfaces, tinted lights), ``method=bayes`` as shipped with the switch always on; the product's own
+    call of :func:`recovery.api.near_neutral_share` is watched to record the candidates' light and the share
+    of near-neutral cells at every window of :data:`SWITCH_DEGREES`. Returns records ``{set, layout, camera,
+    seed, never, always, share: {deg: share} or None}`` (errors in degrees; ``share`` None where the scene is
+    not one of flat patches, and the switch is not consulted)."""
+    import models
+    from recovery import api, estimate_illuminant
+    from service.loader import load
+
+    wl = models.wavelength_grid(400, 700, 5)
+    h_lights, h_surf = heldout_content(wl)
+    sets = {"in-sample": ({n: n for n in LIGHTS}, None), "held-out lights": (h_lights, None),
+            "held-out lights and surfaces": (h_lights, h_surf), "tinted lights": (tinted_lights(wl), None)}
+    shipped = (api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE, api.near_neutral_share)
+    seen = {}
+
+    def watch(cells, ok, rgb, degrees=api.NEAR_NEUTRAL_DEG):
+        seen["rgb"] = np.asarray(rgb, float)
+        seen["share"] = {d: shipped[2](cells, ok, rgb, d) for d in SWITCH_DEGREES}
+        return shipped[2](cells, ok, rgb, degrees)
+
+    out = []
+    try:
+        api.NEAR_NEUTRAL_SHARE, api.near_neutral_share = 0.0, watch
+        for p in rawtoaces_cameras(every):
+            sens = measured_sensitivities(p, wl)
+            name = p.name.replace("_380_780_5.json", "")
+            for set_name, (lights, surf) in sets.items():
+                for light in lights.values():
+                    for layout in LAYOUTS:
+                        for seed in range(seeds):
+                            data, truth = matrix_scene_bytes(sens, light, layout, seed, surf)
+                            ph = load(data)
+                            seen.clear()
+                            est = estimate_illuminant(ph.linear, ph.camera, "bayes", mask=ph.mask, spatial=False)
+                            e = angle(est.rgb, truth)
+                            out.append({"set": set_name, "layout": layout, "camera": name, "seed": seed,
+                                        "never": angle(seen["rgb"], truth) if seen else e, "always": e,
+                                        "share": dict(seen["share"]) if seen else None})
+            log(f"  {name}: {len(out)} scenes")
+    finally:
+        api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE, api.near_neutral_share = shipped
+    return out
+
+
+def switch_errors(rows: list[dict], degrees: float, share: float) -> np.ndarray:
+    """Each scene's error with lights off the set admitted at ``share`` or more cells within ``degrees``."""
+    return np.array([r["always"] if r["share"] is not None and r["share"][degrees] >= share else r["never"]
+                     for r in rows])
+
+
+#: the rules :func:`switch_choice` can choose by, each a score of a switch over the scenes (lower is better)
+#: from the per-set mean errors ``e`` and the candidates' per-set mean errors ``c``: the mean error over sets;
+#: the mean over sets of the error relative to the candidates alone (what chose the shipped switch); the
+#: worst set's relative error; the mean log ratio
+SWITCH_RULES = {"mean": lambda e, c: float(np.mean(e)), "ratio": lambda e, c: float(np.mean(e / c)),
+                "max-ratio": lambda e, c: float(np.max(e / c)), "log-ratio": lambda e, c: float(np.mean(np.log(e / c)))}
+
+
+def _per_set(rows: list[dict], e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per set of lights: the mean of ``e`` and the candidates' mean (``never``)."""
+    groups = sorted({r["set"] for r in rows})
+    sel = [np.array([r["set"] == g for r in rows]) for g in groups]
+    never = np.array([r["never"] for r in rows])
+    return np.array([e[m].mean() for m in sel]), np.array([never[m].mean() for m in sel])
+
+
+def switch_choice(rows: list[dict], rule: str = "ratio") -> tuple[float, float]:
+    """The (degrees, share) of :data:`SWITCH_DEGREES` x :data:`SWITCH_SHARES` with the lowest score of
+    ``rule`` (:data:`SWITCH_RULES`; every set of lights weighing the same) over ``rows``; ties go to the
+    larger share (fewer scenes off the set), then the narrower window."""
+    score = SWITCH_RULES[rule]
+    best = None
+    for d in SWITCH_DEGREES:
+        for s in SWITCH_SHARES:
+            m = round(score(*_per_set(rows, switch_errors(rows, d, s))), 9)
+            if best is None or m < best[0] or (m == best[0] and (s, -d) > (best[2], -best[1])):
+                best = (m, d, s)
+    return best[1], best[2]
+
+
+def switch_cv(rows: list[dict], key: str = "set", rule: str = "ratio") -> list[dict]:
+    """Leave one ``key`` group out (a set of lights, or a camera): the switch chosen on the others by
+    ``rule`` (:func:`switch_choice`), scored on the one left out beside never, always and the shipped switch."""
+    from recovery import api
+
+    res = []
+    for g in sorted({r[key] for r in rows}):
+        train = [r for r in rows if r[key] != g]
+        test = [r for r in rows if r[key] == g]
+        d, s = switch_choice(train, rule)
+        res.append({"left out": g, "scenes": len(test), "chosen": (d, s),
+                    "cv": float(switch_errors(test, d, s).mean()),
+                    "never": float(np.mean([r["never"] for r in test])),
+                    "always": float(np.mean([r["always"] for r in test])),
+                    "shipped": float(switch_errors(test, api.NEAR_NEUTRAL_DEG, api.NEAR_NEUTRAL_SHARE).mean())})
+    return res
+
+
+def _print_switch(rows: list[dict]) -> None:
+    from recovery import api
+
+    lab = lambda c: "never" if not np.isfinite(c[1]) else f"{c[1]:.0%} within {c[0]:g} deg"
+    shipped = (api.NEAR_NEUTRAL_DEG, api.NEAR_NEUTRAL_SHARE)
+    print(f"\nthe near-neutral switch by cross-validation ({len(rows)} DNG scenes, method=bayes, mean degrees; "
+          f"shipped {lab(shipped)}):")
+    mean = lambda res, k: np.mean([r[k] for r in res])
+    print("\none set of lights left out, the switch chosen on the rest by each rule:\n")
+    print("| rule | chosen on every scene | " + " / ".join(sorted({r["set"] for r in rows})) + " | mean of the folds |")
+    print("|---|---|---|---|")
+    for rule in SWITCH_RULES:
+        res = switch_cv(rows, "set", rule)
+        print(f"| {rule} | {lab(switch_choice(rows, rule))} | " + " / ".join(f"{r['cv']:.2f}" for r in res)
+              + f" | {mean(res, 'cv'):.2f} |")
+    for k, what in (("never", "candidates alone"), ("always", "always off the set"), ("shipped", "shipped")):
+        print(f"| ({what}) | | " + " / ".join(f"{r[k]:.2f}" for r in res) + f" | {mean(res, k):.2f} |")
+    res = switch_cv(rows, "camera", "ratio")
+    print("\none camera left out, the switch chosen on the rest by the ratio rule:\n")
+    print("| left out | scenes | chosen | **cross-validated** | candidates alone | always off the set | shipped |")
+    print("|---|---|---|---|---|---|---|")
+    for r in res:
+        print(f"| {r['left out']} | {r['scenes']} | {lab(r['chosen'])} | **{r['cv']:.2f}** | {r['never']:.2f} | "
+              f"{r['always']:.2f} | {r['shipped']:.2f} |")
+    print(f"| mean of the folds | | | **{mean(res, 'cv'):.2f}** | {mean(res, 'never'):.2f} | {mean(res, 'always'):.2f} | "
+          f"{mean(res, 'shipped'):.2f} |")
+    alt = switch_choice(rows, "max-ratio")
+    print(f"\nper set and layout, candidates alone / always / shipped ({lab(shipped)}) / {lab(alt)} (max-ratio):\n")
+    for name in dict.fromkeys(r["set"] for r in rows):
+        for lay in LAYOUTS:
+            sel = [r for r in rows if r["set"] == name and r["layout"] == lay]
+            print(f"* {name}, {lay} ({len(sel)}): {np.mean([r['never'] for r in sel]):.2f} / "
+                  f"{np.mean([r['always'] for r in sel]):.2f} / {switch_errors(sel, *shipped).mean():.2f} / "
+                  f"{switch_errors(sel, *alt).mean():.2f}")
+    for lay in LAYOUTS:
+        v = [r["share"][shipped[0]] for r in rows if r["layout"] == lay and r["share"] and shipped[0] in r["share"]]
+        if v:
+            print(f"* {lay}: share of cells within {shipped[0]:g} deg, 5th / 50th / 95th percentile "
+                  + " / ".join(f"{q:.0%}" for q in np.percentile(v, [5, 50, 95])))
+
+
 def _print_off_set_dng(res: dict) -> None:
     print("\nthrough the DNG pipeline (service.loader.load), method=bayes, mean degrees:\n")
     print("| lights | layout | scenes | candidates alone | always off the set | shipped (near-neutral switch) |")
@@ -431,7 +583,24 @@ def main(argv=None) -> int:
                     "light posterior's sets and cameras with published matrices (:func:`heldout`)")
     ap.add_argument("--off-set", action="store_true", help="only the light posterior with lights off its "
                     "candidate set against the candidates alone (:func:`off_set_study`)")
+    ap.add_argument("--switch", action="store_true", help="only the near-neutral switch of lights off the "
+                    "posterior's set, chosen by cross-validation (:func:`switch_cv`); --every and --seeds apply")
+    ap.add_argument("--rows", help="with --switch: the per-scene records of an earlier run "
+                    "(out/chart_switch.json) instead of estimating again")
     a = ap.parse_args(argv)
+    if a.switch:
+        t0 = time.perf_counter()
+        if a.rows:
+            rows = json.loads(Path(a.rows).read_text())
+            for r in rows:
+                r["share"] = None if r["share"] is None else {float(k): v for k, v in r["share"].items()}
+        else:
+            rows = switch_scenes(every=a.every, seeds=a.seeds)
+            Path(a.out).mkdir(parents=True, exist_ok=True)
+            (Path(a.out) / "chart_switch.json").write_text(json.dumps(rows))
+        print(f"({time.perf_counter() - t0:.0f} s)")
+        _print_switch(rows)
+        return 0
     if a.off_set:
         t0 = time.perf_counter()
         res = off_set_study(every=8)

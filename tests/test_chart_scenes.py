@@ -105,3 +105,46 @@ def test_auto_keeps_the_better_model_under_lights_tinted_off_the_locus():
     mean = {m: float(np.mean(v)) for m, v in errs.items()}
     assert mean["auto"] <= 1.1 * min(mean["learned"], mean["candidates alone"]), mean
     assert mean["auto"] <= 0.7 * mean["candidates alone"], mean
+
+
+def _switch_rows():
+    """Two sets of lights whose best switch is known: in "tinted" the scenes hold 45 % near-neutral cells
+    (at every window) and lights off the set are 3 degrees better; in "common" 20 % and 2 degrees worse;
+    one scene of "common" is not flat (``share`` None: the switch is never consulted)."""
+    degs = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0)
+    rows = [{"set": "tinted", "camera": f"c{i % 2}", "layout": "grid", "never": 4.0, "always": 1.0,
+             "share": dict.fromkeys(degs, 0.45)} for i in range(4)]
+    rows += [{"set": "common", "camera": f"c{i % 2}", "layout": "mondrian", "never": 1.0, "always": 3.0,
+              "share": dict.fromkeys(degs, 0.2)} for i in range(4)]
+    rows.append({"set": "common", "camera": "c0", "layout": "grid", "never": 1.0, "always": 9.0, "share": None})
+    return rows
+
+
+def test_switch_choice_separates_the_sets_where_the_shares_do():
+    """Any share in (20 %, 45 %] switches exactly the scenes it should (mean error 1 over the sets); every
+    rule but the minimax must find one, and the tie-break takes the largest such share (fewer scenes off the set) at the
+    narrowest window: 40 % within 3 degrees (but for the minimax rule, below). The errors of a switch are read scene by scene."""
+    from benchmarks.chart_scenes import SWITCH_RULES, switch_choice, switch_errors
+
+    rows = _switch_rows()
+    assert list(switch_errors(rows, 8.0, 0.3)) == [1.0] * 8 + [1.0]
+    assert list(switch_errors(rows, 8.0, 0.1)) == [1.0] * 4 + [3.0] * 4 + [1.0]      # the flat-less scene stays
+    assert list(switch_errors(rows, 8.0, float("inf"))) == [4.0] * 4 + [1.0] * 5
+    for rule in set(SWITCH_RULES) - {"max-ratio"}:
+        assert switch_choice(rows, rule) == (3.0, 0.4), rule
+    # the worst set's ratio is 1 whatever the switch ("common" cannot beat its candidates), so the minimax rule
+    # ties everywhere and its tie-break keeps the candidates alone
+    assert switch_choice(rows, "max-ratio") == (3.0, float("inf"))
+
+
+def test_switch_cv_scores_the_left_out_set_with_the_switch_chosen_without_it():
+    """Left out "common": chosen on "tinted" alone, where every share up to 45 % is as good, so the largest
+    (40 %) is kept and "common" keeps the candidates (1.0, against 3.0 for always off the set). Left out
+    "tinted": chosen on "common" alone, where never switching is best, so "tinted" gets the candidates' 4.0:
+    what a set never seen in the choice costs."""
+    from benchmarks.chart_scenes import switch_cv
+
+    res = {r["left out"]: r for r in switch_cv(_switch_rows(), "set", "ratio")}
+    assert res["common"]["chosen"] == (3.0, 0.4) and res["common"]["cv"] == 1.0
+    assert abs(res["common"]["always"] - 21.0 / 5) < 1e-12 and res["common"]["never"] == 1.0
+    assert res["tinted"]["chosen"][1] == float("inf") and res["tinted"]["cv"] == 4.0
