@@ -1335,6 +1335,53 @@ class AnalysisResult:
         pts, rho = self._points(points)
         return self.estimates_from_responses(rho, pts[:, 0], pts[:, 1])
 
+    def metamers_from_responses(self, rho, rows, cols):
+        """:class:`recovery.metamers.MetamerRange` of camera responses ``rho``
+        ``(P, C)`` seen at pixel coordinates ``rows``, ``cols``: every
+        reflectance in [0, 1] that gives the response (divided by the prior's
+        exposure, as the estimates are) under the light there and the nominal
+        camera, within :data:`recovery.metamers.METAMER_TOLERANCE_Z` standard
+        deviations of the prior's noise model per channel. At most
+        :data:`METAMER_POINTS` responses (about 90 ms each)."""
+        from .metamers import METAMER_TOLERANCE_Z, metamer_range
+        from .surface_prior import _noise_var, lighting_operator
+
+        rho = np.atleast_2d(np.asarray(rho, float))
+        if rho.shape[0] > METAMER_POINTS:
+            raise InputError(f"{rho.shape[0]} surfaces asked for their metamer sets; at most {METAMER_POINTS} per "
+                             "call (two linear programmes per wavelength each)")
+        if self.surface_estimator == "pinv":       # eq. 36's scale and light, the shipped prior's noise model
+            from .surface_prior import default_prior
+
+            prior, sens, light = default_prior(self.camera.wavelengths), self.camera.sensitivities, None
+            y = rho * float(self.reflectance_scale)
+        else:
+            if self.prior is None or not np.array_equal(self._prior_spectrum, self.illuminant.spectrum):
+                prepare_prior(self, self._prior_pixels, prior=self.prior, calibrate=self._band_calibrate)
+            prior, sens, light = self.prior, self.prior_sensitivities[0], self.prior_lights[0]
+            y = rho / float(self.prior_exposure)
+        if self.illuminant.light_map is not None:
+            spd = self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
+        else:
+            spd = np.broadcast_to(self.illuminant.spectrum if light is None else light, (rho.shape[0], sens.shape[0]))
+        A = lighting_operator(sens, np.asarray(spd, float), self.camera.dlambda)          # (P, C, N)
+        tol = METAMER_TOLERANCE_Z * np.sqrt(_noise_var(prior, A, None))                   # (P,)
+        return metamer_range(A, y, np.repeat(tol[:, None], rho.shape[1], axis=1))
+
+    def metamer_range(self, points):
+        """The metamer set's extent at ``[(row, col), ...]``: a
+        :class:`recovery.metamers.MetamerRange` (``lower``, ``upper`` ``(P,
+        N)``, ``slack``): at each wavelength the least and greatest
+        reflectance in [0, 1] that gives the pixel's response under the
+        estimated light (the map's light there) and the nominal camera, on the
+        same scale as :meth:`reflectance` (Finlayson & Morovic 2005). Unlike
+        the band it assumes nothing about what surfaces are like; the light's
+        and the camera's uncertainty do not widen it. ``slack`` > 0 says no
+        physical reflectance gives the response (the light, exposure or camera
+        is wrong there)."""
+        pts, rho = self._points(points)
+        return self.metamers_from_responses(rho, pts[:, 0], pts[:, 1])
+
     def reflectance(self, points) -> np.ndarray:
         """Reflectance spectra at ``[(row, col), ...]``, ``(P, N)`` on
         ``camera.wavelengths``: the prior's posterior mean, or eq. 36 then
@@ -1373,6 +1420,10 @@ def _pixel_points(points) -> np.ndarray:
 
 #: Lights x cameras drawn for the bands when the light or the camera is uncertain.
 SURFACE_SAMPLES = 32
+
+#: Surfaces whose metamer sets one call computes at most (:meth:`AnalysisResult.metamer_range`; about 90 ms
+#: each at 31 wavelengths: two linear programmes per wavelength).
+METAMER_POINTS = 64
 
 
 def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str = "auto",

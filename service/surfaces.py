@@ -72,7 +72,18 @@ def box_sums_streamed(layers, h: int, w: int, r0, c0, r1, c1, strip: int = BOX_S
     return (sign[:, None] * vals).reshape(4, r0.size, -1).sum(axis=0)
 
 
-def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -> dict:
+#: What ``metamer_lower`` / ``metamer_upper`` / ``metamer_slack`` mean (the answer's ``metamers``).
+METAMERS_DOC = ("metamer_lower / metamer_upper: at each wavelength the least and greatest reflectance of any "
+                "reflectance in [0, 1] that gives the surface's response under the estimated light (the map's "
+                "light at its pixel) and the nominal camera, within 2 standard deviations of the response's noise "
+                "per channel, on the reflectance's scale (Finlayson & Morovic 2005, metamer sets; linear "
+                "programmes). It assumes nothing about what surfaces are like: where it is narrow the data fix the "
+                "reflectance, where it spans [0, 1] only the prior does. The light's and the camera's own "
+                "uncertainty do not widen it (they widen reflectance_std). metamer_slack > 0: no physical "
+                "reflectance gives the response; the range is that of the tolerance grown (1 + slack)-fold")
+
+
+def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, metamers: bool = False) -> dict:
     """Reflectance spectra at full-resolution pixel points, rectangle means,
     or a coarse grid: the prior's posterior mean with a band per wavelength
     and an expected RMS error (:mod:`recovery.surface_prior`), or eq. 36 with
@@ -85,7 +96,13 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
     also the mean of its pixels' reflectances; the prior's mixture posterior
     is not linear: there it is the estimate of the surface the rectangle's
     pixels average to). All entries are then solved in one
-    vectorised step."""
+    vectorised step.
+
+    ``metamers``: also each entry's metamer set, the least and greatest
+    reflectance at each wavelength of any physical reflectance giving its
+    response (:meth:`recovery.api.AnalysisResult.metamers_from_responses`;
+    at most :data:`recovery.api.METAMER_POINTS` entries, checked by the
+    caller)."""
     img = decoded.estimation
     h, w = img.shape[:2]
     H, W = decoded.full_shape
@@ -154,8 +171,9 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
             weights = np.einsum("pjk,pk->pj", np.linalg.pinv(L), rho) * res.reflectance_scale
             refl = weights @ res.surface_model.basis.T
             stds, ermse = [None] * len(kinds), [None] * len(kinds)
+        mr = res.metamers_from_responses(rho, rows_c, cols_c) if metamers else None
         fit = res.illuminant.diagnostics.get("subspace_fit_ratio")
-        for kind, where, r, s_, sd, er in zip(kinds, wheres, refl, sat, stds, ermse):
+        for i, (kind, where, r, s_, sd, er) in enumerate(zip(kinds, wheres, refl, sat, stds, ermse)):
             warns = []
             if np.any(r < -0.02):
                 warns.append(f"non-physical: reflectance below 0 (min {r.min():.3f})")
@@ -165,9 +183,17 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
                 warns.append("saturated pixels: the estimate is clipped")
             if fit is not None and fit > 0.1:
                 warns.append("poor subspace fit for the scene (see diagnostics)")
-            entries.append({"kind": kind, "where": where, "reflectance": r.tolist(), "warnings": warns,
-                            "reflectance_std": None if sd is None else sd.tolist(),
-                            "expected_rmse": None if er is None else float(er)})
+            entry = {"kind": kind, "where": where, "reflectance": r.tolist(), "warnings": warns,
+                     "reflectance_std": None if sd is None else sd.tolist(),
+                     "expected_rmse": None if er is None else float(er)}
+            if mr is not None:
+                entry.update(metamer_lower=mr.lower[i].tolist(), metamer_upper=mr.upper[i].tolist(),
+                             metamer_slack=float(mr.slack[i]))
+                if mr.slack[i] > 0:
+                    warns.append(f"no physical reflectance gives this response under the estimated light (the "
+                                 f"tolerance had to grow {1 + mr.slack[i]:.3g}-fold): the light, the exposure or "
+                                 "the camera is wrong here")
+            entries.append(entry)
     return {"wavelengths": run.camera.wavelengths.tolist(), "surfaces": entries,
             "surface_estimator": res.surface_estimator,
             "band": ("reflectance_std: the posterior standard deviation per wavelength times a factor "
@@ -178,6 +204,7 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict) -
                      "surface"
                      if res.surface_estimator == "prior" else
                      "none: the literal method (eq. 36, pseudo-inverse in the surface model) has no band"),
+            **({"metamers": METAMERS_DOC} if metamers else {}),
             "surface_model": res.diagnostics.get("surface_model"),
             "reflectance_scale_convention": res.diagnostics.get("reflectance_scale_convention"),
             "diagnostics": res.diagnostics}

@@ -15,6 +15,8 @@ import weakref
 from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 
+from recovery.api import METAMER_POINTS
+
 from .. import pipeline
 from ..deps import read_upload
 from ..errors import INSUFFICIENT_STORAGE, ServiceError, disk_full
@@ -316,16 +318,22 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
 def _surfaces_csv(res: dict) -> str:
     """``format=csv``: a row per surface (kind, where, warnings, the
     reflectance at each wavelength), then its band: ``expected_rmse`` and
-    the standard deviation at each wavelength (``std <nm>``; empty for eq. 36)."""
+    the standard deviation at each wavelength (``std <nm>``; empty for eq. 36);
+    with ``metamers=true`` then ``metamer_slack`` and the metamer set's least
+    and greatest reflectance at each wavelength (``min <nm>``, ``max <nm>``)."""
     buf = io.StringIO()
     w = csv.writer(buf)
     wl = [f"{x:g}" for x in res["wavelengths"]]
-    w.writerow(["kind", "where", "warnings"] + wl + ["expected_rmse"] + [f"std {x}" for x in wl])
+    metamers = "metamers" in res
+    w.writerow(["kind", "where", "warnings"] + wl + ["expected_rmse"] + [f"std {x}" for x in wl]
+               + (["metamer_slack"] + [f"min {x}" for x in wl] + [f"max {x}" for x in wl] if metamers else []))
     for s in res["surfaces"]:
         std, rmse = s.get("reflectance_std"), s.get("expected_rmse")
         w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
                    + [f"{v:.6g}" for v in s["reflectance"]] + ["" if rmse is None else f"{rmse:.6g}"]
-                   + ([f"{v:.6g}" for v in std] if std is not None else [""] * len(wl)))
+                   + ([f"{v:.6g}" for v in std] if std is not None else [""] * len(wl))
+                   + ([f"{s['metamer_slack']:.6g}"] + [f"{v:.6g}" for v in s["metamer_lower"]]
+                      + [f"{v:.6g}" for v in s["metamer_upper"]] if metamers else []))
     return buf.getvalue()
 
 
@@ -340,7 +348,9 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     """Reflectance spectra at points, rectangle means or a coarse grid, with
     per-estimate warnings. At most ``WANDELL_MAX_SURFACE_REGIONS`` points,
     rectangles and grid cells together (413 ``too_many_regions``); a
-    rectangle costs the same whatever its area (a summed-area table)."""
+    rectangle costs the same whatever its area (a summed-area table).
+    ``metamers=true`` adds each surface's metamer set (at most 64 surfaces,
+    about 90 ms each)."""
     pts, rcs, grd = regions.points or [], regions.rects or [], regions.grid
     camera, method, format = est.camera, est.method, regions.format
     if not (pts or rcs or grd):
@@ -349,13 +359,17 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     if n_regions > settings.max_surface_regions:
         raise ServiceError(413, "too_many_regions", f"{n_regions} points, rectangles and grid cells; at most "
                        f"{settings.max_surface_regions} per request (WANDELL_MAX_SURFACE_REGIONS)")
+    if regions.metamers and n_regions > METAMER_POINTS:
+        raise ServiceError(413, "too_many_regions", f"metamers=true for {n_regions} points, rectangles and grid "
+                           f"cells; at most {METAMER_POINTS} per request with metamers (two linear programmes per "
+                           "wavelength each)")
     opts = est.estimate_kwargs()
     data, sens = await _inputs(file, sensitivities, settings)
 
     def work():
         decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings,
                                       display_referred=inp.display_referred)
-        res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts)
+        res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts, metamers=regions.metamers)
         res["illuminant"] = pipeline.illuminant_json(run.estimate, pipeline.profile_of(decoded), run.camera)
         res["method"] = run.estimate.method
         res["camera"] = pipeline.camera_json(run.camera)

@@ -182,6 +182,13 @@ class Surface(_Answer):
                                                                   "+- 1.645 std is a 90 % band; null for eq. 36")
     expected_rmse: float | None = Field(None, description="one number for the surface: the RMS error the model "
                                                           "expects (the calibrated band's RMS); null for eq. 36")
+    metamer_lower: list[float] | None = Field(None, description="with metamers=true: per wavelength, the least "
+                                                               "reflectance of the metamer set (see `metamers`)")
+    metamer_upper: list[float] | None = Field(None, description="with metamers=true: per wavelength, the greatest "
+                                                               "reflectance of the metamer set")
+    metamer_slack: float | None = Field(None, description="with metamers=true: 0 when some reflectance in [0, 1] "
+                                                          "gives the response; otherwise how far the tolerance had "
+                                                          "to grow (the light, exposure or camera is wrong there)")
 
 
 class SurfacesResult(_Answer):
@@ -192,6 +199,8 @@ class SurfacesResult(_Answer):
     surface_estimator: str = Field(description="`prior` (issue 31: a prior over measured surfaces, with bands) or "
                                                "`pinv` (eq. 36, when a surface model is named)")
     band: str = Field(description="what reflectance_std and expected_rmse mean")
+    metamers: str | None = Field(None, description="with metamers=true: what metamer_lower, metamer_upper and "
+                                                   "metamer_slack mean")
     surface_model: str
     reflectance_scale_convention: str
     diagnostics: dict[str, Any]

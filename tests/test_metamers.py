@@ -1,0 +1,158 @@
+"""The metamer set's extent (recovery.metamers; issue 31 item 2's "range of the metamer set"):
+linear programmes, checked against what the mathematics says they must give."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import models
+from recovery.metamers import metamer_range
+from recovery.surface_prior import lighting_operator
+
+WL = models.wavelength_grid(400, 700, 10)
+DL = models.wavelength_step(WL)
+
+
+def _camera(name="Nikon 5100 (NPL)"):
+    return models.camera_sensitivities(models.canonical_camera_name(name), WL)
+
+
+def test_every_true_reflectance_lies_inside_its_metamer_range():
+    """A reflectance in [0, 1] whose response is given exactly is one of its own metamers, so at every
+    wavelength it lies between the least and the greatest of them (24 ColorChecker patches under A and D65)."""
+    R = models.reflectance_set("colorchecker", WL)
+    for light in ("A", "D65"):
+        A = lighting_operator(_camera(), models.illuminant(light, WL), DL)
+        y = R @ A.T
+        mr = metamer_range(A, y, 1e-6 * np.abs(y).max())
+        assert np.all(mr.physical) and np.all(mr.slack == 0)
+        assert np.all(mr.lower <= R + 1e-7) and np.all(R <= mr.upper + 1e-7)
+        assert np.all((mr.lower >= 0) & (mr.upper <= 1) & (mr.lower <= mr.upper))
+        # three sensors leave most of the spectrum open: the range is wide on average, narrow nowhere near 0
+        assert 0.3 < mr.width.mean() < 1.0
+
+
+def test_as_many_independent_channels_as_wavelengths_fix_the_reflectance_to_the_tolerance():
+    """With A the identity every channel sees one wavelength: the metamer set is the box |r - y| <= t, so
+    the range is exactly [y - t, y + t] clipped to [0, 1]."""
+    y = np.array([[0.2, 0.5, 0.95, 0.01, 0.7]])
+    t = 0.03
+    mr = metamer_range(np.eye(5), y, t)
+    np.testing.assert_allclose(mr.lower, np.clip(y - t, 0, 1), atol=1e-7)
+    np.testing.assert_allclose(mr.upper, np.clip(y + t, 0, 1), atol=1e-7)
+
+
+def test_more_channels_can_only_narrow_the_range():
+    """A six-channel camera (the three channels, and the same behind a long-pass filter) constrains a
+    superset of what the three do: its metamer set is a subset, so its range lies inside."""
+    S3 = _camera()
+    edge = 1.0 / (1.0 + np.exp(-(WL - 550.0) / 15.0))
+    S6 = np.hstack([S3, S3 * edge[:, None]])
+    E = models.illuminant("D50", WL)
+    R = models.reflectance_set("colorchecker", WL)[::4]
+    A3, A6 = lighting_operator(S3, E, DL), lighting_operator(S6, E, DL)
+    y3, y6 = R @ A3.T, R @ A6.T
+    m3 = metamer_range(A3, y3, 1e-6 * np.abs(y3).max(axis=1, keepdims=True))
+    m6 = metamer_range(A6, y6, np.hstack([m3.tolerance, m3.tolerance]))
+    assert np.all(m6.lower >= m3.lower - 1e-7) and np.all(m6.upper <= m3.upper + 1e-7)
+    assert m6.width.mean() < m3.width.mean() - 0.05
+
+
+def test_a_response_brighter_than_white_says_so_and_stays_finite():
+    """Twice the response of a perfect white: no reflectance in [0, 1] gives it, so ``slack`` > 0 and
+    ``physical`` is False; the range is that of the tolerance grown just enough, which holds the perfect
+    white (the brightest reflectance) and nothing NaN."""
+    A = lighting_operator(_camera(), models.illuminant("D65", WL), DL)
+    white = A @ np.ones(WL.size)
+    mr = metamer_range(A, 2 * white, 0.01 * white)
+    assert mr.slack[0] > 0 and not mr.physical[0]
+    assert np.all(np.isfinite(mr.lower)) and np.all(np.isfinite(mr.upper))
+    assert np.all(mr.upper >= 1 - 1e-7)
+
+
+@pytest.mark.parametrize("args, words", [
+    ((np.ones((3, 31)), np.ones(3), 0.0), "tolerance"),
+    ((np.ones((3, 31)), np.array([1.0, np.nan, 1.0]), 0.1), "finite"),
+    ((np.ones((3, 31)), np.ones(4), 0.1), "does not match"),
+])
+def test_bad_arguments_are_named(args, words):
+    with pytest.raises(ValueError, match=words):
+        metamer_range(*args)
+
+
+def _chart_image(cam, light="A"):
+    wl = cam.wavelengths
+    R = models.reflectance_set("colorchecker", wl)
+    E = models.illuminant(light, wl)
+    rho = R @ (cam.sensitivities.T * (E * cam.dlambda)).T
+    img = np.repeat(np.repeat(rho.reshape(4, 6, 3), 20, 0), 20, 1)
+    return img / img.max() * 0.8, R, [(10 + 20 * i, 10 + 20 * j) for i in range(4) for j in range(6)]
+
+
+def test_analysis_gives_the_metamer_range_of_its_own_light_camera_and_scale():
+    """``analyze(...).metamer_range`` is :func:`metamer_range` of the pixel's response divided by the
+    surfaces' exposure, under the nominal camera and light the estimates use, at 2 noise standard deviations
+    (recomputed here from those documented ingredients); the estimate and (on this chart, whose light the
+    posterior finds within a degree) the true reflectances on the estimate's scale lie inside it."""
+    from recovery import Camera, analyze
+    from recovery.api import METAMER_POINTS
+    from recovery.errors import InputError
+    from recovery.surface_prior import _noise_var
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    img, R, pts = _chart_image(cam)
+    res = analyze(img, cam, spatial=False)
+    mr = res.metamer_range(pts)
+    A = lighting_operator(res.prior_sensitivities[0], res.prior_lights[0], cam.dlambda)
+    y = img[tuple(np.array(pts).T)] / res.prior_exposure
+    tol = 2.0 * np.sqrt(_noise_var(res.prior, A, None))
+    ref = metamer_range(A, y, tol)
+    np.testing.assert_allclose(mr.lower, ref.lower, atol=1e-9)
+    np.testing.assert_allclose(mr.upper, ref.upper, atol=1e-9)
+    est = res.surface_estimates(pts).mean
+    assert np.mean((est >= mr.lower - 1e-6) & (est <= mr.upper + 1e-6)) > 0.99
+    k = np.sum(est * R) / np.sum(R * R)
+    assert np.mean((R * k >= mr.lower - 1e-6) & (R * k <= mr.upper + 1e-6)) > 0.99
+    with pytest.raises(InputError, match="at most"):
+        res.metamer_range([pts[0]] * (METAMER_POINTS + 1))
+    # the literal method has its own scale; the range is defined there too
+    lit = analyze(img, cam, spatial=False, surface_estimator="pinv").metamer_range(pts[:3])
+    assert np.all((lit.lower >= 0) & (lit.upper <= 1) & (lit.lower <= lit.upper))
+
+
+def test_surfaces_endpoint_gives_metamer_ranges_within_a_bounded_cost():
+    """``POST /v1/surfaces`` with ``metamers=true``: each surface carries ``metamer_lower`` <=
+    ``metamer_upper`` in [0, 1] per wavelength and ``metamer_slack``, the answer says what they mean; the CSV
+    gains a slack column and two per wavelength; more than 64 surfaces is a 413 naming the limit; a value that
+    is not a boolean is a 422 naming the field."""
+    from fastapi.testclient import TestClient
+
+    from benchmarks.chart_scenes import scene_bytes
+    from service.app import app
+
+    data, _ = scene_bytes("Nikon 5100 (NPL)", "D50", "grid", 0, matrix_only=False)
+    with TestClient(app, base_url="http://localhost") as c:
+        r = c.post("/v1/surfaces", files={"file": ("s.dng", data)},
+                   data={"points": "[[30, 40], [60, 90]]", "metamers": "true"})
+        assert r.status_code == 200, r.text
+        body = json.loads(r.text, parse_constant=lambda x: pytest.fail(f"non-finite {x} in the answer"))
+        assert "metamer" in body["metamers"]
+        n = len(body["wavelengths"])
+        for s in body["surfaces"]:
+            lo, hi = np.array(s["metamer_lower"]), np.array(s["metamer_upper"])
+            assert lo.shape == hi.shape == (n,) and np.all((0 <= lo) & (lo <= hi) & (hi <= 1))
+            assert s["metamer_slack"] >= 0
+        plain = c.post("/v1/surfaces", files={"file": ("s.dng", data)}, data={"points": "[[30, 40]]"}).json()
+        assert "metamer_lower" not in plain["surfaces"][0] or plain["surfaces"][0]["metamer_lower"] is None
+        csv = c.post("/v1/surfaces", files={"file": ("s.dng", data)},
+                     data={"points": "[[30, 40]]", "metamers": "true", "format": "csv"})
+        head, row = csv.text.splitlines()[:2]
+        assert len(head.split(",")) == len(row.split(",")) == 3 + n + 1 + n + 1 + 2 * n
+        assert head.split(",")[-1] == "max 700"
+        big = c.post("/v1/surfaces", files={"file": ("s.dng", data)}, data={"grid": "9x9", "metamers": "true"})
+        assert big.status_code == 413 and "at most 64" in big.json()["detail"]
+        bad = c.post("/v1/surfaces", files={"file": ("s.dng", data)}, data={"points": "[[30, 40]]", "metamers": "x"})
+        assert bad.status_code == 422 and "metamers" in bad.json()["detail"]
