@@ -1,0 +1,115 @@
+"""Round 8 of probing (docs/probe_round8.md): each test is the minimal
+reproduction of one fault found, through the Python API, the command line as
+users run it (``python -m service.cli``) or the real ASGI stack (FastAPI's
+TestClient), and holds once the fault is fixed."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from recovery import Camera, InputError, analyze, estimate_illuminant
+
+from .conftest import scene_dng_bytes
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def dng() -> bytes:
+    return scene_dng_bytes(64, 96)
+
+
+def _cli(*args: str, timeout: float = 300):
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env, cwd=ROOT)
+
+
+# --- 1. cameras the shipped spectra cannot model ---------------------------------------------
+
+def _nikon() -> Camera:
+    return Camera.named("Nikon 5100 (NPL)")
+
+
+@pytest.mark.parametrize("make", [
+    lambda c: (c.wavelengths + 480, c.sensitivities),                      # 880-1180 nm, infrared
+    lambda c: (c.wavelengths - 320, c.sensitivities),                      # 80-380 nm: one wavelength inside
+    lambda c: (np.array([500.0, 600.0]), c.sensitivities[[10, 20]]),       # 2 wavelengths, 3 channels
+    lambda c: (np.arange(380.0, 1001.0, 10.0),                             # a channel seeing only > 800 nm
+               np.c_[np.ones(63), np.ones(63), (np.arange(380.0, 1001.0, 10.0) > 800).astype(float)]),
+], ids=["880-1180nm", "80-380nm", "two-wavelengths", "infrared-channel"])
+def test_a_camera_outside_the_measured_spectra_is_an_input_error_naming_it(make):
+    """A camera on 880-1200 nm made ``auto``/``bayes``/``learned`` raise a
+    bare ValueError ("candidate spectra and prior must be finite": the
+    narrow-band candidate lights underflow there), one of two wavelengths a
+    bare ValueError from the surface model's PCA ("dimension must be in
+    1..2, not 3") on every method. The lights and surfaces are measured on
+    380-780 nm: the camera is refused where it is made, naming the rule."""
+    with pytest.raises(InputError, match=r"380-780 nm|at least 3 wavelengths"):
+        Camera(*make(_nikon()))
+
+
+def test_a_camera_reaching_past_the_measured_spectra_still_analyses():
+    """What stays accepted: a camera whose grid reaches beyond 380-780 nm but
+    sees at least C wavelengths inside it, on every method."""
+    from .test_probe_pyapi import mondrian
+
+    nik = _nikon()
+    img = mondrian(nik)
+    wl = np.arange(300.0, 1101.0, 10.0)
+    sens = np.exp(-0.5 * ((wl[:, None] - np.array([450.0, 550.0, 650.0])) / 40.0) ** 2) + 1e-3
+    for cam in (Camera(wl, sens), Camera(np.array([450.0, 550.0, 650.0]), np.eye(3) + 0.1)):
+        for method in ("auto", "bayes", "gray-world"):
+            est = estimate_illuminant(img, cam, method)
+            assert np.all(np.isfinite(est.rgb)) and np.all(np.isfinite(est.spectrum)), (cam.wavelengths, method)
+        res = analyze(img, cam, "gray-world")
+        assert np.all(np.isfinite(res.reflectance([(1, 2)])))
+
+
+# --- 3. wandell batch: files already in OUT_DIR ----------------------------------------------
+
+def test_batch_keeps_a_read_only_output_even_with_force_and_says_so(tmp_path, dng):
+    """``wandell batch IN OUT --force`` replaced an output the user had made
+    read-only (``chmod a-w``; the new file even came back writable), exit 0
+    and "2 done" (round 7 made ``white-balance`` keep one). It is kept, its
+    item fails ``output_read_only`` saying what to do (exit 1); without
+    ``--force`` a finished read-only output is simply skipped."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    src.mkdir()
+    for name in ("a.dng", "b.dng"):
+        (src / name).write_bytes(dng)
+    args = ("batch", "--workers", "1", "--format", "png", str(src), str(out))
+    assert _cli(*args).returncode == 0
+    kept = out / "a.png"
+    before = kept.read_bytes()
+    kept.chmod(0o444)
+    r = _cli(*args[:-2], "--force", *args[-2:])
+    assert r.returncode == 1, (r.returncode, r.stdout, r.stderr)
+    assert "output_read_only" in r.stdout and "1 done" in r.stdout and "1 failed" in r.stdout, r.stdout
+    assert kept.read_bytes() == before and not os.stat(kept).st_mode & 0o222, "the read-only output was replaced"
+    r = _cli(*args)
+    assert r.returncode == 0 and "2 skipped" in r.stdout, (r.stdout, r.stderr)
+
+
+def test_batch_keeps_a_file_of_the_users_own_that_has_an_outputs_name(tmp_path, dng):
+    """A picture of the user's own in OUT_DIR named like an output
+    (``a.png`` for ``a.dng``; no record of a batch in ``.wandell``) was
+    replaced without ``--force`` and without a word, exit 0: lost. It is
+    kept and its item fails ``output_exists`` naming ``--force``; with
+    ``--force`` it is replaced, as that flag now says."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    src.mkdir()
+    out.mkdir()
+    (src / "a.dng").write_bytes(dng)
+    (out / "a.png").write_bytes(b"the user's own picture")
+    args = ("batch", "--workers", "1", "--format", "png", str(src), str(out))
+    r = _cli(*args)
+    assert r.returncode == 1 and "output_exists" in r.stdout and "--force" in r.stdout, (r.stdout, r.stderr)
+    assert (out / "a.png").read_bytes() == b"the user's own picture"
+    r = _cli(*args[:-2], "--force", *args[-2:])
+    assert r.returncode == 0 and (out / "a.png").read_bytes()[:4] == b"\x89PNG", (r.stdout, r.stderr)
