@@ -113,3 +113,28 @@ def test_batch_keeps_a_file_of_the_users_own_that_has_an_outputs_name(tmp_path, 
     assert (out / "a.png").read_bytes() == b"the user's own picture"
     r = _cli(*args[:-2], "--force", *args[-2:])
     assert r.returncode == 0 and (out / "a.png").read_bytes()[:4] == b"\x89PNG", (r.stdout, r.stderr)
+
+
+# --- 4. /v1/surfaces and quality -------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    from .conftest import isolated_app_client
+
+    yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
+
+
+@pytest.mark.parametrize("quality", ["fast", "balanced", "accurate"])
+def test_surfaces_take_quality_and_answer_the_light_analyze_answers(client, dng, quality):
+    """``/v1/analyze`` takes ``quality`` (the analysis resolution of the
+    light), ``/v1/surfaces`` refused it (422 ``unknown_field``), so the page
+    dropped it there: with "fast" chosen the picture was corrected under one
+    light and "read a surface" estimated the surface under another, while
+    saying "under Auto's light". Now the same fields give the same light."""
+    f = {"quality": quality}
+    a = client.post("/v1/analyze", files={"file": ("a.dng", dng)}, data=f)
+    s = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={"points": "[[10, 10]]", **f})
+    assert a.status_code == 200 and s.status_code == 200, (a.text[:300], s.text[:300])
+    assert s.json()["illuminant"]["camera_rgb"] == a.json()["illuminant"]["camera_rgb"]
+    bad = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={"points": "[[1, 1]]", "quality": "x"})
+    assert bad.status_code == 422 and "quality" in bad.json()["detail"], bad.text
