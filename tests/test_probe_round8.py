@@ -5,6 +5,7 @@ TestClient), and holds once the fault is fixed."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -138,3 +139,38 @@ def test_surfaces_take_quality_and_answer_the_light_analyze_answers(client, dng,
     assert s.json()["illuminant"]["camera_rgb"] == a.json()["illuminant"]["camera_rgb"]
     bad = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={"points": "[[1, 1]]", "quality": "x"})
     assert bad.status_code == 422 and "quality" in bad.json()["detail"], bad.text
+
+
+# --- 5. the flag in the X-Illuminant header and the XMP ---------------------------------------
+
+@pytest.mark.parametrize("method", ["auto", "maloney-wandell"])
+def test_the_x_illuminant_header_and_the_xmp_carry_the_low_confidence_flag(client, dng, method):
+    """The JSON answer's ``diagnostics`` carry ``confidence`` and
+    ``low_confidence``; the corrected image's ``X-Illuminant`` header carried
+    neither, the XMP sidecar (``format=xmp``) and the XMP inside the image
+    the confidence but not the flag: a photographer batch-processing with
+    headers or sidecars could not pick out the doubtful ones. Both now carry
+    the flag the JSON gives (``maloney-wandell`` is always flagged: it has no
+    calibration on real photographs)."""
+    from service.outputs import read_wandell_xmp
+
+    f = {"method": method}
+    js = client.post("/v1/white-balance", files={"file": ("a.dng", dng)}, data={**f, "response": "json"}).json()
+    want = {k: js["diagnostics"][k] for k in ("confidence", "low_confidence")}
+    assert want["low_confidence"] is (method == "maloney-wandell")
+    img = client.post("/v1/white-balance", files={"file": ("a.dng", dng)}, data={**f, "format": "png"})
+    head = json.loads(img.headers["X-Illuminant"])
+    assert {k: head.get(k) for k in want} == want, head
+    xmp = client.post("/v1/white-balance", files={"file": ("a.dng", dng)}, data={**f, "format": "xmp"})
+    assert {k: json.loads(xmp.headers["X-Illuminant"]).get(k) for k in want} == want
+    props = read_wandell_xmp(xmp.text)
+    assert props["LowConfidence"] is want["low_confidence"] and props["Confidence"] == want["confidence"], props
+
+
+def test_a_white_the_user_set_carries_no_confidence_in_the_header(client, dng):
+    """A white the user set (as-shot, a temperature/tint, a picked neutral)
+    has no confidence in the JSON answer, so none in the header either."""
+    for f in ({"white": "as-shot"}, {"white": "5000/+10"}, {"neutral": "[10, 10]"}):
+        img = client.post("/v1/white-balance", files={"file": ("a.dng", dng)}, data={**f, "format": "png"})
+        head = json.loads(img.headers["X-Illuminant"])
+        assert img.status_code == 200 and "confidence" not in head and "low_confidence" not in head, (f, head)

@@ -300,6 +300,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     header["rendering"] = pipeline.rendering_json(info)
     header["white"] = "neutral" if where is not None else white
     header["lights"] = body["lights"]
+    header.update(pipeline.confidence_json(run.estimate))   # the flag, as diagnostics has it (probe round 8)
     if "neutral" in body:
         header["neutral"] = body["neutral"]
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),
