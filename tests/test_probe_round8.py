@@ -174,3 +174,23 @@ def test_a_white_the_user_set_carries_no_confidence_in_the_header(client, dng):
         img = client.post("/v1/white-balance", files={"file": ("a.dng", dng)}, data={**f, "format": "png"})
         head = json.loads(img.headers["X-Illuminant"])
         assert img.status_code == 200 and "confidence" not in head and "low_confidence" not in head, (f, head)
+
+
+# --- long upload names: the download keeps its extension --------------------------------------
+
+@pytest.mark.parametrize("stem", ["w" * 300, "日" * 200], ids=["ascii", "utf8"])
+def test_a_long_names_download_keeps_its_extension(client, dng, stem):
+    """``Content-Disposition`` names are cut to 200 characters; the cut took
+    the extension: the XMP sidecar of a RAW with a long name downloaded as
+    ``www...w`` (no ``.xmp``; the page's "Download XMP sidecar" saves it
+    so), in both ``filename`` and ``filename*``."""
+    from urllib.parse import unquote
+
+    r = client.post("/v1/white-balance", files={"file": (stem + ".dng", dng)}, data={"format": "xmp"})
+    assert r.status_code == 200, r.text[:300]
+    cd = r.headers["content-disposition"]
+    plain = cd.split('filename="', 1)[1].split('"', 1)[0]
+    assert plain.endswith(".xmp") and len(plain) <= 200, cd
+    if "filename*=" in cd:
+        full = unquote(cd.split("filename*=UTF-8''", 1)[1])
+        assert full.endswith(".xmp") and full.startswith(stem[:50]) and len(full) <= 200, full
