@@ -468,7 +468,11 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     tasks = []
     for p in files:
         name = os.path.relpath(p, in_dir)
-        out = os.path.join(out_dir, jobs.unique(f"{os.path.splitext(name)[0]}.{options.extension}", seen))
+        # a name cut as the server's batches cut theirs, so its records and temporaries fit in NAME_MAX (a 255-byte
+        # RAW's item failed with "[Errno 36] File name too long: .wandell/NAME.tif.lock": probe round 8)
+        sub, base = os.path.split(f"{os.path.splitext(name)[0]}.{options.extension}")
+        out = os.path.join(out_dir, jobs.unique(os.path.join(sub, jobs.clip_name(base, jobs.DISK_NAME_BYTES - 12)),
+                                                seen))
         os.makedirs(os.path.dirname(out), exist_ok=True)
         tasks.append(jobs.ItemTask(src=p, out=out, name=name, options=options, max_pixels=max_pixels,
                                    estimation_pixels=est_pixels, force=force))

@@ -194,3 +194,30 @@ def test_a_long_names_download_keeps_its_extension(client, dng, stem):
     if "filename*=" in cd:
         full = unquote(cd.split("filename*=UTF-8''", 1)[1])
         assert full.endswith(".xmp") and full.startswith(stem[:50]) and len(full) <= 200, full
+
+
+# --- a file name at the file system's limit (255 bytes) ---------------------------------------
+
+def test_a_raw_with_a_255_byte_name_is_corrected_by_batch_and_white_balance(tmp_path, dng):
+    """A RAW named with 255 bytes (NAME_MAX) is a valid file, but ``wandell
+    batch`` failed it with ``OSError: [Errno 36] File name too long:
+    '.wandell/NAME.jpg.lock'`` (its records add to the output's name), and
+    ``wandell white-balance RAW OUT`` with a 255-byte OUT with ``[Errno 36]``
+    on its temporary ``.OUT.XXXXXXXX.part``. The batch's output name is now
+    cut as the server's batches cut theirs (extension kept, so its records
+    fit), and a temporary's name is cut when it would not fit."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    src.mkdir()
+    stem = "y" * 251
+    (src / f"{stem}.dng").write_bytes(dng)
+    args = ("batch", "--workers", "1", "--format", "jpeg", str(src), str(out))
+    r = _cli(*args)
+    assert r.returncode == 0 and "1 done" in r.stdout, (r.stdout[-600:], r.stderr[-600:])
+    made = [p.name for p in out.iterdir() if p.suffix == ".jpg"]
+    assert len(made) == 1 and made[0].startswith(stem[:100]) and len(made[0].encode()) <= 200, made
+    r = _cli(*args)
+    assert r.returncode == 0 and "1 skipped" in r.stdout, r.stdout[-600:]
+    one = tmp_path / f"{stem}.tif"          # 255 bytes
+    r = _cli("white-balance", str(src / f"{stem}.dng"), str(one))
+    assert r.returncode == 0 and one.read_bytes()[:2] in (b"II", b"MM"), (r.stdout[-600:], r.stderr[-600:])
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".part")]
