@@ -221,3 +221,33 @@ def test_a_raw_with_a_255_byte_name_is_corrected_by_batch_and_white_balance(tmp_
     r = _cli("white-balance", str(src / f"{stem}.dng"), str(one))
     assert r.returncode == 0 and one.read_bytes()[:2] in (b"II", b"MM"), (r.stdout[-600:], r.stderr[-600:])
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".part")]
+
+
+# --- the camera's own preview of a DNG LibRaw cannot render ------------------------------------
+
+@pytest.mark.parametrize("kind", ["uint32", "deflate-predictor"])
+def test_the_camera_preview_of_a_dng_the_service_reads_is_not_called_damaged(client, kind):
+    """A LinearRaw DNG of 32-bit integers, or deflate with a predictor, is
+    read by every endpoint (the service decodes it itself), but the page's
+    first picture, ``/v1/preview`` with ``wb=camera`` (LibRaw's own
+    rendering), was a 422 ``corrupt_file`` "LibRaw could not render the file
+    ...; it is damaged". It is now the file's as-shot white through the
+    service's own rendering (what ``/v1/white-balance white=as-shot``
+    writes), with a warning saying so."""
+    import io as _io
+
+    from testing.dngwriter import write_linear_dng
+
+    rgb = np.random.default_rng(0).uniform(0.05, 0.9, (48, 64, 3))
+    buf = _io.BytesIO()
+    if kind == "uint32":
+        write_linear_dng(buf, (rgb * 4e9).astype(np.uint32))
+    else:
+        write_linear_dng(buf, (rgb * 65535).astype(np.uint16), compression="deflate", predictor=True)
+    data = buf.getvalue()
+    assert client.post("/v1/analyze", files={"file": ("a.dng", data)}).status_code == 200
+    r = client.post("/v1/preview", files={"file": ("a.dng", data)})
+    assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg", r.text[:300]
+    info = json.loads(r.headers["X-Preview"])
+    assert info["wb"] == "camera" and (info["width"], info["height"]) == (64, 48), info
+    assert any("LibRaw cannot render" in w and "as-shot" in w for w in info["warnings"]), info
