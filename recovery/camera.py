@@ -17,7 +17,13 @@ from models.grid import DEFAULT_WAVELENGTHS
 
 from .errors import InputError
 
-__all__ = ["Camera"]
+__all__ = ["Camera", "DATA_RANGE_NM"]
+
+#: The wavelengths (nm) the shipped spectra are measured on: colour-science's
+#: illuminants (300 or 380 to 780 nm), the reflectance sets and the measured
+#: cameras (380-780 nm). Outside it every light and surface is held at its end
+#: value, so a camera must see at least ``C`` wavelengths inside it.
+DATA_RANGE_NM = (380.0, 780.0)
 
 
 @dataclass(frozen=True)
@@ -27,10 +33,13 @@ class Camera:
     Parameters
     ----------
     wavelengths : (N,) array_like
-        nm, finite and strictly increasing (else :class:`InputError`).
+        nm, finite and strictly increasing, at least ``C`` of them inside
+        :data:`DATA_RANGE_NM` (380-780 nm, where the lights and surfaces are
+        measured) (else :class:`InputError`).
     sensitivities : (N, C) array_like
         :math:`R_k(\\lambda_n)` as columns, relative: the largest magnitude
-        must lie in 1e-100..1e100.
+        must lie in 1e-100..1e100, and each channel must be nonzero somewhere
+        in 380-780 nm.
     name : str
     source : str
         ``measured``, ``matrix-derived``, ``uploaded`` or ``generic``.
@@ -76,6 +85,7 @@ class Camera:
             wavelength_step(wl)  # validates an increasing grid of at least two
         except ValueError as e:      # the grid's own words, as the documented error (probe pyapi7)
             raise InputError(f"wavelengths: {e}") from None
+        self._check_data_range(wl, r)
         object.__setattr__(self, "wavelengths", wl)
         object.__setattr__(self, "sensitivities", r)
         if self.color_matrix is not None:
@@ -83,6 +93,29 @@ class Camera:
             if m.shape != (3, 3) or not np.all(np.isfinite(m)):
                 raise InputError(f"color_matrix must be a finite 3 x 3 array, got {m.shape}")
             object.__setattr__(self, "color_matrix", m)
+
+    @staticmethod
+    def _check_data_range(wl: np.ndarray, r: np.ndarray) -> None:
+        """At least C wavelengths in :data:`DATA_RANGE_NM`, each channel seeing
+        some of it (probe round 8: a camera on 880-1200 nm raised a bare
+        ValueError from the light prior, one of two wavelengths a bare
+        ValueError from the surface model's PCA)."""
+        lo, hi = DATA_RANGE_NM
+        c = r.shape[1]
+        if wl.size < c:
+            raise InputError(f"a camera of {c} channels needs at least {c} wavelengths, got {wl.size}: "
+                             f"with fewer its channels are linearly dependent")
+        inside = (wl >= lo) & (wl <= hi)
+        span = f"{wl[0]:g}-{wl[-1]:g} nm"
+        if int(inside.sum()) < c:
+            raise InputError(f"the camera's wavelengths ({span}) have {int(inside.sum())} inside {lo:g}-{hi:g} nm, "
+                             f"where the lights and surfaces are measured; a camera of {c} channels needs at least "
+                             f"{c} there (infrared or ultraviolet cameras are not modelled)")
+        blind = [k + 1 for k in range(c) if not np.any(r[inside, k] != 0)]
+        if blind:
+            raise InputError(f"channel(s) {', '.join(map(str, blind))} are zero at every wavelength in {lo:g}-{hi:g} "
+                             f"nm, where the lights and surfaces are measured (infrared or ultraviolet channels are "
+                             f"not modelled)")
 
     @classmethod
     def named(cls, name: str, wavelengths=None) -> "Camera":

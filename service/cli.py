@@ -49,7 +49,7 @@ import threading
 
 from .cli_light import shared_light_of
 from .cli_paths import (EXTENSION_FORMATS, check_workers, dng_copies, format_for,  # noqa: F401 - cli.format_for
-                        input_file, input_folder, output_file, output_folder, own_outputs)
+                        input_file, input_folder, kept_output, output_file, output_folder, own_outputs)
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
 from .schemas.fields import BATCH, BATCH_FORMATS, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
@@ -141,7 +141,9 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
                     help="no progress bar and no summary table; failures, notes and warnings still go to stderr")
     if batch:
         ap.add_argument("--force", action="store_true",
-                        help="compute finished outputs again (default: skip them, resumable)")
+                        help="compute finished outputs again, and replace a file of an output's name that no batch "
+                             "wrote (default: skip finished outputs, resumable; keep other files, their items "
+                             "fail); a read-only file is never replaced")
         add_options(ap, BATCH)
         ap.add_argument("--workers", type=int, default=0,
                         help="local worker processes (0: one per core; at most 4 per core)")
@@ -466,7 +468,11 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     tasks = []
     for p in files:
         name = os.path.relpath(p, in_dir)
-        out = os.path.join(out_dir, jobs.unique(f"{os.path.splitext(name)[0]}.{options.extension}", seen))
+        # a name cut as the server's batches cut theirs, so its records and temporaries fit in NAME_MAX (a 255-byte
+        # RAW's item failed with "[Errno 36] File name too long: .wandell/NAME.tif.lock": probe round 8)
+        sub, base = os.path.split(f"{os.path.splitext(name)[0]}.{options.extension}")
+        out = os.path.join(out_dir, jobs.unique(os.path.join(sub, jobs.clip_name(base, jobs.DISK_NAME_BYTES - 12)),
+                                                seen))
         os.makedirs(os.path.dirname(out), exist_ok=True)
         tasks.append(jobs.ItemTask(src=p, out=out, name=name, options=options, max_pixels=max_pixels,
                                    estimation_pixels=est_pixels, force=force))
@@ -475,17 +481,20 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     rows = {t.name: {"name": t.name, "status": "pending"} for t in tasks}
     todo = []
     for t in tasks:
-        if not force and jobs.is_finished(t.out):
+        finished = jobs.is_finished(t.out)
+        if not force and finished:
             with open(jobs.meta_path(t.out, ".json")) as f:
                 side = json.load(f)
             rows[t.name].update(status="skipped", illuminant=side.get("illuminant"))
             diff = options_difference(side.get("options"), options)
             if diff:
                 rows[t.name]["note"] = diff + "; --force to compute it again with these"
+        elif kept := kept_output(t.out, finished, force):   # read-only, or not ours: never written over
+            rows[t.name].update(status="failed", error=kept)
         else:
             todo.append(t)
     bar = Progress(len(tasks), stream)
-    count = {"done": 0, "failed": 0, "skipped": len(tasks) - len(todo)}
+    count = {s: sum(r["status"] == s for r in rows.values()) for s in ("done", "failed", "skipped")}
     bar.update(**count)
     own, interrupted, xmp_jobs = executor is None and bool(todo), False, {}   # xmp_jobs: name -> its sidecar's future
     if xmp is not None:

@@ -126,6 +126,30 @@ def output_file(path: str) -> str:
     return path
 
 
+def kept_output(out: str, finished: bool, force: bool) -> str | None:
+    """Why ``wandell batch`` keeps the file at an output's path instead of
+    writing over it (the item then fails with these words), or ``None``.
+
+    An output is written beside and renamed over, which ignores the file's
+    mode and whose file it was: ``batch --force`` replaced an output the user
+    had made read-only, and any run replaced a file of the user's own that
+    had an output's name (no record of ours in ``.wandell``), both without a
+    word (probe round 8). A read-only file is kept even with ``--force`` (as
+    ``cp`` would not write it); a file not written by a batch is replaced only
+    with ``--force``; a finished output of ours, with ``--force``."""
+    if not os.path.lexists(out):
+        return None
+    if os.path.isdir(out) and not os.path.islink(out):
+        return f"output_exists: {out!r} is a folder; it is kept: move it or choose another output folder"
+    if os.path.isfile(out) and not os.stat(out).st_mode & 0o222:
+        return (f"output_read_only: {out!r} exists and is read-only; it is kept: make it writable (chmod u+w) "
+                "or remove it, then run again")
+    if not finished and not force:
+        return (f"output_exists: {out!r} exists and was not written by a batch (no record in .wandell); it is "
+                "kept: move it, choose another output folder, or --force to replace it")
+    return None
+
+
 def own_outputs(folder: str, names) -> set:
     """The names among ``names`` (``folder``'s entries) that are outputs a
     batch wrote there: each has its record ``.wandell/NAME.json`` beside it

@@ -27,11 +27,21 @@ def download_name(name: str | None, default: str = "download") -> str:
     """``name`` fit for a download: the last path component (``/`` and
     ``\\`` both separate), control and format characters (NUL, CR/LF, bidi
     overrides, zero-width marks) removed, white space runs to one space,
-    at most 200 characters; ``default`` when nothing is left."""
+    at most 200 characters, the extension kept (a cut name lost it: a long
+    RAW's sidecar downloaded as ``www...w``, no ``.xmp``: probe round 8);
+    ``default`` when nothing is left.
+
+    >>> download_name("w" * 300 + ".xmp")[-6:], len(download_name("w" * 300 + ".xmp"))
+    ('ww.xmp', 200)
+    """
     text = str(name or "").replace("\\", "/").rsplit("/", 1)[-1]
     text = "".join(c for c in text if unicodedata.category(c)[0] not in "CZ" or c == " ")
     text = " ".join(text.split()).strip(". ")
-    return text[:_MAX_CHARS] or default
+    if len(text) > _MAX_CHARS:
+        stem, dot, ext = text.rpartition(".")
+        keep = dot + ext if dot and 0 < len(ext) <= 10 and " " not in ext else ""
+        text = text[:_MAX_CHARS - len(keep)].rstrip(". ") + keep
+    return text or default
 
 
 def ascii_name(name: str, default: str = "download") -> str:

@@ -220,11 +220,13 @@ _XMP_NS = {"dc": "http://purl.org/dc/elements/1.1/", "tiff": "http://ns.adobe.co
            "exifEX": "http://cipa.jp/exif/1.0/"}
 #: The namespace of the estimate in XMP (embedded packets and sidecars).
 WANDELL_NS = "https://github.com/wandell-recovery/ns/1.0/"
-#: Summary key -> (``wandell:`` property, kind): ``real``, ``text`` or ``seq`` (an rdf:Seq of reals).
+#: Summary key -> (``wandell:`` property, kind): ``real``, ``text``, ``bool`` (XMP's ``True``/``False``) or
+#: ``seq`` (an rdf:Seq of reals).
 _WANDELL_FIELDS = {
     "method": ("Method", "text"), "camera": ("Camera", "text"), "camera_rgb": ("CameraRGB", "seq"),
     "wb_multipliers": ("WBMultipliers", "seq"), "xy": ("LightXY", "seq"), "cct": ("CCT", "real"),
-    "duv": ("Duv", "real"), "confidence": ("Confidence", "real"), "temperature": ("Temperature", "real"),
+    "duv": ("Duv", "real"), "confidence": ("Confidence", "real"), "low_confidence": ("LowConfidence", "bool"),
+    "temperature": ("Temperature", "real"),
     "tint": ("Tint", "real"), "white": ("White", "text"), "target": ("Target", "text"),
     "output": ("Output", "text"), "lights": ("Lights", "text"), "lights_reason": ("LightsReason", "text"),
     "light_held": ("LightHeld", "text"),
@@ -248,6 +250,8 @@ def _wandell_props(estimate: dict, indent: str = "   ") -> list[str]:
             continue
         if kind == "text":
             out.append(f"{indent}<wandell:{prop}>{escape(str(v))}</wandell:{prop}>")
+        elif kind == "bool" and isinstance(v, bool):     # XMP Boolean: True / False
+            out.append(f"{indent}<wandell:{prop}>{v}</wandell:{prop}>")
         elif kind == "real" and real(v) is not None:
             out.append(f"{indent}<wandell:{prop}>{real(v)}</wandell:{prop}>")
         elif kind == "seq" and isinstance(v, (list, tuple)) and all(real(x) is not None for x in v):
@@ -289,6 +293,8 @@ def read_wandell_xmp(packet: str | bytes) -> dict:
                 out[name] = [float(li.text) for li in el.iter("{http://www.w3.org/1999/02/22-rdf-syntax-ns#}li")]
             elif kind == "real":
                 out[name] = float(el.text)
+            elif kind == "bool":
+                out[name] = (el.text or "").strip() == "True"
             else:
                 out[name] = el.text or ""
     if "Estimate" in out:

@@ -51,7 +51,7 @@ from .options import FORMATS, MEDIA_TYPES, Format  # noqa: F401
 from .rendering import (NOT_A_RAW, STRIP_ENCODERS, _estimation_image, correction_matrix, crop_bounds,  # noqa: F401
                         default_crop, dng_possible, exposure_gain, output_meta, render_corrected, render_encoded,
                         render_full, white_balanced_dng, write_corrected, xmp_sidecar)
-from .report import (MATRIX_COLORIMETRY, _temperature_tint_xy, analysis_json, camera_json, estimate_summary,  # noqa: F401
+from .report import (MATRIX_COLORIMETRY, _temperature_tint_xy, analysis_json, camera_json, confidence_json, estimate_summary,  # noqa: F401
                      illuminant_json, light_cct_duv, light_map_json, light_xy, lights_json, profile_of,
                      rendering_choice, rendering_json, temperature_tint)
 from .surfaces import BOX_STRIP_ROWS, _box, _box_sums, box_sums_streamed, surfaces_at  # noqa: F401

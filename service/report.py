@@ -202,6 +202,26 @@ def rendering_json(info: dict) -> dict:
     return {k: info[k] for k in keys if k in info}
 
 
+def confidence_json(est: IlluminantEstimate) -> dict:
+    """``confidence`` (P(error < 3 degrees)) and ``low_confidence`` (the
+    flag), as the JSON answer's ``diagnostics`` carry them, for the
+    ``X-Illuminant`` header and the XMP the outputs carry; empty when the
+    estimate reports none (a white the user set). The header and the XMP
+    had the confidence at most, never the flag (probe round 8): a
+    photographer reading sidecars or headers could not pick the doubtful
+    ones out."""
+    d = est.diagnostics
+    conf = d.get("confidence")
+    if not (isinstance(conf, (int, float)) and not isinstance(conf, bool) and np.isfinite(conf)):
+        return {}
+    low = d.get("low_confidence")
+    if not isinstance(low, (bool, np.bool_)):
+        from recovery.api import LOW_CONFIDENCE
+
+        low = conf < LOW_CONFIDENCE
+    return {"confidence": float(conf), "low_confidence": bool(low)}
+
+
 def estimate_summary(run: EstimateRun, info: dict | None = None, profile=None, **extra) -> dict:
     """The estimate in short (the ``X-Illuminant`` of an XMP download, the
     ``wandell:`` XMP an output file carries, the XMP sidecar's): method,
@@ -215,9 +235,7 @@ def estimate_summary(run: EstimateRun, info: dict | None = None, profile=None, *
     if cct is not None:                 # the xy the CCT/Duv come from (light_xy)
         xy, _ = light_xy(est, profile, run.camera)
         out["xy"] = [float(xy[0]), float(xy[1])]
-    conf = est.diagnostics.get("confidence")
-    if isinstance(conf, (int, float)) and np.isfinite(conf):
-        out["confidence"] = float(conf)
+    out.update(confidence_json(est))
     if info:
         out["rendering"] = info.get("rendering")
     d = est.diagnostics

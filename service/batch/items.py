@@ -344,6 +344,10 @@ def atomic_write(path: str, write, durable: bool = True) -> None:
     19: the fsync of a 144 MB TIFF forced 0.3-1.5 s of disk writing into
     each ``wandell white-balance``)."""
     d, base = os.path.split(path)
+    if len(base.encode("utf-8")) > 240:   # ".NAME.XXXXXXXX.part" past NAME_MAX: the write failed (probe round 8)
+        from .store import clip_name
+
+        base = clip_name(base, 200)       # a batch's outputs are never this long (DISK_NAME_BYTES)
     fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=".part", dir=d or ".")
     os.close(fd)
     _PARTS.add(tmp)

@@ -68,7 +68,9 @@ _WB_RENDERING = form(WhiteBalanceRendering, choices={"format": tuple(FORMATS)},
                                          "the original RAW in another editor, or dng: the RAW as a DNG with that "
                                          "white balance inside (a DNG's copy, its raw data untouched; another "
                                          "RAW's raw data written as a DNG), what Lightroom reads for a DNG"})
-_SURFACES_ESTIMATION = form(AnalyzeEstimation, include=("camera", "method", "surface_model", "spatial"))
+# quality as /v1/analyze: the light the surfaces are estimated under is the one /v1/analyze answers for the
+# same fields (the page's picture and its "read a surface" agree; probe round 8: it was refused, 422 unknown_field)
+_SURFACES_ESTIMATION = form(AnalyzeEstimation, include=("camera", "method", "quality", "surface_model", "spatial"))
 _REGIONS = form(Regions)
 _INPUT = form(Input)
 
@@ -300,6 +302,7 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     header["rendering"] = pipeline.rendering_json(info)
     header["white"] = "neutral" if where is not None else white
     header["lights"] = body["lights"]
+    header.update(pipeline.confidence_json(run.estimate))   # the flag, as diagnostics has it (probe round 8)
     if "neutral" in body:
         header["neutral"] = body["neutral"]
     headers = {"X-Illuminant": json.dumps(clean(header), separators=(",", ":")),

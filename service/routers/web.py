@@ -105,6 +105,31 @@ def _to_uint16(lin: np.ndarray) -> np.ndarray:
     return np.rint(np.clip(v, 0.0, 1.0) * np.float32(65535.0)).astype(np.uint16)
 
 
+class LibRawCannotRender(Exception):
+    """LibRaw's ``postprocess`` failed on a RAW this service decoded."""
+
+
+def own_camera_wb_preview(data: bytes, name: str | None, settings, camera, max_side: int, why: str):
+    """``wb=camera`` of a RAW LibRaw cannot render but this service reads:
+    the file's as-shot white through this service's own rendering (what
+    ``/v1/white-balance`` with ``white=as-shot`` writes, under D65 in sRGB);
+    without an as-shot white, the camera RGB unbalanced, as for a TIFF. It
+    was a 422 ``corrupt_file`` "it is damaged" for a file every other
+    endpoint reads (probe round 8). ``(decoded, image, info)``."""
+    decoded, run = pipeline.analyze(data, name, settings, camera=camera, method="gray-world")
+    note = (f"LibRaw cannot render this file ({why}); it is shown by this service's own rendering")
+    if decoded.as_shot_neutral is None:
+        small = _to_uint16(downsize_linear(decoded.estimation, max_side))
+        img = pipeline.apply_matrix_inplace(small, np.eye(3), "sRGB", 8)
+        return decoded, img, {"wb": "camera", "warnings": [note + ", unbalanced: the file records no as-shot "
+                                                           "white balance"]}
+    img, info = corrected_preview(decoded, with_white(decoded, run, "as-shot"), "D65", "sRGB", None, max_side)
+    asn = [float(v) for v in decoded.as_shot_neutral]
+    return decoded, img, {"wb": "camera", "camera_multipliers": [asn[1] / v for v in asn],
+                          "rendering": info["rendering"],
+                          "warnings": [note + " with its as-shot white (as /v1/white-balance white=as-shot)"]}
+
+
 def camera_wb_preview(decoded, data: bytes, max_side: int) -> tuple[np.ndarray, dict]:
     """The image as the camera's own white balance renders it, 8-bit sRGB.
 
@@ -127,8 +152,9 @@ def camera_wb_preview(decoded, data: bytes, max_side: int) -> tuple[np.ndarray, 
                 mult = [float(x) for x in raw.camera_whitebalance[:3]]
                 rgb = raw.postprocess(use_camera_wb=True, half_size=True, output_bps=8)
         except rawpy.LibRawError as exc:
-            raise ServiceError(422, "corrupt_file", f"LibRaw could not render the file with its camera white "
-                                                f"balance ({type(exc).__name__}); it is damaged") from None
+            # the file was decoded (this service reads some DNGs LibRaw cannot render: a LinearRaw of 32-bit
+            # integers, deflate with a predictor), so it is not damaged (probe round 8): the caller renders it
+            raise LibRawCannotRender(type(exc).__name__) from None
         if decoded.as_shot_neutral is None:
             info["warnings"].append("the file records no as-shot white balance; LibRaw used its default "
                                     "(daylight) multipliers")
@@ -228,7 +254,11 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
     def work():
         if wb == "camera":
             decoded = pipeline.decode(data, name, settings)
-            img, info = camera_wb_preview(decoded, data, max_side)
+            try:
+                img, info = camera_wb_preview(decoded, data, max_side)
+            except LibRawCannotRender as e:
+                del decoded
+                decoded, img, info = own_camera_wb_preview(data, name, settings, camera, max_side, str(e))
         else:
             decoded, run = pipeline.analyze(data, name, settings, camera=camera, method=method, options=opts,
                                             neutral=where)

@@ -368,6 +368,10 @@ class IlluminantHeader(_Answer):
     white: str | None = Field(None, description="`estimate`, `as-shot`, a `TEMPERATURE/TINT` or `neutral`")
     lights: Lights | None = None
     neutral: dict[str, Any] | None = Field(None, description="where a picked white (`neutral`) came from")
+    confidence: float | None = Field(None, description="P(error < 3 degrees), as `diagnostics.confidence` of the "
+                                                       "JSON answer; absent for a white you set")
+    low_confidence: bool | None = Field(None, description="the estimate is flagged: check this white balance "
+                                                          "(`diagnostics.low_confidence`)")
 
 
 class EstimateSummary(_Answer):
@@ -383,6 +387,8 @@ class EstimateSummary(_Answer):
     camera: str = Field(description="the camera model's name")
     xy: list[float] | None = None
     confidence: float | None = Field(None, description="P(error < 3 degrees), when the method reports one")
+    low_confidence: bool | None = Field(None, description="the estimate is flagged low-confidence (the "
+                                                          "sidecar's `wandell:LowConfidence`)")
     temperature: float | None = Field(None, description="Camera Raw's Temperature written to the sidecar (K)")
     tint: float | None = Field(None, description="and its Tint")
     basis: str | None = Field(None, description="where Temperature/Tint come from")

@@ -976,9 +976,8 @@ async function readSurface(x, y) {
   const seq = current.seq;
   $("surface").hidden = false;
   $("surface-words").textContent = "Reading the surface there…";
-  // /v1/surfaces takes no quality (it analyses at the default resolution); the light map choice it takes
-  const {quality, ...est} = estimationFields(current.options);
-  const f = Object.assign(est, {rects: JSON.stringify([rect])});
+  // the same estimation fields as the picture (quality too), so the surface is read under the light shown
+  const f = Object.assign(estimationFields(current.options), {rects: JSON.stringify([rect])});
   try {
     const j = await post("/v1/surfaces", formFor(current.file, f)).then((resp) => resp.json());
     if (!current || current.seq !== seq) return;
