@@ -1393,6 +1393,12 @@ class AnalysisResult:
         return self.surface_weights(points) @ self.surface_model.basis.T
 
 
+#: Points per :meth:`AnalysisResult.reflectance` / ``surface_estimates`` / ``surface_weights`` call, the
+#: default of the service's ``WANDELL_MAX_SURFACE_REGIONS``: the cost is linear in the points (a posterior
+#: per point; 200,000 took 5-15 s in one call), so more are an :class:`InputError`; call in chunks.
+MAX_POINTS = 10_000
+
+
 def _pixel_points(points) -> np.ndarray:
     """``[(row, col), ...]`` (or one ``(row, col)``) as a ``(P, 2)`` integer
     array. Integral floats are taken (``3.0``); anything else is an
@@ -1405,10 +1411,16 @@ def _pixel_points(points) -> np.ndarray:
         raise InputError(f"points must be (row, col) pairs of integers: {e}") from None
     if arr.size == 0:
         return np.zeros((0, 2), int)
+    if arr.dtype.kind == "b":     # (True, False) was read as (1, 0) (probe round 8)
+        raise InputError("points must be (row, col) pairs of integers, not booleans (a mask? use "
+                         "np.argwhere(mask) for its pixels)")
     if arr.dtype.kind not in "iuf" or arr.ndim == 0 or arr.shape[-1] != 2:
         raise InputError(f"points must be (row, col) pairs of integers, shape (P, 2); got {arr.dtype} of shape "
                          f"{arr.shape}")
     arr = arr.reshape(-1, 2)
+    if arr.shape[0] > MAX_POINTS:
+        raise InputError(f"{arr.shape[0]} points; at most {MAX_POINTS} per call (recovery.api.MAX_POINTS, as the "
+                         "service's WANDELL_MAX_SURFACE_REGIONS): the cost is linear in the points, call in chunks")
     if arr.dtype.kind == "f":
         if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
             bad = arr[~np.all(np.isfinite(arr) & (arr == np.round(arr)), axis=1)]

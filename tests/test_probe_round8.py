@@ -251,3 +251,32 @@ def test_the_camera_preview_of_a_dng_the_service_reads_is_not_called_damaged(cli
     info = json.loads(r.headers["X-Preview"])
     assert info["wb"] == "camera" and (info["width"], info["height"]) == (64, 48), info
     assert any("LibRaw cannot render" in w and "as-shot" in w for w in info["warnings"]), info
+
+
+# --------------------------------------------------------------------------- item 2: points in the Python API
+@pytest.fixture(scope="module")
+def mondrian_result():
+    from .test_probe_pyapi import mondrian
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    return analyze(mondrian(cam), cam, "gray-world")
+
+
+@pytest.mark.parametrize("points", [[(True, False)], np.array([[True, True]])])
+def test_boolean_points_are_an_input_error(mondrian_result, points):
+    """A boolean (a mask passed by mistake) was read as pixel (1, 0)."""
+    for fn in (mondrian_result.reflectance, mondrian_result.surface_estimates, mondrian_result.surface_weights):
+        with pytest.raises(InputError, match="booleans"):
+            fn(points)
+
+
+def test_points_are_bounded_per_call(mondrian_result):
+    """More than recovery.api.MAX_POINTS points in one call is an InputError naming the limit (200,000 took
+    5-15 s); the limit itself still answers."""
+    from recovery.api import MAX_POINTS
+
+    pts = np.zeros((MAX_POINTS + 1, 2), int)
+    for fn in (mondrian_result.reflectance, mondrian_result.surface_estimates, mondrian_result.surface_weights):
+        with pytest.raises(InputError, match=f"at most {MAX_POINTS} per call"):
+            fn(pts)
+    assert mondrian_result.reflectance(pts[:MAX_POINTS]).shape == (MAX_POINTS, 31)
