@@ -26,7 +26,7 @@ most 1.1 x the better of ``learned`` and ``bayes``, per description.
 
 Usage::
 
-    python -m benchmarks.chart_scenes [--seeds 2] [--quick] [--heldout] [--off-set] [--switch]
+    python -m benchmarks.chart_scenes [--seeds 2] [--quick] [--heldout] [--off-set] [--switch] [--auto-gate]
 """
 
 from __future__ import annotations
@@ -326,6 +326,21 @@ SWITCH_DEGREES = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0)
 SWITCH_SHARES = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, float("inf"))
 
 
+def scene_balance(cells, ok, rgb) -> float:
+    """Angle (degrees) between the mean colour of the usable analysis cells (those of
+    :func:`recovery.api.near_neutral_share`: above 5 % of the brightest) and the light ``rgb``: tried as a
+    third number of the switch (a chart of one hue family should sit far from the light), and measured not
+    to separate (the candidates' answer follows the hue too: ``--switch`` prints its percentiles per set)."""
+    from recovery.metrics import angular_error
+
+    c = np.asarray(cells, float)[ok]
+    s = c.sum(1)
+    c = c[s > 0.05 * s.max()] if c.shape[0] else c
+    if c.shape[0] == 0:
+        return 90.0
+    return float(angular_error(c.mean(0)[None], np.asarray(rgb, float)[None])[0])
+
+
 def switch_scenes(every: int = 4, seeds: int = 2, log=print) -> list[dict]:
     """Per scene, what the near-neutral switch (:data:`recovery.api.NEAR_NEUTRAL_SHARE`,
     :data:`~recovery.api.NEAR_NEUTRAL_DEG`) decides from and what each side of it gives: chart (grid) and
@@ -342,14 +357,17 @@ def switch_scenes(every: int = 4, seeds: int = 2, log=print) -> list[dict]:
 
     wl = models.wavelength_grid(400, 700, 5)
     h_lights, h_surf = heldout_content(wl)
-    sets = {"in-sample": ({n: n for n in LIGHTS}, None), "held-out lights": (h_lights, None),
-            "held-out lights and surfaces": (h_lights, h_surf), "tinted lights": (tinted_lights(wl), None)}
+    sets = {"in-sample": [(n, None) for n in LIGHTS], "held-out lights": [(v, None) for v in h_lights.values()],
+            "held-out lights and surfaces": [(v, h_surf) for v in h_lights.values()],
+            "tinted lights": [(v, None) for v in tinted_lights(wl).values()],
+            "one-hue charts": [(n, c) for n in LIGHTS for c in one_hue_charts(wl)]}
     shipped = (api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE, api.near_neutral_share)
     seen = {}
 
     def watch(cells, ok, rgb, degrees=api.NEAR_NEUTRAL_DEG):
         seen["rgb"] = np.asarray(rgb, float)
         seen["share"] = {d: shipped[2](cells, ok, rgb, d) for d in SWITCH_DEGREES}
+        seen["balance"] = scene_balance(cells, ok, rgb)
         return shipped[2](cells, ok, rgb, degrees)
 
     out = []
@@ -358,10 +376,10 @@ def switch_scenes(every: int = 4, seeds: int = 2, log=print) -> list[dict]:
         for p in rawtoaces_cameras(every):
             sens = measured_sensitivities(p, wl)
             name = p.name.replace("_380_780_5.json", "")
-            for set_name, (lights, surf) in sets.items():
-                for light in lights.values():
+            for set_name, conditions in sets.items():
+                for light, surf in conditions:
                     for layout in LAYOUTS:
-                        for seed in range(seeds):
+                        for seed in range(1 if set_name == "one-hue charts" else seeds):
                             data, truth = matrix_scene_bytes(sens, light, layout, seed, surf)
                             ph = load(data)
                             seen.clear()
@@ -369,17 +387,155 @@ def switch_scenes(every: int = 4, seeds: int = 2, log=print) -> list[dict]:
                             e = angle(est.rgb, truth)
                             out.append({"set": set_name, "layout": layout, "camera": name, "seed": seed,
                                         "never": angle(seen["rgb"], truth) if seen else e, "always": e,
-                                        "share": dict(seen["share"]) if seen else None})
+                                        "share": dict(seen["share"]) if seen else None,
+                                        "balance": seen.get("balance")})
             log(f"  {name}: {len(out)} scenes")
     finally:
         api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE, api.near_neutral_share = shipped
     return out
 
 
-def switch_errors(rows: list[dict], degrees: float, share: float) -> np.ndarray:
-    """Each scene's error with lights off the set admitted at ``share`` or more cells within ``degrees``."""
-    return np.array([r["always"] if r["share"] is not None and r["share"][degrees] >= share else r["never"]
+def auto_scenes(every: int = 4, log=print) -> list[dict]:
+    """``auto`` on chart and Mondrian DNGs through the service's loader (as a RAW upload is; every
+    ``every``-th of the 47 cameras, each told only its least-squares ColorMatrix1, one seed), in the five sets of
+    :func:`switch_scenes` (in-sample lights, held-out lights, held-out lights and surfaces, tinted lights,
+    one-hue charts): per scene where ``auto`` hands the scene to the light posterior, its error, the learnt
+    estimator's (``diagnostics["learned_rgb"]``, computed by ``auto`` anyway), the angle between the two, the
+    confidence claimed and the shape of the scene's colours (``chroma_isotropy``, ``chroma_spread``:
+    :func:`recovery.api.chroma_shape`). Records ``{set, layout, camera, bayes, learned, disagreement,
+    confidence, low_confidence, isotropy, spread}``: what ``auto`` gives now is ``bayes``; a gate to the
+    learnt estimator (:func:`gate_errors`) is scored from them without estimating again."""
+    import models
+    from recovery import estimate_illuminant
+    from service.loader import load
+
+    wl = models.wavelength_grid(400, 700, 5)
+    h_lights, h_surf = heldout_content(wl)
+    sets = {"in-sample": [(n, None) for n in LIGHTS], "held-out lights": [(v, None) for v in h_lights.values()],
+            "held-out lights and surfaces": [(v, h_surf) for v in h_lights.values()],
+            "tinted lights": [(v, None) for v in tinted_lights(wl).values()],
+            "one-hue charts": [(n, c) for n in LIGHTS for c in one_hue_charts(wl)]}
+    out = []
+    for p in rawtoaces_cameras(every):
+        sens = measured_sensitivities(p, wl)
+        name = p.name.replace("_380_780_5.json", "")
+        for set_name, conditions in sets.items():
+            for light, surf in conditions:
+                for layout in LAYOUTS:
+                    data, truth = matrix_scene_bytes(sens, light, layout, 0, surf)
+                    ph = load(data)
+                    est = estimate_illuminant(ph.linear, ph.camera, "auto", mask=ph.mask, spatial=False)
+                    d = est.diagnostics
+                    if est.method != "bayes" or "learned_rgb" not in d:
+                        continue                                        # not a scene auto hands to the posterior
+                    out.append({"set": set_name, "layout": layout, "camera": name,
+                                "bayes": angle(est.rgb, truth), "learned": angle(d["learned_rgb"], truth),
+                                "disagreement": float(d["posterior_learned_disagreement_deg"]),
+                                "confidence": float(d.get("confidence") or 0.0),
+                                "low_confidence": bool(d.get("low_confidence")),
+                                "isotropy": float(d["chroma_isotropy"]), "spread": float(d["chroma_spread"])})
+        log(f"  {name}: {len(out)} scenes")
+    return out
+
+
+#: the gates :func:`gate_choice` searches: ``auto`` hands a flat scene to the learnt estimator when its
+#: chroma isotropy is under the first and its spread under the second (0 / inf: never)
+GATE_ISOTROPY = (0.0, 0.1, 0.2, 0.3, 0.35, 0.4, 0.45, 0.5, 0.6, 0.8)
+GATE_SPREAD = (0.3, 0.4, 0.5, 0.55, 0.6, 0.65, 0.7, 0.8, float("inf"))
+
+
+def gate_errors(rows: list[dict], isotropy: float, spread: float) -> np.ndarray:
+    """Each scene's error with ``auto`` taking the learnt answer below both thresholds, the posterior's else."""
+    return np.array([r["learned"] if (r["isotropy"] < isotropy and r["spread"] < spread) else r["bayes"]
                      for r in rows])
+
+
+def _gate_score(rows: list[dict], g) -> float:
+    """Item 3's measure, worst set: max over sets of ``auto``'s mean over the better of the two estimators'."""
+    e = gate_errors(rows, *g)
+    out = []
+    for s in sorted({r["set"] for r in rows}):
+        k = np.array([r["set"] == s for r in rows])
+        better = min(np.mean([r["learned"] for r, q in zip(rows, k) if q]), np.mean([r["bayes"] for r, q in
+                                                                                   zip(rows, k) if q]))
+        out.append(e[k].mean() / better)
+    return float(max(out))
+
+
+def gate_choice(rows: list[dict]) -> tuple[float, float]:
+    """The gate of :data:`GATE_ISOTROPY` x :data:`GATE_SPREAD` with the lowest :func:`_gate_score` (ties: the
+    smaller thresholds, fewer scenes taken from the posterior)."""
+    return min(((i, p) for i in GATE_ISOTROPY for p in GATE_SPREAD),
+               key=lambda g: (round(_gate_score(rows, g), 6), g[0], g[1]))
+
+
+def _print_gate(rows: list[dict]) -> None:
+    shipped = (0.0, 0.0)           # no gate ships: it failed --heldout (docs/confidence.md)
+    lab = lambda g: "never" if g[0] <= 0 else f"isotropy < {g[0]:g} and spread < {g[1]:g}"
+    sets = sorted({r["set"] for r in rows})
+    mean = lambda rs, k: float(np.mean([r[k] for r in rs]))
+    print(f"\n{len(rows)} flat DNG scenes that auto hands to the posterior without the gate; chosen on every scene: "
+          f"{lab(gate_choice(rows))} (shipped: {lab(shipped)})\n")
+    for key, what in (("set", "set of scenes"), ("camera", "camera")):
+        print(f"one {what} left out, the gate chosen on the rest, auto's mean / the better estimator's per set:\n")
+        print("| set | scenes | posterior | learnt | auto, gate cross-validated | ratio (before the gate) | to the learnt |")
+        print("|---|---|---|---|---|---|---|")
+        cv = np.zeros(len(rows))
+        to_learnt = np.zeros(len(rows), bool)
+        chosen = []
+        for g in sorted({r[key] for r in rows}):
+            k = np.array([r[key] == g for r in rows])
+            c = gate_choice([r for r, q in zip(rows, k) if not q])
+            chosen.append(c)
+            sel = [r for r, q in zip(rows, k) if q]
+            cv[k] = gate_errors(sel, *c)
+            to_learnt[k] = [r["isotropy"] < c[0] and r["spread"] < c[1] for r in sel]
+        for s in sets:
+            k = np.array([r["set"] == s for r in rows])
+            sel = [r for r, q in zip(rows, k) if q]
+            b, l_ = mean(sel, "bayes"), mean(sel, "learned")
+            gated = to_learnt[k].mean()
+            print(f"| {s} | {len(sel)} | {b:.2f} | {l_:.2f} | {cv[k].mean():.2f} | **{cv[k].mean() / min(b, l_):.2f}** "
+                  f"({b / min(b, l_):.2f}) | {gated:.0%} |")
+        print("\nchosen: " + ", ".join(f"{lab(c)} x {chosen.count(c)}" for c in dict.fromkeys(chosen)) + "\n")
+    print("auto as shipped (the posterior), per set: mean / median degrees, confidence claimed / share under 3 "
+          "degrees, flagged (all / of the errors above 6 degrees):\n")
+    for s in sets:
+        sel = [r for r in rows if r["set"] == s]
+        e = np.array([r["bayes"] for r in sel])
+        low = np.array([r["low_confidence"] for r in sel])
+        print(f"* {s}: {e.mean():.2f} / {np.median(e):.2f}; {mean(sel, 'confidence'):.2f} / {np.mean(e < 3):.2f}; "
+              f"{low.mean():.0%} / {low[e > 6].mean() if (e > 6).any() else float('nan'):.0%}")
+
+
+def one_hue_charts(wl, size: int = 24) -> list[np.ndarray]:
+    """Charts of one hue family: the rawtoaces-190 patches (``models``' set, ordered by hue) in consecutive
+    groups of ``size`` (reds, oranges, yellows, greens, cyans, blues, purples: chroma 26-56 CIELAB), each a
+    chart's surfaces (:func:`matrix_scene`'s ``surfaces``; the chart keeps its dark neutral frame)."""
+    import models
+
+    R = models.reflectance_set("rawtoaces-190", wl)
+    return [R[s0:s0 + size] for s0 in range(0, R.shape[0] - size + 1, size)]
+
+
+def _switch_arrays(rows: list[dict]) -> dict:
+    """The records as arrays: ``flat`` (the switch is consulted), ``share`` (n, len(SWITCH_DEGREES)),
+    ``balance`` (n,; 0 where not recorded), ``never``, ``always``."""
+    flat = np.array([r["share"] is not None for r in rows], bool)
+    share = np.array([[r["share"][d] for d in SWITCH_DEGREES] if r["share"] is not None else
+                      [0.0] * len(SWITCH_DEGREES) for r in rows], float).reshape(len(rows), len(SWITCH_DEGREES))
+    balance = np.array([r.get("balance") or 0.0 for r in rows], float)
+    return {"flat": flat, "share": share, "balance": balance, "never": np.array([r["never"] for r in rows], float),
+            "always": np.array([r["always"] for r in rows], float)}
+
+
+def switch_errors(rows, degrees: float, share: float, balance: float = float("inf")) -> np.ndarray:
+    """Each scene's error with lights off the set admitted at ``share`` or more cells within ``degrees``
+    and the scene's colours within ``balance`` degrees of the candidates' answer
+    (:func:`recovery.api.scene_balance`). ``rows``: records or :func:`_switch_arrays` of them."""
+    a = rows if isinstance(rows, dict) else _switch_arrays(rows)
+    on = a["flat"] & (a["share"][:, SWITCH_DEGREES.index(degrees)] >= share) & (a["balance"] <= balance)
+    return np.where(on, a["always"], a["never"])
 
 
 #: the rules :func:`switch_choice` can choose by, each a score of a switch over the scenes (lower is better)
@@ -389,66 +545,79 @@ def switch_errors(rows: list[dict], degrees: float, share: float) -> np.ndarray:
 SWITCH_RULES = {"mean": lambda e, c: float(np.mean(e)), "ratio": lambda e, c: float(np.mean(e / c)),
                 "max-ratio": lambda e, c: float(np.max(e / c)), "log-ratio": lambda e, c: float(np.mean(np.log(e / c)))}
 
+#: the scene-balance thresholds searched (degrees; inf: not consulted)
+SWITCH_BALANCES = (4.0, 6.0, 8.0, 10.0, 12.0, 15.0, 20.0, float("inf"))
 
-def _per_set(rows: list[dict], e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per set of lights: the mean of ``e`` and the candidates' mean (``never``)."""
+
+def switch_choice(rows: list[dict], rule: str = "ratio", balances=SWITCH_BALANCES) -> tuple[float, float, float]:
+    """The (degrees, share, balance) of :data:`SWITCH_DEGREES` x :data:`SWITCH_SHARES` x ``balances`` with
+    the lowest score of ``rule`` (:data:`SWITCH_RULES`; every set of lights weighing the same) over ``rows``;
+    ties go to the larger share and the smaller balance (fewer scenes off the set), then the narrower window."""
+    score = SWITCH_RULES[rule]
+    a = _switch_arrays(rows)
     groups = sorted({r["set"] for r in rows})
     sel = [np.array([r["set"] == g for r in rows]) for g in groups]
-    never = np.array([r["never"] for r in rows])
-    return np.array([e[m].mean() for m in sel]), np.array([never[m].mean() for m in sel])
-
-
-def switch_choice(rows: list[dict], rule: str = "ratio") -> tuple[float, float]:
-    """The (degrees, share) of :data:`SWITCH_DEGREES` x :data:`SWITCH_SHARES` with the lowest score of
-    ``rule`` (:data:`SWITCH_RULES`; every set of lights weighing the same) over ``rows``; ties go to the
-    larger share (fewer scenes off the set), then the narrower window."""
-    score = SWITCH_RULES[rule]
+    c = np.array([a["never"][m].mean() for m in sel])
     best = None
     for d in SWITCH_DEGREES:
         for s in SWITCH_SHARES:
-            m = round(score(*_per_set(rows, switch_errors(rows, d, s))), 9)
-            if best is None or m < best[0] or (m == best[0] and (s, -d) > (best[2], -best[1])):
-                best = (m, d, s)
-    return best[1], best[2]
+            for b in balances:
+                e = switch_errors(a, d, s, b)
+                m = round(score(np.array([e[k].mean() for k in sel]), c), 9)
+                key = (m, -s, b, d)
+                if best is None or key < best[0]:
+                    best = (key, (d, s, b))
+    return best[1]
 
 
-def switch_cv(rows: list[dict], key: str = "set", rule: str = "ratio") -> list[dict]:
+def switch_cv(rows: list[dict], key: str = "set", rule: str = "ratio", balances=SWITCH_BALANCES) -> list[dict]:
     """Leave one ``key`` group out (a set of lights, or a camera): the switch chosen on the others by
-    ``rule`` (:func:`switch_choice`), scored on the one left out beside never, always and the shipped switch."""
-    from recovery import api
-
+    ``rule`` (:func:`switch_choice` over ``balances``), scored on the one left out beside never, always and
+    the shipped switch."""
     res = []
     for g in sorted({r[key] for r in rows}):
         train = [r for r in rows if r[key] != g]
         test = [r for r in rows if r[key] == g]
-        d, s = switch_choice(train, rule)
-        res.append({"left out": g, "scenes": len(test), "chosen": (d, s),
-                    "cv": float(switch_errors(test, d, s).mean()),
+        c = switch_choice(train, rule, balances)
+        res.append({"left out": g, "scenes": len(test), "chosen": c, "cv": float(switch_errors(test, *c).mean()),
                     "never": float(np.mean([r["never"] for r in test])),
                     "always": float(np.mean([r["always"] for r in test])),
-                    "shipped": float(switch_errors(test, api.NEAR_NEUTRAL_DEG, api.NEAR_NEUTRAL_SHARE).mean())})
+                    "shipped": float(switch_errors(test, *_shipped_switch()).mean())})
     return res
 
 
-def _print_switch(rows: list[dict]) -> None:
+def _shipped_switch() -> tuple[float, float, float]:
     from recovery import api
 
-    lab = lambda c: "never" if not np.isfinite(c[1]) else f"{c[1]:.0%} within {c[0]:g} deg"
-    shipped = (api.NEAR_NEUTRAL_DEG, api.NEAR_NEUTRAL_SHARE)
+    return api.NEAR_NEUTRAL_DEG, api.NEAR_NEUTRAL_SHARE, float("inf")
+
+
+def _switch_label(c) -> str:
+    if not np.isfinite(c[1]):
+        return "never"
+    return f"{c[1]:.0%} within {c[0]:g} deg" + (f", balance <= {c[2]:g} deg" if np.isfinite(c[2]) else "")
+
+
+def _print_switch(rows: list[dict]) -> None:
+    lab = _switch_label
+    shipped = _shipped_switch()
     print(f"\nthe near-neutral switch by cross-validation ({len(rows)} DNG scenes, method=bayes, mean degrees; "
           f"shipped {lab(shipped)}):")
     mean = lambda res, k: np.mean([r[k] for r in res])
-    print("\none set of lights left out, the switch chosen on the rest by each rule:\n")
-    print("| rule | chosen on every scene | " + " / ".join(sorted({r["set"] for r in rows})) + " | mean of the folds |")
-    print("|---|---|---|---|")
-    for rule in SWITCH_RULES:
-        res = switch_cv(rows, "set", rule)
-        print(f"| {rule} | {lab(switch_choice(rows, rule))} | " + " / ".join(f"{r['cv']:.2f}" for r in res)
-              + f" | {mean(res, 'cv'):.2f} |")
-    for k, what in (("never", "candidates alone"), ("always", "always off the set"), ("shipped", "shipped")):
-        print(f"| ({what}) | | " + " / ".join(f"{r[k]:.2f}" for r in res) + f" | {mean(res, k):.2f} |")
+    for balances, what in (((float("inf"),), "window and share only (the switch before the scene balance)"),
+                           (SWITCH_BALANCES, "window, share and scene balance")):
+        print(f"\none set of lights left out, the switch chosen on the rest by each rule; {what}:\n")
+        print("| rule | chosen on every scene | " + " / ".join(sorted({r["set"] for r in rows}))
+              + " | mean of the folds |")
+        print("|---|---|---|---|")
+        for rule in SWITCH_RULES:
+            res = switch_cv(rows, "set", rule, balances)
+            print(f"| {rule} | {lab(switch_choice(rows, rule, balances))} | "
+                  + " / ".join(f"{r['cv']:.2f}" for r in res) + f" | {mean(res, 'cv'):.2f} |")
+        for k, what_ in (("never", "candidates alone"), ("always", "always off the set"), ("shipped", "shipped")):
+            print(f"| ({what_}) | | " + " / ".join(f"{r[k]:.2f}" for r in res) + f" | {mean(res, k):.2f} |")
     res = switch_cv(rows, "camera", "ratio")
-    print("\none camera left out, the switch chosen on the rest by the ratio rule:\n")
+    print("\none camera left out, the switch (window, share, balance) chosen on the rest by the ratio rule:\n")
     print("| left out | scenes | chosen | **cross-validated** | candidates alone | always off the set | shipped |")
     print("|---|---|---|---|---|---|---|")
     for r in res:
@@ -456,19 +625,20 @@ def _print_switch(rows: list[dict]) -> None:
               f"{r['always']:.2f} | {r['shipped']:.2f} |")
     print(f"| mean of the folds | | | **{mean(res, 'cv'):.2f}** | {mean(res, 'never'):.2f} | {mean(res, 'always'):.2f} | "
           f"{mean(res, 'shipped'):.2f} |")
-    alt = switch_choice(rows, "max-ratio")
-    print(f"\nper set and layout, candidates alone / always / shipped ({lab(shipped)}) / {lab(alt)} (max-ratio):\n")
+    alt = switch_choice(rows, "ratio")
+    print(f"\nper set and layout, candidates alone / always / shipped ({lab(shipped)}) / chosen on every scene "
+          f"by the ratio rule ({lab(alt)}):\n")
     for name in dict.fromkeys(r["set"] for r in rows):
         for lay in LAYOUTS:
             sel = [r for r in rows if r["set"] == name and r["layout"] == lay]
             print(f"* {name}, {lay} ({len(sel)}): {np.mean([r['never'] for r in sel]):.2f} / "
                   f"{np.mean([r['always'] for r in sel]):.2f} / {switch_errors(sel, *shipped).mean():.2f} / "
                   f"{switch_errors(sel, *alt).mean():.2f}")
-    for lay in LAYOUTS:
-        v = [r["share"][shipped[0]] for r in rows if r["layout"] == lay and r["share"] and shipped[0] in r["share"]]
+    for name in dict.fromkeys(r["set"] for r in rows):
+        v = [r["balance"] for r in rows if r["set"] == name and r.get("balance") is not None]
         if v:
-            print(f"* {lay}: share of cells within {shipped[0]:g} deg, 5th / 50th / 95th percentile "
-                  + " / ".join(f"{q:.0%}" for q in np.percentile(v, [5, 50, 95])))
+            print(f"* {name}: scene balance, 5th / 50th / 95th percentile "
+                  + " / ".join(f"{q:.1f}" for q in np.percentile(v, [5, 50, 95])) + " deg")
 
 
 def _print_off_set_dng(res: dict) -> None:
@@ -585,9 +755,23 @@ def main(argv=None) -> int:
                     "candidate set against the candidates alone (:func:`off_set_study`)")
     ap.add_argument("--switch", action="store_true", help="only the near-neutral switch of lights off the "
                     "posterior's set, chosen by cross-validation (:func:`switch_cv`); --every and --seeds apply")
+    ap.add_argument("--auto-gate", action="store_true", help="only a gate of auto's on flat scenes of one hue "
+                    "family, tried and not shipped (:func:`auto_scenes`, :func:`gate_choice`); --every applies; "
+                    "--rows reuses a run's records")
     ap.add_argument("--rows", help="with --switch: the per-scene records of an earlier run "
                     "(out/chart_switch.json) instead of estimating again")
     a = ap.parse_args(argv)
+    if a.auto_gate:
+        t0 = time.perf_counter()
+        if a.rows:
+            rows = json.loads(Path(a.rows).read_text())
+        else:
+            rows = auto_scenes(every=a.every)
+            Path(a.out).mkdir(parents=True, exist_ok=True)
+            (Path(a.out) / "chart_auto_gate.json").write_text(json.dumps(rows))
+        print(f"({time.perf_counter() - t0:.0f} s)")
+        _print_gate(rows)
+        return 0
     if a.switch:
         t0 = time.perf_counter()
         if a.rows:

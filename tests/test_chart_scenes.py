@@ -108,43 +108,73 @@ def test_auto_keeps_the_better_model_under_lights_tinted_off_the_locus():
 
 
 def _switch_rows():
-    """Two sets of lights whose best switch is known: in "tinted" the scenes hold 45 % near-neutral cells
-    (at every window) and lights off the set are 3 degrees better; in "common" 20 % and 2 degrees worse;
-    one scene of "common" is not flat (``share`` None: the switch is never consulted)."""
+    """Three sets of lights whose best switch is known: in "tinted" the scenes hold 45 % near-neutral cells
+    (at every window) and lights off the set are 3 degrees better; in "common" 20 % and 2 degrees worse; in
+    "one hue" 45 % too, but the scene's colours sit 20 degrees from the light (one hue dominates) and lights
+    off the set are 4 degrees worse; one scene of "common" is not flat (``share`` None: never consulted)."""
     degs = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0)
     rows = [{"set": "tinted", "camera": f"c{i % 2}", "layout": "grid", "never": 4.0, "always": 1.0,
-             "share": dict.fromkeys(degs, 0.45)} for i in range(4)]
+             "share": dict.fromkeys(degs, 0.45), "balance": 3.0} for i in range(4)]
     rows += [{"set": "common", "camera": f"c{i % 2}", "layout": "mondrian", "never": 1.0, "always": 3.0,
-              "share": dict.fromkeys(degs, 0.2)} for i in range(4)]
+              "share": dict.fromkeys(degs, 0.2), "balance": 2.0} for i in range(4)]
     rows.append({"set": "common", "camera": "c0", "layout": "grid", "never": 1.0, "always": 9.0, "share": None})
+    rows += [{"set": "one hue", "camera": f"c{i % 2}", "layout": "grid", "never": 2.0, "always": 6.0,
+              "share": dict.fromkeys(degs, 0.45), "balance": 20.0} for i in range(4)]
     return rows
 
 
-def test_switch_choice_separates_the_sets_where_the_shares_do():
-    """Any share in (20 %, 45 %] switches exactly the scenes it should (mean error 1 over the sets); every
-    rule but the minimax must find one, and the tie-break takes the largest such share (fewer scenes off the set) at the
-    narrowest window: 40 % within 3 degrees (but for the minimax rule, below). The errors of a switch are read scene by scene."""
+def test_switch_choice_separates_the_sets_where_the_shares_and_the_balance_do():
+    """Any share in (20 %, 45 %] with a balance threshold in [3, 20) degrees switches exactly the scenes it
+    should (every set at its best); every rule but the minimax must find one, and the tie-break takes the
+    largest such share (fewer scenes off the set), the smallest such balance and the narrowest window: 40 %
+    within 3 degrees, balance <= 4 degrees. Without the balance (window and share only) the one-hue charts
+    cannot be told from the tinted ones. The errors of a switch are read scene by scene."""
     from benchmarks.chart_scenes import SWITCH_RULES, switch_choice, switch_errors
 
     rows = _switch_rows()
-    assert list(switch_errors(rows, 8.0, 0.3)) == [1.0] * 8 + [1.0]
-    assert list(switch_errors(rows, 8.0, 0.1)) == [1.0] * 4 + [3.0] * 4 + [1.0]      # the flat-less scene stays
-    assert list(switch_errors(rows, 8.0, float("inf"))) == [4.0] * 4 + [1.0] * 5
+    assert list(switch_errors(rows, 8.0, 0.3, 10.0)) == [1.0] * 8 + [1.0] + [2.0] * 4
+    assert list(switch_errors(rows, 8.0, 0.3)) == [1.0] * 8 + [1.0] + [6.0] * 4       # balance not consulted
+    assert list(switch_errors(rows, 8.0, 0.1, 10.0)) == [1.0] * 4 + [3.0] * 4 + [1.0] + [2.0] * 4
+    assert list(switch_errors(rows, 8.0, float("inf"))) == [4.0] * 4 + [1.0] * 5 + [2.0] * 4
     for rule in set(SWITCH_RULES) - {"max-ratio"}:
-        assert switch_choice(rows, rule) == (3.0, 0.4), rule
+        assert switch_choice(rows, rule) == (3.0, 0.4, 4.0), rule
     # the worst set's ratio is 1 whatever the switch ("common" cannot beat its candidates), so the minimax rule
     # ties everywhere and its tie-break keeps the candidates alone
-    assert switch_choice(rows, "max-ratio") == (3.0, float("inf"))
+    assert switch_choice(rows, "max-ratio")[1] == float("inf")
+    # with the balance left out the choice must trade "tinted" against "one hue"
+    assert switch_choice(rows, "mean", balances=(float("inf"),))[2] == float("inf")
 
 
 def test_switch_cv_scores_the_left_out_set_with_the_switch_chosen_without_it():
-    """Left out "common": chosen on "tinted" alone, where every share up to 45 % is as good, so the largest
-    (40 %) is kept and "common" keeps the candidates (1.0, against 3.0 for always off the set). Left out
-    "tinted": chosen on "common" alone, where never switching is best, so "tinted" gets the candidates' 4.0:
-    what a set never seen in the choice costs."""
+    """Left out "common": chosen on the others, 40 % within 3 degrees and the smallest balance that keeps
+    "tinted", so "common" keeps the candidates (1.0, against 3.0 for always off the set). Left out "one hue":
+    chosen on "tinted" and "common", where no scene has its balance, so the smallest balance threshold that
+    keeps "tinted" (4 degrees) is taken and "one hue" keeps the candidates (2.0). Left out "tinted": chosen on
+    the two where never switching is best, so "tinted" gets the candidates' 4.0: what a set never seen in the
+    choice costs."""
     from benchmarks.chart_scenes import switch_cv
 
     res = {r["left out"]: r for r in switch_cv(_switch_rows(), "set", "ratio")}
-    assert res["common"]["chosen"] == (3.0, 0.4) and res["common"]["cv"] == 1.0
+    assert res["common"]["chosen"] == (3.0, 0.4, 4.0) and res["common"]["cv"] == 1.0
     assert abs(res["common"]["always"] - 21.0 / 5) < 1e-12 and res["common"]["never"] == 1.0
+    assert res["one hue"]["chosen"] == (3.0, 0.4, 4.0) and res["one hue"]["cv"] == 2.0
     assert res["tinted"]["chosen"][1] == float("inf") and res["tinted"]["cv"] == 4.0
+
+
+def test_chroma_shape_does_not_depend_on_the_light():
+    """A von Kries change of light multiplies every cell by the same three gains: a translation in
+    log-chromaticity, which leaves the covariance of the cells' log-chromaticities, hence the isotropy and
+    the spread, exactly as they were; a chart of many hues is isotropic, a line of one hue is not."""
+    from recovery.api import chroma_shape
+
+    rng = np.random.default_rng(3)
+    lc = rng.normal(0.0, 0.3, (32, 32, 2))              # log(r/g), log(b/g) independent, equal spread
+    cells = 0.5 * np.stack([np.exp(lc[..., 0]), np.ones((32, 32)), np.exp(lc[..., 1])], axis=2)
+    ok = np.ones((32, 32), bool)
+    iso, spread = chroma_shape(cells, ok)
+    iso2, spread2 = chroma_shape(cells * np.array([2.0, 1.0, 0.4]), ok)
+    assert abs(iso - iso2) < 1e-9 and abs(spread - spread2) < 1e-9
+    assert iso > 0.8 and abs(spread - 0.3 * np.sqrt(2)) < 0.05      # 1,024 draws: within a few % of the law
+    t = rng.uniform(0, 1, (32, 32, 1))                   # one hue from grey to saturated red: a line
+    line = np.concatenate([0.3 + 0.6 * t, 0.3 + 0.05 * t, 0.3 + 0.02 * t], axis=2)
+    assert chroma_shape(line, ok)[0] < 0.01
