@@ -326,6 +326,40 @@ SWITCH_DEGREES = (3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0)
 SWITCH_SHARES = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, float("inf"))
 
 
+def study_sets(wl) -> dict:
+    """The five sets of chart and Mondrian scenes of :func:`switch_scenes` and :func:`auto_scenes`, each a
+    list of (light, surfaces) conditions (surfaces None: :func:`matrix_scene`'s own): in-sample lights
+    (:data:`LIGHTS`), held-out measured lights, held-out lights and surfaces (:func:`heldout_content`),
+    :func:`tinted_lights`, and charts of one hue family (:func:`one_hue_charts` under :data:`LIGHTS`)."""
+    h_lights, h_surf = heldout_content(wl)
+    return {"in-sample": [(n, None) for n in LIGHTS], "held-out lights": [(v, None) for v in h_lights.values()],
+            "held-out lights and surfaces": [(v, h_surf) for v in h_lights.values()],
+            "tinted lights": [(v, None) for v in tinted_lights(wl).values()],
+            "one-hue charts": [(n, c) for n in LIGHTS for c in one_hue_charts(wl)]}
+
+
+def _study_uploads(every: int, seeds: int, log, out: list):
+    """The DNG uploads of the studies: every ``every``-th of the 47 cameras (told only its least-squares
+    matrix), every condition of :func:`study_sets`, both layouts, ``seeds`` seeds (one for the one-hue
+    charts), through :func:`service.loader.load`. Yields ``({set, layout, camera, seed}, photo, true rgb)``;
+    logs ``len(out)`` after each camera."""
+    import models
+    from service.loader import load
+
+    wl = models.wavelength_grid(400, 700, 5)
+    sets = study_sets(wl)
+    for p in rawtoaces_cameras(every):
+        sens = measured_sensitivities(p, wl)
+        name = p.name.replace("_380_780_5.json", "")
+        for set_name, conditions in sets.items():
+            for light, surf in conditions:
+                for layout in LAYOUTS:
+                    for seed in range(1 if set_name == "one-hue charts" else seeds):
+                        data, truth = matrix_scene_bytes(sens, light, layout, seed, surf)
+                        yield {"set": set_name, "layout": layout, "camera": name, "seed": seed}, load(data), truth
+        log(f"  {name}: {len(out)} scenes")
+
+
 def scene_balance(cells, ok, rgb) -> float:
     """Angle (degrees) between the mean colour of the usable analysis cells (those of
     :func:`recovery.api.near_neutral_share`: above 5 % of the brightest) and the light ``rgb``: tried as a
@@ -351,16 +385,8 @@ def switch_scenes(every: int = 4, seeds: int = 2, log=print) -> list[dict]:
     of near-neutral cells at every window of :data:`SWITCH_DEGREES`. Returns records ``{set, layout, camera,
     seed, never, always, share: {deg: share} or None}`` (errors in degrees; ``share`` None where the scene is
     not one of flat patches, and the switch is not consulted)."""
-    import models
     from recovery import api, estimate_illuminant
-    from service.loader import load
 
-    wl = models.wavelength_grid(400, 700, 5)
-    h_lights, h_surf = heldout_content(wl)
-    sets = {"in-sample": [(n, None) for n in LIGHTS], "held-out lights": [(v, None) for v in h_lights.values()],
-            "held-out lights and surfaces": [(v, h_surf) for v in h_lights.values()],
-            "tinted lights": [(v, None) for v in tinted_lights(wl).values()],
-            "one-hue charts": [(n, c) for n in LIGHTS for c in one_hue_charts(wl)]}
     shipped = (api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE, api.near_neutral_share)
     seen = {}
 
@@ -373,23 +399,12 @@ def switch_scenes(every: int = 4, seeds: int = 2, log=print) -> list[dict]:
     out = []
     try:
         api.NEAR_NEUTRAL_SHARE, api.near_neutral_share = 0.0, watch
-        for p in rawtoaces_cameras(every):
-            sens = measured_sensitivities(p, wl)
-            name = p.name.replace("_380_780_5.json", "")
-            for set_name, conditions in sets.items():
-                for light, surf in conditions:
-                    for layout in LAYOUTS:
-                        for seed in range(1 if set_name == "one-hue charts" else seeds):
-                            data, truth = matrix_scene_bytes(sens, light, layout, seed, surf)
-                            ph = load(data)
-                            seen.clear()
-                            est = estimate_illuminant(ph.linear, ph.camera, "bayes", mask=ph.mask, spatial=False)
-                            e = angle(est.rgb, truth)
-                            out.append({"set": set_name, "layout": layout, "camera": name, "seed": seed,
-                                        "never": angle(seen["rgb"], truth) if seen else e, "always": e,
-                                        "share": dict(seen["share"]) if seen else None,
-                                        "balance": seen.get("balance")})
-            log(f"  {name}: {len(out)} scenes")
+        for rec, ph, truth in _study_uploads(every, seeds, log, out):
+            seen.clear()
+            est = estimate_illuminant(ph.linear, ph.camera, "bayes", mask=ph.mask, spatial=False)
+            e = angle(est.rgb, truth)
+            out.append(dict(rec, never=angle(seen["rgb"], truth) if seen else e, always=e,
+                            share=dict(seen["share"]) if seen else None, balance=seen.get("balance")))
     finally:
         api.OFF_SET_LIGHTS, api.NEAR_NEUTRAL_SHARE, api.near_neutral_share = shipped
     return out
@@ -405,36 +420,18 @@ def auto_scenes(every: int = 4, log=print) -> list[dict]:
     :func:`recovery.api.chroma_shape`). Records ``{set, layout, camera, bayes, learned, disagreement,
     confidence, low_confidence, isotropy, spread}``: what ``auto`` gives now is ``bayes``; a gate to the
     learnt estimator (:func:`gate_errors`) is scored from them without estimating again."""
-    import models
     from recovery import estimate_illuminant
-    from service.loader import load
 
-    wl = models.wavelength_grid(400, 700, 5)
-    h_lights, h_surf = heldout_content(wl)
-    sets = {"in-sample": [(n, None) for n in LIGHTS], "held-out lights": [(v, None) for v in h_lights.values()],
-            "held-out lights and surfaces": [(v, h_surf) for v in h_lights.values()],
-            "tinted lights": [(v, None) for v in tinted_lights(wl).values()],
-            "one-hue charts": [(n, c) for n in LIGHTS for c in one_hue_charts(wl)]}
     out = []
-    for p in rawtoaces_cameras(every):
-        sens = measured_sensitivities(p, wl)
-        name = p.name.replace("_380_780_5.json", "")
-        for set_name, conditions in sets.items():
-            for light, surf in conditions:
-                for layout in LAYOUTS:
-                    data, truth = matrix_scene_bytes(sens, light, layout, 0, surf)
-                    ph = load(data)
-                    est = estimate_illuminant(ph.linear, ph.camera, "auto", mask=ph.mask, spatial=False)
-                    d = est.diagnostics
-                    if est.method != "bayes" or "learned_rgb" not in d:
-                        continue                                        # not a scene auto hands to the posterior
-                    out.append({"set": set_name, "layout": layout, "camera": name,
-                                "bayes": angle(est.rgb, truth), "learned": angle(d["learned_rgb"], truth),
-                                "disagreement": float(d["posterior_learned_disagreement_deg"]),
-                                "confidence": float(d.get("confidence") or 0.0),
-                                "low_confidence": bool(d.get("low_confidence")),
-                                "isotropy": float(d["chroma_isotropy"]), "spread": float(d["chroma_spread"])})
-        log(f"  {name}: {len(out)} scenes")
+    for rec, ph, truth in _study_uploads(every, 1, log, out):
+        est = estimate_illuminant(ph.linear, ph.camera, "auto", mask=ph.mask, spatial=False)
+        d = est.diagnostics
+        if est.method != "bayes" or "learned_rgb" not in d:
+            continue                                        # not a scene auto hands to the posterior
+        out.append(dict(rec, bayes=angle(est.rgb, truth), learned=angle(d["learned_rgb"], truth),
+                        disagreement=float(d["posterior_learned_disagreement_deg"]),
+                        confidence=float(d.get("confidence") or 0.0), low_confidence=bool(d.get("low_confidence")),
+                        isotropy=float(d["chroma_isotropy"]), spread=float(d["chroma_spread"])))
     return out
 
 
@@ -743,6 +740,19 @@ def summary(rows, description: str) -> dict:
     return out
 
 
+def _records(a, name: str, study) -> list[dict]:
+    """A study's per-scene records: read from ``--rows`` or made by ``study()`` and kept as ``OUT/name``."""
+    t0 = time.perf_counter()
+    if a.rows:
+        rows = json.loads(Path(a.rows).read_text())
+    else:
+        rows = study()
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        (Path(a.out) / name).write_text(json.dumps(rows))
+    print(f"({time.perf_counter() - t0:.0f} s)")
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=2, help="scenes per camera, light and layout")
@@ -762,27 +772,12 @@ def main(argv=None) -> int:
                     "(out/chart_switch.json) instead of estimating again")
     a = ap.parse_args(argv)
     if a.auto_gate:
-        t0 = time.perf_counter()
-        if a.rows:
-            rows = json.loads(Path(a.rows).read_text())
-        else:
-            rows = auto_scenes(every=a.every)
-            Path(a.out).mkdir(parents=True, exist_ok=True)
-            (Path(a.out) / "chart_auto_gate.json").write_text(json.dumps(rows))
-        print(f"({time.perf_counter() - t0:.0f} s)")
-        _print_gate(rows)
+        _print_gate(_records(a, "chart_auto_gate.json", lambda: auto_scenes(every=a.every)))
         return 0
     if a.switch:
-        t0 = time.perf_counter()
-        if a.rows:
-            rows = json.loads(Path(a.rows).read_text())
-            for r in rows:
-                r["share"] = None if r["share"] is None else {float(k): v for k, v in r["share"].items()}
-        else:
-            rows = switch_scenes(every=a.every, seeds=a.seeds)
-            Path(a.out).mkdir(parents=True, exist_ok=True)
-            (Path(a.out) / "chart_switch.json").write_text(json.dumps(rows))
-        print(f"({time.perf_counter() - t0:.0f} s)")
+        rows = _records(a, "chart_switch.json", lambda: switch_scenes(every=a.every, seeds=a.seeds))
+        for r in rows:
+            r["share"] = None if r["share"] is None else {float(k): v for k, v in r["share"].items()}
         _print_switch(rows)
         return 0
     if a.off_set:

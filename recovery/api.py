@@ -1317,7 +1317,7 @@ class AnalysisResult:
         """:class:`recovery.surface_prior.SurfaceEstimates` of camera
         responses ``rho`` ``(P, C)`` seen at pixel coordinates ``rows``,
         ``cols`` (the light there); the prior estimator."""
-        from .surface_prior import surface_estimates, surface_estimates_per_point
+        from .surface_prior import surface_estimates
 
         rho = np.atleast_2d(np.asarray(rho, float))
         if self.prior is None or not np.array_equal(self._prior_spectrum, self.illuminant.spectrum):

@@ -63,6 +63,14 @@ def shared_file(relpath: str) -> Path:
     return path
 
 
+def run_cli(*args: str, timeout: float = 300):
+    """``python -m service.cli ARGS`` from the checkout, as a user runs it: the finished process."""
+    root = str(Path(__file__).resolve().parents[1])
+    env = dict(os.environ, PYTHONPATH=root)
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env, cwd=root)
+
+
 def gaussian_sensors(centres, width=30.0, wavelengths=DEFAULT_WAVELENGTHS):
     """Sensors with Gaussian sensitivities, one column per centre (nm)."""
     wl = np.asarray(wavelengths, float)[:, None]

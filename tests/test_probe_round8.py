@@ -7,28 +7,20 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 from recovery import Camera, InputError, analyze, estimate_illuminant
 
+from .conftest import run_cli as _cli
 from .conftest import scene_dng_bytes
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="module")
 def dng() -> bytes:
     return scene_dng_bytes(64, 96)
 
-
-def _cli(*args: str, timeout: float = 300):
-    env = dict(os.environ, PYTHONPATH=ROOT)
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, env=env, cwd=ROOT)
 
 
 # --- 1. cameras the shipped spectra cannot model ---------------------------------------------
