@@ -384,11 +384,12 @@ def decode_linear_dng_without_libraw(data: bytes, filename: str | None, max_pixe
         raise ServiceError(422, "corrupt_file", f"{label}: {info.problem}")
     if _tiff_structured(data):
         _check_tiff_structure(data)
-    got = linear_dng_estimation(data, H, W, estimation_pixels, label=label)
+    # no AsShotNeutral: read without an as-shot white (LibRaw, which would derive one, refuses the file)
+    got = linear_dng_estimation(data, H, W, estimation_pixels, label=label, need_neutral=False)
     if got is None:
         return None
     s = types.SimpleNamespace(height=H, width=W, flip=_ORIENTATION_FLIP.get(orient, 0), pixel_aspect=1.0)
-    warnings = ["LibRaw does not open this DNG (its compression): it is read by tifffile alone"]
+    warnings = ["LibRaw does not open this DNG (its compression or sample type): it is read by tifffile alone"]
     return _linear_dng_decoded(got, s, data, info.make, info.model, info.color_matrix, warnings)
 
 
