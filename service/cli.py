@@ -674,7 +674,8 @@ def _cmd_white_balance(args) -> int:
                     print(f"XMP sidecar: {term_safe(sc['xmp'])} (Temperature {sc['temperature']:.0f} K, "
                           f"Tint {sc['tint']:+.0f})")
             res.update({k: sc[k] for k in ("dng", "dng_kept", "dng_error") if sc.get(k)})
-            if not args.quiet and (sc.get("dng") or sc.get("dng_kept") or sc.get("dng_error")):
+            # a DNG copy not written is said even with --quiet (on stderr, as a batch's notes are)
+            if sc.get("dng_error") or (not args.quiet and (sc.get("dng") or sc.get("dng_kept"))):
                 print(term_safe(sidecars.dng_copy_message(sc)), file=sys.stderr if sc.get("dng_error") else sys.stdout)
             if sc.get("note"):
                 res["note"] = sc["note"]
