@@ -168,3 +168,38 @@ def test_batch_keeps_a_users_batch_json_and_says_so(tmp_path, dng):
     r = _cli(*args)                         # our own summary of the last run: replaced, no warning
     assert r.returncode == 0 and "batch.json" not in r.stderr, r.stderr
     assert _strict(mine.read_text())["counts"]["skipped"] == 1
+
+
+# --- 5. /v1/surfaces takes every estimation field /v1/analyze takes ------------------------------
+
+@pytest.mark.parametrize("fields", [
+    {"method": "maloney-wandell", "surface_dim": "2", "light_dim": "2"},
+    {"method": "maloney-wandell", "surface_dim": "auto", "light_dim": "auto"},
+    {"method": "maloney-wandell", "light_model": "fourier"},
+    {"method": "maloney-wandell", "light_model": "illuminant-pca", "spatial": "true", "region_size": "16"},
+    {"method": "bayes", "spatial": "true", "region_size": "24"},
+    {"light_model": "daylight"},
+], ids=["dims", "dims-auto", "light-model", "literal-map", "bayes-map", "default-daylight"])
+def test_surfaces_take_every_estimation_field_and_answer_analyzes_light(client, dng, fields):
+    """``/v1/surfaces`` refused ``region_size``, ``surface_dim``,
+    ``light_dim`` and ``light_model`` (422 ``unknown_field``) though each
+    changes the light ``/v1/analyze`` answers (the map's regions, the
+    literal method's models, the light's spectrum model), and the surfaces
+    are read under that light. They are taken as on ``/v1/analyze``: the
+    same fields give the same light (and the same map)."""
+    a = client.post("/v1/analyze", files={"file": ("a.dng", dng)}, data=fields)
+    s = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={"points": "[[10, 10]]", **fields})
+    assert a.status_code == 200 and s.status_code == 200, (a.text[:300], s.text[:300])
+    aj, sj = a.json(), s.json()
+    assert sj["illuminant"]["camera_rgb"] == aj["illuminant"]["camera_rgb"], (aj["illuminant"], sj["illuminant"])
+    assert sj["illuminant"]["spectrum"] == aj["illuminant"]["spectrum"]
+    assert sj["method"] == aj["method"] and sj.get("light_map") == aj.get("light_map")
+    assert sj["lights"]["found"] == aj["lights"]["found"]
+
+
+@pytest.mark.parametrize("field,value", [("region_size", "3"), ("surface_dim", "99"), ("light_dim", "x"),
+                                         ("light_model", "nope")])
+def test_surfaces_refuse_a_bad_estimation_field_naming_it(client, dng, field, value):
+    r = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={"points": "[[1, 1]]", field: value,
+                                                                            "method": "maloney-wandell"})
+    assert r.status_code == 422 and field in r.json()["detail"] and r.json()["error"] != "unknown_field", r.text
