@@ -141,9 +141,10 @@ def _add_options(ap: argparse.ArgumentParser, batch: bool | None) -> None:
                     help="no progress bar and no summary table; failures, notes and warnings still go to stderr")
     if batch:
         ap.add_argument("--force", action="store_true",
-                        help="compute finished outputs again, and replace a file of an output's name that no batch "
-                             "wrote (default: skip finished outputs, resumable; keep other files, their items "
-                             "fail); a read-only file is never replaced")
+                        help="compute finished outputs again, and replace a file of an output's name, or "
+                             "OUT_DIR/batch.json, that no batch wrote (default: skip finished outputs, resumable; "
+                             "keep other files, their items fail, a batch.json with a warning); a read-only file is "
+                             "never replaced")
         add_options(ap, BATCH)
         ap.add_argument("--workers", type=int, default=0,
                         help="local worker processes (0: one per core; at most 4 per core)")
@@ -449,7 +450,8 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
     are written before the command exits) and no ``.lock`` file behind.
 
     ``info`` (a dict, filled in): ``shared_light``, the light of a shared batch. ``OUT_DIR/batch.json``:
-    :mod:`service.batch.summary`, the items flagged low confidence first.
+    :mod:`service.batch.summary`, the items flagged low confidence first; a ``batch.json`` no batch
+    wrote is kept unless ``force`` (a read-only one even then), with a warning on stderr.
 
     An item whose worker dies abruptly breaks the local pool and every item in flight with it: those
     run again one at a time, each alone (:func:`service.batch.executors.run_alone`), and only one whose
@@ -585,7 +587,10 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
             with contextlib.suppress(KeyboardInterrupt):
                 batch_xmp.finish_sidecars(tasks, rows, options, out_dir, xmp, xmp_jobs, _settings())
     with contextlib.suppress(OSError, KeyboardInterrupt):   # OUT_DIR/batch.json, flagged first (docs/confidence.md)
-        batch_summary.write_cli_summary(tasks, rows, options, in_dir, out_dir, interrupted)
+        try:
+            batch_summary.write_cli_summary(tasks, rows, options, in_dir, out_dir, interrupted, force=force)
+        except batch_summary.SummaryKept as e:    # a user's batch.json: kept and said, even with --quiet
+            sys.stderr.write(f"warning: {term_safe(str(e))}\n")
     if interrupted:
         raise BatchInterrupted([rows[t.name] for t in tasks])
     return [rows[t.name] for t in tasks]
@@ -674,7 +679,8 @@ def _cmd_white_balance(args) -> int:
                     print(f"XMP sidecar: {term_safe(sc['xmp'])} (Temperature {sc['temperature']:.0f} K, "
                           f"Tint {sc['tint']:+.0f})")
             res.update({k: sc[k] for k in ("dng", "dng_kept", "dng_error") if sc.get(k)})
-            if not args.quiet and (sc.get("dng") or sc.get("dng_kept") or sc.get("dng_error")):
+            # a DNG copy not written is said even with --quiet (on stderr, as a batch's notes are)
+            if sc.get("dng_error") or (not args.quiet and (sc.get("dng") or sc.get("dng_kept"))):
                 print(term_safe(sidecars.dng_copy_message(sc)), file=sys.stderr if sc.get("dng_error") else sys.stdout)
             if sc.get("note"):
                 res["note"] = sc["note"]

@@ -91,7 +91,7 @@ def white_from_temperature_tint(decoded, run, temperature: float, tint: float):
 def with_white(decoded, run, white: str):
     """The run whose light renders the image: ``run`` itself (the estimate,
     or the user's neutral surface), the file's own as-shot white (422
-    ``no_as_shot_white`` without one), or a Temperature/Tint
+    ``no_as_shot_white`` without a usable one), or a Temperature/Tint
     (:func:`white_from_temperature_tint`)."""
     import numpy as np
 
@@ -102,7 +102,8 @@ def with_white(decoded, run, white: str):
         return run
     if w == "as-shot":
         if decoded.as_shot_neutral is None:
-            raise ServiceError(422, "no_as_shot_white", "white=as-shot: the file records no as-shot white balance")
+            why = getattr(decoded, "as_shot_problem", None) or "the file records no as-shot white balance"
+            raise ServiceError(422, "no_as_shot_white", f"white=as-shot: {why}")
         return run_with_white(run, decoded.as_shot_neutral, "as-shot")
     rgb = white_from_temperature_tint(decoded, run, *w)
     if not (np.all(np.isfinite(rgb)) and np.all(rgb > 0)):

@@ -61,13 +61,65 @@ def cli_summary(tasks, rows: dict, options, in_dir: str, out_dir: str, interrupt
             "low_confidence": [it["name"] for it in items if flagged(it)], "items": items}
 
 
-def write_cli_summary(tasks, rows: dict, options, in_dir: str, out_dir: str, interrupted: bool = False) -> str:
+#: The keys every summary :func:`cli_summary` writes has: a ``batch.json`` without them is not ours.
+SUMMARY_KEYS = ("input_folder", "output_folder", "interrupted", "options", "counts", "low_confidence", "items")
+
+#: A ``batch.json`` larger than this is not read to see whether it is a summary (a batch of the
+#: largest size, 1000s of items, writes a few MB).
+MAX_SUMMARY_BYTES = 256 << 20
+
+
+class SummaryKept(Exception):
+    """``OUT_DIR/batch.json`` is a file a batch did not write, or read-only:
+    it is kept and the summary is not written (the message says why and
+    what to do)."""
+
+
+def is_cli_summary(path: str) -> bool:
+    """Whether the file at ``path`` is a summary a ``wandell batch`` wrote
+    (a JSON object with every key of :data:`SUMMARY_KEYS`)."""
+    try:
+        if os.path.getsize(path) > MAX_SUMMARY_BYTES:
+            return False
+        with open(path, "rb") as f:
+            doc = json.loads(f.read())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(doc, dict) and all(k in doc for k in SUMMARY_KEYS)
+
+
+def kept_summary(path: str, force: bool) -> str | None:
+    """Why ``OUT_DIR/batch.json`` is kept instead of replaced by the
+    summary, or ``None``: the rule of the outputs
+    (:func:`service.cli_paths.kept_output`): a folder or a read-only file is
+    kept even with ``--force``, a file no batch wrote unless ``--force``;
+    a summary of an earlier run is replaced. It replaced a user's
+    ``batch.json`` without a word (probe round 8b)."""
+    if not os.path.lexists(path):
+        return None
+    if os.path.isdir(path) and not os.path.islink(path):
+        return f"{path!r} is a folder; it is kept and the batch's summary is not written"
+    if os.path.isfile(path) and not os.stat(path).st_mode & 0o222:
+        return (f"{path!r} exists and is read-only; it is kept and the batch's summary is not written: make it "
+                "writable or remove it, then run again")
+    if not force and not is_cli_summary(path):
+        return (f"{path!r} exists and was not written by a batch; it is kept and the batch's summary is not "
+                "written: move it, or --force to replace it")
+    return None
+
+
+def write_cli_summary(tasks, rows: dict, options, in_dir: str, out_dir: str, interrupted: bool = False,
+                      force: bool = False) -> str:
     """:func:`cli_summary` written to ``OUT_DIR/batch.json`` (whole or not at
-    all: a temporary file renamed into place); returns its path."""
+    all: a temporary file renamed into place); returns its path. Raises
+    :class:`SummaryKept` when a file there must be kept (:func:`kept_summary`)."""
     from ..jsonsafe import clean
     from .items import atomic_write, write_text
 
     path = os.path.join(out_dir, SUMMARY)
+    kept = kept_summary(path, force)
+    if kept is not None:
+        raise SummaryKept(kept)
     doc = clean(cli_summary(tasks, rows, options, in_dir, out_dir, interrupted))
     atomic_write(path, lambda p: write_text(p, json.dumps(doc, indent=1) + "\n"), durable=False)
     return path

@@ -22,6 +22,34 @@ RAW_EXTENSIONS = frozenset({
     ".erf", ".kdc", ".dcr", ".raw", ".gpr", ".tif", ".tiff",
 })
 
+#: An as-shot neutral is used when each of its channels is within this factor
+#: of green (either way): LibRaw drops a DNG neutral under 0.001 (a multiplier
+#: over 1000); real cameras' whites stay within a factor of about 5. Past it
+#: the "white balance" would multiply a channel by thousands (probe round 8b).
+MAX_NEUTRAL_RATIO = 1000.0
+
+
+def as_shot_problem(neutral, tag: str = "AsShotNeutral") -> str | None:
+    """Why ``neutral`` (camera RGB of the as-shot white, as the file records
+    it) is not a usable white, or ``None`` when it is.
+
+    >>> as_shot_problem([0.5, 1.0, 0.6]) is None
+    True
+    >>> as_shot_problem([1e-6, 1.0, 1e6])
+    'the file records an as-shot white (AsShotNeutral 1e-06, 1, 1e+06) that is not a usable white: its channels must be positive and within a factor of 1000 of green'
+    """
+    v = np.asarray(neutral, dtype=np.float64).ravel()
+    ok = v.size == 3 and bool(np.all(np.isfinite(v))) and bool(np.all(v > 0))
+    if ok:
+        r = v / v[1]
+        ok = bool(np.all(r <= MAX_NEUTRAL_RATIO) and np.all(r >= 1.0 / MAX_NEUTRAL_RATIO))
+    if ok:
+        return None
+    shown = ", ".join(f"{x:.6g}" for x in v)
+    return (f"the file records an as-shot white ({tag} {shown}) that is not a usable white: its channels "
+            f"must be positive and within a factor of {MAX_NEUTRAL_RATIO:.0f} of green")
+
+
 #: Orientation LibRaw applies for each ``sizes.flip`` code (EXIF Orientation
 #: 1..8 -> flip 0, 1, 3, 2, 4, 6, 7, 5), as numpy operations on (H, W, ...)
 #: arrays; measured against LibRaw's own output in ``tests/test_rawio.py``.
@@ -65,7 +93,11 @@ class DecodedImage:
         XYZ -> camera: the DNG's ColorMatrix (the D65-calibrated one when
         the file has two), else LibRaw's built-in matrix for the camera.
     as_shot_neutral : (3,) float64 or None
-        Camera RGB of the as-shot white, green = 1 (``1 / camera_whitebalance``).
+        Camera RGB of the as-shot white, green = 1 (``1 / camera_whitebalance``);
+        ``None`` when the file records none, or one :func:`as_shot_problem` refuses.
+    as_shot_problem : str or None
+        Why the as-shot white the file records is not used (``as_shot_neutral``
+        is then ``None``): e.g. "AsShotNeutral (1e-06, 1, 1e+06) ...".
     black_level, white_level : float or None
         Mean of the per-channel black levels, and the white level, in
         digital numbers (0 and 65535, or 0 and 1.0, for TIFF/PNG).
@@ -86,6 +118,7 @@ class DecodedImage:
     model: str | None = None
     color_matrix: np.ndarray | None = None
     as_shot_neutral: np.ndarray | None = None
+    as_shot_problem: str | None = None
     black_level: float | None = None
     white_level: float | None = None
     warnings: list = field(default_factory=list)

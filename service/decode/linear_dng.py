@@ -119,9 +119,13 @@ class _Layout:
         self.black, self.white, self.lut, self.neutral = black, white, lut, neutral
 
 
-def _layout(tf, height: int, width: int) -> _Layout | None:
+def _layout(tf, height: int, width: int, need_neutral: bool = True) -> _Layout | None:
     """The raw IFD of ``tf`` and its levels when it is in the plain layout
-    (module docstring) and of ``height x width`` pixels, else ``None``."""
+    (module docstring) and of ``height x width`` pixels, else ``None``.
+    Without a usable AsShotNeutral it is ``None`` when ``need_neutral`` (a
+    file LibRaw opens: LibRaw derives the neutral, e.g. from AsShotWhiteXY),
+    else read with ``neutral`` ``None`` (a file LibRaw does not open, whose
+    samples are read only here; the full image, which needs no neutral)."""
     page = _raw_page(tf)
     if page is None:
         return None
@@ -149,13 +153,15 @@ def _layout(tf, height: int, width: int) -> _Layout | None:
     p0 = tf.pages.first if hasattr(tf.pages, "first") else tf.pages[0]
     asn = _values(p0, 50728)                        # AsShotNeutral (IFD0)
     if asn is None or asn.size != 3 or not np.all(np.isfinite(asn)) or not np.all(asn > 0):
-        return None                                 # LibRaw derives the neutral otherwise (AsShotWhiteXY)
+        if need_neutral:
+            return None                             # LibRaw derives the neutral otherwise (AsShotWhiteXY)
+        asn = None
     lut = _values(page, 50712)
     if lut is not None:
         if dtype.kind == "f" or lut.size < 2 or not np.all(np.isfinite(lut)):
             return None
         lut = lut.astype(np.float64)
-    return _Layout(page, H, W, dtype, black, white, lut, asn / asn[1])
+    return _Layout(page, H, W, dtype, black, white, lut, None if asn is None else asn / asn[1])
 
 
 def _segments(page):
@@ -214,13 +220,14 @@ def _corrupt(label: str | None, why: str):
 
 
 def linear_dng_estimation(data: bytes, height: int, width: int, estimation_pixels: int | None,
-                          label: str | None = None):
+                          label: str | None = None, need_neutral: bool = True):
     """``(estimation image (h, w, 3) float32, saturated (h, w) bool, f,
-    as-shot neutral (3,) with green 1, black (3,), white (3,))`` of a
+    as-shot neutral (3,) with green 1 or None, black (3,), white (3,))`` of a
     LinearRaw DNG of ``height x width`` pixels (unoriented, as LibRaw
     reports them), block-averaged by ``f``; ``None`` when the file is not in
-    the plain layout read here or has no AsShotNeutral (LibRaw then decodes
-    it).
+    the plain layout read here, or has no AsShotNeutral and ``need_neutral``
+    (LibRaw then decodes it; a file LibRaw does not open is read with
+    ``need_neutral=False``: no as-shot white).
 
     Raises
     ------
@@ -235,7 +242,7 @@ def linear_dng_estimation(data: bytes, height: int, width: int, estimation_pixel
     except Exception:  # noqa: BLE001 - LibRaw read it; it decides
         return None
     with tf:
-        lay = _layout(tf, height, width)
+        lay = _layout(tf, height, width, need_neutral)
         if lay is None:
             return None
         H, W, black, white, lut, neutral = lay.H, lay.W, lay.black, lay.white, lay.lut, lay.neutral
@@ -368,7 +375,7 @@ def linear_dng_full(data: bytes, height: int, width: int, flip: int, label: str 
     except Exception as exc:  # noqa: BLE001
         raise _corrupt(label, f"the DNG cannot be read again ({type(exc).__name__})") from None
     with tf:
-        lay = _layout(tf, height, width)
+        lay = _layout(tf, height, width, need_neutral=False)      # the full image needs no neutral
         if lay is None:
             raise _corrupt(label, "the LinearRaw image is no longer in the layout read before")
         H, W = lay.H, lay.W
@@ -439,7 +446,7 @@ class LinearRawRows:
             tf = tifffile.TiffFile(io.BytesIO(data))
         except Exception:  # noqa: BLE001 - the whole-image path reports it
             return None
-        lay = _layout(tf, height, width)
+        lay = _layout(tf, height, width, need_neutral=False)
         tall = lay is not None and (int(lay.page.tilelength) if lay.page.is_tiled else
                                     min(int(lay.page.rowsperstrip or lay.H), lay.H)) > MAX_ROWS_SEGMENT
         if lay is None or tall or len(lay.page.dataoffsets) != len(lay.page.databytecounts):

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import ServiceError
 from .formats import camera_label
-from .image import DecodedImage, FLIP_OPS, SATURATION_FRACTION, _uint16_to_unit_float
+from .image import DecodedImage, FLIP_OPS, SATURATION_FRACTION, _uint16_to_unit_float, as_shot_problem
 
 
 def _librawmsg(exc) -> str:
@@ -286,10 +286,16 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
         m = np.asarray(raw.rgb_xyz_matrix, dtype=np.float64)[:3]
         if m.shape == (3, 3) and np.all(np.isfinite(m)) and np.any(m):
             color_matrix = m
-    neutral = None
+    neutral, asn_problem = None, None
     wb = np.asarray(raw.camera_whitebalance, dtype=np.float64)[:3]
+    tagged = info.as_shot_neutral if info is not None else None
     if np.all(np.isfinite(wb)) and np.all(wb > 0):
         neutral = (1.0 / wb) / (1.0 / wb[1])
+        asn_problem = as_shot_problem(neutral, "AsShotNeutral" if tagged is not None else "neutral")
+    elif tagged is not None:                # LibRaw dropped the DNG's neutral (a channel under 0.001)
+        asn_problem = as_shot_problem(tagged) or "LibRaw could not use the file's AsShotNeutral"
+    if asn_problem is not None:
+        neutral = None
     full_shape = _oriented_shape(int(s.height), int(s.width), flip, float(s.pixel_aspect))
     if abs(float(s.pixel_aspect) - 1.0) > 1e-6:
         warnings.append(f"non-square pixels (aspect {float(s.pixel_aspect):.4g}): the full-resolution image "
@@ -300,12 +306,12 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
     return DecodedImage(
         kind="raw", estimation=est, saturated=sat, full_shape=full_shape, make=make, model=model,
         color_matrix=None if color_matrix is None else np.array(color_matrix, dtype=np.float64),
-        as_shot_neutral=neutral, black_level=float(np.mean(blacks)), white_level=white,
+        as_shot_neutral=neutral, as_shot_problem=asn_problem, black_level=float(np.mean(blacks)), white_level=white,
         warnings=warnings, _source=data, _postprocess=post, _mosaic=mosaic,
     )
 
 
-def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings) -> DecodedImage:
+def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings, tagged=None) -> DecodedImage:
     """The :class:`DecodedImage` of a LinearRaw DNG read by
     :func:`service.decode.linear_dng.linear_dng_estimation` (``got``): the
     estimation image oriented as LibRaw would (``s.flip``); the full-
@@ -313,6 +319,12 @@ def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings) -> De
     (:func:`service.decode.linear_dng.linear_dng_full`, through
     :func:`_raw_full_linear`), not by LibRaw."""
     est, sat, f, neutral, black, white = got
+    if neutral is None and tagged is not None:       # a tag, but not positive numbers
+        asn_problem = as_shot_problem(tagged) or "the file's AsShotNeutral cannot be read"
+    else:
+        asn_problem = None if neutral is None else as_shot_problem(neutral)
+    if asn_problem is not None:
+        neutral = None
     flip = int(s.flip) if int(s.flip) in FLIP_OPS else 0
     if flip:
         est = np.ascontiguousarray(FLIP_OPS[flip](est))
@@ -326,7 +338,7 @@ def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings) -> De
         warnings.append(f"{100 * frac:.1f} % of the image is saturated (those cells are flagged)")
     return DecodedImage(
         kind="raw", estimation=est, saturated=sat, full_shape=full_shape, make=make, model=model,
-        color_matrix=np.array(color_matrix, dtype=np.float64), as_shot_neutral=neutral,
+        color_matrix=np.array(color_matrix, dtype=np.float64), as_shot_neutral=neutral, as_shot_problem=asn_problem,
         black_level=float(np.mean(black)), white_level=float(np.mean(white)),
         warnings=warnings, _source=data, _postprocess=post, _mosaic=None,
         _linear_raw=(int(s.height), int(s.width)),
@@ -384,12 +396,14 @@ def decode_linear_dng_without_libraw(data: bytes, filename: str | None, max_pixe
         raise ServiceError(422, "corrupt_file", f"{label}: {info.problem}")
     if _tiff_structured(data):
         _check_tiff_structure(data)
-    got = linear_dng_estimation(data, H, W, estimation_pixels, label=label)
+    # no AsShotNeutral: read without an as-shot white (LibRaw, which would derive one, refuses the file)
+    got = linear_dng_estimation(data, H, W, estimation_pixels, label=label, need_neutral=False)
     if got is None:
         return None
     s = types.SimpleNamespace(height=H, width=W, flip=_ORIENTATION_FLIP.get(orient, 0), pixel_aspect=1.0)
-    warnings = ["LibRaw does not open this DNG (its compression): it is read by tifffile alone"]
-    return _linear_dng_decoded(got, s, data, info.make, info.model, info.color_matrix, warnings)
+    warnings = ["LibRaw does not open this DNG (its compression or sample type): it is read by tifffile alone"]
+    return _linear_dng_decoded(got, s, data, info.make, info.model, info.color_matrix, warnings,
+                               tagged=info.as_shot_neutral)
 
 
 #: OpenCV conversion codes for each 2x2 Bayer cell (measured: a constant

@@ -19,6 +19,7 @@ class _TiffInfo:
     grey_guess: bool = False       # a plain grey TIFF LibRaw takes for an RGGB mosaic
     plain_multisample: bool = False  # a plain TIFF of 2+ samples LibRaw misreads as a mosaic
     problem: str | None = None     # strips/tiles beyond the end of the file
+    as_shot_neutral: np.ndarray | None = None   # a DNG's AsShotNeutral tag as written (any values)
 
 
 def _tag(page, code):
@@ -151,6 +152,13 @@ def _tiff_info(data: bytes) -> _TiffInfo:
             info.color_matrix = cm2
         else:
             info.color_matrix = cm1 if cm1 is not None else cm2
+        asn = _tag(p0, 50728)
+        if asn is not None:
+            v = np.asarray(asn, dtype=np.float64).ravel()
+            if v.size == 6:                                  # numerator/denominator pairs
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    v = v[0::2] / v[1::2]
+            info.as_shot_neutral = v if v.size == 3 else np.full(3, np.nan)
         for page in _iter_ifds(tf.pages):
             offs = getattr(page, "dataoffsets", ()) or ()
             cnts = getattr(page, "databytecounts", ()) or ()

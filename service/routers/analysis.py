@@ -68,9 +68,11 @@ _WB_RENDERING = form(WhiteBalanceRendering, choices={"format": tuple(FORMATS)},
                                          "the original RAW in another editor, or dng: the RAW as a DNG with that "
                                          "white balance inside (a DNG's copy, its raw data untouched; another "
                                          "RAW's raw data written as a DNG), what Lightroom reads for a DNG"})
-# quality as /v1/analyze: the light the surfaces are estimated under is the one /v1/analyze answers for the
-# same fields (the page's picture and its "read a surface" agree; probe round 8: it was refused, 422 unknown_field)
-_SURFACES_ESTIMATION = form(AnalyzeEstimation, include=("camera", "method", "quality", "surface_model", "spatial"))
+# every estimation field of /v1/analyze: the light the surfaces are estimated under is the one /v1/analyze
+# answers for the same fields (the page's picture and its "read a surface" agree). quality was refused until
+# probe round 8, region_size, surface_dim, light_dim and light_model until round 8b (422 unknown_field), though
+# each changes the light (the map's regions, the literal method's models, the light's spectrum model)
+_SURFACES_ESTIMATION = form(AnalyzeEstimation)
 _REGIONS = form(Regions)
 _INPUT = form(Input)
 

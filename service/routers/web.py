@@ -121,8 +121,8 @@ def own_camera_wb_preview(data: bytes, name: str | None, settings, camera, max_s
     if decoded.as_shot_neutral is None:
         small = _to_uint16(downsize_linear(decoded.estimation, max_side))
         img = pipeline.apply_matrix_inplace(small, np.eye(3), "sRGB", 8)
-        return decoded, img, {"wb": "camera", "warnings": [note + ", unbalanced: the file records no as-shot "
-                                                           "white balance"]}
+        why = decoded.as_shot_problem or "the file records no as-shot white balance"
+        return decoded, img, {"wb": "camera", "warnings": [note + f", unbalanced: {why}"]}
     img, info = corrected_preview(decoded, with_white(decoded, run, "as-shot"), "D65", "sRGB", None, max_side)
     asn = [float(v) for v in decoded.as_shot_neutral]
     return decoded, img, {"wb": "camera", "camera_multipliers": [asn[1] / v for v in asn],
@@ -156,8 +156,8 @@ def camera_wb_preview(decoded, data: bytes, max_side: int) -> tuple[np.ndarray, 
             # integers, deflate with a predictor), so it is not damaged (probe round 8): the caller renders it
             raise LibRawCannotRender(type(exc).__name__) from None
         if decoded.as_shot_neutral is None:
-            info["warnings"].append("the file records no as-shot white balance; LibRaw used its default "
-                                    "(daylight) multipliers")
+            why = decoded.as_shot_problem or "the file records no as-shot white balance"
+            info["warnings"].append(f"{why}; LibRaw used its default (daylight) multipliers")
         else:
             info["camera_multipliers"] = [m / mult[1] if mult[1] else m for m in mult]
         h, w = rgb.shape[:2]
