@@ -13,8 +13,9 @@ estimated by ``auto`` (:func:`recovery.analyze`), the surfaces read at the patch
 squares factor per scene (as ``benchmarks.surfaces`` scores RMSE).
 
 Printed per set and camera description: the share of true values inside the metamer range (all would be,
-with the true light and camera, up to the noise), the share of surfaces with no physical metamer
-(``slack`` > 0), the mean width of the range in three wavelength bands against the width of the calibrated
+with the true light and camera, up to the noise), the share of surfaces whose colour no reflectance gives
+under the estimated light (``slack`` > 0) and of those brighter than a white at the surfaces' exposure
+(``scale`` > 1), the mean width of the range in three wavelength bands against the width of the calibrated
 90 % band (2 x 1.645 x ``reflectance_std``) and its coverage, and the time per surface.
 """
 
@@ -66,7 +67,7 @@ def run(quick: bool = False, log=print) -> dict:
             sens5 = models.camera_sensitivities(models.canonical_camera_name(name), models.wavelength_grid(400, 700, 5))
             matrix = camera_from_matrix(least_squares_matrix(sens5), wl)
             for desc, cam in (("measured", measured), ("matrix", matrix)):
-                rec = out.setdefault((set_name, desc), {"inside": [], "slack": [], "width": [], "band": [],
+                rec = out.setdefault((set_name, desc), {"inside": [], "slack": [], "bright": [], "width": [], "band": [],
                                                         "band_in": [], "ms": [], "wl": wl})
                 for light in lights:
                     for s0 in range(0, R_all.shape[0], 24):
@@ -82,6 +83,7 @@ def run(quick: bool = False, log=print) -> dict:
                         T = R * k
                         rec["inside"].append((T >= mr.lower - 1e-6) & (T <= mr.upper + 1e-6))
                         rec["slack"].append(mr.slack > 0)
+                        rec["bright"].append(mr.scale > 1)
                         rec["width"].append(mr.width)
                         rec["band"].append(2 * 1.645 * pe.std)
                         rec["band_in"].append(np.abs(T - pe.mean) <= 1.645 * pe.std)
@@ -90,16 +92,17 @@ def run(quick: bool = False, log=print) -> dict:
 
 
 def report(out: dict) -> None:
-    print("| set | camera told | surfaces x lights | truth inside the metamer range | no physical metamer | "
+    print("| set | camera told | surfaces x lights | truth inside the metamer range | colour out of reach | "
+          "brighter than white | "
           "range width 400-450 / 450-650 / 650-700 nm | 90 % band width (same bands) | band holds the truth | "
           "ms per surface |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for (set_name, desc), r in out.items():
         wl = r["wl"]
         inside, width, band = (np.concatenate(r[k]) for k in ("inside", "width", "band"))
         sel = [(wl >= a) & (wl < b) for a, b in BANDS]
         print(f"| {set_name} | {desc} | {inside.shape[0]} | {inside.mean():.3f} | "
-              f"{np.concatenate(r['slack']).mean():.3f} | " + " / ".join(f"{width[:, m].mean():.2f}" for m in sel)
+              f"{np.concatenate(r['slack']).mean():.3f} | {np.concatenate(r['bright']).mean():.3f} | " + " / ".join(f"{width[:, m].mean():.2f}" for m in sel)
               + " | " + " / ".join(f"{band[:, m].mean():.2f}" for m in sel)
               + f" | {np.concatenate(r['band_in']).mean():.3f} | {np.median(r['ms']):.0f} |")
 

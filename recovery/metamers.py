@@ -20,16 +20,20 @@ range as wide as [0, 1]). Unlike the prior's band (:mod:`recovery.surface_prior`
 it assumes nothing about what surfaces are like, and it is not a probability:
 every reflectance inside is possible, none outside is.
 
-A response that no reflectance in [0, 1] reaches within ``t`` (brighter than
-a perfect white under the light at the given exposure, or a colour outside
-what the camera can see under it) has an empty metamer set: the range is
-then that of the smallest widening of the tolerance that makes it non-empty,
-and :attr:`MetamerRange.slack` says how much (in units of ``t``; 0 when the
-response is physical). A large slack says the light, the exposure or the
-camera is wrong for this surface: the estimate there cannot be trusted.
+A response that no reflectance in [0, 1] reaches within ``t`` has an empty
+metamer set, for one of two reasons. It may be brighter than a perfect white
+of its colour at the given exposure: the reflectance scale is only relative
+(an exposure chosen from the scene puts a white card above 1), so the range
+is that of its dimmest copy that fits, multiplied back, and
+:attr:`MetamerRange.scale` says by how much (1 when it fits). Or its colour
+may be out of reach under the light (a colour the camera cannot see under
+it): the range is then that of the smallest widening of the tolerance that
+makes it non-empty, and :attr:`MetamerRange.slack` says how much (in units
+of ``t``; 0 when the colour is in reach): the light or the camera is wrong
+for this surface, and the estimate there cannot be trusted.
 
 Solved with SciPy's HiGHS (``scipy.optimize.linprog``), about 1 ms per
-programme: 2N + 1 per surface (N wavelengths), so some 60-80 ms per surface
+programme: 2N + 2 per surface (N wavelengths), so some 80-90 ms per surface
 at 31 wavelengths. Pure functions on arrays.
 
 References
@@ -68,25 +72,35 @@ class MetamerRange:
         reflectances in [0, 1] that give the response within the tolerance
         (widened by ``slack`` where none does).
     slack : (P,)
-        0 where the response is physical; otherwise the widening of the
-        tolerance, in units of it, that the range needed (``1`` doubles it).
+        0 where the response's colour is within reach; otherwise the widening
+        of the tolerance, in units of it, that the range needed (``1``
+        doubles it): a colour no reflectance gives under this light and
+        camera, so the light or the camera is wrong there.
     tolerance : (P, C)
         The tolerance per channel the range was computed at (before ``slack``).
+    scale : (P,)
+        1 where the response fits under a perfect white at this exposure;
+        otherwise how many times brighter it is than the brightest
+        reflectance of its colour (the reflectance scale is relative: an
+        exposure, not a light, puts a white card at 1.2): the range is then
+        that of its dimmest copy that fits, multiplied back by ``scale``, so
+        ``upper`` may exceed 1 (up to ``scale``).
     """
 
     lower: np.ndarray
     upper: np.ndarray
     slack: np.ndarray
     tolerance: np.ndarray
+    scale: np.ndarray
 
     @property
     def physical(self) -> np.ndarray:
         """(P,) True where some reflectance in [0, 1] gives the response within the tolerance."""
-        return self.slack <= 0.0
+        return (self.slack <= 0.0) & (self.scale <= 1.0)
 
     @property
     def width(self) -> np.ndarray:
-        """(P, N) ``upper - lower``: 0 where the data fix the reflectance, 1 where they say nothing."""
+        """(P, N) ``upper - lower``: 0 where the data fix the reflectance, ``scale`` where they say nothing."""
         return self.upper - self.lower
 
 
@@ -97,8 +111,29 @@ def _solve(c, A_ub, b_ub, bounds):
     return r if r.status == 0 else None
 
 
-def _one(A: np.ndarray, y: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def _brightest(A: np.ndarray, y: np.ndarray, t: np.ndarray) -> float:
+    """The largest k in [0, 1] for which some reflectance in [0, 1] gives ``k y`` within ``k t``: 1 when
+    ``y`` is reachable as it is, under 1 when only a dimmer copy of it is (brighter than the brightest
+    reflectance of its colour at this exposure), 0 when no copy is (a colour out of reach)."""
+    N = A.shape[1]
+    # variables (r, k): A r - k (y + t) <= 0, -A r + k (y - t) <= 0; maximise k
+    A_ub = np.block([[A, -(y + t)[:, None]], [-A, (y - t)[:, None]]])
+    c = np.zeros(N + 1)
+    c[-1] = -1.0
+    sol = _solve(c, A_ub, np.zeros(2 * A.shape[0]), [(0.0, 1.0)] * N + [(0.0, 1.0)])
+    return 0.0 if sol is None else float(sol.x[-1])
+
+
+def _one(A: np.ndarray, y: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
     C, N = A.shape
+    k = _brightest(A, y, t)
+    if k >= 1.0 - 1e-9:
+        k = 1.0
+    elif k > 1e-6:                          # a reachable colour, too bright: its dimmest copy that fits
+        k = k * (1.0 - 1e-6)
+    else:                                   # no copy fits: the colour itself is out of reach
+        k = 1.0
+    y, t = y * k, t * k
     # the smallest widening s >= 0 of the tolerance with a reflectance in [0, 1]: |A r - y| <= t (1 + s)
     Aw = np.block([[A, -t[:, None]], [-A, -t[:, None]]])
     bw = np.concatenate([y + t, t - y])
@@ -106,9 +141,9 @@ def _one(A: np.ndarray, y: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.nd
     cw[-1] = 1.0
     sol = _solve(cw, Aw, bw, [(0.0, 1.0)] * N + [(0.0, None)])
     if sol is None:                                       # cannot happen for finite data: r = 0, s large is feasible
-        return np.zeros(N), np.ones(N), float("inf")
+        return np.zeros(N), np.ones(N) / k, float("inf"), 1.0 / k
     s = float(sol.x[-1])
-    s = 0.0 if s <= 1e-9 else s * (1.0 + 1e-6) + 1e-9    # a hair more, so that the programmes below are feasible
+    s = 0.0 if s <= 1e-6 else s * (1.0 + 1e-6) + 1e-9    # a hair more, so that the programmes below are feasible
     tt = t * (1.0 + s)
     A_ub = np.vstack([A, -A])
     b_ub = np.concatenate([y + tt, tt - y])
@@ -121,7 +156,8 @@ def _one(A: np.ndarray, y: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.nd
         b = _solve(-e, A_ub, b_ub, (0.0, 1.0))
         lo[n] = a.fun if a is not None else 0.0
         hi[n] = -b.fun if b is not None else 1.0
-    return np.clip(lo, 0.0, 1.0), np.clip(np.maximum(hi, lo), 0.0, 1.0), s
+    lo, hi = np.clip(lo, 0.0, 1.0), np.clip(np.maximum(hi, lo), 0.0, 1.0)
+    return lo / k, hi / k, s, 1.0 / k
 
 
 def metamer_range(A, y, tolerance) -> MetamerRange:
@@ -160,7 +196,7 @@ def metamer_range(A, y, tolerance) -> MetamerRange:
     if np.any(t <= 0):
         raise ValueError("the tolerance must be > 0 in every channel")
     P, N = y.shape[0], A.shape[2]
-    lo, hi, s = np.zeros((P, N)), np.ones((P, N)), np.zeros(P)
+    lo, hi, s, scale = np.zeros((P, N)), np.ones((P, N)), np.zeros(P), np.ones(P)
     for p in range(P):
-        lo[p], hi[p], s[p] = _one(A[p], y[p], t[p])
-    return MetamerRange(lo, hi, s, t)
+        lo[p], hi[p], s[p], scale[p] = _one(A[p], y[p], t[p])
+    return MetamerRange(lo, hi, s, t, scale)

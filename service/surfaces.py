@@ -79,8 +79,11 @@ METAMERS_DOC = ("metamer_lower / metamer_upper: at each wavelength the least and
                 "per channel, on the reflectance's scale (Finlayson & Morovic 2005, metamer sets; linear "
                 "programmes). It assumes nothing about what surfaces are like: where it is narrow the data fix the "
                 "reflectance, where it spans [0, 1] only the prior does. The light's and the camera's own "
-                "uncertainty do not widen it (they widen reflectance_std). metamer_slack > 0: no physical "
-                "reflectance gives the response; the range is that of the tolerance grown (1 + slack)-fold")
+                "uncertainty do not widen it (they widen reflectance_std). metamer_scale > 1: the response is that "
+                "many times brighter than the brightest reflectance of its colour at this exposure (the scale is "
+                "relative), and the range is that of its dimmest copy that fits, multiplied back. metamer_slack > "
+                "0: no reflectance gives its colour under the light; the range is that of the tolerance grown "
+                "(1 + slack)-fold")
 
 
 def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, metamers: bool = False) -> dict:
@@ -188,11 +191,14 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, m
                      "expected_rmse": None if er is None else float(er)}
             if mr is not None:
                 entry.update(metamer_lower=mr.lower[i].tolist(), metamer_upper=mr.upper[i].tolist(),
-                             metamer_slack=float(mr.slack[i]))
+                             metamer_slack=float(mr.slack[i]), metamer_scale=float(mr.scale[i]))
                 if mr.slack[i] > 0:
-                    warns.append(f"no physical reflectance gives this response under the estimated light (the "
-                                 f"tolerance had to grow {1 + mr.slack[i]:.3g}-fold): the light, the exposure or "
-                                 "the camera is wrong here")
+                    warns.append(f"no reflectance gives this colour under the estimated light (the tolerance had "
+                                 f"to grow {1 + mr.slack[i]:.3g}-fold): the light or the camera is wrong here")
+                elif mr.scale[i] > 1:
+                    warns.append(f"brighter than a perfect white of its colour at the surfaces' exposure (x"
+                                 f"{mr.scale[i]:.3g}; the reflectance scale is relative): the metamer range is "
+                                 "that of the brightest reflectances of this colour, on this scale")
             entries.append(entry)
     return {"wavelengths": run.camera.wavelengths.tolist(), "surfaces": entries,
             "surface_estimator": res.surface_estimator,

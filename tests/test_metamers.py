@@ -61,16 +61,37 @@ def test_more_channels_can_only_narrow_the_range():
     assert m6.width.mean() < m3.width.mean() - 0.05
 
 
-def test_a_response_brighter_than_white_says_so_and_stays_finite():
-    """Twice the response of a perfect white: no reflectance in [0, 1] gives it, so ``slack`` > 0 and
-    ``physical`` is False; the range is that of the tolerance grown just enough, which holds the perfect
-    white (the brightest reflectance) and nothing NaN."""
+def test_a_response_brighter_than_white_is_a_matter_of_scale_not_of_colour():
+    """Twice the response of a perfect white, 1 % tolerance: no reflectance in [0, 1] gives it, but its colour
+    is a white's, so ``scale`` is the factor by which it exceeds the brightest white within the tolerance
+    (2 / 1.01 ... 2 / 0.99: 1.99 at most) and ``slack`` stays 0; the range is the dimmest fitting copy's
+    multiplied back, which is the white scaled (every bound near ``scale``) and nothing NaN."""
     A = lighting_operator(_camera(), models.illuminant("D65", WL), DL)
     white = A @ np.ones(WL.size)
     mr = metamer_range(A, 2 * white, 0.01 * white)
-    assert mr.slack[0] > 0 and not mr.physical[0]
+    assert mr.slack[0] == 0 and not mr.physical[0]
+    assert 2 / 1.01 - 1e-6 <= mr.scale[0] <= 2 / 0.99 + 1e-6
     assert np.all(np.isfinite(mr.lower)) and np.all(np.isfinite(mr.upper))
-    assert np.all(mr.upper >= 1 - 1e-7)
+    assert np.all(mr.upper <= mr.scale[0] + 1e-9) and np.median(mr.lower) > 0.9 * mr.scale[0]
+
+
+def test_a_colour_out_of_reach_widens_the_tolerance_and_says_so():
+    """A response with a negative channel (no reflectance, at any brightness, gives it): ``scale`` stays 1,
+    ``slack`` > 0 (the tolerance grown until a reflectance fits), the bounds in [0, 1]."""
+    A = lighting_operator(_camera(), models.illuminant("D65", WL), DL)
+    white = A @ np.ones(WL.size)
+    mr = metamer_range(A, np.array([-1.0, 1.0, 1.0]) * white, 0.01 * white)
+    assert mr.slack[0] > 0 and mr.scale[0] == 1 and not mr.physical[0]
+    assert np.all((mr.lower >= 0) & (mr.upper <= 1) & (mr.lower <= mr.upper))
+
+
+def test_a_dimmer_response_is_left_as_it_is():
+    """Half a white fits: scale 1, slack 0, physical; the half-white reflectance lies inside."""
+    A = lighting_operator(_camera(), models.illuminant("D65", WL), DL)
+    white = A @ np.ones(WL.size)
+    mr = metamer_range(A, 0.5 * white, 0.001 * white)
+    assert mr.physical[0] and mr.scale[0] == 1 and mr.slack[0] == 0
+    assert np.all(mr.lower <= 0.5 + 1e-7) and np.all(mr.upper >= 0.5 - 1e-7)
 
 
 @pytest.mark.parametrize("args, words", [
@@ -125,8 +146,8 @@ def test_analysis_gives_the_metamer_range_of_its_own_light_camera_and_scale():
 
 def test_surfaces_endpoint_gives_metamer_ranges_within_a_bounded_cost():
     """``POST /v1/surfaces`` with ``metamers=true``: each surface carries ``metamer_lower`` <=
-    ``metamer_upper`` in [0, 1] per wavelength and ``metamer_slack``, the answer says what they mean; the CSV
-    gains a slack column and two per wavelength; more than 64 surfaces is a 413 naming the limit; a value that
+    ``metamer_upper`` in [0, ``metamer_scale``] per wavelength and ``metamer_slack``, the answer says what they
+    mean; the CSV gains slack and scale columns and two per wavelength; more than 64 surfaces is a 413 naming the limit; a value that
     is not a boolean is a 422 naming the field."""
     from fastapi.testclient import TestClient
 
@@ -143,16 +164,39 @@ def test_surfaces_endpoint_gives_metamer_ranges_within_a_bounded_cost():
         n = len(body["wavelengths"])
         for s in body["surfaces"]:
             lo, hi = np.array(s["metamer_lower"]), np.array(s["metamer_upper"])
-            assert lo.shape == hi.shape == (n,) and np.all((0 <= lo) & (lo <= hi) & (hi <= 1))
-            assert s["metamer_slack"] >= 0
+            assert lo.shape == hi.shape == (n,) and np.all((0 <= lo) & (lo <= hi) & (hi <= s["metamer_scale"]))
+            assert s["metamer_slack"] >= 0 and s["metamer_scale"] >= 1
         plain = c.post("/v1/surfaces", files={"file": ("s.dng", data)}, data={"points": "[[30, 40]]"}).json()
         assert "metamer_lower" not in plain["surfaces"][0] or plain["surfaces"][0]["metamer_lower"] is None
         csv = c.post("/v1/surfaces", files={"file": ("s.dng", data)},
                      data={"points": "[[30, 40]]", "metamers": "true", "format": "csv"})
         head, row = csv.text.splitlines()[:2]
-        assert len(head.split(",")) == len(row.split(",")) == 3 + n + 1 + n + 1 + 2 * n
+        assert len(head.split(",")) == len(row.split(",")) == 3 + n + 1 + n + 2 + 2 * n
         assert head.split(",")[-1] == "max 700"
         big = c.post("/v1/surfaces", files={"file": ("s.dng", data)}, data={"grid": "9x9", "metamers": "true"})
         assert big.status_code == 413 and "at most 64" in big.json()["detail"]
         bad = c.post("/v1/surfaces", files={"file": ("s.dng", data)}, data={"points": "[[30, 40]]", "metamers": "x"})
         assert bad.status_code == 422 and "metamers" in bad.json()["detail"]
+
+
+def test_a_white_card_at_the_scenes_exposure_is_not_called_a_wrong_light():
+    """Probe round 8b: a correctly exposed ColorChecker DNG under D65 (the light right), its white patch put
+    at a reflectance of about 1.16 by the surfaces' exposure, was told "no physical reflectance ... the light,
+    the exposure or the camera is wrong here" (slack 144). Brighter than white is a matter of scale: no patch
+    of the chart may now get a slack, and the white one says it is a matter of scale."""
+    import io
+
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+    from testing.dngwriter import scene_dng
+
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 64, 96, seed=1)
+    with TestClient(app, base_url="http://127.0.0.1") as c:
+        j = c.post("/v1/surfaces", files={"file": ("a.dng", buf.getvalue())},
+                   data={"metamers": "true", "grid": "4x6"}).json()
+    assert [s["where"] for s in j["surfaces"] if s["metamer_slack"] > 0] == []
+    bright = [s for s in j["surfaces"] if s["metamer_scale"] > 1]
+    assert bright and all(any("brighter than a perfect white" in w for w in s["warnings"]) for s in bright)
+    assert not any("the light or the camera is wrong" in w for s in j["surfaces"] for w in s["warnings"])

@@ -324,20 +324,22 @@ def _surfaces_csv(res: dict) -> str:
     """``format=csv``: a row per surface (kind, where, warnings, the
     reflectance at each wavelength), then its band: ``expected_rmse`` and
     the standard deviation at each wavelength (``std <nm>``; empty for eq. 36);
-    with ``metamers=true`` then ``metamer_slack`` and the metamer set's least
-    and greatest reflectance at each wavelength (``min <nm>``, ``max <nm>``)."""
+    with ``metamers=true`` then ``metamer_slack``, ``metamer_scale`` and the
+    metamer set's least and greatest reflectance at each wavelength (``min
+    <nm>``, ``max <nm>``)."""
     buf = io.StringIO()
     w = csv.writer(buf)
     wl = [f"{x:g}" for x in res["wavelengths"]]
     metamers = "metamers" in res
     w.writerow(["kind", "where", "warnings"] + wl + ["expected_rmse"] + [f"std {x}" for x in wl]
-               + (["metamer_slack"] + [f"min {x}" for x in wl] + [f"max {x}" for x in wl] if metamers else []))
+               + (["metamer_slack", "metamer_scale"] + [f"min {x}" for x in wl] + [f"max {x}" for x in wl]
+                  if metamers else []))
     for s in res["surfaces"]:
         std, rmse = s.get("reflectance_std"), s.get("expected_rmse")
         w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
                    + [f"{v:.6g}" for v in s["reflectance"]] + ["" if rmse is None else f"{rmse:.6g}"]
                    + ([f"{v:.6g}" for v in std] if std is not None else [""] * len(wl))
-                   + ([f"{s['metamer_slack']:.6g}"] + [f"{v:.6g}" for v in s["metamer_lower"]]
+                   + ([f"{s['metamer_slack']:.6g}", f"{s['metamer_scale']:.6g}"] + [f"{v:.6g}" for v in s["metamer_lower"]]
                       + [f"{v:.6g}" for v in s["metamer_upper"]] if metamers else []))
     return buf.getvalue()
 

@@ -186,9 +186,12 @@ class Surface(_Answer):
                                                                "reflectance of the metamer set (see `metamers`)")
     metamer_upper: list[float] | None = Field(None, description="with metamers=true: per wavelength, the greatest "
                                                                "reflectance of the metamer set")
-    metamer_slack: float | None = Field(None, description="with metamers=true: 0 when some reflectance in [0, 1] "
-                                                          "gives the response; otherwise how far the tolerance had "
-                                                          "to grow (the light, exposure or camera is wrong there)")
+    metamer_slack: float | None = Field(None, description="with metamers=true: 0 when some reflectance gives the "
+                                                          "response's colour; otherwise how far the tolerance had "
+                                                          "to grow (the light or the camera is wrong there)")
+    metamer_scale: float | None = Field(None, description="with metamers=true: 1 when the response fits under a "
+                                                          "perfect white at the surfaces' exposure; otherwise how "
+                                                          "many times brighter it is (the scale is relative)")
 
 
 class SurfacesResult(_Answer):
