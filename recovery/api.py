@@ -183,7 +183,7 @@ def _run_bayes(img, m, camera, diag, warns, run_peer, patches: float | None = No
     flat = bool(patches >= UNIFORM_PATCH_SCENE)
     rgb, spd, bdiag = estimate_bayes(img, m, camera)
     neutral, off_set = None, False
-    if flat and OFF_SET_LIGHTS and bdiag.get("method", "bayes") == "bayes" and spd is not None:
+    if flat and OFF_SET_LIGHTS and camera.channels == 3 and bdiag.get("method", "bayes") == "bayes" and spd is not None:
         cells = cells or estimation_image(img, m)
         neutral = near_neutral_share(*cells, rgb)
         if neutral >= NEAR_NEUTRAL_SHARE:

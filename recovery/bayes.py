@@ -1234,6 +1234,10 @@ def estimate_bayes(image_or_pixels, mask=None, camera: Camera | None = None, *,
     light_z = model.light_z
     names = list(cands.names)
     nearest = np.arange(M)
+    n_ch = int(np.asarray(model.light_rgb).shape[1])
+    if off_set_prior > 0 and n_ch != 3:
+        raise InputError(f"lights off the candidate set (off_set_prior) need a 3-channel camera, got {n_ch}: "
+                         f"their grid in the {n_ch - 1}-dimensional log-chromaticity would not fit in memory")
     if off_set_prior > 0:
         off = _off_set_lights(model, off_set_step, off_set_radius, off_set_scale)
         V = off["u"].shape[0]

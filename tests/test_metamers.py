@@ -200,3 +200,34 @@ def test_a_white_card_at_the_scenes_exposure_is_not_called_a_wrong_light():
     bright = [s for s in j["surfaces"] if s["metamer_scale"] > 1]
     assert bright and all(any("brighter than a perfect white" in w for w in s["warnings"]) for s in bright)
     assert not any("the light or the camera is wrong" in w for s in j["surfaces"] for w in s["warnings"])
+
+
+def test_a_six_channel_camera_on_an_image_larger_than_the_analysis_grid_is_analysed():
+    """Issue 31's more-than-three-channel cameras through ``analyze`` on an image larger than the 64 x 64
+    analysis grid: OpenCV's resize refused more than 4 channels (a bare cv2.error), and the light posterior's
+    lights off its set built a 5-dimensional grid (34 GiB, MemoryError). Now the cells are resized channel
+    by channel, lights off the set are for 3-channel cameras only (asked for with 6, an InputError), and the
+    six channels' surfaces, bands and metamer ranges come out finite."""
+    from recovery import Camera, analyze
+    from recovery.bayes import estimate_bayes
+    from recovery.errors import InputError
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    wl = cam.wavelengths
+    edge = 1.0 / (1.0 + np.exp(-(wl - 550.0) / 15.0))
+    cam6 = Camera(wl, np.hstack([cam.sensitivities, cam.sensitivities * edge[:, None]]), name="six")
+    R = models.reflectance_set("colorchecker", wl)
+    E = models.illuminant("A", wl)
+    rho = R @ (cam6.sensitivities.T * (E * cam.dlambda)).T
+    img = np.repeat(np.repeat(rho.reshape(4, 6, 6), 20, 0), 20, 1)
+    img = img / img.max() * 0.8
+    pts = [(10 + 20 * (i // 6), 10 + 20 * (i % 6)) for i in range(24)]
+    for spatial in (False, "auto"):
+        res = analyze(img, cam6, spatial=spatial)
+        assert res.illuminant.diagnostics.get("off_set_lights") is False
+        pe = res.surface_estimates(pts)
+        assert pe.mean.shape == (24, wl.size) and np.all(np.isfinite(pe.mean)) and np.all(np.isfinite(pe.std))
+    mr = res.metamer_range(pts[:4])
+    assert np.all(mr.lower <= mr.upper) and np.all(mr.slack == 0)
+    with pytest.raises(InputError, match="3-channel"):
+        estimate_bayes(img, None, cam6, off_set_prior=0.03)
