@@ -977,21 +977,27 @@ async function readSurface(x, y) {
   $("surface").hidden = false;
   $("surface-words").textContent = "Reading the surface there…";
   // the same estimation fields as the picture (quality too), so the surface is read under the light shown
-  const f = Object.assign(estimationFields(current.options), {rects: JSON.stringify([rect])});
+  const f = Object.assign(estimationFields(current.options), {rects: JSON.stringify([rect]), metamers: "true"});
   try {
     const j = await post("/v1/surfaces", formFor(current.file, f)).then((resp) => resp.json());
     if (!current || current.seq !== seq) return;
     const s = j.surfaces[0];
-    plotReflectance($("surface-plot"), j.wavelengths, s.reflectance, s.reflectance_std);
+    plotReflectance($("surface-plot"), j.wavelengths, s.reflectance, s.reflectance_std,
+      s.metamer_lower && s.metamer_upper ? [s.metamer_lower, s.metamer_upper] : null);
     const where = `rows ${rect[0]}–${rect[2]}, columns ${rect[1]}–${rect[3]}`;
     const trust = typeof s.expected_rmse === "number"
       ? `Expected error ${fmt(s.expected_rmse, 3)} (RMS over wavelengths, reflectance 0–1). The shaded band ` +
         "is a 90 % band: at each wavelength it is calibrated to hold the true reflectance 90 % of the time " +
         "(on measured surfaces kept aside)."
       : "No band: the literal method (eq. 36) gives none.";
+    const metamers = s.metamer_lower
+      ? " The dashed outline is the metamer set: every reflectance between 0 and 1 that gives this colour " +
+        "under the light lies inside it; where it spans 0 to 1 the camera says nothing and the estimate is " +
+        "what measured surfaces are like."
+      : "";
     const warn = s.warnings.length ? ` Check: ${s.warnings.join("; ")}.` : "";
     const light = j.light_map ? "under the light the light map finds there" : "under Auto's light";
-    $("surface-words").textContent = `Surface at ${where}, ${light}. ${trust}${warn}`;
+    $("surface-words").textContent = `Surface at ${where}, ${light}. ${trust}${metamers}${warn}`;
     $("surface-words").dataset.expectedRmse = String(s.expected_rmse);
     $("surface-words").dataset.rect = JSON.stringify(rect);
   } catch (err) {
@@ -1000,14 +1006,16 @@ async function readSurface(x, y) {
   }
 }
 
-function plotReflectance(container, wl, mean, std) {
+function plotReflectance(container, wl, mean, std, metamers = null) {
   container.textContent = "";
   const W = 320, H = 200, L = 40, R = 14, T = 8, B = 34, Z = 1.6448536269514722;
   const svg = el("svg", {viewBox: `0 0 ${W} ${H}`, width: "100%", role: "img", id: "surface-svg",
-    "aria-label": "the surface's estimated reflectance with its 90 % band"});
+    "aria-label": "the surface's estimated reflectance with its 90 % band" +
+      (metamers ? " and the range of its metamer set" : "")});
   const lo = mean.map((m, i) => (std ? m - Z * std[i] : m)), hi = mean.map((m, i) => (std ? m + Z * std[i] : m));
   const x0 = wl[0], x1 = wl[wl.length - 1];
-  const ymax = Math.max(1, ...hi.filter(isFinite)), ymin = Math.min(0, ...lo.filter(isFinite));
+  const tops = metamers ? hi.concat(metamers[1]) : hi;
+  const ymax = Math.max(1, ...tops.filter(isFinite)), ymin = Math.min(0, ...lo.filter(isFinite));
   const sx = (x) => L + (x - x0) / (x1 - x0) * (W - L - R);
   const sy = (y) => T + (1 - (y - ymin) / (ymax - ymin)) * (H - T - B);
   svg.appendChild(el("line", {x1: L, y1: sy(ymin), x2: L, y2: T, class: "axis"}));
@@ -1021,9 +1029,13 @@ function plotReflectance(container, wl, mean, std) {
   svg.appendChild(el("text", {x: (L + W - R) / 2, y: H - 4, "text-anchor": "middle", class: "label"},
     "wavelength (nm)"));
   const path = (ys) => ys.map((y, i) => `${i ? "L" : "M"}${sx(wl[i]).toFixed(1)},${sy(y).toFixed(1)}`).join(" ");
+  const polygon = (a, b) => `${path(a)} ` + b.map((y, i) => [wl[i], y]).reverse()
+    .map(([x, y]) => `L${sx(x).toFixed(1)},${sy(y).toFixed(1)}`).join(" ") + " Z";
+  if (metamers) {
+    svg.appendChild(el("path", {d: polygon(metamers[0], metamers[1]), id: "surface-metamers", class: "metamers"}));
+  }
   if (std) {
-    const back = hi.map((y, i) => [wl[i], y]).reverse().map(([x, y]) => `L${sx(x).toFixed(1)},${sy(y).toFixed(1)}`);
-    svg.appendChild(el("path", {d: `${path(lo)} ${back.join(" ")} Z`, id: "surface-band", class: "band"}));
+    svg.appendChild(el("path", {d: polygon(lo, hi), id: "surface-band", class: "band"}));
   }
   svg.appendChild(el("path", {d: path(mean), id: "surface-mean", class: "curve"}));
   container.appendChild(svg);
