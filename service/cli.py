@@ -491,7 +491,7 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
             diff = options_difference(side.get("options"), options)
             if diff:
                 rows[t.name]["note"] = diff + "; --force to compute it again with these"
-        elif kept := kept_output(t.out, finished, force):   # read-only, or not ours: never written over
+        elif kept := kept_output(t.out, finished, force, t.src):   # the input, read-only, or not ours: kept
             rows[t.name].update(status="failed", error=kept)
         else:
             todo.append(t)

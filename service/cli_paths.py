@@ -126,7 +126,7 @@ def output_file(path: str) -> str:
     return path
 
 
-def kept_output(out: str, finished: bool, force: bool) -> str | None:
+def kept_output(out: str, finished: bool, force: bool, src: str | None = None) -> str | None:
     """Why ``wandell batch`` keeps the file at an output's path instead of
     writing over it (the item then fails with these words), or ``None``.
 
@@ -136,9 +136,18 @@ def kept_output(out: str, finished: bool, force: bool) -> str | None:
     had an output's name (no record of ours in ``.wandell``), both without a
     word (probe round 8). A read-only file is kept even with ``--force`` (as
     ``cp`` would not write it); a file not written by a batch is replaced only
-    with ``--force``; a finished output of ours, with ``--force``."""
+    with ``--force``; a finished output of ours, with ``--force``. An output
+    that is the item's input ``src`` (``wandell batch IN IN --format dng``)
+    says so first (``output_is_input``, as the item itself would)."""
     if not os.path.lexists(out):
         return None
+    try:
+        same = src is not None and os.path.samefile(src, out)
+    except OSError:
+        same = False
+    if same:
+        return (f"output_is_input: the result of {os.path.basename(src)!r} would be written over the file itself "
+                f"({out}); the original is only ever read: choose another output folder or format")
     if os.path.isdir(out) and not os.path.islink(out):
         return f"output_exists: {out!r} is a folder; it is kept: move it or choose another output folder"
     if os.path.isfile(out) and not os.stat(out).st_mode & 0o222:

@@ -262,13 +262,22 @@ def test_boolean_points_are_an_input_error(mondrian_result, points):
             fn(points)
 
 
-def test_points_are_bounded_per_call(mondrian_result):
-    """More than recovery.api.MAX_POINTS points in one call is an InputError naming the limit (200,000 took
-    5-15 s); the limit itself still answers."""
-    from recovery.api import MAX_POINTS
+def test_many_points_in_one_call_are_taken_in_chunks_with_each_points_own_answer():
+    """200,000 points in one call took 1.4 GB (probe round 8 found no bound on them); they are now estimated
+    SURFACE_CHUNK at a time. Each point's posterior is its own (the exposure is the scene's), so points on
+    both sides of a chunk's edge must answer exactly what they answer asked alone."""
+    from recovery import Camera, analyze
+    from recovery.api import SURFACE_CHUNK
 
-    pts = np.zeros((MAX_POINTS + 1, 2), int)
-    for fn in (mondrian_result.reflectance, mondrian_result.surface_estimates, mondrian_result.surface_weights):
-        with pytest.raises(InputError, match=f"at most {MAX_POINTS} per call"):
-            fn(pts)
-    assert mondrian_result.reflectance(pts[:MAX_POINTS]).shape == (MAX_POINTS, 31)
+    from .test_probe_pyapi import mondrian
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    res = analyze(mondrian(cam, size=128), cam, "gray-world")
+    pts = np.argwhere(np.ones((128, 128), bool))[: SURFACE_CHUNK + 10]
+    many = res.surface_estimates(pts)
+    assert many.mean.shape == (SURFACE_CHUNK + 10, 31) and many.std.shape == many.mean.shape
+    edge = pts[SURFACE_CHUNK - 3: SURFACE_CHUNK + 3]
+    alone = res.surface_estimates(edge)
+    np.testing.assert_allclose(many.mean[SURFACE_CHUNK - 3: SURFACE_CHUNK + 3], alone.mean, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(many.std[SURFACE_CHUNK - 3: SURFACE_CHUNK + 3], alone.std, rtol=0, atol=1e-12)
+    assert many.typicality is None or many.typicality.shape == (SURFACE_CHUNK + 10,)
