@@ -1416,8 +1416,10 @@ class AnalysisResult:
         same scale as :meth:`reflectance` (Finlayson & Morovic 2005). Unlike
         the band it assumes nothing about what surfaces are like; the light's
         and the camera's uncertainty do not widen it. ``slack`` > 0 says no
-        physical reflectance gives the response (the light, exposure or camera
-        is wrong there)."""
+        reflectance gives the response's colour under the light (the light or
+        the camera is wrong there); ``scale`` > 1 that the response is brighter
+        than a white of its colour at the surfaces' exposure (a matter of the
+        relative scale, not of the light)."""
         pts, rho = self._points(points)
         return self.metamers_from_responses(rho, pts[:, 0], pts[:, 1])
 
