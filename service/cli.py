@@ -529,12 +529,19 @@ def run_batch(in_dir: str, out_dir: str, options: jobs.BatchOptions, workers: in
 
         def outcomes():
             for fut in as_completed(futs):
+                # never yield inside the try: a Ctrl-C in the loop below closes this generator at its yield,
+                # and `except BaseException` took the GeneratorExit for a lost worker and yielded again
+                # ("generator ignored GeneratorExit", a traceback on stderr; seen once in the suite)
                 try:
-                    yield futs[fut], fut.result()
+                    res = fut.result()
                 except BrokenProcessPool:   # the local pool broke: this item may be innocent
                     suspects.append(futs[fut])
+                    continue
+                except KeyboardInterrupt:
+                    raise
                 except BaseException as e:  # a worker lost
-                    yield futs[fut], {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
+                    res = {"status": "failed", "error": f"worker_lost: {type(e).__name__}: {e}"}
+                yield futs[fut], res
             if suspects and own:             # a new pool for what is left (the sidecars)
                 executor.shutdown(wait=False)
                 ctrl_c.executor = executor_box[0] = jobs.make_executor(workers or None, None)
