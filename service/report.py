@@ -139,6 +139,8 @@ def analysis_json(run: EstimateRun, decoded) -> dict:
             out["warnings"].append(f"{what} is {ang:.1f} degrees from the camera's own as-shot white (more than "
                                    f"{AS_SHOT_WARN_DEG:g}): check the picture, or use a white surface "
                                    "('neutral') or white=as-shot")
+    elif getattr(decoded, "as_shot_problem", None):   # said by white=as-shot and the preview; here too (round 8b)
+        out["warnings"].append(f"{decoded.as_shot_problem}; the answer has no as_shot block")
     if run.neutral is not None:
         out["neutral"] = dict(run.neutral)
         if out["neutral"].get("warning"):

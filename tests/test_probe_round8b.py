@@ -112,6 +112,10 @@ def test_an_absurd_as_shot_white_is_named_not_called_missing(client, kind):
         r = client.post(ep, files={"file": ("a.dng", data)}, data=f)
         assert r.status_code == 200, (ep, r.text[:300])
         _strict(r.headers.get("X-Illuminant") or r.text)
+    # /v1/analyze says it too (it had no as_shot block and no word of why: round 8b's "left alone", fixed)
+    body = _strict(client.post("/v1/analyze", files={"file": ("a.dng", data)}).text)
+    assert "as_shot" not in body and any("AsShotNeutral" in w and "not a usable white" in w
+                                         for w in body["warnings"]), body["warnings"]
 
 
 def test_a_plausible_as_shot_white_is_still_used(client):
