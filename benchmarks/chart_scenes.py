@@ -365,11 +365,10 @@ def scene_balance(cells, ok, rgb) -> float:
     :func:`recovery.api.near_neutral_share`: above 5 % of the brightest) and the light ``rgb``: tried as a
     third number of the switch (a chart of one hue family should sit far from the light), and measured not
     to separate (the candidates' answer follows the hue too: ``--switch`` prints its percentiles per set)."""
+    from recovery.api import lit_cells
     from recovery.metrics import angular_error
 
-    c = np.asarray(cells, float)[ok]
-    s = c.sum(1)
-    c = c[s > 0.05 * s.max()] if c.shape[0] else c
+    c = lit_cells(cells, ok)
     if c.shape[0] == 0:
         return 90.0
     return float(angular_error(c.mean(0)[None], np.asarray(rgb, float)[None])[0])

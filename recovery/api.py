@@ -117,14 +117,21 @@ NEAR_NEUTRAL_SHARE = 0.15
 NEAR_NEUTRAL_DEG = 8.0
 
 
-def near_neutral_share(cells, ok, rgb, degrees: float = NEAR_NEUTRAL_DEG) -> float:
-    """Share of the usable analysis cells (``cells[ok]``, of
-    :func:`recovery.learned.estimation_image`; those above 5 % of the
-    brightest) whose colour is within ``degrees`` of the light ``rgb``: how
-    much of the scene is near-neutral under it."""
+def lit_cells(cells, ok) -> np.ndarray:
+    """The usable analysis cells (``cells[ok]``, of
+    :func:`recovery.learned.estimation_image`) above 5 % of the brightest, ``(n, C)``."""
     c = np.asarray(cells, float)[ok]
+    if c.shape[0] == 0:
+        return c
     s = c.sum(1)
-    c = c[s > 0.05 * s.max()] if c.shape[0] else c
+    return c[s > 0.05 * s.max()]
+
+
+def near_neutral_share(cells, ok, rgb, degrees: float = NEAR_NEUTRAL_DEG) -> float:
+    """Share of the usable analysis cells (:func:`lit_cells`) whose colour is
+    within ``degrees`` of the light ``rgb``: how much of the scene is
+    near-neutral under it."""
+    c = lit_cells(cells, ok)
     if c.shape[0] == 0:
         return 0.0
     return float(np.mean(angular_error(c, np.asarray(rgb, float)[None]) < degrees))
@@ -140,11 +147,8 @@ def chroma_shape(cells, ok) -> tuple[float, float]:
     change of light (von Kries) translates log-chromaticities, so neither
     depends on the light: they say what the scene holds, not where the light
     is (Finlayson & Hordley's log-chromaticity; Barron 2015)."""
-    c = np.asarray(cells, float)[ok]
-    if c.shape[0] == 0:
-        return 0.0, 0.0
-    s = c.sum(1)
-    c = c[(s > 0.05 * s.max()) & np.all(c > 0, axis=1)]
+    c = lit_cells(cells, ok)
+    c = c[np.all(c > 0, axis=1)]
     if c.shape[0] < 3:
         return 0.0, 0.0
     lc = np.log(c[:, [0, 2]] / c[:, [1]])
@@ -1288,13 +1292,23 @@ class AnalysisResult:
     _prior_spectrum: np.ndarray | None = field(default=None, repr=False)
     _prior_pixels: np.ndarray | None = field(default=None, repr=False)
 
-    def _lighting(self, rows, cols):
+    def _spectra_at(self, rows, cols, whole=None) -> np.ndarray:
+        """The light at pixels ``rows``, ``cols``, ``(P, N)``: the light map's
+        there, else ``whole`` (default the estimate's spectrum) at every one."""
         if self.illuminant.light_map is not None:
-            spd = self.illuminant.light_map.spectra_at(rows, cols)
-        else:
-            spd = np.broadcast_to(self.illuminant.spectrum, (len(rows), self.illuminant.spectrum.size))
-        return lighting_matrix_from_spectrum(spd, self.surface_model.basis, self.camera.sensitivities,
-                                             self.camera.dlambda)
+            return self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
+        whole = self.illuminant.spectrum if whole is None else whole
+        return np.broadcast_to(whole, (len(rows), whole.size))
+
+    def _ensure_prior(self) -> None:
+        """The prior's light and camera samples for the current light (made
+        again when the light was replaced since)."""
+        if self.prior is None or not np.array_equal(self._prior_spectrum, self.illuminant.spectrum):
+            prepare_prior(self, self._prior_pixels, prior=self.prior, calibrate=self._band_calibrate)
+
+    def _lighting(self, rows, cols):
+        return lighting_matrix_from_spectrum(self._spectra_at(rows, cols), self.surface_model.basis,
+                                             self.camera.sensitivities, self.camera.dlambda)
 
     def _points(self, points):
         pts = _pixel_points(points)
@@ -1329,9 +1343,7 @@ class AnalysisResult:
             return SurfaceEstimates(np.concatenate([p.mean for p in parts]), np.concatenate([p.std for p in parts]),
                                     np.concatenate([p.expected_rmse for p in parts]), parts[0].exposure,
                                     parts[0].samples, None if any(t is None for t in typ) else np.concatenate(typ))
-        if self.prior is None or not np.array_equal(self._prior_spectrum, self.illuminant.spectrum):
-            prepare_prior(self, self._prior_pixels, prior=self.prior,   # the light was replaced since
-                          calibrate=self._band_calibrate)
+        self._ensure_prior()
         from .surface_prior import calibrate_band
 
         if self.illuminant.light_map is not None:
@@ -1352,7 +1364,7 @@ class AnalysisResult:
         whole-image light everywhere gives the single light's estimates."""
         from .surface_prior import SurfaceEstimates, sample_widening, surface_estimates_per_point
 
-        spd = self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
+        spd = self._spectra_at(rows, cols)
         sens, lights = self.prior_sensitivities, self.prior_lights
         pe = surface_estimates_per_point(self.prior, rho, sens[0], spd, self.camera.dlambda, self.prior_exposure)
         if sens.shape[0] < 2:
@@ -1395,15 +1407,11 @@ class AnalysisResult:
             prior, sens, light = default_prior(self.camera.wavelengths), self.camera.sensitivities, None
             y = rho * float(self.reflectance_scale)
         else:
-            if self.prior is None or not np.array_equal(self._prior_spectrum, self.illuminant.spectrum):
-                prepare_prior(self, self._prior_pixels, prior=self.prior, calibrate=self._band_calibrate)
+            self._ensure_prior()
             prior, sens, light = self.prior, self.prior_sensitivities[0], self.prior_lights[0]
             y = rho / float(self.prior_exposure)
-        if self.illuminant.light_map is not None:
-            spd = self.illuminant.light_map.spectra_at(np.asarray(rows, float), np.asarray(cols, float))
-        else:
-            spd = np.broadcast_to(self.illuminant.spectrum if light is None else light, (rho.shape[0], sens.shape[0]))
-        A = lighting_operator(sens, np.asarray(spd, float), self.camera.dlambda)          # (P, C, N)
+        A = lighting_operator(sens, np.asarray(self._spectra_at(rows, cols, light), float),
+                              self.camera.dlambda)                                   # (P, C, N)
         tol = METAMER_TOLERANCE_Z * np.sqrt(_noise_var(prior, A, None))                   # (P,)
         return metamer_range(A, y, np.repeat(tol[:, None], rho.shape[1], axis=1))
 

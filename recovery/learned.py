@@ -69,6 +69,7 @@ from . import imfilters
 from .camera import Camera
 from .errors import InputError, InsufficientSurfaceVariation
 from .estimators import gray_edge
+from .resolution import area_resize
 
 __all__ = ["LearnedModel", "LearnedResult", "FEATURE_NAMES", "load_model", "camera_color_matrix",
            "canonical_transform", "estimation_image", "features", "shared_maps", "window_maps", "window_features", "estimate_learned", "fit_robust_ridge",
@@ -174,11 +175,7 @@ def estimation_image(image, mask=None, grid: int = GRID, min_valid: float = 0.5)
     if h <= grid and w <= grid:
         return img.astype(float), m.copy()
     gh, gw = min(grid, h), min(grid, w)
-    if img.shape[2] <= 4:
-        s = cv2.resize(img, (gw, gh), interpolation=cv2.INTER_AREA)
-    else:                       # OpenCV resizes at most 4 channels at once (a multispectral camera: one by one)
-        s = np.stack([cv2.resize(np.ascontiguousarray(img[..., k]), (gw, gh), interpolation=cv2.INTER_AREA)
-                      for k in range(img.shape[2])], axis=2)
+    s = area_resize(img, gw, gh)          # any number of channels (a multispectral camera too)
     frac = cv2.resize(m.astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
     ok = frac >= min_valid
     cells = np.where(ok[..., None], s / np.maximum(frac, 1e-12)[..., None], 0.0)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["block_average", "block_factor"]
+__all__ = ["area_resize", "block_average", "block_factor"]
 
 
 def block_factor(shape: tuple[int, int], max_pixels: int | None) -> int:
@@ -22,6 +22,23 @@ def block_factor(shape: tuple[int, int], max_pixels: int | None) -> int:
     while (h // f) * (w // f) > max_pixels:
         f += 1
     return max(1, min(f, h, w))
+
+
+def area_resize(src: np.ndarray, width: int, height: int) -> np.ndarray:
+    """OpenCV's area resampling of an ``(H, W, C)`` image to ``(height, width, C)``, any ``C`` (OpenCV
+    takes at most 4 channels at once: more are resized one by one).
+
+    >>> area_resize(np.ones((4, 6, 6), np.float32), 3, 2).shape
+    (2, 3, 6)
+    """
+    import cv2
+
+    src = np.ascontiguousarray(src)
+    c = src.shape[2]
+    if c <= 4:
+        return cv2.resize(src, (width, height), interpolation=cv2.INTER_AREA).reshape(height, width, c)
+    return np.stack([cv2.resize(np.ascontiguousarray(src[..., k]), (width, height), interpolation=cv2.INTER_AREA)
+                     for k in range(c)], axis=2)
 
 
 def block_average(img: np.ndarray, mask: np.ndarray | None, max_pixels: int | None):
@@ -59,14 +76,7 @@ def block_average(img: np.ndarray, mask: np.ndarray | None, max_pixels: int | No
         finite = np.isfinite(src).all(axis=2)
         src = np.where(finite[..., None], src, 0.0).astype(dtype)
         mask = finite if mask is None else (np.asarray(mask)[: hh * f, : ww * f] & finite)
-    src = np.ascontiguousarray(src)
-    c = src.shape[2]
-    if c <= 4:
-        out = cv2.resize(src, (ww, hh), interpolation=cv2.INTER_AREA)
-        out = out.reshape(hh, ww, c)
-    else:
-        out = np.stack([cv2.resize(np.ascontiguousarray(src[..., k]), (ww, hh), interpolation=cv2.INTER_AREA)
-                        for k in range(c)], axis=2)
+    out = area_resize(src, ww, hh)
     m = None
     if mask is not None:
         mk = np.ascontiguousarray(np.asarray(mask)[: hh * f, : ww * f], dtype=np.float32)

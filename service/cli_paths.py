@@ -148,14 +148,31 @@ def kept_output(out: str, finished: bool, force: bool, src: str | None = None) -
     if same:
         return (f"output_is_input: the result of {os.path.basename(src)!r} would be written over the file itself "
                 f"({out}); the original is only ever read: choose another output folder or format")
-    if os.path.isdir(out) and not os.path.islink(out):
+    why = keep_reason(out, finished, force)
+    if why == "folder":
         return f"output_exists: {out!r} is a folder; it is kept: move it or choose another output folder"
-    if os.path.isfile(out) and not os.stat(out).st_mode & 0o222:
+    if why == "read_only":
         return (f"output_read_only: {out!r} exists and is read-only; it is kept: make it writable (chmod u+w) "
                 "or remove it, then run again")
-    if not finished and not force:
+    if why == "not_ours":
         return (f"output_exists: {out!r} exists and was not written by a batch (no record in .wandell); it is "
                 "kept: move it, choose another output folder, or --force to replace it")
+    return None
+
+
+def keep_reason(path: str, ours: bool, force: bool) -> str | None:
+    """The rule a batch's outputs and its summary share for a file already
+    at their path: ``"folder"`` and ``"read_only"`` are kept even with
+    ``--force``, ``"not_ours"`` (a file no batch wrote) unless ``--force``;
+    ``None``: nothing there, or ours to replace."""
+    if not os.path.lexists(path):
+        return None
+    if os.path.isdir(path) and not os.path.islink(path):
+        return "folder"
+    if os.path.isfile(path) and not os.stat(path).st_mode & 0o222:
+        return "read_only"
+    if not ours and not force:
+        return "not_ours"
     return None
 
 

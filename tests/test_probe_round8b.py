@@ -8,16 +8,12 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
-from .conftest import scene_dng_bytes
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from .conftest import isolated_app_client, scene_dng_bytes
+from .conftest import run_cli as _cli
 
 
 @pytest.fixture(scope="module")
@@ -27,15 +23,7 @@ def dng() -> bytes:
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory):
-    from .conftest import isolated_app_client
-
     yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
-
-
-def _cli(*args: str, timeout: float = 300):
-    env = dict(os.environ, PYTHONPATH=ROOT)
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, env=env, cwd=ROOT)
 
 
 def _strict(text: str):

@@ -95,14 +95,15 @@ def kept_summary(path: str, force: bool) -> str | None:
     kept even with ``--force``, a file no batch wrote unless ``--force``;
     a summary of an earlier run is replaced. It replaced a user's
     ``batch.json`` without a word (probe round 8b)."""
-    if not os.path.lexists(path):
-        return None
-    if os.path.isdir(path) and not os.path.islink(path):
+    from ..cli_paths import keep_reason
+
+    why = keep_reason(path, force or (os.path.isfile(path) and is_cli_summary(path)), force)
+    if why == "folder":
         return f"{path!r} is a folder; it is kept and the batch's summary is not written"
-    if os.path.isfile(path) and not os.stat(path).st_mode & 0o222:
+    if why == "read_only":
         return (f"{path!r} exists and is read-only; it is kept and the batch's summary is not written: make it "
                 "writable or remove it, then run again")
-    if not force and not is_cli_summary(path):
+    if why == "not_ours":
         return (f"{path!r} exists and was not written by a batch; it is kept and the batch's summary is not "
                 "written: move it, or --force to replace it")
     return None

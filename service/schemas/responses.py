@@ -202,8 +202,8 @@ class SurfacesResult(_Answer):
     surface_estimator: str = Field(description="`prior` (issue 31: a prior over measured surfaces, with bands) or "
                                                "`pinv` (eq. 36, when a surface model is named)")
     band: str = Field(description="what reflectance_std and expected_rmse mean")
-    metamers: str | None = Field(None, description="with metamers=true: what metamer_lower, metamer_upper and "
-                                                   "metamer_slack mean")
+    metamers: str | None = Field(None, description="with metamers=true: what metamer_lower, metamer_upper, "
+                                                   "metamer_slack and metamer_scale mean")
     surface_model: str
     reflectance_scale_convention: str
     diagnostics: dict[str, Any]
