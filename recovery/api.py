@@ -10,6 +10,7 @@ Wandell (1985) [docs/references.md#seed-002]: analysis eq. 26-36, synthesis eq.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -1386,17 +1387,25 @@ class AnalysisResult:
         pts, rho = self._points(points)
         return self.estimates_from_responses(rho, pts[:, 0], pts[:, 1])
 
-    def metamers_from_responses(self, rho, rows, cols):
+    def metamers_from_responses(self, rho, rows, cols, model=None):
         """:class:`recovery.metamers.MetamerRange` of camera responses ``rho``
         ``(P, C)`` seen at pixel coordinates ``rows``, ``cols``: every
         reflectance in [0, 1] that gives the response (divided by the prior's
         exposure, as the estimates are) under the light there and the nominal
         camera, within :data:`recovery.metamers.METAMER_TOLERANCE_Z` standard
         deviations of the prior's noise model per channel. At most
-        :data:`METAMER_POINTS` responses (about 90 ms each)."""
-        from .metamers import METAMER_TOLERANCE_Z, metamer_range
+        :data:`METAMER_POINTS` responses (about 90 ms each). ``model``:
+        ``None`` or ``"physical"`` (every reflectance in [0, 1]),
+        ``"measured"`` (reflectances like measured ones:
+        :func:`measured_surface_model`) or a
+        :class:`recovery.metamers.SurfaceModel`."""
+        from .metamers import METAMER_TOLERANCE_Z, SurfaceModel, metamer_range
         from .surface_prior import _noise_var, lighting_operator
 
+        if isinstance(model, str) and model in METAMER_MODELS:
+            model = None if model == "physical" else measured_surface_model(tuple(self.camera.wavelengths))
+        elif model is not None and not isinstance(model, SurfaceModel):
+            raise InputError(f"model must be one of {list(METAMER_MODELS)}, None or a SurfaceModel, got {model!r}")
         rho = np.atleast_2d(np.asarray(rho, float))
         if rho.shape[0] > METAMER_POINTS:
             raise InputError(f"{rho.shape[0]} surfaces asked for their metamer sets; at most {METAMER_POINTS} per "
@@ -1413,9 +1422,9 @@ class AnalysisResult:
         A = lighting_operator(sens, np.asarray(self._spectra_at(rows, cols, light), float),
                               self.camera.dlambda)                                   # (P, C, N)
         tol = METAMER_TOLERANCE_Z * np.sqrt(_noise_var(prior, A, None))                   # (P,)
-        return metamer_range(A, y, np.repeat(tol[:, None], rho.shape[1], axis=1))
+        return metamer_range(A, y, np.repeat(tol[:, None], rho.shape[1], axis=1), model)
 
-    def metamer_range(self, points):
+    def metamer_range(self, points, model=None):
         """The metamer set's extent at ``[(row, col), ...]``: a
         :class:`recovery.metamers.MetamerRange` (``lower``, ``upper`` ``(P,
         N)``, ``slack``): at each wavelength the least and greatest
@@ -1427,9 +1436,11 @@ class AnalysisResult:
         reflectance gives the response's colour under the light (the light or
         the camera is wrong there); ``scale`` > 1 that the response is brighter
         than a white of its colour at the surfaces' exposure (a matter of the
-        relative scale, not of the light)."""
+        relative scale, not of the light). ``model="measured"``: only
+        reflectances like measured ones (:func:`measured_surface_model`), a
+        narrower range that still holds real surfaces."""
         pts, rho = self._points(points)
-        return self.metamers_from_responses(rho, pts[:, 0], pts[:, 1])
+        return self.metamers_from_responses(rho, pts[:, 0], pts[:, 1], model)
 
     def reflectance(self, points) -> np.ndarray:
         """Reflectance spectra at ``[(row, col), ...]``, ``(P, N)`` on
@@ -1482,6 +1493,29 @@ SURFACE_SAMPLES = 32
 #: Surfaces whose metamer sets one call computes at most (:meth:`AnalysisResult.metamer_range`; about 90 ms
 #: each at 31 wavelengths: two linear programmes per wavelength).
 METAMER_POINTS = 64
+
+#: The metamer sets :meth:`AnalysisResult.metamer_range` computes: ``physical`` every reflectance in [0, 1],
+#: ``measured`` only those of :func:`measured_surface_model`.
+METAMER_MODELS = ("physical", "measured")
+
+#: The measured-surface model's terms and the quantile of the residual it allows, chosen by leaving each
+#: shipped reflectance set out in turn (``python -m benchmarks.metamers --model-cv``, docs/surfaces.md
+#: "Metamer sets within measured surfaces").
+METAMER_MODEL_DIMS = 5
+METAMER_MODEL_QUANTILE = 0.95
+
+
+@lru_cache(maxsize=8)
+def measured_surface_model(wavelengths: tuple):
+    """:class:`recovery.metamers.SurfaceModel` of the shipped measured reflectances
+    (:func:`models.surface_data.surface_sets`, 274 surfaces in five sets) on ``wavelengths``:
+    :data:`METAMER_MODEL_DIMS` terms and the :data:`METAMER_MODEL_QUANTILE` of their residual at each
+    wavelength (Finlayson & Morovic 2005 bound metamer sets to a linear model of measured surfaces)."""
+    from models.surface_data import surface_sets
+
+    from .metamers import surface_model
+
+    return surface_model(surface_sets(np.asarray(wavelengths, float))[0], METAMER_MODEL_DIMS, METAMER_MODEL_QUANTILE)
 
 
 def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str = "auto",

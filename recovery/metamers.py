@@ -53,7 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MetamerRange", "metamer_range", "METAMER_TOLERANCE_Z"]
+__all__ = ["MetamerRange", "SurfaceModel", "metamer_range", "surface_model", "METAMER_TOLERANCE_Z"]
 
 #: The response's tolerance per channel, in standard deviations of its
 #: noise (:func:`recovery.surface_prior._noise_var`'s model): 2, about 95 %
@@ -160,7 +160,96 @@ def _one(A: np.ndarray, y: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.nd
     return lo / k, hi / k, s, 1.0 / k
 
 
-def metamer_range(A, y, tolerance) -> MetamerRange:
+@dataclass(frozen=True)
+class SurfaceModel:
+    """Reflectances like measured ones: ``r = B w + e`` with ``|e| <= residual`` at every wavelength and
+    ``0 <= r <= 1`` (``B`` the first ``D`` terms of measured reflectances, ``residual`` what measured
+    reflectances leave outside them). The metamer set within it is Finlayson & Morovic's (2005), who
+    bound reflectances to a linear model of measured surfaces; the residual keeps surfaces the model
+    leaves out (:func:`surface_model`).
+
+    Attributes
+    ----------
+    basis : (N, D)
+    residual : (N,)
+        The largest departure from the model allowed at each wavelength (>= 0).
+    """
+
+    basis: np.ndarray
+    residual: np.ndarray
+
+
+def surface_model(reflectances, dims: int, quantile: float = 1.0) -> SurfaceModel:
+    """A :class:`SurfaceModel` from measured reflectances ``(M, N)``: the first ``dims`` right singular
+    vectors of the reflectances (not centred, so that a model reflectance times a number is one too:
+    Wandell 1985, eq. 11's basis), and at each wavelength the ``quantile`` of the reflectances'
+    absolute residual outside them (1: the largest).
+
+    Raises
+    ------
+    ValueError
+        On fewer reflectances than ``dims``, ``dims`` < 1, non-finite values or a quantile outside [0, 1].
+    """
+    R = np.asarray(reflectances, float)
+    if R.ndim != 2 or not np.all(np.isfinite(R)):
+        raise ValueError(f"surface_model needs finite reflectances (M, N), got shape {R.shape}")
+    if not 1 <= int(dims) <= min(R.shape):
+        raise ValueError(f"dims must be in 1..{min(R.shape)} for {R.shape[0]} reflectances of {R.shape[1]} "
+                         f"wavelengths, got {dims}")
+    if not 0.0 <= float(quantile) <= 1.0:
+        raise ValueError(f"quantile must be in [0, 1], got {quantile}")
+    B = np.linalg.svd(R, full_matrices=False)[2][: int(dims)].T
+    res = np.abs(R - (R @ B) @ B.T)
+    return SurfaceModel(B, np.quantile(res, float(quantile), axis=0))
+
+
+def _one_model(A: np.ndarray, y: np.ndarray, t: np.ndarray, model: SurfaceModel):
+    """:func:`_one` within a :class:`SurfaceModel`: variables ``x = (w, e)``, ``r = [B I] x``."""
+    C, N = A.shape
+    B, eps = np.asarray(model.basis, float), np.asarray(model.residual, float)
+    D = B.shape[1]
+    M = np.hstack([B, np.eye(N)])                       # r = M x
+    AM = A @ M
+    xb = [(None, None)] * D + [(-float(e), float(e)) for e in eps]
+    rows_r = np.vstack([M, -M])                         # 0 <= r <= 1
+    b_r = np.concatenate([np.ones(N), np.zeros(N)])
+    z = np.zeros((2 * N, 1))
+    # the brightest copy k y that some model reflectance gives within k t
+    A_ub = np.vstack([np.hstack([AM, -(y + t)[:, None]]), np.hstack([-AM, (y - t)[:, None]]), np.hstack([rows_r, z])])
+    c = np.zeros(D + N + 1)
+    c[-1] = -1.0
+    sol = _solve(c, A_ub, np.concatenate([np.zeros(2 * C), b_r]), xb + [(0.0, 1.0)])
+    k = 0.0 if sol is None else float(sol.x[-1])
+    if k >= 1.0 - 1e-9:
+        k = 1.0
+    elif k > 1e-6:
+        k = k * (1.0 - 1e-6)
+    else:
+        k = 1.0
+    y, t = y * k, t * k
+    # the smallest widening s of the tolerance with a model reflectance
+    A_ub = np.vstack([np.hstack([AM, -t[:, None]]), np.hstack([-AM, -t[:, None]]), np.hstack([rows_r, z])])
+    c = np.zeros(D + N + 1)
+    c[-1] = 1.0
+    sol = _solve(c, A_ub, np.concatenate([y + t, t - y, b_r]), xb + [(0.0, None)])
+    if sol is None:                                     # r = 0 with a large s is always feasible
+        return np.zeros(N), np.ones(N) / k, float("inf"), 1.0 / k
+    s = float(sol.x[-1])
+    s = 0.0 if s <= 1e-6 else s * (1.0 + 1e-6) + 1e-9
+    tt = t * (1.0 + s)
+    A_ub = np.vstack([AM, -AM, rows_r])
+    b_ub = np.concatenate([y + tt, tt - y, b_r])
+    lo, hi = np.zeros(N), np.ones(N)
+    for n in range(N):
+        a = _solve(M[n], A_ub, b_ub, xb)
+        b = _solve(-M[n], A_ub, b_ub, xb)
+        lo[n] = a.fun if a is not None else 0.0
+        hi[n] = -b.fun if b is not None else 1.0
+    lo, hi = np.clip(lo, 0.0, 1.0), np.clip(np.maximum(hi, lo), 0.0, 1.0)
+    return lo / k, hi / k, s, 1.0 / k
+
+
+def metamer_range(A, y, tolerance, model: SurfaceModel | None = None) -> MetamerRange:
     """The extent of the metamer set of each response at each wavelength.
 
     Parameters
@@ -174,6 +263,10 @@ def metamer_range(A, y, tolerance) -> MetamerRange:
     tolerance : float or (C,) or (P, C)
         Half-width per channel of the box around each response (> 0: a
         response is never known exactly).
+    model : SurfaceModel, optional
+        Only reflectances of this model of measured surfaces (Finlayson &
+        Morovic 2005): a narrower set that says what surfaces *like measured
+        ones* allow. Default: every reflectance in [0, 1].
 
     Returns
     -------
@@ -196,7 +289,10 @@ def metamer_range(A, y, tolerance) -> MetamerRange:
     if np.any(t <= 0):
         raise ValueError("the tolerance must be > 0 in every channel")
     P, N = y.shape[0], A.shape[2]
+    if model is not None and (np.shape(model.basis)[0] != N or np.shape(model.residual) != (N,)):
+        raise ValueError(f"the surface model is on {np.shape(model.basis)[0]} wavelengths, the operators on {N}")
     lo, hi, s, scale = np.zeros((P, N)), np.ones((P, N)), np.zeros(P), np.ones(P)
     for p in range(P):
-        lo[p], hi[p], s[p], scale[p] = _one(A[p], y[p], t[p])
+        lo[p], hi[p], s[p], scale[p] = (_one(A[p], y[p], t[p]) if model is None
+                                        else _one_model(A[p], y[p], t[p], model))
     return MetamerRange(lo, hi, s, t, scale)

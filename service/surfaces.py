@@ -84,9 +84,18 @@ METAMERS_DOC = ("metamer_lower / metamer_upper: at each wavelength the least and
                 "relative), and the range is that of its dimmest copy that fits, multiplied back. metamer_slack > "
                 "0: no reflectance gives its colour under the light; the range is that of the tolerance grown "
                 "(1 + slack)-fold")
+#: What the range holds with ``metamer_model=measured`` (appended to :data:`METAMERS_DOC`).
+METAMERS_MEASURED_DOC = ("metamer_model=measured: only reflectances like measured surfaces (Finlayson & Morovic "
+                         "2005 bound metamer sets to a linear model of measured reflectances): a 5-term model of the "
+                         "274 shipped measured reflectances, each wavelength allowed the 95th percentile of the residual "
+                         "they leave outside it, within [0, 1]; about half as wide as the physical range, and it held "
+                         "99 % or more of the true values of every reflectance set left out of the model "
+                         "(docs/surfaces.md, benchmarks.metamers --model-cv); metamer_slack > 0 then says no such "
+                         "reflectance gives the colour")
 
 
-def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, metamers: bool = False) -> dict:
+def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, metamers: bool = False,
+                metamer_model: str = "physical") -> dict:
     """Reflectance spectra at full-resolution pixel points, rectangle means,
     or a coarse grid: the prior's posterior mean with a band per wavelength
     and an expected RMS error (:mod:`recovery.surface_prior`), or eq. 36 with
@@ -105,7 +114,8 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, m
     reflectance at each wavelength of any physical reflectance giving its
     response (:meth:`recovery.api.AnalysisResult.metamers_from_responses`;
     at most :data:`recovery.api.METAMER_POINTS` entries, checked by the
-    caller)."""
+    caller); ``metamer_model``: ``physical`` (any reflectance in [0, 1]) or
+    ``measured`` (:func:`recovery.api.measured_surface_model`)."""
     img = decoded.estimation
     h, w = img.shape[:2]
     H, W = decoded.full_shape
@@ -174,7 +184,7 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, m
             weights = np.einsum("pjk,pk->pj", np.linalg.pinv(L), rho) * res.reflectance_scale
             refl = weights @ res.surface_model.basis.T
             stds, ermse = [None] * len(kinds), [None] * len(kinds)
-        mr = res.metamers_from_responses(rho, rows_c, cols_c) if metamers else None
+        mr = res.metamers_from_responses(rho, rows_c, cols_c, metamer_model) if metamers else None
         fit = res.illuminant.diagnostics.get("subspace_fit_ratio")
         for i, (kind, where, r, s_, sd, er) in enumerate(zip(kinds, wheres, refl, sat, stds, ermse)):
             warns = []
@@ -193,8 +203,11 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, m
                 entry.update(metamer_lower=mr.lower[i].tolist(), metamer_upper=mr.upper[i].tolist(),
                              metamer_slack=float(mr.slack[i]), metamer_scale=float(mr.scale[i]))
                 if mr.slack[i] > 0:
-                    warns.append(f"no reflectance gives this colour under the estimated light (the tolerance had "
-                                 f"to grow {1 + mr.slack[i]:.3g}-fold): the light or the camera is wrong here")
+                    which = "no reflectance like measured surfaces" if metamer_model == "measured" else "no reflectance"
+                    warns.append(f"{which} gives this colour under the estimated light (the tolerance had "
+                                 f"to grow {1 + mr.slack[i]:.3g}-fold): the light or the camera is wrong here"
+                                 + (", or the surface is unlike the measured ones" if metamer_model == "measured"
+                                    else ""))
                 elif mr.scale[i] > 1:
                     warns.append(f"brighter than a perfect white of its colour at the surfaces' exposure (x"
                                  f"{mr.scale[i]:.3g}; the reflectance scale is relative): the metamer range is "
@@ -210,7 +223,8 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, m
                      "surface"
                      if res.surface_estimator == "prior" else
                      "none: the literal method (eq. 36, pseudo-inverse in the surface model) has no band"),
-            **({"metamers": METAMERS_DOC} if metamers else {}),
+            **({"metamers": METAMERS_DOC + ("; " + METAMERS_MEASURED_DOC if metamer_model == "measured" else "")}
+               if metamers else {}),
             "surface_model": res.diagnostics.get("surface_model"),
             "reflectance_scale_convention": res.diagnostics.get("reflectance_scale_convention"),
             "diagnostics": res.diagnostics}

@@ -231,3 +231,121 @@ def test_a_six_channel_camera_on_an_image_larger_than_the_analysis_grid_is_analy
     assert np.all(mr.lower <= mr.upper) and np.all(mr.slack == 0)
     with pytest.raises(InputError, match="3-channel"):
         estimate_bayes(img, None, cam6, off_set_prior=0.03)
+
+
+# --------------------------------------------------------------------------- within measured surfaces
+def test_a_surface_model_holds_every_reflectance_it_was_built_from():
+    """With the largest residual (quantile 1), each reflectance the model was built from is ``B w + e`` with
+    ``|e|`` within the allowance and in [0, 1]: one of its own model metamers, so inside its range at every
+    wavelength; and the model's set is a subset of the physical one, so its range lies inside the physical
+    range (both computed at the same tolerance, neither needing slack or a scale)."""
+    from recovery.metamers import surface_model
+
+    R = models.reflectance_set("colorchecker", WL)
+    model = surface_model(R, 4, 1.0)
+    np.testing.assert_allclose(model.basis.T @ model.basis, np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(model.residual, np.abs(R - R @ model.basis @ model.basis.T).max(0), atol=1e-12)
+    A = lighting_operator(_camera(), models.illuminant("D65", WL), DL)
+    y = R @ A.T
+    t = 1e-4 * np.abs(y).max()
+    inner, outer = metamer_range(A, y, t, model), metamer_range(A, y, t)
+    assert np.all(inner.slack == 0) and np.all(inner.scale == 1) and np.all(outer.physical)
+    assert np.all(inner.lower <= R + 1e-7) and np.all(R <= inner.upper + 1e-7)
+    assert np.all(outer.lower <= inner.lower + 1e-7) and np.all(inner.upper <= outer.upper + 1e-7)
+    assert inner.width.mean() < outer.width.mean() - 0.1
+
+
+def test_a_surface_model_of_one_term_and_no_residual_is_a_line():
+    """One term, no residual (a set of one reflectance, rounding aside): the model holds only multiples of
+    that reflectance, so its metamer set is the one multiple that gives the response; the range collapses
+    to it (within the tolerance's reach)."""
+    from recovery.metamers import surface_model
+
+    r = models.reflectance_set("colorchecker", WL)[5]
+    model = surface_model(r[None], 1, 0.0)
+    assert np.all(model.residual < 1e-12)
+    A = lighting_operator(_camera(), models.illuminant("A", WL), DL)
+    y = A @ (0.5 * r)
+    mr = metamer_range(A, y, 1e-6 * y.max(), model)
+    np.testing.assert_allclose(mr.lower[0], 0.5 * r, atol=1e-5)
+    np.testing.assert_allclose(mr.upper[0], 0.5 * r, atol=1e-5)
+
+
+@pytest.mark.parametrize("args, words", [
+    ((np.ones((4, 31)), 5, 1.0), "dims must be in 1..4"),
+    ((np.ones((10, 31)), 0, 1.0), "dims must be"),
+    ((np.ones((10, 31)), 2, 1.5), "quantile must be"),
+    ((np.full((10, 31), np.nan), 2, 1.0), "finite"),
+])
+def test_bad_surface_models_are_named(args, words):
+    from recovery.metamers import surface_model
+
+    with pytest.raises(ValueError, match=words):
+        surface_model(*args)
+
+
+def test_a_surface_model_on_other_wavelengths_is_refused():
+    from recovery.metamers import surface_model
+
+    model = surface_model(np.random.default_rng(0).uniform(0, 1, (10, 16)), 3)
+    with pytest.raises(ValueError, match="16 wavelengths, the operators on 31"):
+        metamer_range(np.ones((3, 31)), np.ones(3), 0.1, model)
+
+
+def test_the_measured_model_range_through_the_api_and_the_endpoint():
+    """``metamer_range(points, model="measured")`` is :func:`metamer_range` within
+    :func:`recovery.api.measured_surface_model`, inside the physical range and narrower; through
+    ``POST /v1/surfaces`` ``metamer_model=measured`` gives the same kind of answer, says what it holds, and
+    a value that is neither model is a 422 naming the field."""
+    from fastapi.testclient import TestClient
+
+    from benchmarks.chart_scenes import scene_bytes
+    from recovery import Camera, analyze
+    from recovery.api import METAMER_MODEL_DIMS, measured_surface_model
+    from recovery.errors import InputError
+    from service.app import app
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    img, R, pts = _chart_image(cam, "D65")
+    res = analyze(img, cam, spatial=False)
+    inner, outer = res.metamer_range(pts[:6], model="measured"), res.metamer_range(pts[:6])
+    model = measured_surface_model(tuple(cam.wavelengths))
+    assert model.basis.shape == (cam.wavelengths.size, METAMER_MODEL_DIMS)
+    ok = (inner.slack == 0) & (outer.slack == 0)
+    assert ok.sum() >= 5
+    assert np.all(outer.lower[ok] <= inner.lower[ok] + 1e-6) and np.all(inner.upper[ok] <= outer.upper[ok] + 1e-6)
+    assert inner.width[ok].mean() < outer.width[ok].mean()
+    with pytest.raises(InputError, match="model must be one of"):
+        res.metamer_range(pts[:1], model="smooth")
+
+    data, _ = scene_bytes("Nikon 5100 (NPL)", "D50", "grid", 0, matrix_only=False)
+    with TestClient(app, base_url="http://localhost") as c:
+        ask = lambda **kw: c.post("/v1/surfaces", files={"file": ("s.dng", data)},
+                                  data={"points": "[[30, 40], [60, 90]]", "metamers": "true", **kw})
+        phys, meas = ask().json(), ask(metamer_model="measured")
+        assert meas.status_code == 200, meas.text
+        meas = json.loads(meas.text, parse_constant=lambda x: pytest.fail(f"non-finite {x} in the answer"))
+        assert "measured surfaces" in meas["metamers"] and "measured surfaces" not in phys["metamers"]
+        for p, m in zip(phys["surfaces"], meas["surfaces"]):
+            lo, hi = np.array(m["metamer_lower"]), np.array(m["metamer_upper"])
+            assert np.all((0 <= lo) & (lo <= hi) & (hi <= m["metamer_scale"]))
+            if p["metamer_slack"] == 0 and m["metamer_slack"] == 0 and p["metamer_scale"] == m["metamer_scale"] == 1:
+                assert np.all(np.array(p["metamer_lower"]) <= lo + 1e-6)
+                assert np.all(hi <= np.array(p["metamer_upper"]) + 1e-6)
+        bad = ask(metamer_model="smooth")
+        assert bad.status_code == 422 and "metamer_model" in bad.json()["detail"]
+
+
+def test_the_model_choice_is_the_narrowest_that_holds_the_truth_on_every_left_out_set():
+    """``benchmarks.metamers.model_choice``: among models whose worst left-out set holds at least
+    ``MODEL_CV_LEVEL`` of the true values, the narrowest on average; when none does, the one whose worst set
+    holds the most."""
+    from benchmarks.metamers import MODEL_CV_LEVEL, model_choice
+
+    lo, hi = MODEL_CV_LEVEL - 0.01, min(1.0, MODEL_CV_LEVEL + 0.005)
+    cv = {(3, 0.95): {"a": (lo, 0.3), "b": (1.0, 0.3)},        # narrowest, but one set below the level
+          (5, 0.95): {"a": (hi, 0.5), "b": (1.0, 0.4)},        # mean width 0.45: chosen
+          (8, 1.0): {"a": (1.0, 0.6), "b": (1.0, 0.6)}}
+    assert model_choice(cv) == (5, 0.95)
+    cv = {(3, 0.95): {"a": (0.90, 0.3)}, (8, 1.0): {"a": (0.95, 0.6)}}
+    assert model_choice(cv) == (8, 1.0)

@@ -376,7 +376,8 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     def work():
         decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings,
                                       display_referred=inp.display_referred)
-        res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts, metamers=regions.metamers)
+        res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts, metamers=regions.metamers,
+                                   metamer_model=regions.metamer_model)
         res["illuminant"] = pipeline.illuminant_json(run.estimate, pipeline.profile_of(decoded), run.camera)
         res["method"] = run.estimate.method
         res["camera"] = pipeline.camera_json(run.camera)

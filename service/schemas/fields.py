@@ -243,6 +243,11 @@ REGIONS = {
     "metamers": Opt(bool, False, "also each surface's metamer set (metamer_lower, metamer_upper, metamer_slack): "
                                  "the least and greatest reflectance at each wavelength of any physical reflectance "
                                  "giving its response, about 90 ms per surface, at most 64 per request"),
+    "metamer_model": Opt(str, "physical", "with metamers=true, which reflectances the metamer set holds: physical "
+                                          "(any in [0, 1]) or measured (only those like measured surfaces: a "
+                                          "narrower range; docs/surfaces.md)",
+                         choices=("physical", "measured"), examples=("measured",),
+                         check=_must_be("{name} must be physical or measured, not {value!r}")),
 }
 
 # --------------------------------------------------------------------------- preview
