@@ -1,0 +1,123 @@
+"""Round 9b of probing (docs/probe_round9b.md): the leftovers of round 8b
+and the numerical core at its extremes, each the minimal reproduction of a
+fault through the Python API, the command line as users run it
+(``python -m service.cli``) or the real ASGI stack (FastAPI's TestClient),
+and what holds once it is fixed."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from .conftest import isolated_app_client
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
+
+
+def _strict(text: str):
+    """JSON with NaN/Infinity refused (what a strict client parses)."""
+    def no(c):
+        raise ValueError(f"non-finite number {c} in the answer")
+    return json.loads(text, parse_constant=no)
+
+
+# --- 1a. AsShotWhiteXY without AsShotNeutral --------------------------------------------------
+
+#: XYZ -> camera of the synthetic files: a D65 matrix and a different one for light A
+CM_D65 = np.array([[0.9, -0.2, -0.1], [-0.3, 1.2, 0.1], [0.0, -0.1, 0.8]])
+CM_A = np.array([[0.6, -0.1, -0.05], [-0.35, 1.25, 0.1], [0.05, -0.2, 1.3]])
+
+
+def _xyz(xy):
+    x, y = xy
+    return np.array([x / y, 1.0, (1 - x - y) / y])
+
+
+def _linear_dng(dtype, **tags) -> bytes:
+    from testing.dngwriter import write_linear_dng
+
+    rgb = np.random.default_rng(0).uniform(0.05, 0.9, (48, 64, 3))
+    scale = 4e9 if dtype == np.uint32 else 65535
+    buf = io.BytesIO()
+    write_linear_dng(buf, (rgb * scale).astype(dtype), color_matrix1=CM_D65, **tags)
+    return buf.getvalue()
+
+
+def _as_shot(tmp_path, data: bytes, name: str):
+    from service.loader import load
+
+    p = tmp_path / name
+    p.write_bytes(data)
+    d = load(str(p)).decoded
+    return d.as_shot_neutral, d.as_shot_problem
+
+
+@pytest.mark.parametrize("dtype", [np.uint32, np.uint16], ids=["libraw-refuses", "libraw-opens"])
+def test_as_shot_white_xy_gives_the_neutral_the_equivalent_as_shot_neutral_gives(tmp_path, dtype):
+    """A LinearRaw DNG with AsShotWhiteXY and no AsShotNeutral was read
+    without an as-shot white (LibRaw refuses 32-bit integers; for the files
+    it opens it puts the xy in its daylight multipliers, not the as-shot
+    ones, so those had none either). The neutral is now ``ColorMatrix *
+    XYZ(xy)``, normalised (DNG specification 1.6, "Mapping Camera Color
+    Space to CIE XYZ Space"): the one the same file written with that
+    AsShotNeutral has."""
+    xy = (0.4476, 0.4074)                          # light A's white
+    want = CM_D65 @ _xyz(xy)
+    want = want / want[1]
+    n_xy, p_xy = _as_shot(tmp_path, _linear_dng(dtype, as_shot_neutral=None, as_shot_white_xy=xy), "xy.dng")
+    n_asn, p_asn = _as_shot(tmp_path, _linear_dng(dtype, as_shot_neutral=want), "asn.dng")
+    assert p_xy is None and p_asn is None
+    assert n_xy is not None, "the as-shot white of AsShotWhiteXY was dropped"
+    np.testing.assert_allclose(n_xy, want, rtol=1e-6)
+    np.testing.assert_allclose(n_xy, n_asn, rtol=1e-6)
+    if dtype == np.uint16:                         # LibRaw's own reading of the xy: its daylight multipliers
+        import rawpy
+
+        with rawpy.imread(io.BytesIO(_linear_dng(dtype, as_shot_neutral=None, as_shot_white_xy=xy))) as raw:
+            pre = np.asarray(raw.daylight_whitebalance[:3], float)
+        np.testing.assert_allclose(n_xy, pre[1] / pre, rtol=1e-4)
+
+
+@pytest.mark.parametrize("kelvin,matrix", [(2000, "A"), (10000, "D65")])
+def test_as_shot_white_xy_uses_the_matrix_interpolated_for_its_temperature(tmp_path, kelvin, matrix):
+    """With ColorMatrix1 (D65) and ColorMatrix2 (light A) the matrix is the
+    one interpolated in inverse temperature for the white: beyond A's 2850 K
+    it is A's, beyond 6500 K D65's."""
+    from recovery.dng_color import temperature_tint_to_xy
+
+    xy = tuple(float(v) for v in temperature_tint_to_xy(kelvin, 0.0))
+    cm = {"A": CM_A, "D65": CM_D65}[matrix]
+    want = cm @ _xyz(xy)
+    want = want / want[1]
+    n, p = _as_shot(tmp_path, _linear_dng(np.uint32, as_shot_neutral=None, as_shot_white_xy=xy,
+                                          color_matrix2=CM_A), "xy2.dng")
+    assert p is None
+    np.testing.assert_allclose(n, want, rtol=1e-5)
+
+
+def test_as_shot_white_xy_is_what_white_as_shot_uses(client):
+    """``white=as-shot`` on the file with AsShotWhiteXY answers what it
+    answers on the file with the equivalent AsShotNeutral (it was the 422
+    ``no_as_shot_white``); an xy that is not a chromaticity is that 422,
+    naming the tag."""
+    xy = (0.4476, 0.4074)
+    want = CM_D65 @ _xyz(xy)
+    want = want / want[1]
+    answers = []
+    for tags in ({"as_shot_neutral": None, "as_shot_white_xy": xy}, {"as_shot_neutral": want}):
+        r = client.post("/v1/white-balance", files={"file": ("a.dng", _linear_dng(np.uint32, **tags))},
+                        data={"white": "as-shot", "response": "json"})
+        assert r.status_code == 200, r.text[:400]
+        answers.append(_strict(r.text))
+    a, b = answers
+    assert a["illuminant"]["camera_rgb"] == pytest.approx(b["illuminant"]["camera_rgb"], rel=1e-5)
+    bad = _linear_dng(np.uint32, as_shot_neutral=None, as_shot_white_xy=(0.7, 0.6))
+    r = client.post("/v1/white-balance", files={"file": ("a.dng", bad)}, data={"white": "as-shot"})
+    assert r.status_code == 422 and r.json()["error"] == "no_as_shot_white", r.text[:400]
+    assert "AsShotWhiteXY 0.7, 0.6" in r.json()["detail"]
