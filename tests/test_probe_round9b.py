@@ -121,3 +121,38 @@ def test_as_shot_white_xy_is_what_white_as_shot_uses(client):
     r = client.post("/v1/white-balance", files={"file": ("a.dng", bad)}, data={"white": "as-shot"})
     assert r.status_code == 422 and r.json()["error"] == "no_as_shot_white", r.text[:400]
     assert "AsShotWhiteXY 0.7, 0.6" in r.json()["detail"]
+
+
+# --- 1b. the DNG copy of a RAW with a 255-byte name -------------------------------------------
+
+def test_the_dng_copy_of_a_255_byte_raw_is_cut_like_the_outputs(tmp_path):
+    """``wandell white-balance --xmp`` and ``wandell batch --xmp`` of a RAW
+    named with 255 bytes (NAME_MAX) wrote the image and the sidecar but not
+    the DNG copy: ``NAME.wandell.dng`` was 263 bytes ("no DNG copy: cannot
+    write ...: File name too long"). Its stem is now cut as a batch's
+    outputs' names are (188 bytes in all), the suffix kept, and a rerun of
+    the batch over the folder does not take the cut copy for a photograph."""
+    from .conftest import run_cli, scene_dng_bytes
+
+    stem = "y" * 251
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / f"{stem}.dng").write_bytes(scene_dng_bytes(64, 96))
+    cut = "y" * (188 - len(".wandell.dng")) + ".wandell.dng"
+    r = run_cli("white-balance", "--xmp", str(src / f"{stem}.dng"), str(tmp_path / "o.tif"))
+    assert r.returncode == 0, r.stderr[-600:]
+    assert "no DNG copy" not in r.stderr + r.stdout, r.stderr[-600:]
+    copy = src / cut
+    assert copy.is_file() and copy.read_bytes()[:4] in (b"II*\x00", b"MM\x00*"), sorted(p.name[-30:] for p in src.iterdir())
+    copy.unlink()
+    (src / f"{stem}.xmp").unlink()                 # else the batch keeps the sidecar and makes no copy
+    out = tmp_path / "out"
+    args = ("batch", "--workers", "1", "--format", "jpeg", "--xmp", str(src), str(out))
+    r = run_cli(*args)
+    assert r.returncode == 0 and copy.is_file(), (r.returncode, r.stderr[-600:])
+    assert "no DNG copy" not in r.stderr + r.stdout, r.stderr[-600:]
+    again = run_cli(*args)
+    assert again.returncode == 0, again.stderr[-600:]
+    summary = json.loads((out / "batch.json").read_text())
+    names = [it.get("name") for it in summary.get("items", summary.get("files", []))]
+    assert cut not in names, names
