@@ -156,3 +156,27 @@ def test_the_dng_copy_of_a_255_byte_raw_is_cut_like_the_outputs(tmp_path):
     summary = json.loads((out / "batch.json").read_text())
     names = [it.get("name") for it in summary.get("items", summary.get("files", []))]
     assert cut not in names, names
+
+
+# --- 1c. metamers= (an empty value) ---------------------------------------------------------------
+
+def test_an_empty_metamers_is_not_given_and_the_docs_say_so(client):
+    """``metamers=`` is taken as not given (false), the rule of every empty
+    form field (kept: round 8b noticed it); the API's description and
+    ``docs/surfaces.md`` now say so, and a blank value is still a 422."""
+    from pathlib import Path
+
+    from .conftest import scene_dng_bytes
+
+    dng = scene_dng_bytes(64, 96)
+    ask = {"points": "[[10, 10]]"}
+    plain = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data=ask)
+    empty = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={**ask, "metamers": ""})
+    assert plain.status_code == empty.status_code == 200, empty.text[:300]
+    assert "metamer_lower" not in empty.json()["surfaces"][0]
+    assert empty.json()["surfaces"] == plain.json()["surfaces"]
+    blank = client.post("/v1/surfaces", files={"file": ("a.dng", dng)}, data={**ask, "metamers": " "})
+    assert blank.status_code == 422 and "metamers" in blank.json()["detail"], blank.text[:300]
+    assert "an empty one (`metamers=`) is not" in client.get("/openapi.json").json()["info"]["description"]
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "surfaces.md").read_text()
+    assert "An empty `metamers=` is not given (false)" in doc
