@@ -180,3 +180,66 @@ def test_an_empty_metamers_is_not_given_and_the_docs_say_so(client):
     assert "an empty one (`metamers=`) is not" in client.get("/openapi.json").json()["info"]["description"]
     doc = (Path(__file__).resolve().parents[1] / "docs" / "surfaces.md").read_text()
     assert "An empty `metamers=` is not given (false)" in doc
+
+
+# --- 2. a RAW exposed far below full scale ------------------------------------------------------
+
+def _underexposed_dng(exposure: float) -> bytes:
+    from testing.dngwriter import scene_dng
+
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 128, 192, seed=1, exposure=exposure)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("exposure", [1e-4, 1e-6])
+def test_a_raw_exposed_at_a_ten_thousandth_of_full_scale_is_flagged(client, exposure):
+    """A RAW whose brightest surface is exposed at 1e-4 (or 1e-6) of the
+    sensor's full scale is read noise only: ``/v1/analyze`` answered a light
+    25 degrees from the truth with confidence 0.58 and ``low_confidence``
+    false, no word of the exposure. The estimate now knows a RAW's full scale
+    (its white level): confidence 0, flagged, and the warning says the
+    brightest pixels' level and how many stops under it is."""
+    r = client.post("/v1/analyze", files={"file": ("a.dng", _underexposed_dng(exposure))})
+    assert r.status_code == 200, r.text[:300]
+    j = _strict(r.text)
+    d = j["diagnostics"]
+    assert d["low_confidence"] is True and d["confidence"] == 0.0, (d["confidence"], d.get("confidence_rule"))
+    assert d["signal_level"] < 2 ** -9
+    assert any("underexposed" in w and "stops" in w and "noise" in w for w in j["warnings"]), j["warnings"]
+
+
+def test_a_well_and_a_moderately_underexposed_raw_keep_their_confidence(client):
+    """What holds: at 0.9 and 0.01 of full scale (7 stops under) the light
+    is within a degree and its confidence is the estimator's own."""
+    for exposure in (0.9, 0.01):
+        j = _strict(client.post("/v1/analyze", files={"file": ("a.dng", _underexposed_dng(exposure))}).text)
+        d = j["diagnostics"]
+        assert d["low_confidence"] is False and d["confidence"] > 0.8, (exposure, d["confidence"])
+        assert "underexposed" not in " ".join(j["warnings"])
+
+
+def test_full_scale_in_the_python_api_flags_noise_and_is_checked():
+    """The Python API: ``full_scale`` (default ``white_level``) says where the
+    sensor's full scale lies; the same array is flagged only when its
+    brightest pixels are more than 9 stops under it (the analysis is
+    otherwise scale-free: the light is the same); a bad value is an
+    ``InputError`` naming it."""
+    from recovery import Camera, InputError, estimate_illuminant
+    from testing.scenes import mondrian_scene
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    img = mondrian_scene(np.random.default_rng(3), 12, "Nikon 5100 (NPL)", "D65", 48).image.astype(float)
+    plain = estimate_illuminant(img * 1e-4, cam, spatial=False)
+    told = estimate_illuminant(img * 1e-4, cam, spatial=False, full_scale=1.0)
+    np.testing.assert_array_equal(plain.rgb, told.rgb)
+    assert "signal_level" not in plain.diagnostics and plain.diagnostics["low_confidence"] is False
+    assert told.diagnostics["low_confidence"] is True and told.diagnostics["confidence"] == 0.0
+    assert any("underexposed" in w for w in told.warnings)
+    by_white = estimate_illuminant(img * 1e-4, cam, spatial=False, white_level=1.0)
+    assert by_white.diagnostics["low_confidence"] is True
+    bright = estimate_illuminant(img, cam, spatial=False, full_scale=1.0)
+    assert bright.diagnostics["low_confidence"] is False
+    for bad in (0, -1, float("nan"), "x"):
+        with pytest.raises(InputError, match="full_scale"):
+            estimate_illuminant(img, cam, spatial=False, full_scale=bad)
