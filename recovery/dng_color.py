@@ -48,7 +48,7 @@ import numpy as np
 __all__ = [
     "D50_XY", "D65_XY", "ColorProfile", "illuminant_temperature", "xy_to_temperature_tint",
     "temperature_tint_to_xy", "xy_to_xyz", "xyz_to_xy", "bradford", "rgb_to_xyz_matrix",
-    "PRIMARIES", "neutral_to_xy", "xyz_to_camera", "camera_to_xyz_d50", "camera_to_output",
+    "PRIMARIES", "neutral_to_xy", "xy_to_neutral", "xyz_to_camera", "camera_to_xyz_d50", "camera_to_output",
 ]
 
 #: D50 and D65 as the DNG SDK writes them (``D50_xy_coord``, ``D65_xy_coord``).
@@ -303,6 +303,35 @@ def neutral_to_xy(profile: ColorProfile, neutral) -> np.ndarray:
             nxt = 0.5 * (last + nxt)
         last = nxt
     return last
+
+
+def xy_to_neutral(profile: ColorProfile, white_xy) -> np.ndarray:
+    """The camera neutral of a white chromaticity (DNG SDK ``SetWhiteXY``;
+    DNG specification 1.6, "Mapping Camera Color Space to CIE XYZ Space"):
+    ``XYZtoCamera * XYZ(white_xy)`` with the colour matrix interpolated for
+    that white's temperature (:func:`xyz_to_camera`), scaled to a largest
+    channel of 1 and clipped to [0.001, 1] as the SDK does. The inverse of
+    :func:`neutral_to_xy`; what a DNG's AsShotWhiteXY means as an
+    AsShotNeutral.
+
+    >>> p = ColorProfile(np.eye(3))
+    >>> [round(float(v), 4) for v in xy_to_neutral(p, (1 / 3, 1 / 3))]
+    [1.0, 1.0, 1.0]
+
+    Raises
+    ------
+    ValueError
+        ``white_xy`` is not a chromaticity (two finite numbers, each
+        positive, summing to less than 1), or the neutral is not positive.
+    """
+    v = np.asarray(white_xy, dtype=np.float64).ravel()
+    if v.size != 2 or not np.all(np.isfinite(v)) or not np.all(v > 0) or v.sum() >= 1.0:
+        raise ValueError(f"white_xy must be a chromaticity (x > 0, y > 0, x + y < 1), got {white_xy!r}")
+    cm, *_ = xyz_to_camera(profile, v)
+    n = cm @ xy_to_xyz(v)
+    if not np.all(np.isfinite(n)) or n.max() <= 0:
+        raise ValueError(f"the colour matrix gives no positive camera neutral for white_xy {tuple(v)}")
+    return np.clip(n / n.max(), 0.001, 1.0)
 
 
 def camera_to_xyz_d50(profile: ColorProfile, neutral) -> tuple[np.ndarray, dict]:

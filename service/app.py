@@ -22,7 +22,8 @@ Estimate the **light** of a photograph and the **reflectances** of its surfaces 
   cancel and then remove.
 * `POST /v1/render`, `GET /v1/sampling`: spectral data rendered with a chosen wavelength sampling.
 
-Uploads are the multipart field `file`; options are form fields. Every error is JSON
+Uploads are the multipart field `file`; options are form fields, and an empty one (`metamers=`) is not
+given: it takes its default. Every error is JSON
 `{"error": code, "detail": text}`: 413 over a limit, 415 not a format the service reads, 422 a bad or
 unknown option (named in the detail). The limits are in `GET /health`.
 """

@@ -68,6 +68,26 @@ def input_folder(path: str) -> str:
 #: The suffix of the DNG copy ``--xmp`` writes beside a RAW (:func:`service.sidecars.dng_copy_path`).
 DNG_COPY_SUFFIX = ".wandell.dng"
 
+
+def dng_copy_name(stem: str) -> str:
+    """The DNG copy's name for a RAW named ``stem`` + extension:
+    ``stem.wandell.dng``, the stem cut (on a character boundary) so the
+    name fits the length a batch's outputs are cut to
+    (:data:`service.batch.store.DISK_NAME_BYTES` - 12 bytes, room for its
+    temporary within NAME_MAX; probe round 9b: a 255-byte RAW's copy was
+    "File name too long"), the suffix kept.
+
+    >>> dng_copy_name("IMG_0001")
+    'IMG_0001.wandell.dng'
+    >>> n = dng_copy_name("a" + "é" * 127); len(n.encode()), n.endswith(".wandell.dng")
+    (187, True)
+    """
+    from .batch.store import DISK_NAME_BYTES
+
+    room = DISK_NAME_BYTES - 12 - len(DNG_COPY_SUFFIX)
+    return stem.encode("utf-8")[:room].decode("utf-8", "ignore") + DNG_COPY_SUFFIX
+
+
 def dng_copies(names, raw_suffixes) -> set:
     """The names among ``names`` (one folder's entries) that are the DNG
     copies ``--xmp`` writes beside a RAW, ``IMG_0001.wandell.dng`` beside
@@ -80,9 +100,11 @@ def dng_copies(names, raw_suffixes) -> set:
 
     >>> sorted(dng_copies(["a.dng", "a.wandell.dng", "b.wandell.dng", "c.NEF", "c.wandell.dng"], (".dng", ".nef")))
     ['a.wandell.dng', 'c.wandell.dng']
+
+    A long RAW's copy has its cut name (:func:`dng_copy_name`).
     """
-    stems = {os.path.splitext(n)[0] for n in names if n.lower().endswith(raw_suffixes)}
-    return {n for n in names if n.endswith(DNG_COPY_SUFFIX) and n[:-len(DNG_COPY_SUFFIX)] in stems}
+    copies = {dng_copy_name(os.path.splitext(n)[0]) for n in names if n.lower().endswith(raw_suffixes)}
+    return {n for n in names if n in copies}
 
 
 def _through_a_file(path: str) -> str | None:

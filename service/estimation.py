@@ -41,7 +41,10 @@ def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str,
     if pixels is None:
         pixels = analysis_pixels(options.get("quality"))
     img, mask, f = block_average(decoded.estimation, ~decoded.saturated, pixels)
-    est = estimate_illuminant(img, camera, method, mask=mask, **options)
+    # a RAW's estimation image is on the sensor's scale (1 = its white level): the estimate can say when the
+    # picture is so underexposed that its light rests on noise (probe round 9b)
+    scale = {"full_scale": 1.0} if getattr(decoded, "kind", None) == "raw" and "full_scale" not in options else {}
+    est = estimate_illuminant(img, camera, method, mask=mask, **options, **scale)
     t1 = time.perf_counter()
     run = EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f,
                       requested_method=method)

@@ -47,9 +47,12 @@ def dng_copy_message(sc: dict) -> str:
 
 def dng_copy_path(sidecar: str, src: str) -> str:
     """Where a DNG's copy with the white balance inside goes: beside its
-    sidecar, ``IMG_0001.wandell.dng`` (never the original's name)."""
+    sidecar, ``IMG_0001.wandell.dng`` (never the original's name), a long
+    name cut as a batch's outputs are (:func:`service.cli_paths.dng_copy_name`)."""
+    from .cli_paths import dng_copy_name
+
     return os.path.join(os.path.dirname(os.path.abspath(sidecar)),
-                        os.path.splitext(os.path.basename(src))[0] + ".wandell.dng")
+                        dng_copy_name(os.path.splitext(os.path.basename(src))[0]))
 
 
 def _write_dng_copy(src: str, text: str, neutral, target: str, overwrite: bool, raw: dict | None = None) -> dict:

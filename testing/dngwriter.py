@@ -734,7 +734,7 @@ def write_linear_dng(path, rgb, *, black_level=0, white_level=None, color_matrix
                      as_shot_neutral=(0.5, 1.0, 0.6), make: str = "wandell-recovery",
                      model: str = "synthetic LinearRaw", compression: str = "none", predictor: bool = False,
                      tile=None, rows_per_strip: int | None = 16, orientation: int = 1, default_crop=None,
-                     linearization=None) -> None:
+                     linearization=None, as_shot_white_xy=None, color_matrix2=None) -> None:
     """Write a LinearRaw DNG (PhotometricInterpretation 34892: three
     demosaiced samples per pixel, chunky) of ``rgb`` with ``tifffile``: the
     layout Adobe DNG Converter's linear option writes, in any of the
@@ -746,6 +746,7 @@ def write_linear_dng(path, rgb, *, black_level=0, white_level=None, color_matrix
     1.4.0.0, DNGBackwardVersion 1.1.0.0, UniqueCameraModel, ColorMatrix1,
     CalibrationIlluminant1 21 (D65), BlackLevelRepeatDim (1, 1), BlackLevel
     (one value or one per sample), WhiteLevel, AsShotNeutral (when given),
+    AsShotWhiteXY, ColorMatrix2 with CalibrationIlluminant2 17 (light A),
     DefaultCropOrigin/Size and LinearizationTable when given.
 
     Parameters
@@ -759,6 +760,12 @@ def write_linear_dng(path, rgb, *, black_level=0, white_level=None, color_matrix
     color_matrix1 : (3, 3) array_like, optional
         XYZ -> camera; default XYZ -> linear sRGB normalised as the DNG SDK does.
     as_shot_neutral : (3,) array_like or None
+    as_shot_white_xy : (2,) array_like, optional
+        AsShotWhiteXY (the as-shot white as a chromaticity; the DNG
+        specification makes it exclusive with AsShotNeutral: pass
+        ``as_shot_neutral=None`` with it).
+    color_matrix2 : (3, 3) array_like, optional
+        XYZ -> camera under light A (CalibrationIlluminant2 17).
     compression : {"none", "adobe_deflate", "deflate"}
         Compression 1, 8 or 32946 (:data:`LINEAR_COMPRESSIONS`).
     predictor : bool
@@ -802,6 +809,11 @@ def write_linear_dng(path, rgb, *, black_level=0, white_level=None, color_matrix
             _level_tag(_TAG_WHITE_LEVEL, [white_level])]
     if as_shot_neutral is not None:
         tags.append((_TAG_AS_SHOT_NEUTRAL, "2I", 3, _rationals(as_shot_neutral, signed=False), True))
+    if as_shot_white_xy is not None:
+        tags.append((50729, "2I", 2, _rationals(as_shot_white_xy, signed=False), True))
+    if color_matrix2 is not None:
+        tags += [(50722, "2i", 9, _rationals(np.asarray(color_matrix2, float), signed=True), True),
+                 (50779, "H", 1, 17, True)]
     if default_crop is not None:
         top, left, h, w = (int(v) for v in default_crop)
         tags += [(50719, "I", 2, (left, top), True), (50720, "I", 2, (w, h), True)]

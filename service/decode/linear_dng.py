@@ -123,9 +123,10 @@ def _layout(tf, height: int, width: int, need_neutral: bool = True) -> _Layout |
     """The raw IFD of ``tf`` and its levels when it is in the plain layout
     (module docstring) and of ``height x width`` pixels, else ``None``.
     Without a usable AsShotNeutral it is ``None`` when ``need_neutral`` (a
-    file LibRaw opens: LibRaw derives the neutral, e.g. from AsShotWhiteXY),
-    else read with ``neutral`` ``None`` (a file LibRaw does not open, whose
-    samples are read only here; the full image, which needs no neutral)."""
+    file LibRaw opens: LibRaw decodes it), else read with ``neutral``
+    ``None`` (a file LibRaw does not open, whose samples are read only here;
+    one whose AsShotWhiteXY gives the neutral, :mod:`service.decode.tags`;
+    the full image, which needs no neutral)."""
     page = _raw_page(tf)
     if page is None:
         return None
@@ -154,7 +155,7 @@ def _layout(tf, height: int, width: int, need_neutral: bool = True) -> _Layout |
     asn = _values(p0, 50728)                        # AsShotNeutral (IFD0)
     if asn is None or asn.size != 3 or not np.all(np.isfinite(asn)) or not np.all(asn > 0):
         if need_neutral:
-            return None                             # LibRaw derives the neutral otherwise (AsShotWhiteXY)
+            return None                             # LibRaw decodes it
         asn = None
     lut = _values(page, 50712)
     if lut is not None:
@@ -226,8 +227,8 @@ def linear_dng_estimation(data: bytes, height: int, width: int, estimation_pixel
     LinearRaw DNG of ``height x width`` pixels (unoriented, as LibRaw
     reports them), block-averaged by ``f``; ``None`` when the file is not in
     the plain layout read here, or has no AsShotNeutral and ``need_neutral``
-    (LibRaw then decodes it; a file LibRaw does not open is read with
-    ``need_neutral=False``: no as-shot white).
+    (LibRaw then decodes it; a file LibRaw does not open, or whose
+    AsShotWhiteXY gives the neutral, is read with ``need_neutral=False``).
 
     Raises
     ------

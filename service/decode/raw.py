@@ -193,9 +193,11 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
         # unpacks anything (its full-size buffers: 35-42 MiB per megapixel, issue 28)
         from .linear_dng import linear_dng_estimation
 
-        got = linear_dng_estimation(data, int(s.height), int(s.width), estimation_pixels, label=label)
+        # without AsShotNeutral, LibRaw is left the file unless its AsShotWhiteXY gives the neutral
+        got = linear_dng_estimation(data, int(s.height), int(s.width), estimation_pixels, label=label,
+                                    need_neutral=info.white_xy_neutral is None and info.white_xy_problem is None)
         if got is not None:
-            return _linear_dng_decoded(got, s, data, make, model, info.color_matrix, warnings)
+            return _linear_dng_decoded(got, s, data, make, model, info.color_matrix, warnings, info=info)
 
     # -- pixels (unpacks; LibRawIOError etc. on truncated data)
     num_colors = int(raw.num_colors)
@@ -294,6 +296,8 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
         asn_problem = as_shot_problem(neutral, "AsShotNeutral" if tagged is not None else "neutral")
     elif tagged is not None:                # LibRaw dropped the DNG's neutral (a channel under 0.001)
         asn_problem = as_shot_problem(tagged) or "LibRaw could not use the file's AsShotNeutral"
+    elif info is not None:                  # AsShotWhiteXY: LibRaw puts it in its daylight multipliers only
+        neutral, asn_problem = _white_xy_neutral(info)
     if asn_problem is not None:
         neutral = None
     full_shape = _oriented_shape(int(s.height), int(s.width), flip, float(s.pixel_aspect))
@@ -311,16 +315,29 @@ def _decode_raw(raw, data: bytes, fmt: str, filename: str | None, max_pixels: in
     )
 
 
-def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings, tagged=None) -> DecodedImage:
+def _white_xy_neutral(info) -> tuple:
+    """``(neutral, problem)`` of a DNG's AsShotWhiteXY (:class:`_TiffInfo`'s
+    derivation through the colour matrices), checked as an AsShotNeutral
+    is; ``(None, None)`` without the tag."""
+    neutral, problem = info.white_xy_neutral, info.white_xy_problem
+    if neutral is not None:
+        problem = as_shot_problem(neutral, "AsShotNeutral derived from AsShotWhiteXY")
+    return (None if problem else neutral), problem
+
+
+def _linear_dng_decoded(got, s, data, make, model, color_matrix, warnings, tagged=None, info=None) -> DecodedImage:
     """The :class:`DecodedImage` of a LinearRaw DNG read by
     :func:`service.decode.linear_dng.linear_dng_estimation` (``got``): the
     estimation image oriented as LibRaw would (``s.flip``); the full-
     resolution image is read from the same samples too
     (:func:`service.decode.linear_dng.linear_dng_full`, through
-    :func:`_raw_full_linear`), not by LibRaw."""
+    :func:`_raw_full_linear`), not by LibRaw. Without an AsShotNeutral the
+    as-shot white is the one of the file's AsShotWhiteXY (``info``), if any."""
     est, sat, f, neutral, black, white = got
     if neutral is None and tagged is not None:       # a tag, but not positive numbers
         asn_problem = as_shot_problem(tagged) or "the file's AsShotNeutral cannot be read"
+    elif neutral is None and info is not None:
+        neutral, asn_problem = _white_xy_neutral(info)
     else:
         asn_problem = None if neutral is None else as_shot_problem(neutral)
     if asn_problem is not None:
@@ -396,14 +413,14 @@ def decode_linear_dng_without_libraw(data: bytes, filename: str | None, max_pixe
         raise ServiceError(422, "corrupt_file", f"{label}: {info.problem}")
     if _tiff_structured(data):
         _check_tiff_structure(data)
-    # no AsShotNeutral: read without an as-shot white (LibRaw, which would derive one, refuses the file)
+    # no AsShotNeutral: read with the as-shot white of AsShotWhiteXY if any, else without one
     got = linear_dng_estimation(data, H, W, estimation_pixels, label=label, need_neutral=False)
     if got is None:
         return None
     s = types.SimpleNamespace(height=H, width=W, flip=_ORIENTATION_FLIP.get(orient, 0), pixel_aspect=1.0)
     warnings = ["LibRaw does not open this DNG (its compression or sample type): it is read by tifffile alone"]
     return _linear_dng_decoded(got, s, data, info.make, info.model, info.color_matrix, warnings,
-                               tagged=info.as_shot_neutral)
+                               tagged=info.as_shot_neutral, info=info)
 
 
 #: OpenCV conversion codes for each 2x2 Bayer cell (measured: a constant

@@ -20,6 +20,10 @@ class _TiffInfo:
     plain_multisample: bool = False  # a plain TIFF of 2+ samples LibRaw misreads as a mosaic
     problem: str | None = None     # strips/tiles beyond the end of the file
     as_shot_neutral: np.ndarray | None = None   # a DNG's AsShotNeutral tag as written (any values)
+    # a DNG's AsShotWhiteXY (without AsShotNeutral) as a camera neutral (green 1) through its colour
+    # matrices, or why it cannot be one (:func:`_white_xy_neutral`); None, None without the tag
+    white_xy_neutral: np.ndarray | None = None
+    white_xy_problem: str | None = None
 
 
 def _tag(page, code):
@@ -123,6 +127,39 @@ def _iter_ifds(pages, depth=0, seen=None, limit=64):
         i += 1
 
 
+def _white_xy_neutral(p0) -> tuple[np.ndarray | None, str | None]:
+    """``(neutral with green 1, None)`` of a DNG whose IFD0 ``p0`` records
+    its as-shot white as AsShotWhiteXY, not AsShotNeutral: the camera
+    neutral of that chromaticity through the file's colour matrices
+    (:func:`recovery.dng_color.xy_to_neutral`: DNG specification 1.6,
+    "Mapping Camera Color Space to CIE XYZ Space", the matrix interpolated
+    for the white's temperature; LibRaw puts the same numbers in its
+    daylight multipliers, not its as-shot ones); ``(None, why)`` when it
+    cannot be made (a damaged tag or colour matrix)."""
+    from recovery.dng_color import xy_to_neutral
+
+    from ..metadata import profile_problem, read_dng_profile
+
+    v = np.asarray(_tag(p0, 50729), dtype=np.float64).ravel()
+    if v.size == 4:                                         # numerator/denominator pairs
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v = v[0::2] / v[1::2]
+    shown = ", ".join(f"{x:.6g}" for x in v[:2])
+    prof = read_dng_profile(p0)
+    why = (None if v.size == 2 and prof is not None else
+           "no 3x3 ColorMatrix1" if prof is None else "it is not two numbers")
+    why = why or profile_problem(prof)
+    if why is None:
+        try:
+            n = xy_to_neutral(prof, v)
+        except ValueError as exc:
+            why = str(exc)
+        else:
+            return n / n[1], None
+    return None, (f"the file records an as-shot white (AsShotWhiteXY {shown}) that cannot be made a camera "
+                  f"neutral: {why}")
+
+
 def _tiff_info(data: bytes) -> _TiffInfo:
     """Make, Model, the XYZ -> camera matrix and the strip/tile check of a
     TIFF-structured file (IFD0 and SubIFDs of every page)."""
@@ -159,6 +196,8 @@ def _tiff_info(data: bytes) -> _TiffInfo:
                 with np.errstate(divide="ignore", invalid="ignore"):
                     v = v[0::2] / v[1::2]
             info.as_shot_neutral = v if v.size == 3 else np.full(3, np.nan)
+        elif info.is_dng and _tag(p0, 50729) is not None:
+            info.white_xy_neutral, info.white_xy_problem = _white_xy_neutral(p0)
         for page in _iter_ifds(tf.pages):
             offs = getattr(page, "dataoffsets", ()) or ()
             cnts = getattr(page, "databytecounts", ()) or ()
