@@ -434,7 +434,11 @@ def _signal_level(img, finite, sat, scale: float, full_scale) -> float | None:
         if full_scale is None:
             return None
         raise InputError(f"full_scale must be a positive number (the sensor's full scale), not {full_scale!r}")
-    top = img[finite & ~sat].max(axis=1) if img.shape[2] else np.zeros(0)
+    # every step-th row and column: at most about 65,536 pixels, so that a 1-megapixel analysis image pays
+    # about a millisecond (the whole image cost 15-70 ms); a 9-stop threshold needs no finer percentile
+    step = max(1, int(np.sqrt(finite.size / 65536.0)))
+    keep = (finite & ~sat)[::step, ::step]
+    top = img[::step, ::step][keep].max(axis=1) if img.shape[2] else np.zeros(0)
     return float(np.percentile(top, 99.9)) * scale / fs if top.size else 0.0
 
 
