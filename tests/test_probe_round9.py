@@ -1,0 +1,111 @@
+"""Round 9 of probing (docs/probe_round9.md): concurrency, odd but valid image
+containers, batches over REST and the web page. Each test is the minimal
+reproduction of a fault a user would hit, through the real ASGI stack
+(FastAPI's TestClient), and holds once the fault is fixed."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from .conftest import isolated_app_client
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
+
+
+def _strict(text: str):
+    """JSON with NaN/Infinity refused (what a strict client parses)."""
+    def no(c):
+        raise ValueError(f"non-finite number {c} in the answer")
+    return json.loads(text, parse_constant=no)
+
+
+def _mondrian(h=48, w=64) -> np.ndarray:
+    """A linear 16-bit camera-RGB picture of 16 x 16 patches, no two rows alike."""
+    rng = np.random.default_rng(9)
+    cols = rng.uniform(0.05, 0.9, (h // 16 + 1, w // 16 + 1, 3)) * np.array([0.5, 1.0, 0.7])
+    img = np.kron(cols, np.ones((16, 16, 1)))[:h, :w]
+    img *= np.linspace(0.8, 1.0, h)[:, None, None]          # nothing symmetric: a turn shows
+    return (img * 60000).astype(np.uint16)
+
+
+def _tiff(arr: np.ndarray, **kw) -> bytes:
+    import tifffile
+
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, arr, **kw)
+    return buf.getvalue()
+
+
+# --- 1. CMYK and CIELab TIFFs read as RGB ----------------------------------------------------------
+
+@pytest.mark.parametrize("photometric, planes, name", [("separated", 4, "CMYK"), ("cielab", 3, "CIELab")])
+def test_a_cmyk_or_cielab_tiff_is_refused_not_read_as_rgb(client, photometric, planes, name):
+    """A 16-bit CMYK TIFF was analysed as RGB with its K plane taken for an
+    alpha channel ("fourth (alpha) channel ignored"), a 16-bit CIELab TIFF as
+    RGB without a word: a light and a corrected picture made of C, M, Y or
+    L*, a*, b*. Both are now a 415 ``unsupported_format`` naming the
+    photometric interpretation, on every endpoint."""
+    img = _mondrian()
+    data = _tiff(np.dstack([img, img[..., :1]])[..., :planes], photometric=photometric)
+    for ep, form in [("/v1/analyze", {}), ("/v1/white-balance", {"format": "png"}),
+                     ("/v1/surfaces", {"grid": "2x2"}), ("/v1/preview", {"wb": "corrected"})]:
+        r = client.post(ep, files={"file": ("a.tif", data)}, data=form)
+        assert r.status_code == 415, (ep, r.status_code, r.text[:300])
+        body = _strict(r.text)
+        assert body["error"] == "unsupported_format" and name in body["detail"], body
+
+
+def test_an_rgb_tiff_with_an_alpha_channel_is_still_read(client):
+    """What holds: RGB with an alpha channel (and a 3-sample BlackIsZero
+    TIFF) are read as before, the alpha ignored with a warning."""
+    img = _mondrian()
+    rgba = _tiff(np.dstack([img, np.full(img.shape[:2], 65535, np.uint16)]), photometric="rgb", extrasamples=[2])
+    r = client.post("/v1/analyze", files={"file": ("a.tif", rgba)})
+    assert r.status_code == 200 and "fourth (alpha) channel ignored" in r.json()["warnings"], r.text[:300]
+    r = client.post("/v1/analyze", files={"file": ("a.tif", _tiff(img, photometric="minisblack",
+                                                                   planarconfig="contig"))})
+    assert r.status_code == 200, r.text[:300]
+
+
+# --- 2. a TIFF's Orientation tag ---------------------------------------------------------------------
+
+_TURN = {3: lambda a: a[::-1, ::-1], 6: lambda a: np.rot90(a, 3), 8: lambda a: np.rot90(a, 1)}
+
+
+@pytest.mark.parametrize("orientation", [3, 6, 8])
+def test_a_tiffs_orientation_is_applied_as_for_a_raw(client, orientation):
+    """A linear TIFF with Orientation 6 (a portrait from a camera or an
+    editor) came back corrected on its side: the service read the stored
+    pixels, ignored the tag and wrote its output with Orientation 1, so
+    every viewer showed it turned; ``image.width``/``height`` and the
+    ``points`` were in the stored frame, while for a RAW they are in the
+    displayed one (LibRaw orients it). The tag is now applied as LibRaw
+    applies it to a RAW: the answer is the upright file's answer turned,
+    pixel for pixel, and a point names the same surface in the displayed
+    frame."""
+    import cv2
+
+    img = _mondrian()
+    upright = _tiff(_TURN[orientation](img).copy(), photometric="rgb")
+    stored = _tiff(img, photometric="rgb", extratags=[(274, "H", 1, orientation, True)])
+    answers = []
+    for data in (upright, stored):
+        r = client.post("/v1/white-balance", files={"file": ("a.tif", data)}, data={"format": "png16"})
+        assert r.status_code == 200, r.text[:300]
+        answers.append(cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED))
+    np.testing.assert_array_equal(answers[1], answers[0])
+    a = client.post("/v1/analyze", files={"file": ("a.tif", stored)}).json()
+    b = client.post("/v1/analyze", files={"file": ("a.tif", upright)}).json()
+    assert (a["image"]["width"], a["image"]["height"]) == (b["image"]["width"], b["image"]["height"])
+    assert a["illuminant"]["camera_rgb"] == b["illuminant"]["camera_rgb"]
+    pts = json.dumps([[3, 5], [40, 20]])
+    s = [client.post("/v1/surfaces", files={"file": ("a.tif", d)}, data={"points": pts}).json()
+         for d in (stored, upright)]
+    assert [x["reflectance"] for x in s[0]["surfaces"]] == [x["reflectance"] for x in s[1]["surfaces"]]
