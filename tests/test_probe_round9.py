@@ -109,3 +109,66 @@ def test_a_tiffs_orientation_is_applied_as_for_a_raw(client, orientation):
     s = [client.post("/v1/surfaces", files={"file": ("a.tif", d)}, data={"points": pts}).json()
          for d in (stored, upright)]
     assert [x["reflectance"] for x in s[0]["surfaces"]] == [x["reflectance"] for x in s[1]["surfaces"]]
+
+
+# --- 3. queued requests held their uploads in memory --------------------------------------------------
+
+def test_a_request_queued_for_a_work_slot_holds_no_copy_of_its_upload(env_settings, monkeypatch):
+    """Heavy work runs ``WANDELL_MAX_CONCURRENT_WORK`` at a time and the
+    rest queue (docs/robustness.md), but each queued request had already
+    read its whole upload into memory: against ``python -m service``, 16
+    simultaneous 60 MB TIFFs raised the server's memory by 1.3 GB where 2
+    raised it by 0.4 GB, and the default connection limit lets hundreds
+    queue (up to 200 MB each). The bytes are now read in the worker thread
+    once the slot is held; until then the upload stays in the file the
+    form parser spooled it to. Here, with the only slot held, four 8 MB
+    uploads queue: the memory Python allocated meanwhile is under one of
+    them, and each job still gets its whole file."""
+    import asyncio
+    import threading
+    import tracemalloc
+
+    import httpx
+
+    from service import workers
+    from service.app import app
+    from service.errors import ServiceError
+    from service.routers import analysis
+
+    env_settings(max_concurrent_work=1)
+    gate, sizes = threading.Event(), []
+
+    def probe(data, *args, **kwargs):
+        sizes.append(len(data))
+        gate.wait(30)
+        raise ServiceError(422, "probe", "stopped by the test")
+
+    monkeypatch.setattr(analysis, "analyze_upload", probe)
+    size, n = 8 << 20, 4
+    payloads = [bytes([k + 1]) * size for k in range(n)]
+
+    async def scenario():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t", timeout=60) as c:
+            first = asyncio.create_task(c.post("/v1/analyze", files={"file": ("a.tif", b"II*\0" + bytes(64))}))
+            while not sizes:
+                await asyncio.sleep(0.01)
+            tracemalloc.start()
+            base = tracemalloc.get_traced_memory()[0]
+            queued = [asyncio.create_task(c.post("/v1/analyze", files={"file": ("b.tif", p)})) for p in payloads]
+            limiter = workers._LIMITERS[asyncio.get_running_loop()]
+            for _ in range(3000):
+                if limiter.statistics().tasks_waiting == n:
+                    break
+                await asyncio.sleep(0.01)
+            waiting = limiter.statistics().tasks_waiting
+            held = tracemalloc.get_traced_memory()[0] - base
+            tracemalloc.stop()
+            gate.set()
+            return waiting, held, await asyncio.gather(first, *queued)
+
+    waiting, held, answers = asyncio.run(scenario())
+    assert waiting == n
+    assert [r.status_code for r in answers] == [422] * (n + 1)
+    assert sorted(sizes[1:]) == [size] * n                    # each job read its whole upload
+    assert held < size, f"{n} queued requests hold {held / 2**20:.0f} MiB of Python memory"
