@@ -172,3 +172,38 @@ def test_a_request_queued_for_a_work_slot_holds_no_copy_of_its_upload(env_settin
     assert [r.status_code for r in answers] == [422] * (n + 1)
     assert sorted(sizes[1:]) == [size] * n                    # each job read its whole upload
     assert held < size, f"{n} queued requests hold {held / 2**20:.0f} MiB of Python memory"
+
+
+# --- 4. a TIFF that starts with its thumbnail ----------------------------------------------------------
+
+def test_a_tiff_starting_with_its_thumbnail_is_read_at_full_resolution(client):
+    """A valid TIFF may hold a reduced-resolution copy (NewSubfileType 1, a
+    thumbnail) before the full image. The service read the first page only:
+    the light was estimated on the 16 x 12 thumbnail and the corrected
+    picture was the thumbnail, without a word. The full-resolution image is
+    now read, and the answer says which of the file's images it is; a
+    multi-page TIFF says that its first image was used."""
+    import cv2
+    import tifffile
+
+    img = _mondrian()
+    buf = io.BytesIO()
+    with tifffile.TiffWriter(buf) as tw:
+        tw.write(np.ascontiguousarray(img[::4, ::4]), photometric="rgb", subfiletype=1)
+        tw.write(img, photometric="rgb")
+    r = client.post("/v1/white-balance", files={"file": ("a.tif", buf.getvalue())}, data={"format": "png16"})
+    assert r.status_code == 200, r.text[:300]
+    out = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert out.shape == img.shape
+    plain = client.post("/v1/white-balance", files={"file": ("a.tif", _tiff(img, photometric="rgb"))},
+                        data={"format": "png16"})
+    np.testing.assert_array_equal(out, cv2.imdecode(np.frombuffer(plain.content, np.uint8), cv2.IMREAD_UNCHANGED))
+    a = _strict(client.post("/v1/analyze", files={"file": ("a.tif", buf.getvalue())}).text)
+    assert (a["image"]["height"], a["image"]["width"]) == img.shape[:2]
+    assert any("image 2" in w and "reduced-resolution" in w for w in a["warnings"]), a["warnings"]
+    buf = io.BytesIO()
+    with tifffile.TiffWriter(buf) as tw:
+        tw.write(img, photometric="rgb")
+        tw.write(np.ascontiguousarray(img[::-1]), photometric="rgb")
+    a = _strict(client.post("/v1/analyze", files={"file": ("a.tif", buf.getvalue())}).text)
+    assert any("holds 2 images; image 1" in w for w in a["warnings"]), a["warnings"]

@@ -88,6 +88,8 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
             raise ServiceError(422, "corrupt_file",
                               f"{label} is a DNG (or CFA TIFF) that LibRaw cannot decode: damaged, or a "
                               "variant LibRaw does not support")
+        page, page_note = _full_resolution_page(tf, page)
+        photometric = int(getattr(page, "photometric", 0) or 0)
         axes = page.axes
         shape = page.shape
         dtype = np.dtype(page.dtype) if page.dtype is not None else None
@@ -141,11 +143,43 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
         from .raw import _ORIENTATION_FLIP
 
         arr = FLIP_OPS[_ORIENTATION_FLIP[orientation]](arr)
-    warnings = _encoding_notes(enc, enc_warnings)
+    warnings = _encoding_notes(enc, enc_warnings) + ([page_note] if page_note else [])
     if channels == 4:
         arr = arr[..., :3]
         warnings.append("fourth (alpha) channel ignored")
     return _linear_image("tiff", arr, warnings, make, model, enc)
+
+
+#: Pages of a multi-page linear TIFF looked at for the full-resolution image (a hostile file may
+#: chain millions of tiny IFDs).
+_PAGES_LOOKED_AT = 16
+
+
+def _reduced(page) -> bool:
+    """Whether a TIFF page is a reduced-resolution copy (NewSubfileType bit 0: a thumbnail)."""
+    return bool(int(getattr(page, "subfiletype", 0) or 0) & 1)
+
+
+def _full_resolution_page(tf, first):
+    """The page a linear TIFF is read from, and a note when the file holds
+    more than one image: the first one of the first :data:`_PAGES_LOOKED_AT`
+    that is not a reduced-resolution copy (a file may start with its
+    thumbnail; the whole file was analysed and written at the thumbnail's
+    size before probe round 9)."""
+    pages = [first]
+    for i in range(1, _PAGES_LOOKED_AT + 1):
+        try:
+            pages.append(tf.pages[i])
+        except Exception:     # no more pages (IndexError), or one tifffile cannot read: not looked at
+            break
+    if len(pages) < 2:
+        return first, None
+    index, page = next(((i, p) for i, p in enumerate(pages[:_PAGES_LOOKED_AT]) if not _reduced(p)), (0, first))
+    shape = getattr(page, "shape", ())
+    size = f"{shape[1]}x{shape[0]} pixels" if len(shape) >= 2 and str(page.axes)[:2] == "YX" else "its size"
+    count = f"more than {_PAGES_LOOKED_AT}" if len(pages) > _PAGES_LOOKED_AT else str(len(pages))
+    return page, (f"the TIFF holds {count} images; image {index + 1} ({size}) is analysed, the others are "
+                  "ignored" + (" (image 1 is a reduced-resolution copy)" if index else ""))
 
 
 def _encoding_notes(enc: Encoding | None, enc_warnings: list) -> list:
