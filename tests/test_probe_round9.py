@@ -207,3 +207,98 @@ def test_a_tiff_starting_with_its_thumbnail_is_read_at_full_resolution(client):
         tw.write(np.ascontiguousarray(img[::-1]), photometric="rgb")
     a = _strict(client.post("/v1/analyze", files={"file": ("a.tif", buf.getvalue())}).text)
     assert any("holds 2 images; image 1" in w for w in a["warnings"]), a["warnings"]
+
+
+# --- 5. the page stopped following a batch after one failed poll ---------------------------------------
+
+_PAGE_HARNESS = r"""
+const fs = require("fs"), vm = require("vm");
+function element() {
+  const el = {textContent: "", hidden: true, disabled: false, className: "", value: "", dataset: {}, style: {},
+              classList: {toggle() {}, add() {}, remove() {}}, addEventListener() {}, appendChild() {},
+              setAttribute() {}, removeAttribute() {}};
+  el.tBodies = [{set textContent(v) {}, insertRow: () => ({insertCell: () => element()})}];
+  return el;
+}
+const els = {};
+const $ = (id) => (els[id] = els[id] || element());
+const timers = [];
+const answers = JSON.parse(process.argv[3]);
+const fetched = [];
+const ctx = {
+  console, JSON, Math, Number, String, Array, Object, Promise, Error, TypeError, isFinite, encodeURIComponent,
+  document: {addEventListener() {}, getElementById: $,
+             createElement: () => element(), querySelectorAll: () => []},
+  setTimeout: (fn, ms) => { timers.push([fn, ms]); return timers.length; }, clearTimeout() {},
+  fetch: async (url) => {
+    fetched.push(url);
+    const a = answers.shift();
+    if (a === "network") throw new TypeError("Failed to fetch");
+    return {ok: a.status < 400, status: a.status, statusText: "",
+            headers: {get: (h) => (a.headers || {})[h.toLowerCase()] || null},
+            json: async () => a.body};
+  },
+};
+vm.createContext(ctx);
+vm.runInContext(fs.readFileSync(process.argv[2], "utf8") +
+  "\n;globalThis.startFollowing = (id) => { batch = {id, timer: null}; return poll(); };", ctx);
+(async () => {
+  await ctx.startFollowing("0123456789abcdef");
+  const log = [];
+  for (let k = 0; k < 10 && timers.length; k++) {
+    const [fn, ms] = timers.shift();
+    log.push({wait_ms: ms, error: $("batch-error").hidden ? null : $("batch-error").textContent,
+              status: $("batch-status").textContent});
+    await fn();
+  }
+  log.push({error: $("batch-error").hidden ? null : $("batch-error").textContent,
+            status: $("batch-status").textContent, fetched: fetched.length});
+  console.log(JSON.stringify(log));
+})();
+"""
+
+
+def test_the_page_keeps_following_a_batch_through_a_busy_or_restarting_server(tmp_path):
+    """The page polls a batch every 0.5 s; one failed poll stopped it for
+    good: a 503 ``job_store_busy`` (whose ``Retry-After`` says to try again
+    in a few seconds), the server's 503 ``too_many_connections``, or the
+    server restarting (README: a batch cut short resumes when it starts
+    again) left the page showing the error and a batch "running" for ever,
+    with no way back to it but starting over. It now tries again (after
+    ``Retry-After``, or 2, 4, ... up to 30 s), says so, and when the
+    service answers again clears the error and follows the batch to its
+    end; a 404 (the batch removed) is still final. Runs app.js under node
+    with a stand-in for the page and for ``fetch``."""
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    node = shutil.which("node") or shutil.which("nodejs")
+    if node is None:
+        pytest.skip("node is not installed (apt-get install nodejs): the page's script cannot be run")
+    app_js = Path(__file__).resolve().parents[1] / "service" / "static" / "app.js"
+    harness = tmp_path / "harness.js"
+    harness.write_text(_PAGE_HARNESS)
+    running = {"id": "0123456789abcdef", "status": "running", "settled": False,
+               "counts": {"done": 1, "failed": 0, "pending": 1, "running": 1, "total": 2}, "items": []}
+    done = dict(running, status="done", settled=True,
+                counts={"done": 2, "failed": 0, "pending": 0, "running": 0, "total": 2})
+    busy = {"status": 503, "headers": {"retry-after": "5"},
+            "body": {"error": "job_store_busy", "detail": "the batch job store is locked by another process"}}
+    answers = [{"status": 200, "body": running}, busy, "network", {"status": 200, "body": running},
+               {"status": 200, "body": done}]
+
+    def run(answers):
+        out = subprocess.run([node, str(harness), str(app_js), json.dumps(answers)], capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        return json.loads(out.stdout)
+
+    log = run(answers)
+    assert [step.get("wait_ms") for step in log[:4]] == [500, 5000, 4000, 500], log
+    assert "locked by another process" in log[1]["error"] and "Trying again in 5 s" in log[1]["error"]
+    assert "Could not reach the service" in log[2]["error"] and log[3]["error"] is None
+    assert log[-1]["error"] is None and "finished" in log[-1]["status"] and log[-1]["fetched"] == 5, log
+    gone = {"status": 404, "body": {"error": "not_found", "detail": "no batch '0123456789abcdef'"}}
+    log = run([{"status": 200, "body": running}, gone])
+    assert len(log) == 2 and "no batch" in log[-1]["error"] and log[-1]["fetched"] == 2, log   # no retry
