@@ -111,6 +111,19 @@ def test_a_tiffs_orientation_is_applied_as_for_a_raw(client, orientation):
     assert [x["reflectance"] for x in s[0]["surfaces"]] == [x["reflectance"] for x in s[1]["surfaces"]]
 
 
+def test_the_python_loader_says_a_tiffs_orientation(tmp_path):
+    """``service.loader.load`` of the same TIFF: the picture upright and
+    ``Photo.orientation`` the flip applied (LibRaw's code, as for a RAW)."""
+    from service.loader import ORIENTATIONS, load
+
+    img = _mondrian()
+    path = tmp_path / "portrait.tif"
+    path.write_bytes(_tiff(img, photometric="rgb", extratags=[(274, "H", 1, 6, True)]))
+    photo = load(str(path))
+    assert photo.full_shape == (img.shape[1], img.shape[0])
+    assert ORIENTATIONS[photo.orientation] == "rotated 90 degrees clockwise"
+
+
 # --- 3. queued requests held their uploads in memory --------------------------------------------------
 
 def test_a_request_queued_for_a_work_slot_holds_no_copy_of_its_upload(env_settings, monkeypatch):

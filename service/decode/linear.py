@@ -139,15 +139,20 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
             raise
     if "S" in axes and axes.index("S") == 0:
         arr = np.moveaxis(arr, 0, -1)
+    flip = 0
     if orientation != 1:     # shown as viewers show it, as LibRaw orients a RAW (probe round 9)
         from .raw import _ORIENTATION_FLIP
 
-        arr = FLIP_OPS[_ORIENTATION_FLIP[orientation]](arr)
+        flip = _ORIENTATION_FLIP[orientation]
+        arr = FLIP_OPS[flip](arr)
     warnings = _encoding_notes(enc, enc_warnings) + ([page_note] if page_note else [])
     if channels == 4:
         arr = arr[..., :3]
         warnings.append("fourth (alpha) channel ignored")
-    return _linear_image("tiff", arr, warnings, make, model, enc)
+    decoded = _linear_image("tiff", arr, warnings, make, model, enc)
+    if flip:
+        decoded._postprocess = {"user_flip": flip}     # the flip applied, as for a RAW (Photo.orientation)
+    return decoded
 
 
 #: Pages of a multi-page linear TIFF looked at for the full-resolution image (a hostile file may
