@@ -315,3 +315,37 @@ def test_the_page_keeps_following_a_batch_through_a_busy_or_restarting_server(tm
     gone = {"status": 404, "body": {"error": "not_found", "detail": "no batch '0123456789abcdef'"}}
     log = run([{"status": 200, "body": running}, gone])
     assert len(log) == 2 and "no batch" in log[-1]["error"] and log[-1]["fetched"] == 2, log   # no retry
+
+
+# --- 6. a float TIFF on another scale -------------------------------------------------------------------
+
+def test_a_float_tiff_above_full_scale_is_refused_saying_why(client):
+    """Float samples are read with 1.0 as full scale (saturation). A float
+    TIFF on another scale (an HDR merge's, here 33..763) has every pixel
+    saturated and was a 422 "no usable pixels (all masked as dark,
+    saturated or non-finite)": the rule was said nowhere, so the user could
+    not tell what to change. The 422 (same code) now names the rule, the
+    image's range and what to do, on every endpoint and for a batch item;
+    the same picture scaled into 0..1 is analysed."""
+    import time
+
+    img = _mondrian().astype(np.float32) / 65535
+    big = _tiff(img * 1000, photometric="rgb")
+    for ep, form in [("/v1/analyze", {}), ("/v1/white-balance", {}), ("/v1/surfaces", {"grid": "2x2"}),
+                     ("/v1/preview", {"wb": "corrected"})]:
+        r = client.post(ep, files={"file": ("hdr.tif", big)}, data=form)
+        body = _strict(r.text)
+        assert r.status_code == 422 and body["error"] == "insufficient_surface_variation", (ep, r.text[:300])
+        assert "full scale (saturation) of float samples" in body["detail"] and "into 0..1" in body["detail"]
+    r = client.post("/v1/batches", files=[("files", ("hdr.tif", big))], data={"format": "png"})
+    assert r.status_code == 202, r.text
+    bid = r.json()["id"]
+    for _ in range(600):
+        doc = client.get(f"/v1/batches/{bid}").json()
+        if doc["settled"]:
+            break
+        time.sleep(0.1)
+    error = doc["items"][0]["error"]
+    assert "full scale (saturation) of float samples" in json.dumps(error), doc["items"][0]
+    ok = client.post("/v1/analyze", files={"file": ("ldr.tif", _tiff(img, photometric="rgb"))})
+    assert ok.status_code == 200, ok.text[:300]
