@@ -13,6 +13,7 @@ import numpy as np
 
 from recovery import Camera, IlluminantEstimate, analysis_pixels, angular_error, estimate_illuminant
 from recovery.api import resolve_model
+from recovery.errors import InsufficientSurfaceVariation
 from recovery.resolution import block_average
 
 from .errors import ServiceError
@@ -44,7 +45,13 @@ def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str,
     # a RAW's estimation image is on the sensor's scale (1 = its white level): the estimate can say when the
     # picture is so underexposed that its light rests on noise (probe round 9b)
     scale = {"full_scale": 1.0} if getattr(decoded, "kind", None) == "raw" and "full_scale" not in options else {}
-    est = estimate_illuminant(img, camera, method, mask=mask, **options, **scale)
+    try:
+        est = estimate_illuminant(img, camera, method, mask=mask, **options, **scale)
+    except InsufficientSurfaceVariation as exc:
+        why = float_scale_refusal(decoded, exc)
+        if why is None:
+            raise
+        raise why from None
     t1 = time.perf_counter()
     run = EstimateRun(est, camera, list(camera_warnings), {"estimate": (t1 - t0) * 1e3}, f,
                       requested_method=method)
@@ -52,6 +59,22 @@ def run_estimate(decoded, camera: Camera, camera_warnings: list, *, method: str,
         generic_cross_check(decoded, run, img, mask, method, options)
         run.timings_ms["matrix_cross_check"] = (time.perf_counter() - t1) * 1e3
     return run
+
+
+def float_scale_refusal(decoded, exc):
+    """For a float TIFF whose every pixel is at or above 1.0 (the full scale
+    of float samples, so every pixel is saturated), the estimator's "no usable
+    pixels" with the reason and what to do: its values are on another scale
+    (an HDR merge's, 0..1000); else ``None`` (probe round 9: the reason was
+    said nowhere)."""
+    if not (decoded.kind == "tiff" and decoded.white_level == 1.0 and decoded.saturated.size
+            and decoded.saturated.all()):
+        return None
+    est = decoded.estimation
+    return InsufficientSurfaceVariation(
+        f"{exc}: every pixel of this float TIFF has a channel at or above 1.0, the full scale (saturation) of "
+        f"float samples; its values run from {float(est.min()):.4g} to {float(est.max()):.4g}: scale them into "
+        "0..1 (divide by the largest) and send it again")
 
 
 #: The angle (degrees) at which a white-balance error is commonly taken to

@@ -10,7 +10,7 @@ Either way the answer is a 413 ``{"error": "file_too_large", "detail": ...}``.
 The allowance is the upload limit plus :data:`FRAMING` bytes of multipart
 framing and form fields for the whole body (as before this middleware);
 each file field is checked against the limit on its own in
-:func:`service.deps.read_upload`.
+:func:`service.deps.checked_upload` (:func:`~service.deps.read_upload` for small parts).
 
 ``POST /v1/batches`` takes many files, so its body allowance is the upload
 limit times the batch limit; there the multipart stream is also followed as

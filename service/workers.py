@@ -95,6 +95,17 @@ def _then_trim(call):
         trim_memory()
 
 
+def _reading_uploads(func, args, kwargs):
+    """``func(*args, **kwargs)`` with each :class:`service.deps.Upload`
+    among them replaced by its bytes, read here, in the worker thread with
+    the slot held: a queued request holds no copy of its file."""
+    from .deps import Upload
+
+    args = [a.read() if isinstance(a, Upload) else a for a in args]
+    kwargs = {k: v.read() if isinstance(v, Upload) else v for k, v in kwargs.items()}
+    return func(*args, **kwargs)
+
+
 async def _client_gone(request) -> None:
     """Return when the client disconnects. Only after the body has been read
     (FastAPI reads the form before the endpoint runs), so every message left
@@ -107,11 +118,12 @@ async def _client_gone(request) -> None:
 
 async def run_heavy(func, *args, request=None, **kwargs):
     """``func(*args, **kwargs)`` in a worker thread, at most
-    ``max_concurrent_work`` of them at once (FIFO). With ``request`` (a
+    ``max_concurrent_work`` of them at once (FIFO); an argument that is a
+    :class:`service.deps.Upload` is read there, once the slot is held. With ``request`` (a
     Starlette request), a client that disconnects while its job waits for a
     slot leaves the queue at once and gets no work done: 499
     ``client_closed_request`` (nobody reads it)."""
-    call = functools.partial(func, *args, **kwargs)
+    call = functools.partial(_reading_uploads, func, args, kwargs)
     limiter = _limiter()
     if request is None:
         async with limiter:

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import ServiceError
 from .icc import Encoding, display_referred_policy, linearise, png_encoding, tiff_encoding
-from .image import DecodedImage
+from .image import FLIP_OPS, DecodedImage
 from .tags import _ascii_tag, _tag
 
 
@@ -33,6 +33,11 @@ _NOT_LINEAR = ("8-bit images are gamma encoded (sRGB-like) and have lost the lin
 LINEAR_TIFF_COMPRESSIONS = {1: "none", 5: "LZW", 8: "deflate", 32946: "deflate", 32773: "PackBits"}
 #: Of those, the ones tifffile decodes in pure Python without imagecodecs.
 _NEEDS_IMAGECODECS = (5, 32773)
+#: PhotometricInterpretation of a linear TIFF: BlackIsZero (samples as they are) or RGB. The
+#: others' samples are not camera R, G, B: refused, not read as RGB (CMYK's K as an alpha).
+_LINEAR_PHOTOMETRICS = (1, 2)
+_PHOTOMETRIC_NAMES = {0: "WhiteIsZero", 3: "palette", 4: "transparency mask", 5: "CMYK (separated)",
+                      6: "YCbCr", 8: "CIELab", 9: "ICCLab", 10: "ITULab", 32844: "LogL", 32845: "LogLuv"}
 
 
 def _check_linear_compression(page, label: str) -> None:
@@ -83,6 +88,8 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
             raise ServiceError(422, "corrupt_file",
                               f"{label} is a DNG (or CFA TIFF) that LibRaw cannot decode: damaged, or a "
                               "variant LibRaw does not support")
+        page, page_note = _full_resolution_page(tf, page)
+        photometric = int(getattr(page, "photometric", 0) or 0)
         axes = page.axes
         shape = page.shape
         dtype = np.dtype(page.dtype) if page.dtype is not None else None
@@ -98,6 +105,11 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
         if not (dtype == np.uint16 or dtype.kind == "f"):
             raise ServiceError(415, "unsupported_format",
                               f"{label}: TIFF samples are {dtype}; need 16-bit unsigned integers or float32")
+        if photometric not in _LINEAR_PHOTOMETRICS and _tag(page, 262) is not None:
+            # CMYK, CIELab, YCbCr...: 3 or 4 samples that are not R, G, B (and alpha) (probe round 9)
+            raise ServiceError(415, "unsupported_format",
+                              f"{label} is a {_PHOTOMETRIC_NAMES.get(photometric, 'non-RGB')} TIFF "
+                              f"(PhotometricInterpretation {photometric}); need an H x W x 3 linear RGB image")
         if channels not in (3, 4) or axes.replace("S", "") != "YX":
             raise ServiceError(415, "unsupported_format",
                               f"{label}: TIFF with {channels} channel(s) (axes {axes!r}); need an H x W x 3 "
@@ -113,6 +125,8 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
                                   f"{size}-byte file (truncated?)")
         _check_linear_compression(page, label)
         make, model = _ascii_tag(page, 271), _ascii_tag(page, 272)
+        orientation = _tag(page, 274)
+        orientation = int(orientation) if isinstance(orientation, (int, np.integer)) and 1 <= orientation <= 8 else 1
         enc = tiff_encoding(page)
         enc_warnings = display_referred_policy(enc, display_referred, label)   # before the pixels
         try:
@@ -125,11 +139,52 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
             raise
     if "S" in axes and axes.index("S") == 0:
         arr = np.moveaxis(arr, 0, -1)
-    warnings = _encoding_notes(enc, enc_warnings)
+    flip = 0
+    if orientation != 1:     # shown as viewers show it, as LibRaw orients a RAW (probe round 9)
+        from .raw import _ORIENTATION_FLIP
+
+        flip = _ORIENTATION_FLIP[orientation]
+        arr = FLIP_OPS[flip](arr)
+    warnings = _encoding_notes(enc, enc_warnings) + ([page_note] if page_note else [])
     if channels == 4:
         arr = arr[..., :3]
         warnings.append("fourth (alpha) channel ignored")
-    return _linear_image("tiff", arr, warnings, make, model, enc)
+    decoded = _linear_image("tiff", arr, warnings, make, model, enc)
+    if flip:
+        decoded._postprocess = {"user_flip": flip}     # the flip applied, as for a RAW (Photo.orientation)
+    return decoded
+
+
+#: Pages of a multi-page linear TIFF looked at for the full-resolution image (a hostile file may
+#: chain millions of tiny IFDs).
+_PAGES_LOOKED_AT = 16
+
+
+def _reduced(page) -> bool:
+    """Whether a TIFF page is a reduced-resolution copy (NewSubfileType bit 0: a thumbnail)."""
+    return bool(int(getattr(page, "subfiletype", 0) or 0) & 1)
+
+
+def _full_resolution_page(tf, first):
+    """The page a linear TIFF is read from, and a note when the file holds
+    more than one image: the first one of the first :data:`_PAGES_LOOKED_AT`
+    that is not a reduced-resolution copy (a file may start with its
+    thumbnail; the whole file was analysed and written at the thumbnail's
+    size before probe round 9)."""
+    pages = [first]
+    for i in range(1, _PAGES_LOOKED_AT + 1):
+        try:
+            pages.append(tf.pages[i])
+        except Exception:     # no more pages (IndexError), or one tifffile cannot read: not looked at
+            break
+    if len(pages) < 2:
+        return first, None
+    index, page = next(((i, p) for i, p in enumerate(pages[:_PAGES_LOOKED_AT]) if not _reduced(p)), (0, first))
+    shape = getattr(page, "shape", ())
+    size = f"{shape[1]}x{shape[0]} pixels" if len(shape) >= 2 and str(page.axes)[:2] == "YX" else "its size"
+    count = f"more than {_PAGES_LOOKED_AT}" if len(pages) > _PAGES_LOOKED_AT else str(len(pages))
+    return page, (f"the TIFF holds {count} images; image {index + 1} ({size}) is analysed, the others are "
+                  "ignored" + (" (image 1 is a reduced-resolution copy)" if index else ""))
 
 
 def _encoding_notes(enc: Encoding | None, enc_warnings: list) -> list:

@@ -18,7 +18,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from recovery.api import METAMER_POINTS
 
 from .. import pipeline
-from ..deps import read_upload
+from ..deps import checked_upload, read_upload
 from ..errors import INSUFFICIENT_STORAGE, ServiceError, disk_full
 from ..headers import content_disposition, download_name
 from ..jsonsafe import clean
@@ -81,7 +81,9 @@ _SENS = File(None, description="optional camera sensitivities CSV: wavelength, o
 
 
 async def _inputs(file, sensitivities, settings):
-    data = await read_upload(file, settings)
+    """The upload, unread until its work has a slot (:class:`service.deps.Upload`), and the
+    sensitivities CSV's bytes."""
+    data = await checked_upload(file, settings)
     sens = await read_upload(sensitivities, settings, "sensitivities") if sensitivities is not None else None
     return data, sens
 
@@ -114,6 +116,17 @@ async def analyze(request: Request, file: UploadFile = _FILE, sensitivities: Upl
         body["as_shot"].update(as_shot_temperature_tint(decoded, run))
     body["timings_ms"]["total"] = (time.perf_counter() - t0) * 1e3
     return JSONResponse(clean(body))
+
+
+def _analyzed_for_sidecar(data, filename, sens, camera, method, opts, settings, neutral, display_referred,
+                          dng: bool):
+    """:func:`analyze_upload` for ``format=xmp`` / ``dng``; for ``dng``, 422
+    ``not_a_raw`` for a file that cannot become one, before any white is
+    chosen (probe round 6)."""
+    decoded, run = analyze_upload(data, filename, sens, camera, method, opts, settings, neutral, display_referred)
+    if dng:
+        pipeline.dng_possible(data, decoded)
+    return decoded, run
 
 
 def _with_white(decoded, run, white: str):
@@ -266,12 +279,9 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
         raise ServiceError(422, "invalid_parameter", "neutral fixes the white from a surface; it cannot be "
                            f"combined with white={white!r}")
     data, sens = await _inputs(file, sensitivities, settings)
-    await file.close()
     if fmt.encoder in ("xmp", "dng") and response != "json":   # response=json: the estimate whatever the format
-        decoded, run = await run_heavy(analyze_upload, data, file.filename, sens, camera, method, opts, settings,
-                                       where, inp.display_referred, request=request)
-        if fmt.encoder == "dng":       # not_a_raw first, whatever the white (probe round 6)
-            pipeline.dng_possible(data, decoded)
+        decoded, run = await run_heavy(_analyzed_for_sidecar, data, file.filename, sens, camera, method, opts,
+                                       settings, where, inp.display_referred, fmt.encoder == "dng", request=request)
         run = _with_white(decoded, run, white)
         text, _, summary = pipeline.xmp_sidecar(decoded, run)
         stem = os.path.splitext(download_name(file.filename, "image"))[0] or "image"
@@ -373,7 +383,7 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     opts = est.estimate_kwargs()
     data, sens = await _inputs(file, sensitivities, settings)
 
-    def work():
+    def work(data):
         decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings,
                                       display_referred=inp.display_referred)
         res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts, metamers=regions.metamers,
@@ -392,4 +402,4 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
             return Response(_surfaces_csv(res), media_type="text/csv")
         return JSONResponse(clean(res))
 
-    return await run_heavy(work, request=request)
+    return await run_heavy(work, data, request=request)

@@ -16,7 +16,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 
-from ..deps import read_upload
+from ..deps import checked_upload, read_upload
 from ..errors import ServiceError
 from ..headers import content_disposition
 from ..jsonsafe import clean
@@ -166,12 +166,12 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
         sp.wavelengths, sp.illuminant, sp.strategy, sp.n, sp.output, sp.adapt, sp.max_error, sp.response)
     opts = rule_options(strategy, n, sp.channel, sp.degrees)
     wl_form = parse_wavelengths(wavelengths)
-    data = await read_upload(file, settings)
+    data = await checked_upload(file, settings)     # read once the work has its slot (probe round 9)
     light_data = await read_upload(light_file, settings, "light_file") if light_file is not None else None
     if light_data is not None and illuminant:
         raise ServiceError(422, "invalid_parameter", "give either illuminant or light_file, not both")
 
-    def work():
+    def work(data):
         from recovery.errors import InputError
         from recovery.spectral import render_spectra
 
@@ -246,7 +246,7 @@ async def render(request: Request, file: UploadFile = File(..., description=".np
         return Response(payload, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
 
     # under the same bound as every other heavy request (service.workers)
-    return await run_heavy(work, request=request)
+    return await run_heavy(work, data, request=request)
 
 
 @router.get("/sampling", responses={200: {"model": SamplingRule}})

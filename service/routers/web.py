@@ -20,7 +20,7 @@ from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import HTMLResponse, Response
 
 from .. import pipeline
-from ..deps import read_upload
+from ..deps import checked_upload
 from ..errors import ServiceError
 from ..jsonsafe import clean
 from ..options import FORMATS, MEDIA_TYPES, PREVIEW_FORMATS
@@ -248,10 +248,10 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
     if wb == "corrected" and where is not None and white != "estimate":
         raise ServiceError(422, "invalid_parameter", "neutral fixes the white from a surface; it cannot be "
                            f"combined with white={white!r}")
-    data = await read_upload(file, settings)
+    data = await checked_upload(file, settings)     # read once the work has its slot (probe round 9)
     name = file.filename
 
-    def work():
+    def work(data):
         if wb == "camera":
             decoded = pipeline.decode(data, name, settings)
             try:
@@ -273,7 +273,7 @@ async def preview(request: Request, file: UploadFile = File(..., description="RA
                     crop=list(box), output_width=box[3], output_height=box[2])
         return pipeline.encode_image(img, fmt), info
 
-    body, info = await run_heavy(work, request=request)
+    body, info = await run_heavy(work, data, request=request)
     info["ms"] = (time.perf_counter() - t0) * 1e3
     return Response(body, media_type=MEDIA_TYPES[fmt],
                     headers={"X-Preview": json.dumps(clean(info), separators=(",", ":")),

@@ -69,10 +69,11 @@ class ApiError extends Error {
 async function failure(resp) {
   let body = null;
   try { body = await resp.json(); } catch (e) { /* not JSON */ }
-  if (body && typeof body.error === "string") {
-    return new ApiError(resp.status, body.error, typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail));
-  }
-  return new ApiError(resp.status, "http_error", resp.statusText || "no explanation given");
+  const err = (body && typeof body.error === "string")
+    ? new ApiError(resp.status, body.error, typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail))
+    : new ApiError(resp.status, "http_error", resp.statusText || "no explanation given");
+  err.retryAfter = Number(resp.headers.get("Retry-After")) || 0;   // seconds, with a 503 or 429
+  return err;
 }
 
 async function post(url, form) {
@@ -1355,15 +1356,30 @@ async function poll() {
   const mine = batch;
   mine.timer = null;
   try {
-    const resp = await fetch(`/v1/batches/${encodeURIComponent(mine.id)}`);
+    const resp = await fetch(`/v1/batches/${encodeURIComponent(mine.id)}`).catch((e) => {
+      throw new Error(`Could not reach the service (${e.message}).`);
+    });
     if (!resp.ok) throw await failure(resp);
     const j = await resp.json();
     if (batch !== mine) return;   // another batch was started meanwhile
+    if (mine.retries) { mine.retries = 0; $("batch-error").hidden = true; }   // back in touch
     const settled = renderBatch(j);
     if (!settled) mine.timer = setTimeout(poll, 500);
     else { $("batch-run").disabled = batchFiles.length === 0; }
   } catch (err) {
+    if (batch !== mine) return;
     showError($("batch-error"), err);
+    // the server restarting (its batches resume when it is back), its job store busy (503 with
+    // Retry-After), too many connections, or a proxy in front of it meanwhile: the batch goes on, so
+    // the page keeps following it (probe round 9: one failed poll stopped the page for good);
+    // anything else (404: the batch was removed) is final
+    if (!(err instanceof ApiError) || [429, 502, 503, 504].includes(err.status)) {
+      mine.retries = (mine.retries || 0) + 1;
+      const wait = err.retryAfter || Math.min(30, 2 ** mine.retries);
+      $("batch-error").textContent += ` Trying again in ${wait} s.`;
+      mine.timer = setTimeout(poll, 1000 * wait);
+      return;
+    }
     $("batch-run").disabled = batchFiles.length === 0;
   }
 }
