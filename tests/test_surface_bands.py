@@ -111,8 +111,8 @@ def test_rest_surfaces_answer_says_which_calibration_its_band_has(client, tmp_pa
 def test_page_reads_a_surface_with_its_band(page, server, tmp_path):  # noqa: F811
     """With "Click reads a surface's reflectance" ticked, a click on the
     picture draws that surface's reflectance (one vertex per wavelength), its
-    90 % band (a closed polygon around it) and the range of its metamer set (a
-    dashed closed outline), and says the expected error:
+    90 % band (a closed polygon around it) and the range of its metamer set
+    within measured surfaces (a dashed closed outline), and says the expected error:
     the same number /v1/surfaces gives for that square (the square the page
     asked for is read back from the page)."""
     import httpx
@@ -130,7 +130,8 @@ def test_page_reads_a_surface_with_its_band(page, server, tmp_path):  # noqa: F8
     rect = json.loads(page.get_attribute("#surface-words", "data-rect"))
     assert len(rect) == 4 and rect[0] < rect[2] and rect[1] < rect[3]
     body = httpx.post(server + "/v1/surfaces", files={"file": ("scene.dng", dng.read_bytes())},
-                      data={"rects": json.dumps([rect]), "metamers": "true"}, timeout=120).json()
+                      data={"rects": json.dumps([rect]), "metamers": "true", "metamer_model": "measured"},
+                      timeout=120).json()
     assert "surfaces" in body, body
     s = body["surfaces"][0]
     assert page.get_attribute("#surface-words", "data-expected-rmse") == str(s["expected_rmse"])
@@ -143,7 +144,7 @@ def test_page_reads_a_surface_with_its_band(page, server, tmp_path):  # noqa: F8
     # lower bound at the first wavelength, on the same axes as the mean's)
     outline = page.get_attribute("#surface-svg #surface-metamers", "d")
     assert outline.startswith("M") and outline.endswith("Z") and len(outline.split("L")) == 2 * n
-    assert "metamer set" in page.text_content("#surface-words")
+    assert "metamer set of surfaces like measured ones" in page.text_content("#surface-words")
     y0 = lambda d: float(d[1:].split("L")[0].split(",")[1])                      # noqa: E731
     x0 = lambda d: float(d[1:].split("L")[0].split(",")[0])                      # noqa: E731
     assert x0(outline) == x0(mean)

@@ -978,7 +978,8 @@ async function readSurface(x, y) {
   $("surface").hidden = false;
   $("surface-words").textContent = "Reading the surface there…";
   // the same estimation fields as the picture (quality too), so the surface is read under the light shown
-  const f = Object.assign(estimationFields(current.options), {rects: JSON.stringify([rect]), metamers: "true"});
+  const f = Object.assign(estimationFields(current.options), {rects: JSON.stringify([rect]), metamers: "true",
+                                                          metamer_model: "measured"});
   try {
     const j = await post("/v1/surfaces", formFor(current.file, f)).then((resp) => resp.json());
     if (!current || current.seq !== seq) return;
@@ -992,9 +993,9 @@ async function readSurface(x, y) {
         "(on measured surfaces kept aside)."
       : "No band: the literal method (eq. 36) gives none.";
     const metamers = s.metamer_lower
-      ? " The dashed outline is the metamer set: every reflectance between 0 and 1 that gives this colour " +
-        "under the light lies inside it; where it spans 0 to 1 the camera says nothing and the estimate is " +
-        "what measured surfaces are like."
+      ? " The dashed outline is the metamer set of surfaces like measured ones: every such reflectance that " +
+        "gives this colour under the light lies inside it (a model of 274 measured surfaces); where it is " +
+        "wide the camera cannot tell, and the estimate there is what measured surfaces are like."
       : "";
     const warn = s.warnings.length ? ` Check: ${s.warnings.join("; ")}.` : "";
     const light = j.light_map ? "under the light the light map finds there" : "under Auto's light";
