@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import socket
 import subprocess
@@ -171,6 +172,13 @@ def scene_dng_bytes(height: int, width: int, camera: str = "Nikon 5100 (NPL)", l
     buf = io.BytesIO()
     scene_dng(buf, camera, light, height, width, seed=seed)
     return buf.getvalue()
+
+
+def strict_json(text: str):
+    """JSON with NaN/Infinity refused (what a strict client parses)."""
+    def no(c):
+        raise ValueError(f"non-finite number {c} in the answer")
+    return json.loads(text, parse_constant=no)
 
 
 def isolated_app_client(store: Path, **client_kw):

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from .conftest import isolated_app_client, scene_dng_bytes
+from .conftest import isolated_app_client, strict_json, scene_dng_bytes
 from .conftest import run_cli as _cli
 
 
@@ -25,12 +25,7 @@ def dng() -> bytes:
 def client(tmp_path_factory):
     yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
 
-
-def _strict(text: str):
-    """JSON with NaN/Infinity refused (what a strict client parses)."""
-    def no(c):
-        raise ValueError(f"non-finite number {c} in the answer")
-    return json.loads(text, parse_constant=no)
+_strict = strict_json
 
 
 def _linear_dng(dtype, as_shot_neutral=(0.5, 1.0, 0.6)) -> bytes:

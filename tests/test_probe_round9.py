@@ -11,19 +11,14 @@ import json
 import numpy as np
 import pytest
 
-from .conftest import isolated_app_client
+from .conftest import isolated_app_client, strict_json
 
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory):
     yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
 
-
-def _strict(text: str):
-    """JSON with NaN/Infinity refused (what a strict client parses)."""
-    def no(c):
-        raise ValueError(f"non-finite number {c} in the answer")
-    return json.loads(text, parse_constant=no)
+_strict = strict_json
 
 
 def _mondrian(h=48, w=64) -> np.ndarray:
