@@ -1,0 +1,125 @@
+"""Round 9c (docs/probe_round9.md, "Round 9c: round 9a's leftovers"): the
+faults round 9a noticed and left, each fixed and reproduced through the real
+ASGI app (FastAPI's TestClient) as a user meets it."""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from .conftest import isolated_app_client
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
+
+
+def _mondrian(h=48, w=64) -> np.ndarray:
+    """A linear 16-bit camera-RGB picture of 16 x 16 patches, no two rows alike."""
+    rng = np.random.default_rng(9)
+    cols = rng.uniform(0.05, 0.9, (h // 16 + 1, w // 16 + 1, 3)) * np.array([0.5, 1.0, 0.7])
+    img = np.kron(cols, np.ones((16, 16, 1)))[:h, :w]
+    img *= np.linspace(0.8, 1.0, h)[:, None, None]          # nothing symmetric: a turn shows
+    return (img * 60000).astype(np.uint16)
+
+
+def _tiff(arr: np.ndarray, **kw) -> bytes:
+    import tifffile
+
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, arr, **kw)
+    return buf.getvalue()
+
+
+# --- 1. a 16-bit PNG's eXIf orientation --------------------------------------------------------------
+
+_TURN = {6: lambda a: np.rot90(a, 3), 8: lambda a: np.rot90(a, 1)}
+
+
+def _png16(rgb: np.ndarray, orientation: int | None = None) -> bytes:
+    """A 16-bit RGB PNG (OpenCV's encoder) with, if asked, an ``eXIf`` chunk
+    before its first IDAT holding an EXIF Orientation (Pillow's EXIF writer;
+    the chunk holds the TIFF layout without the ``Exif\\0\\0`` of a JPEG)."""
+    import cv2
+    from PIL import Image
+
+    ok, enc = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    assert ok
+    data = enc.tobytes()
+    if orientation is None:
+        return data
+    exif = Image.Exif()
+    exif[274] = orientation
+    body = exif.tobytes()
+    body = body[6:] if body.startswith(b"Exif\0\0") else body
+    chunk = struct.pack(">I", len(body)) + b"eXIf" + body + struct.pack(">I", zlib.crc32(b"eXIf" + body))
+    at = data.index(b"IDAT") - 4
+    return data[:at] + chunk + data[at:]
+
+
+@pytest.mark.parametrize("orientation", [6, 8])
+def test_a_pngs_exif_orientation_is_applied_as_a_tiffs(client, orientation):
+    """A 16-bit PNG whose eXIf chunk says Orientation 6 or 8 (a portrait)
+    was analysed and written on its side: OpenCV reads the pixels as stored,
+    while a TIFF's Orientation tag is applied since round 9a. It is now
+    applied the same way: the answer is the upright file's, pixel for pixel,
+    with ``image.width``/``height`` and ``points`` in the displayed frame."""
+    import cv2
+
+    img = _mondrian()
+    upright = _png16(_TURN[orientation](img).copy())
+    stored = _png16(img, orientation)
+    answers = []
+    for data in (upright, stored):
+        r = client.post("/v1/white-balance", files={"file": ("a.png", data)}, data={"format": "png16"})
+        assert r.status_code == 200, r.text[:300]
+        answers.append(cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED))
+    assert answers[1].shape == answers[0].shape == (64, 48, 3)
+    np.testing.assert_array_equal(answers[1], answers[0])
+    a = client.post("/v1/analyze", files={"file": ("a.png", stored)}).json()
+    b = client.post("/v1/analyze", files={"file": ("a.png", upright)}).json()
+    assert (a["image"]["width"], a["image"]["height"]) == (b["image"]["width"], b["image"]["height"]) == (48, 64)
+    assert a["illuminant"]["camera_rgb"] == b["illuminant"]["camera_rgb"]
+    pts = json.dumps([[3, 5], [40, 20]])
+    s = [client.post("/v1/surfaces", files={"file": ("a.png", d)}, data={"points": pts}).json()
+         for d in (stored, upright)]
+    assert [x["reflectance"] for x in s[0]["surfaces"]] == [x["reflectance"] for x in s[1]["surfaces"]]
+
+
+def test_the_python_loader_says_a_pngs_orientation(tmp_path):
+    """``service.loader.load`` of the same PNG says the flip, as for a TIFF
+    (``Photo.orientation``, LibRaw's code)."""
+    from service.loader import ORIENTATIONS, load
+
+    img = _mondrian()
+    path = tmp_path / "portrait.png"
+    path.write_bytes(_png16(img, 6))
+    photo = load(str(path))
+    assert photo.full_shape == (img.shape[1], img.shape[0])
+    assert ORIENTATIONS[photo.orientation] == "rotated 90 degrees clockwise"
+
+
+def test_a_pngs_unreadable_exif_chunk_is_said_and_the_pixels_used_as_stored(client):
+    """An eXIf chunk that is not EXIF (its CRC right) does not refuse the
+    file: the pixels are used as stored and a warning says why."""
+    import cv2
+
+    img = _mondrian()
+    data = _png16(img)
+    body = b"not a TIFF header"
+    chunk = struct.pack(">I", len(body)) + b"eXIf" + body + struct.pack(">I", zlib.crc32(b"eXIf" + body))
+    at = data.index(b"IDAT") - 4
+    r = client.post("/v1/white-balance", files={"file": ("a.png", data[:at] + chunk + data[at:])},
+                    data={"format": "png16", "response": "json"})
+    assert r.status_code == 200, r.text[:300]
+    assert any("eXIf chunk cannot be read" in w for w in r.json()["warnings"]), r.json()["warnings"]
+    r = client.post("/v1/white-balance", files={"file": ("a.png", data[:at] + chunk + data[at:])},
+                    data={"format": "png16"})
+    assert cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED).shape == img.shape
+
