@@ -123,3 +123,24 @@ def test_a_pngs_unreadable_exif_chunk_is_said_and_the_pixels_used_as_stored(clie
                     data={"format": "png16"})
     assert cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED).shape == img.shape
 
+
+# --- 4. a three-sample BlackIsZero TIFF --------------------------------------------------------------
+
+def test_a_three_sample_blackiszero_tiff_is_read_as_rgb_with_a_warning(client):
+    """A TIFF whose PhotometricInterpretation is BlackIsZero (grey) with
+    three samples a pixel was read as camera RGB without a word. It is
+    still read (scientific files are RGB in all but the tag), and every
+    answer's warnings now say what the tag said and how it was read; an RGB
+    TIFF of the same pixels gets no such warning and the same light."""
+    img = _mondrian()
+    grey = _tiff(img, photometric="minisblack", planarconfig="contig")
+    rgb = _tiff(img, photometric="rgb")
+    a = client.post("/v1/analyze", files={"file": ("a.tif", grey)})
+    b = client.post("/v1/analyze", files={"file": ("a.tif", rgb)})
+    assert a.status_code == b.status_code == 200, a.text[:300]
+    said = [w for w in a.json()["warnings"] if "BlackIsZero" in w]
+    assert said and "grey" in said[0] and "three channels of camera RGB" in said[0], a.json()["warnings"]
+    assert not [w for w in b.json()["warnings"] if "BlackIsZero" in w]
+    assert a.json()["illuminant"]["camera_rgb"] == b.json()["illuminant"]["camera_rgb"]
+    r = client.post("/v1/white-balance", files={"file": ("a.tif", grey)}, data={"response": "json"})
+    assert r.status_code == 200 and any("BlackIsZero" in w for w in r.json()["warnings"]), r.text[:300]

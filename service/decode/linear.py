@@ -141,6 +141,10 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
         arr = np.moveaxis(arr, 0, -1)
     arr, flip = _oriented(arr, orientation)
     warnings = _encoding_notes(enc, enc_warnings) + ([page_note] if page_note else [])
+    if photometric == 1 and _tag(page, 262) is not None:
+        # kept (scientific files are RGB in all but the tag), but not silently (probe round 9c)
+        warnings.append(f"the TIFF's PhotometricInterpretation says grey (BlackIsZero) but it has {channels} "
+                        "samples a pixel: they were read as three channels of camera RGB")
     if channels == 4:
         arr = arr[..., :3]
         warnings.append("fourth (alpha) channel ignored")
