@@ -144,3 +144,98 @@ def test_a_three_sample_blackiszero_tiff_is_read_as_rgb_with_a_warning(client):
     assert a.json()["illuminant"]["camera_rgb"] == b.json()["illuminant"]["camera_rgb"]
     r = client.post("/v1/white-balance", files={"file": ("a.tif", grey)}, data={"response": "json"})
     assert r.status_code == 200 and any("BlackIsZero" in w for w in r.json()["warnings"]), r.text[:300]
+
+
+# --- 2. counts.pending: one meaning on both batch endpoints ------------------------------------------
+
+def _dng(seed=1) -> bytes:
+    from testing.dngwriter import scene_dng
+
+    buf = io.BytesIO()
+    scene_dng(buf, "Nikon 5100 (NPL)", "D65", 48, 64, seed=seed)
+    return buf.getvalue()
+
+
+@pytest.fixture()
+def app_with(tmp_path):
+    """A TestClient of the real app on a fresh data directory with the given
+    ``WANDELL_*`` settings (the batch runner stopped before and after)."""
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+    from service.routers import batches
+    from service.settings import get_settings
+
+    mp = pytest.MonkeyPatch()
+    clients = []
+
+    def make(**settings):
+        mp.setenv("WANDELL_DATA_DIR", str(tmp_path / "data"))
+        mp.setenv("WANDELL_BATCH_WORKERS", "1")
+        for k, v in settings.items():
+            mp.setenv(f"WANDELL_{k.upper()}", str(v))
+        get_settings.cache_clear()
+        batches.stop_runner()
+        c = TestClient(app)
+        c.__enter__()
+        clients.append(c)
+        return c
+
+    yield make
+    for c in clients:
+        c.__exit__(None, None, None)
+    batches.stop_runner()
+    mp.undo()
+    get_settings.cache_clear()
+
+
+def test_both_batch_endpoints_count_pending_alike_with_an_item_running(app_with, tmp_path):
+    """``counts.pending`` was "pending or running" in ``GET /v1/batches/{id}``
+    and "pending" alone in ``GET /v1/batches``, so the same batch had two
+    pending counts, and the progress document's disagreed with its own
+    items' statuses. Both now count the items of each status (``running``
+    apart): pending + running + done + failed + cancelled = total. The batch
+    is frozen with one item running (its runner stopped, as a kill -9 leaves
+    a batch until the restart resumes it)."""
+    from service.routers import batches
+    from service.schemas.options import BatchOptions
+
+    client = app_with()
+    runner = batches.get_runner()
+    runner.stop()                                  # nothing moves while the counts are read
+    src = tmp_path / "a.dng"
+    src.write_bytes(_dng())
+    bid = runner.store.new_batch_id()
+    runner.store.create_batch(bid, BatchOptions(), [(f"im{i}.dng", str(src)) for i in range(3)])
+    runner.store.start_batch(bid)
+    assert len(runner.store.claim(bid, 1)) == 1    # item 0 running, items 1 and 2 pending
+
+    doc = client.get(f"/v1/batches/{bid}").json()
+    listed = next(b for b in client.get("/v1/batches").json()["batches"] if b["id"] == bid)
+    statuses = [it["status"] for it in doc["items"]]
+    assert statuses.count("running") == 1 and statuses.count("pending") == 2, statuses
+    assert doc["counts"]["pending"] == listed["counts"]["pending"] == 2, (doc["counts"], listed["counts"])
+    assert doc["counts"]["running"] == listed["counts"]["running"] == 1
+    assert doc["counts"] == listed["counts"]
+    c = doc["counts"]
+    assert c["done"] + c["failed"] + c["pending"] + c["running"] + c["cancelled"] == c["total"] == 3
+    assert doc["settled"] is False and doc["status"] == "running"
+
+    # the page (app.js under node, round 9's stand-in for the page) says what each count is
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    from .test_probe_round9 import _PAGE_HARNESS
+
+    node = shutil.which("node") or shutil.which("nodejs")
+    if node is None:
+        return
+    harness = tmp_path / "harness.js"
+    harness.write_text(_PAGE_HARNESS)
+    app_js = Path(__file__).resolve().parents[1] / "service" / "static" / "app.js"
+    out = subprocess.run([node, str(harness), str(app_js), json.dumps([{"status": 200, "body": doc}])],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    said = json.loads(out.stdout)[0]["status"]
+    assert "0 done, 0 failed, 2 pending, 1 running of 3." in said, said

@@ -717,7 +717,9 @@ class JobStore:
         settled = b["status"] in ("done", "cancelled") and left == 0
         doc = {"id": batch_id, "status": b["status"], "settled": settled,
                "lighting": opts.get("lighting"), "options": opts,
-               "counts": {"done": c["done"], "failed": c["failed"], "pending": left, "running": c["running"],
+               # each count is the items of that status, as GET /v1/batches counts them (pending was
+               # "pending or running" here before probe round 9c; left is both)
+               "counts": {"done": c["done"], "failed": c["failed"], "pending": c["pending"], "running": c["running"],
                           "cancelled": c["cancelled"], "total": len(rows)},
                "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
                "rate": rate, "eta_s": eta,  # short names the web page reads
