@@ -239,3 +239,69 @@ def test_both_batch_endpoints_count_pending_alike_with_an_item_running(app_with,
     assert out.returncode == 0, out.stderr
     said = json.loads(out.stdout)[0]["status"]
     assert "0 done, 0 failed, 2 pending, 1 running of 3." in said, said
+
+
+# --- 3. a batch past its retention says so ------------------------------------------------------------
+
+def _settled(client, bid, timeout=120):
+    import time
+
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        r = client.get(f"/v1/batches/{bid}")
+        if r.status_code != 200 or r.json()["settled"]:
+            return r
+        time.sleep(0.2)
+    raise AssertionError(f"batch {bid} not settled in {timeout} s")
+
+
+def _gone(client, bid, timeout=60):
+    import time
+
+    t_end = time.monotonic() + timeout
+    while client.get(f"/v1/batches/{bid}").status_code != 404:
+        assert time.monotonic() < t_end, f"batch {bid} not removed in {timeout} s"
+        time.sleep(0.2)
+
+
+def test_a_batch_past_its_retention_says_it_was_removed_when_and_by_which_setting(app_with, monkeypatch):
+    """A batch past ``WANDELL_BATCH_RESULT_RETENTION`` was a plain 404 "no
+    batch 'ID'" on every URL, the same as a mistyped id: the store kept
+    nothing of it. It keeps a tombstone now, so its progress, item
+    downloads (by index, by name, either), zip, cancel and DELETE answer
+    404 (as before: clients and the page take a 404 as final) with
+    ``batch_expired``, a detail naming the setting, and ``removed`` /
+    ``retention_s`` / ``setting``; an unknown id is still ``not_found``. The
+    tombstones are bounded: past ``TOMBSTONES_KEPT`` the oldest go."""
+    import time
+
+    from service.batch import store as store_mod
+
+    monkeypatch.setattr(store_mod, "TOMBSTONES_KEPT", 2, raising=False)   # (absent before the fix)
+    client = app_with(batch_result_retention=0.5)
+    t0 = time.time()
+    ids = []
+    for seed in (1, 2, 3):       # one after the other: the oldest tombstone is the first batch's
+        r = client.post("/v1/batches", files=[("files", ("a.dng", _dng(seed)))], data={"format": "jpeg"})
+        assert r.status_code == 202, r.text[:300]
+        ids.append(r.json()["id"])
+        assert _settled(client, ids[-1]).status_code == 200
+        _gone(client, ids[-1])
+    bid = ids[-1]
+    for method, url in [("GET", f"/v1/batches/{bid}"), ("GET", f"/v1/batches/{bid}/items/by-index/0"),
+                        ("GET", f"/v1/batches/{bid}/items/by-name/a.dng"), ("GET", f"/v1/batches/{bid}/items/0"),
+                        ("GET", f"/v1/batches/{bid}/zip"), ("POST", f"/v1/batches/{bid}/cancel"),
+                        ("DELETE", f"/v1/batches/{bid}?remove=true")]:
+        r = client.request(method, url)
+        assert r.status_code == 404, (method, url, r.status_code, r.text[:300])
+        body = r.json()
+        assert body["error"] == "batch_expired", (url, body)
+        assert "WANDELL_BATCH_RESULT_RETENTION" in body["detail"] and "removed" in body["detail"], body
+        assert body["setting"] == "WANDELL_BATCH_RESULT_RETENTION" and body["retention_s"] == 0.5, body
+        assert t0 <= body["removed"] <= time.time(), body
+    assert client.get(f"/v1/batches/{ids[1]}").json()["error"] == "batch_expired"
+    # bounded: the first batch's tombstone made room for the last one's
+    first = client.get(f"/v1/batches/{ids[0]}")
+    assert first.status_code == 404 and first.json() == {"error": "not_found", "detail": f"no batch {ids[0]!r}"}
+    r = client.get("/v1/batches/0123456789abcdef")
+    assert r.status_code == 404 and r.json()["error"] == "not_found"
