@@ -91,8 +91,9 @@ INSUFFICIENT_STORAGE = ("the server's temporary space (TMPDIR) is full: the uplo
 def error_response(status: int, code: str, detail, headers: dict | None = None, extra: dict | None = None):
     from fastapi.responses import JSONResponse
 
-    return JSONResponse(status_code=status, content={**(extra or {}), "error": code, "detail": detail},
-                        headers=headers)
+    body = {"error": code, "detail": detail}
+    body.update((k, v) for k, v in (extra or {}).items() if k not in body)
+    return JSONResponse(status_code=status, content=body, headers=headers)
 
 
 #: OpenAPI schema of every error body (DESIGN.md: ``{"error": code, "detail": text}``).
