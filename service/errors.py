@@ -32,13 +32,17 @@ class ServiceError(Exception):
         ``bad_csv``, ``unknown_camera``, ...).
     detail : str
         What was wrong, in words a user can act on.
+    extra : dict, optional
+        Machine-readable fields added to the body beside ``error`` and
+        ``detail`` (e.g. when an expired batch was removed).
     """
 
-    def __init__(self, status: int, code: str, detail: str):
+    def __init__(self, status: int, code: str, detail: str, *, extra: dict | None = None):
         super().__init__(detail)
         self.status = int(status)
         self.code = str(code)
         self.detail = str(detail)
+        self.extra = dict(extra or {})
 
     def __repr__(self) -> str:
         return f"ServiceError({self.status}, {self.code!r}, {self.detail!r})"
@@ -84,10 +88,12 @@ INSUFFICIENT_STORAGE = ("the server's temporary space (TMPDIR) is full: the uplo
                         "written; nothing was kept, try again when space is freed")
 
 
-def error_response(status: int, code: str, detail, headers: dict | None = None):
+def error_response(status: int, code: str, detail, headers: dict | None = None, extra: dict | None = None):
     from fastapi.responses import JSONResponse
 
-    return JSONResponse(status_code=status, content={"error": code, "detail": detail}, headers=headers)
+    body = {"error": code, "detail": detail}
+    body.update((k, v) for k, v in (extra or {}).items() if k not in body)
+    return JSONResponse(status_code=status, content=body, headers=headers)
 
 
 #: OpenAPI schema of every error body (DESIGN.md: ``{"error": code, "detail": text}``).
@@ -147,7 +153,8 @@ def install_error_handlers(app) -> None:
     @app.exception_handler(RecoveryError)
     async def _service(_: Request, exc: Exception):
         err = service_error(exc)
-        return error_response(err.status, err.code, err.detail, getattr(err, "headers", None))
+        return error_response(err.status, err.code, err.detail, getattr(err, "headers", None),
+                              getattr(err, "extra", None))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError):

@@ -339,7 +339,7 @@ class BatchRunner:
             with self.downloads.removing(bid) as busy:
                 if busy:
                     log.info("batch %s expired, kept while its zip is downloaded (%d): removed later", bid, busy)
-                elif self.store.delete_batch(bid) is not None:
+                elif self.store.delete_batch(bid, expired_after=self.config.result_retention_s) is not None:
                     gone.append(bid)
         return gone
 

@@ -49,7 +49,18 @@ CREATE TABLE IF NOT EXISTS items (
     PRIMARY KEY (batch_id, idx)
 );
 CREATE INDEX IF NOT EXISTS items_status ON items(batch_id, status);
+CREATE TABLE IF NOT EXISTS removed (
+    id TEXT PRIMARY KEY,
+    removed REAL NOT NULL,
+    retention REAL NOT NULL
+);
 """
+
+#: Tombstones of the batches the result retention removed (id, when, the retention), so that
+#: their URLs say why they are gone (probe round 9c): at most this many, the newest, and
+#: none older than :data:`TOMBSTONE_AGE_S` (10,000 take some 0.6 MB of jobs.sqlite).
+TOMBSTONES_KEPT = 10_000
+TOMBSTONE_AGE_S = 30 * 24 * 3600.0
 
 
 #: Longest file name, in UTF-8 bytes, the batch endpoint accepts (the usual
@@ -717,7 +728,9 @@ class JobStore:
         settled = b["status"] in ("done", "cancelled") and left == 0
         doc = {"id": batch_id, "status": b["status"], "settled": settled,
                "lighting": opts.get("lighting"), "options": opts,
-               "counts": {"done": c["done"], "failed": c["failed"], "pending": left, "running": c["running"],
+               # each count is the items of that status, as GET /v1/batches counts them (pending was
+               # "pending or running" here before probe round 9c; left is both)
+               "counts": {"done": c["done"], "failed": c["failed"], "pending": c["pending"], "running": c["running"],
                           "cancelled": c["cancelled"], "total": len(rows)},
                "rate_per_minute": rate, "time_left_s": eta, "elapsed_s": elapsed,
                "rate": rate, "eta_s": eta,  # short names the web page reads
@@ -749,12 +762,14 @@ class JobStore:
                         "bytes": self.disk_bytes(b["id"])})
         return out
 
-    def delete_batch(self, batch_id: str) -> int | None:
+    def delete_batch(self, batch_id: str, expired_after: float | None = None) -> int | None:
         """Remove a settled batch (done or cancelled, nothing pending or
         running) with its folder: its records go in one transaction, then its
         folder, first renamed out of ``batches/`` (so a store rebuilt from the
         folders never brings it back) and then deleted. Returns the bytes
-        freed; ``None`` when the batch is not settled (nothing removed)."""
+        freed; ``None`` when the batch is not settled (nothing removed).
+        ``expired_after``: the result retention that removes it (seconds),
+        kept in a tombstone (:meth:`removal`) in the same transaction."""
         bdir = self.batch_dir(batch_id)
         size = self.disk_bytes(batch_id)
         trash = os.path.join(self.data_dir, f".deleting-{batch_id}")
@@ -766,10 +781,34 @@ class JobStore:
                 return None
             db.execute("DELETE FROM items WHERE batch_id = ?", (batch_id,))
             db.execute("DELETE FROM batches WHERE id = ?", (batch_id,))
+            if expired_after is not None:
+                self._bury(db, batch_id, float(expired_after))
             if os.path.isdir(bdir):
                 os.replace(bdir, trash)     # a failure here rolls the records back
         shutil.rmtree(trash, ignore_errors=True)
         return size
+
+    @staticmethod
+    def _bury(db, batch_id: str, retention_s: float) -> None:
+        """Record that the retention removed ``batch_id``, and drop the
+        tombstones past :data:`TOMBSTONE_AGE_S` or beyond the newest
+        :data:`TOMBSTONES_KEPT` (so they never grow without limit)."""
+        now = time.time()
+        db.execute("INSERT OR REPLACE INTO removed (id, removed, retention) VALUES (?, ?, ?)",
+                   (batch_id, now, retention_s))
+        db.execute("DELETE FROM removed WHERE removed < ?", (now - TOMBSTONE_AGE_S,))
+        db.execute("DELETE FROM removed WHERE id NOT IN (SELECT id FROM removed ORDER BY removed DESC LIMIT ?)",
+                   (TOMBSTONES_KEPT,))
+
+    def removal(self, batch_id: str) -> dict | None:
+        """The tombstone of a batch the result retention removed: ``removed``
+        (epoch seconds) and ``retention_s``; None for a batch never known, removed
+        by hand (``DELETE ?remove=true``, ``wandell batches --remove``) or whose
+        tombstone is gone (older than :data:`TOMBSTONE_AGE_S`, beyond
+        :data:`TOMBSTONES_KEPT`, or a store rebuilt from the folders)."""
+        row = self._db().execute("SELECT removed, retention FROM removed WHERE id = ? AND removed >= ?",
+                                 (str(batch_id), time.time() - TOMBSTONE_AGE_S)).fetchone()
+        return None if row is None else {"removed": row["removed"], "retention_s": row["retention"]}
 
     def expired_batches(self, retention_s: float) -> list[str]:
         """Batches finished or cancelled more than ``retention_s`` seconds ago

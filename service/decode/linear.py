@@ -139,13 +139,12 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
             raise
     if "S" in axes and axes.index("S") == 0:
         arr = np.moveaxis(arr, 0, -1)
-    flip = 0
-    if orientation != 1:     # shown as viewers show it, as LibRaw orients a RAW (probe round 9)
-        from .raw import _ORIENTATION_FLIP
-
-        flip = _ORIENTATION_FLIP[orientation]
-        arr = FLIP_OPS[flip](arr)
+    arr, flip = _oriented(arr, orientation)
     warnings = _encoding_notes(enc, enc_warnings) + ([page_note] if page_note else [])
+    if photometric == 1 and _tag(page, 262) is not None:
+        # kept (scientific files are RGB in all but the tag), but not silently (probe round 9c)
+        warnings.append(f"the TIFF's PhotometricInterpretation says grey (BlackIsZero) but it has {channels} "
+                        "samples a pixel: they were read as three channels of camera RGB")
     if channels == 4:
         arr = arr[..., :3]
         warnings.append("fourth (alpha) channel ignored")
@@ -153,6 +152,18 @@ def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
     if flip:
         decoded._postprocess = {"user_flip": flip}     # the flip applied, as for a RAW (Photo.orientation)
     return decoded
+
+
+def _oriented(arr: np.ndarray, orientation: int) -> tuple[np.ndarray, int]:
+    """``arr`` as viewers show it by its TIFF/EXIF Orientation (1..8), turned as LibRaw
+    orients a RAW (probe round 9), and the flip applied (LibRaw's code, 0 for none: what
+    ``_postprocess["user_flip"]`` and ``Photo.orientation`` say)."""
+    if orientation == 1:
+        return arr, 0
+    from .raw import _ORIENTATION_FLIP
+
+    flip = _ORIENTATION_FLIP[orientation]
+    return FLIP_OPS[flip](arr), flip
 
 
 #: Pages of a multi-page linear TIFF looked at for the full-resolution image (a hostile file may
@@ -239,12 +250,17 @@ def _decode_png(data: bytes, max_pixels: int, display_referred: str = "linearise
         raise ServiceError(413, "too_many_pixels",
                           f"the PNG declares {width}x{height} = {width * height:,} pixels; the limit is "
                           f"{max_pixels:,}")
-    colour = {}
+    colour, exif = {}, None
     for ctype_, off, length in _png_chunks(data):
         if ctype_ in (b"cICP", b"iCCP", b"sRGB", b"gAMA") and ctype_ not in colour:
             colour[ctype_] = data[off:off + length]
+        elif ctype_ == b"eXIf" and exif is None:
+            exif = data[off:off + length]
     enc = png_encoding(colour)
     warnings = _encoding_notes(enc, display_referred_policy(enc, display_referred, "the PNG"))
+    orientation, exif_note = _png_orientation(exif)
+    if exif_note:
+        warnings.append(exif_note)
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise ServiceError(422, "corrupt_file", "OpenCV could not decode the PNG (damaged data)")
@@ -253,8 +269,30 @@ def _decode_png(data: bytes, max_pixels: int, display_referred: str = "linearise
                           f"the PNG decoded to {arr.dtype} {arr.shape}; need 16-bit RGB")
     if arr.shape[2] == 4:
         warnings.append("fourth (alpha) channel ignored")
-    rgb = arr[..., 2::-1]          # BGR(A) -> RGB
-    return _linear_image("png", rgb, warnings, None, None, enc)
+    rgb, flip = _oriented(arr[..., 2::-1], orientation)         # BGR(A) -> RGB, upright as a TIFF's
+    decoded = _linear_image("png", rgb, warnings, None, None, enc)
+    if flip:
+        decoded._postprocess = {"user_flip": flip}     # the flip applied, as for a RAW (Photo.orientation)
+    return decoded
+
+
+def _png_orientation(exif: bytes | None) -> tuple[int, str | None]:
+    """The Orientation (1..8) of a PNG's ``eXIf`` chunk (EXIF in TIFF layout, read by
+    Pillow), and a note when the chunk cannot be read (its orientation then ignored).
+    OpenCV decodes the pixels as stored: before probe round 9c a portrait PNG was
+    analysed and written on its side."""
+    if not exif:
+        return 1, None
+    from PIL import Image
+
+    try:
+        tags = Image.Exif()
+        tags.load(exif)
+        value = tags.get(274, 1)
+    except Exception as exc:     # Pillow raises SyntaxError, struct.error, ValueError... on damage
+        return 1, (f"the PNG's eXIf chunk cannot be read ({type(exc).__name__}); its orientation, if any, "
+                   "is ignored (the pixels are used as stored)")
+    return (int(value) if isinstance(value, int) and 1 <= value <= 8 else 1), None
 
 
 def _linear_image(kind: str, arr: np.ndarray, warnings: list, make, model,

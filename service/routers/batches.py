@@ -47,7 +47,8 @@ _ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16
                                    "image/x-adobe-dng)",
                     "content": {"image/tiff": _BINARY, "image/png": _BINARY, "image/jpeg": _BINARY,
                                 "image/x-adobe-dng": _BINARY}},
-              404: {"description": "no such batch or item"}, 409: {"description": "not finished yet (`not_ready`), failed or cancelled "
+              404: {"description": "no such batch or item (`not_found`), or the batch was removed after its "
+                                   "result retention (`batch_expired`: when, the retention, the setting)"}, 409: {"description": "not finished yet (`not_ready`), failed or cancelled "
                                                                            "without a result (`item_failed`, `item_cancelled`), or "
                                                                            "ambiguous (`ambiguous_item`)"},
               410: {"description": "done, but its result file is no longer on the server (removed outside the "
@@ -55,7 +56,8 @@ _ITEM_FILE = {200: {"description": "the item's result, in the batch's format: 16
 _ZIP = {200: {"description": "every finished result, batch.json (the batch's document, flagged items first), "
                              "and FAILURES.txt and manifest.json when items are missing",
               "content": {"application/zip": _BINARY}},
-        404: {"description": "no such batch"}, 409: {"description": "nothing finished yet"},
+        404: {"description": "no such batch (`not_found`), or removed after its result retention "
+                             "(`batch_expired`)"}, 409: {"description": "nothing finished yet"},
         410: {"description": "items are done but none of their result files is still on the server"}}
 
 _runner: jobs.BatchRunner | None = None
@@ -272,6 +274,25 @@ def _valid_id(bid: str) -> bool:
     return len(bid) == 16 and all(c in "0123456789abcdef" for c in bid)
 
 
+def _no_batch(store: jobs.JobStore, batch_id: str) -> ServiceError:
+    """The 404 of a batch the store does not hold: ``batch_expired`` (when it
+    was removed, by which retention, the setting's name) if the result
+    retention removed it and its tombstone is kept (:meth:`JobStore.removal`),
+    else ``not_found``. Still a 404, as before: clients and the page take a 404
+    as final."""
+    gone = store.removal(batch_id) if _valid_id(batch_id) else None
+    if gone is None:
+        return ServiceError(404, "not_found", f"no batch {batch_id!r}")
+    when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(gone["removed"]))
+    days = f" ({gone['retention_s'] / 86400:g} days)" if gone["retention_s"] >= 86400 else ""
+    return ServiceError(404, "batch_expired",
+                        f"batch {batch_id!r} was removed with its files at {when}, its result retention of "
+                        f"{gone['retention_s']:g} s{days} after it ended (WANDELL_BATCH_RESULT_RETENTION); submit "
+                        "the files again",
+                        extra={"removed": gone["removed"], "retention_s": gone["retention_s"],
+                               "setting": "WANDELL_BATCH_RESULT_RETENTION"})
+
+
 def _size(path: str) -> int:
     try:
         return os.path.getsize(path)
@@ -293,7 +314,8 @@ def _progress(bid: str) -> dict:
     if doc is None and _valid_id(bid):
         doc = runner.store.manifest_progress(bid)   # made while the store was busy, not yet registered
     if doc is None:
-        raise ServiceError(404, "not_found", f"no batch {bid!r}")
+        with store_errors():
+            raise _no_batch(runner.store, bid)
     if runner.executor_error and doc["status"] in ("queued", "running"):
         # nothing runs now: say why and since when, and promise no time left
         doc["runner_error"] = runner.executor_error
@@ -345,9 +367,8 @@ def batch_item(batch_id: str, item: str):
 def _store_of(batch_id: str) -> jobs.JobStore:
     store = get_runner().store
     with store_errors():
-        known = store.batch(batch_id) is not None
-    if not known:
-        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
+        if store.batch(batch_id) is None:
+            raise _no_batch(store, batch_id)
     return store
 
 
@@ -463,7 +484,7 @@ def batch_zip(batch_id: str):
         raise ServiceError(404, "not_found", f"batch {batch_id!r} is being removed")
     try:
         if store.batch(batch_id) is None:
-            raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
+            raise _no_batch(store, batch_id)
         rows = store.items(batch_id)
         entries = [(os.path.basename(r["out"]), r["out"]) for r in rows
                    if r["status"] == "done" and os.path.exists(r["out"])]
@@ -503,7 +524,7 @@ def cancel_batch_only(batch_id: str):
     runner = get_runner()
     with store_errors():
         if runner.store.batch(batch_id) is None:
-            raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
+            raise _no_batch(runner.store, batch_id)
         runner.cancel(batch_id)
     return JSONResponse(clean(_progress(batch_id)))
 
@@ -527,7 +548,7 @@ def delete_batch(batch_id: str, remove: bool = Query(
     runner = get_runner()
     b = runner.store.batch(batch_id)
     if b is None:
-        raise ServiceError(404, "not_found", f"no batch {batch_id!r}")
+        raise _no_batch(runner.store, batch_id)
     if b["status"] in ("queued", "running"):
         with store_errors():
             runner.cancel(batch_id)

@@ -247,13 +247,15 @@ class RenderReport(_Answer):
 
 
 class BatchCounts(_Answer):
+    """How many items have each status (the items' own `status`), in the progress document and in
+    `GET /v1/batches` alike: done + failed + pending + running + cancelled = total."""
     model_config = _examples(("BatchProgress", "counts"))
-    done: int
-    failed: int
-    pending: int
-    running: int | None = None
-    cancelled: int | None = None
-    total: int | None = None
+    done: int = Field(description="items finished with a result")
+    failed: int = Field(description="items finished without one (each with its error)")
+    pending: int = Field(description="items waiting to run, not started (those running are in `running`)")
+    running: int | None = Field(None, description="items being processed now")
+    cancelled: int | None = Field(None, description="items dropped by a cancel before they finished")
+    total: int | None = Field(None, description="items in the batch")
 
 
 class BatchCreated(_Answer):

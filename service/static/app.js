@@ -1291,8 +1291,8 @@ function batchSettled(j) {
 function renderBatch(j) {
   const c = j.counts || {};
   const done = c.done || 0, failed = c.failed || 0, pending = c.pending || 0, cancelled = c.cancelled || 0;
-  const running = c.running || 0;
-  const total = c.total || done + failed + pending + cancelled;
+  const running = c.running || 0;   // pending counts only the items not started (probe round 9c)
+  const total = c.total || done + failed + pending + running + cancelled;
   const settled = batchSettled(j);
   const bar = $("batch-progress");
   bar.max = Math.max(1, total);
@@ -1304,6 +1304,7 @@ function renderBatch(j) {
     ? `cancelling (${running} running item${running === 1 ? "" : "s"} stopping)`
     : j.status === "done" ? "finished" : j.status;
   let s = `Batch ${j.id}: ${state}. ${done} done, ${failed} failed, ${pending} pending` +
+    (running && j.status !== "cancelled" ? `, ${running} running` : "") +
     (cancelled ? `, ${cancelled} cancelled` : "") + ` of ${total}.`;
   if (typeof j.rate === "number" && j.rate > 0) s += ` ${fmt(j.rate, 1)} images per minute.`;
   if (!settled && j.status !== "cancelled" && typeof j.eta_s === "number" && j.eta_s > 0) {
