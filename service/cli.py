@@ -52,7 +52,7 @@ from .cli_paths import (EXTENSION_FORMATS, check_workers, dng_copies, format_for
                         input_file, input_folder, kept_output, output_file, output_folder, own_outputs)
 from .errors import ServiceError, service_error
 from .schemas.cli import add_options
-from .schemas.fields import BATCH, BATCH_FORMATS, ESTIMATION, RENDERING, SIDECAR, XMP_NAMES
+from .schemas.fields import BATCH, BATCH_FORMATS, ESTIMATION, REGIONS, RENDERING, SIDECAR, XMP_NAMES
 
 
 def _lazy_module(name: str):
@@ -173,10 +173,11 @@ def _options(args, lighting: str = "per-image") -> jobs.BatchOptions:
 
 @dataclasses.dataclass(frozen=True)
 class _DefaultLimits:
-    """The two settings the CLI reads, at the embedded defaults of
+    """The settings the CLI reads, at the embedded defaults of
     :class:`service.settings.Settings` (a test keeps them equal)."""
     max_pixels: int = 120_000_000
     estimation_pixels: int = 1_000_000
+    max_surface_regions: int = 10_000
 
 
 #: ``WANDELL_*`` variables that are not service settings (recovery.bayes's model disk cache)
@@ -719,6 +720,37 @@ def _cmd_analyze(args) -> int:
     return 0
 
 
+def _cmd_surfaces(args) -> int:
+    """Reflectances at points, rectangles or a grid of one file, as ``POST
+    /v1/surfaces`` answers them (the same answer, limits and errors), JSON or
+    CSV on stdout."""
+    from . import pipeline
+    from .jsonsafe import clean
+    from .schemas.options import Regions
+    from .surfaces import regions_of, surfaces_answer, surfaces_csv
+
+    input_file(args.file)
+    opts = jobs.batch_options(**{n: getattr(args, n, None) for n in ESTIMATION})   # --format is the answer's
+    regions = Regions(**{n: getattr(args, n) for n in REGIONS if getattr(args, n, None) is not None})
+    settings = _settings()
+    regions_of(regions, settings.max_surface_regions)        # a usage error before the file is decoded
+    try:
+        decoded, run = pipeline.analyze_file(args.file, settings, camera=opts.camera, method=opts.method,
+                                             options=opts.estimate_kwargs())
+        res = surfaces_answer(decoded, run, regions, opts.estimate_kwargs(), settings.max_surface_regions)
+    except Exception as e:  # noqa: BLE001 - a bad file or option: say what, exit 1
+        err = service_error(e)
+        if err is None:
+            raise
+        print(f"error: {err.code}: {term_safe(err.detail)}", file=sys.stderr)
+        return 1
+    if regions.format == "csv":
+        sys.stdout.write(surfaces_csv(res))
+    else:
+        print(json.dumps(clean(res), indent=1))
+    return 0
+
+
 def _version() -> str:
     from importlib import metadata
 
@@ -801,6 +833,13 @@ def main(argv=None) -> int:
     a = sub.add_parser("analyze", help="estimate the light of one file (JSON on stdout)")
     a.add_argument("file")
     _add_options(a, None)
+    s = sub.add_parser("surfaces", help="surface reflectances at points, rectangles or a grid of one file, "
+                                        "with their bands (JSON or CSV on stdout)")
+    s.add_argument("file")
+    _add_options(s, None)
+    add_options(s, REGIONS, describe={"points": "JSON [[row, col], ...] in full-resolution pixels",
+                                      "metamers": "also each surface's metamer set (at most 64 surfaces, about "
+                                                  "0.1 s each)"})
     w = sub.add_parser("white-balance", help="one corrected image")
     w.add_argument("file")
     w.add_argument("out")
@@ -825,6 +864,8 @@ def main(argv=None) -> int:
             return _cmd_analyze(args)
         if args.command == "batches":
             return _cmd_batches(args)
+        if args.command == "surfaces":
+            return _cmd_surfaces(args)
         return _cmd_white_balance(args)
     except KeyboardInterrupt:  # Ctrl-C outside a batch's items (or while printing): no traceback
         sys.stderr.write("\ninterrupted\n")

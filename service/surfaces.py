@@ -228,3 +228,75 @@ def surfaces_at(decoded, run: EstimateRun, points, rects, grid, options: dict, m
             "surface_model": res.diagnostics.get("surface_model"),
             "reflectance_scale_convention": res.diagnostics.get("reflectance_scale_convention"),
             "diagnostics": res.diagnostics}
+
+
+def regions_of(regions, max_regions: int) -> tuple[list, list, tuple | None]:
+    """The points, rectangles and grid of ``regions`` (a
+    :class:`service.schemas.options.Regions`), within the limits a request
+    and ``wandell surfaces`` share: at least one region (422
+    ``invalid_parameter``), at most ``max_regions`` points, rectangles and
+    grid cells together (``WANDELL_MAX_SURFACE_REGIONS``) and, with
+    ``metamers``, at most :data:`recovery.api.METAMER_POINTS` (413
+    ``too_many_regions``)."""
+    from recovery.api import METAMER_POINTS
+
+    pts, rcs, grd = regions.points or [], regions.rects or [], regions.grid
+    if not (pts or rcs or grd):
+        raise ServiceError(422, "invalid_parameter", "give at least one of points, rects or grid")
+    n_regions = len(pts) + len(rcs) + (grd[0] * grd[1] if grd else 0)
+    if n_regions > max_regions:
+        raise ServiceError(413, "too_many_regions", f"{n_regions} points, rectangles and grid cells; at most "
+                           f"{max_regions} per request (WANDELL_MAX_SURFACE_REGIONS)")
+    if regions.metamers and n_regions > METAMER_POINTS:
+        raise ServiceError(413, "too_many_regions", f"metamers=true for {n_regions} points, rectangles and grid "
+                           f"cells; at most {METAMER_POINTS} per request with metamers (two linear programmes per "
+                           "wavelength each)")
+    return pts, rcs, grd
+
+
+def surfaces_answer(decoded, run: EstimateRun, regions, options: dict, max_regions: int) -> dict:
+    """The whole answer of ``POST /v1/surfaces`` and ``wandell surfaces``:
+    :func:`surfaces_at` at ``regions`` (checked by :func:`regions_of`), the
+    light, method, camera, warnings, the lights found and the light map."""
+    from .report import camera_json, illuminant_json, light_map_json, lights_json, profile_of
+
+    pts, rcs, grd = regions_of(regions, max_regions)
+    res = surfaces_at(decoded, run, pts, rcs, grd, options, metamers=regions.metamers,
+                      metamer_model=regions.metamer_model)
+    res["illuminant"] = illuminant_json(run.estimate, profile_of(decoded), run.camera)
+    res["method"] = run.estimate.method
+    res["camera"] = camera_json(run.camera)
+    res["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
+    res["lights"] = lights_json(run.estimate, "light_map gives the light across the frame, and each "
+                                              "surface is estimated under the map's light at its pixel")
+    light_map = light_map_json(run, decoded)
+    if light_map is not None:   # found 2 always comes with the map it used (probe round 4)
+        res["light_map"] = light_map
+    return res
+
+
+def surfaces_csv(res: dict) -> str:
+    """``format=csv``: a row per surface (kind, where, warnings, the
+    reflectance at each wavelength), then its band: ``expected_rmse`` and
+    the standard deviation at each wavelength (``std <nm>``; empty for eq. 36);
+    with ``metamers=true`` then ``metamer_slack``, ``metamer_scale`` and the
+    metamer set's least and greatest reflectance at each wavelength (``min
+    <nm>``, ``max <nm>``)."""
+    import csv
+    import io
+
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    wl = [f"{x:g}" for x in res["wavelengths"]]
+    metamers = "metamers" in res
+    w.writerow(["kind", "where", "warnings"] + wl + ["expected_rmse"] + [f"std {x}" for x in wl]
+               + (["metamer_slack", "metamer_scale"] + [f"min {x}" for x in wl] + [f"max {x}" for x in wl]
+                  if metamers else []))
+    for s in res["surfaces"]:
+        std, rmse = s.get("reflectance_std"), s.get("expected_rmse")
+        w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
+                   + [f"{v:.6g}" for v in s["reflectance"]] + ["" if rmse is None else f"{rmse:.6g}"]
+                   + ([f"{v:.6g}" for v in std] if std is not None else [""] * len(wl))
+                   + ([f"{s['metamer_slack']:.6g}", f"{s['metamer_scale']:.6g}"] + [f"{v:.6g}" for v in s["metamer_lower"]]
+                      + [f"{v:.6g}" for v in s["metamer_upper"]] if metamers else []))
+    return buf.getvalue()

@@ -84,6 +84,8 @@ def test_the_command_line_tour(folder):
     assert (folder / "IMG_0001.tif").read_bytes()[:4] == b"II*\x00"
     assert (folder / "IMG_0001.jpg").read_bytes()[:2] == b"\xff\xd8"
     assert 'crs:Temperature="' in (folder / "IMG_0001.xmp").read_text(encoding="utf-8")
+    rows = (folder / "surfaces.csv").read_text(encoding="utf-8").splitlines()
+    assert rows[0].startswith("kind,where,warnings,400") and len(rows) == 1 + 4 * 6   # wandell surfaces' grid
     assert (folder / "corrected" / "IMG_0001.jpg").read_bytes()[:2] == b"\xff\xd8"
 
 

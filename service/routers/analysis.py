@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import csv
-import io
 import json
 import os
 import tempfile
@@ -14,8 +12,6 @@ import weakref
 
 from fastapi import APIRouter, Depends, File, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
-
-from recovery.api import METAMER_POINTS
 
 from .. import pipeline
 from ..deps import checked_upload, read_upload
@@ -27,6 +23,7 @@ from ..schemas import AnalyzeEstimation, Input, Neutral, Regions, WhiteBalanceRe
 from ..schemas.responses import AnalyzeResult, SurfacesResult, WhiteBalanceResult
 from ..schemas.forms import form
 from ..settings import Settings, get_settings
+from ..surfaces import regions_of, surfaces_answer, surfaces_csv
 from ..white import as_shot_temperature_tint, with_white
 from ..workers import run_heavy, work_slots
 
@@ -330,30 +327,6 @@ async def white_balance(request: Request, file: UploadFile = _FILE, sensitivitie
     return TemporaryFileResponse(path, media_type=MEDIA_TYPES[fmt.encoder], headers=headers)
 
 
-def _surfaces_csv(res: dict) -> str:
-    """``format=csv``: a row per surface (kind, where, warnings, the
-    reflectance at each wavelength), then its band: ``expected_rmse`` and
-    the standard deviation at each wavelength (``std <nm>``; empty for eq. 36);
-    with ``metamers=true`` then ``metamer_slack``, ``metamer_scale`` and the
-    metamer set's least and greatest reflectance at each wavelength (``min
-    <nm>``, ``max <nm>``)."""
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    wl = [f"{x:g}" for x in res["wavelengths"]]
-    metamers = "metamers" in res
-    w.writerow(["kind", "where", "warnings"] + wl + ["expected_rmse"] + [f"std {x}" for x in wl]
-               + (["metamer_slack", "metamer_scale"] + [f"min {x}" for x in wl] + [f"max {x}" for x in wl]
-                  if metamers else []))
-    for s in res["surfaces"]:
-        std, rmse = s.get("reflectance_std"), s.get("expected_rmse")
-        w.writerow([s["kind"], " ".join(map(str, s["where"])), "; ".join(s["warnings"])]
-                   + [f"{v:.6g}" for v in s["reflectance"]] + ["" if rmse is None else f"{rmse:.6g}"]
-                   + ([f"{v:.6g}" for v in std] if std is not None else [""] * len(wl))
-                   + ([f"{s['metamer_slack']:.6g}", f"{s['metamer_scale']:.6g}"] + [f"{v:.6g}" for v in s["metamer_lower"]]
-                      + [f"{v:.6g}" for v in s["metamer_upper"]] if metamers else []))
-    return buf.getvalue()
-
-
 @router.post("/surfaces", response_model=SurfacesResult,
              responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}},
                               "description": "JSON (format=json), or CSV (format=csv): kind, where, warnings, "
@@ -368,38 +341,18 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     rectangle costs the same whatever its area (a summed-area table).
     ``metamers=true`` adds each surface's metamer set (at most 64 surfaces,
     about 90 ms each)."""
-    pts, rcs, grd = regions.points or [], regions.rects or [], regions.grid
     camera, method, format = est.camera, est.method, regions.format
-    if not (pts or rcs or grd):
-        raise ServiceError(422, "invalid_parameter", "give at least one of points, rects or grid")
-    n_regions = len(pts) + len(rcs) + (grd[0] * grd[1] if grd else 0)
-    if n_regions > settings.max_surface_regions:
-        raise ServiceError(413, "too_many_regions", f"{n_regions} points, rectangles and grid cells; at most "
-                       f"{settings.max_surface_regions} per request (WANDELL_MAX_SURFACE_REGIONS)")
-    if regions.metamers and n_regions > METAMER_POINTS:
-        raise ServiceError(413, "too_many_regions", f"metamers=true for {n_regions} points, rectangles and grid "
-                           f"cells; at most {METAMER_POINTS} per request with metamers (two linear programmes per "
-                           "wavelength each)")
+    regions_of(regions, settings.max_surface_regions)      # the limits before the upload is read
     opts = est.estimate_kwargs()
     data, sens = await _inputs(file, sensitivities, settings)
 
     def work(data):
         decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings,
                                       display_referred=inp.display_referred)
-        res = pipeline.surfaces_at(decoded, run, pts, rcs, grd, opts, metamers=regions.metamers,
-                                   metamer_model=regions.metamer_model)
-        res["illuminant"] = pipeline.illuminant_json(run.estimate, pipeline.profile_of(decoded), run.camera)
-        res["method"] = run.estimate.method
-        res["camera"] = pipeline.camera_json(run.camera)
-        res["warnings"] = run.camera_warnings + list(decoded.warnings) + list(run.estimate.warnings)
-        res["lights"] = pipeline.lights_json(run.estimate, "light_map gives the light across the frame, and each "
-                                                           "surface is estimated under the map's light at its pixel")
-        light_map = pipeline.light_map_json(run, decoded)
-        if light_map is not None:   # found 2 always comes with the map it used (probe round 4)
-            res["light_map"] = light_map
+        res = surfaces_answer(decoded, run, regions, opts, settings.max_surface_regions)
         # the body is rendered here too, not on the event loop (10,000 entries are ~1 MB)
         if format == "csv":
-            return Response(_surfaces_csv(res), media_type="text/csv")
+            return Response(surfaces_csv(res), media_type="text/csv")
         return JSONResponse(clean(res))
 
     return await run_heavy(work, data, request=request)
