@@ -50,7 +50,7 @@ import threading
 from .cli_light import shared_light_of
 from .cli_paths import (EXTENSION_FORMATS, check_workers, dng_copies, format_for,  # noqa: F401 - cli.format_for
                         input_file, input_folder, kept_output, output_file, output_folder, own_outputs)
-from .errors import ServiceError, service_error
+from .errors import ServiceError
 from .schemas.cli import add_options
 from .schemas.fields import BATCH, BATCH_FORMATS, ESTIMATION, REGIONS, RENDERING, SIDECAR, XMP_NAMES
 
@@ -701,56 +701,6 @@ def sidecar_path(raw: str, name: str = "stem") -> str:
     return sidecars.sidecar_path(raw, name)
 
 
-def _cmd_analyze(args) -> int:
-    from . import pipeline
-    from .jsonsafe import clean
-
-    input_file(args.file)
-    opts = _options(args)
-    try:
-        decoded, run = pipeline.analyze_file(args.file, _settings(), camera=opts.camera, method=opts.method,
-                                             options=opts.estimate_kwargs())
-    except Exception as e:  # noqa: BLE001 - a bad file or option: say what, exit 1
-        err = service_error(e)
-        if err is None:
-            raise
-        print(f"error: {err.code}: {term_safe(err.detail)}", file=sys.stderr)
-        return 1
-    print(json.dumps(clean(pipeline.analysis_json(run, decoded)), indent=1))
-    return 0
-
-
-def _cmd_surfaces(args) -> int:
-    """Reflectances at points, rectangles or a grid of one file, as ``POST
-    /v1/surfaces`` answers them (the same answer, limits and errors), JSON or
-    CSV on stdout."""
-    from . import pipeline
-    from .jsonsafe import clean
-    from .schemas.options import Regions
-    from .surfaces import regions_of, surfaces_answer, surfaces_csv
-
-    input_file(args.file)
-    opts = jobs.batch_options(**{n: getattr(args, n, None) for n in ESTIMATION})   # --format is the answer's
-    regions = Regions(**{n: getattr(args, n) for n in REGIONS if getattr(args, n, None) is not None})
-    settings = _settings()
-    regions_of(regions, settings.max_surface_regions)        # a usage error before the file is decoded
-    try:
-        decoded, run = pipeline.analyze_file(args.file, settings, camera=opts.camera, method=opts.method,
-                                             options=opts.estimate_kwargs())
-        res = surfaces_answer(decoded, run, regions, opts.estimate_kwargs(), settings.max_surface_regions)
-    except Exception as e:  # noqa: BLE001 - a bad file or option: say what, exit 1
-        err = service_error(e)
-        if err is None:
-            raise
-        print(f"error: {err.code}: {term_safe(err.detail)}", file=sys.stderr)
-        return 1
-    if regions.format == "csv":
-        sys.stdout.write(surfaces_csv(res))
-    else:
-        print(json.dumps(clean(res), indent=1))
-    return 0
-
-
 def _version() -> str:
     from importlib import metadata
 
@@ -861,11 +811,15 @@ def main(argv=None) -> int:
         if args.command == "batch":
             return _cmd_batch(args)
         if args.command == "analyze":
-            return _cmd_analyze(args)
+            from .cli_one import cmd_analyze
+
+            return cmd_analyze(args)
         if args.command == "batches":
             return _cmd_batches(args)
         if args.command == "surfaces":
-            return _cmd_surfaces(args)
+            from .cli_one import cmd_surfaces
+
+            return cmd_surfaces(args)
         return _cmd_white_balance(args)
     except KeyboardInterrupt:  # Ctrl-C outside a batch's items (or while printing): no traceback
         sys.stderr.write("\ninterrupted\n")

@@ -1,6 +1,6 @@
 """The SQLite job store (:class:`JobStore`): batches and items, their transitions in
 transactions, the batch manifest and journal, recovery of a damaged store and adoption of
-what is on disk, safe names for the files of a batch.
+what is on disk (the files' safe names: :mod:`service.batch.names`).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import uuid
 from ..errors import ServiceError
 from ..schemas.options import BatchOptions
 from .items import _clean, atomic_write, is_finished, is_temporary, meta_path, write_text
+from .names import DISK_NAME_BYTES, MAX_NAME_BYTES, clip_name, safe_name, unique  # noqa: F401 (re-exported)
 from .summary import LIGHT_FIELDS, flagged, flagged_first
 
 
@@ -61,35 +62,6 @@ CREATE TABLE IF NOT EXISTS removed (
 #: none older than :data:`TOMBSTONE_AGE_S` (10,000 take some 0.6 MB of jobs.sqlite).
 TOMBSTONES_KEPT = 10_000
 TOMBSTONE_AGE_S = 30 * 24 * 3600.0
-
-
-#: Longest file name, in UTF-8 bytes, the batch endpoint accepts (the usual
-#: file-system limit, NAME_MAX); longer ones are refused (422).
-MAX_NAME_BYTES = 255
-#: Longest name the service itself gives a file on disk (inputs, outputs):
-#: room for the ``.<name>.XXXXXXXX.part`` temporaries and ``.json``/``.lock``
-#: sidecars next to them within NAME_MAX.
-DISK_NAME_BYTES = 200
-
-
-def clip_name(name: str, limit: int = DISK_NAME_BYTES) -> str:
-    """``name`` cut to at most ``limit`` UTF-8 bytes on a character boundary,
-    keeping its extension (so the format is still recognised)."""
-    if len(name.encode("utf-8")) <= limit:
-        return name
-    stem, ext = os.path.splitext(name)
-    if len(ext.encode("utf-8")) > limit // 4:
-        stem, ext = name, ""
-    return stem.encode("utf-8")[:limit - len(ext.encode("utf-8"))].decode("utf-8", "ignore") + ext
-
-
-def safe_name(name: str) -> str:
-    """A file name with no directory part, no control characters and no
-    unpaired surrogates, at most :data:`MAX_NAME_BYTES` bytes."""
-    base = os.path.basename(str(name).replace("\\", "/")) or "file"
-    base = base.encode("utf-8", "replace").decode("utf-8")
-    base = re.sub(r"[\x00-\x1f/]", "_", base).strip() or "file"
-    return clip_name(base, MAX_NAME_BYTES)
 
 
 #: Beside each batch's ``in/`` and ``out/``: the manifest of its items
@@ -839,14 +811,3 @@ def shared_light_warnings(light: dict) -> list[str]:
     if light.get("low_confidence") and not out:
         out.append(f"shared light: low confidence{tail}: check the white balance of these images")
     return out
-
-
-def unique(name: str, seen: set) -> str:
-    """``name``, or ``stem (k).ext`` with the smallest free k."""
-    cand, k = name, 2
-    stem, ext = os.path.splitext(name)
-    while cand.lower() in seen:
-        cand = f"{stem} ({k}){ext}"
-        k += 1
-    seen.add(cand.lower())
-    return cand
