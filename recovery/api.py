@@ -442,6 +442,12 @@ def _signal_level(img, finite, sat, scale: float, full_scale) -> float | None:
     return float(np.percentile(top, 99.9)) * scale / fs if top.size else 0.0
 
 
+#: Pixels with a channel at or above this fraction of ``white_level`` are saturated, left out of the analysis.
+SATURATION_FRACTION = 0.98
+#: Pixels with a channel at or below this fraction of the image's maximum are dark, left out of the analysis.
+DARK_FRACTION = 1e-3
+
+
 def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark_fraction, full_scale=None):
     img = np.asarray(image)
     if img.ndim != 3:
@@ -640,8 +646,8 @@ def _check_numeric_options(*, p, sigma, overlap, region_size) -> None:
 
 def _estimate_core(image, camera: Camera, method: str = "auto", *, surface_basis=None,
                         light_basis=None, surface_dim: int | None = None, light_dim: int | None = None,
-                        mask=None, white_level: float | None = None, saturation_fraction: float = 0.98,
-                        dark_fraction: float = 1e-3, spatial: bool | str = "auto", region_size: int | None = None,
+                        mask=None, white_level: float | None = None, saturation_fraction: float = SATURATION_FRACTION,
+                        dark_fraction: float = DARK_FRACTION, spatial: bool | str = "auto", region_size: int | None = None,
                         overlap: float = 0.5, min_variation: float = 0.02, subspace_tolerance: float = 0.1,
                         on_failure: str = "fallback", fallback: str = "shades-of-gray", p: float = 6.0,
                         sigma: float = 1.0, max_regions: int | None = None,
@@ -1317,6 +1323,10 @@ class AnalysisResult:
       scaled so that the 99th percentile of the per-pixel maximum
       reflectance is 1 (the data fix reflectance only up to the light's
       scale, eq. 27-28); ``reflectance_scale`` holds the factor.
+
+    ``usable`` (set by :func:`analyze`): the pixels the estimate used (inside
+    the mask, not saturated at ``white_level``, not dark); a surface read
+    elsewhere is marked in ``surface_estimates(points).excluded``.
     """
 
     illuminant: IlluminantEstimate
@@ -1331,6 +1341,7 @@ class AnalysisResult:
     prior_sensitivities: np.ndarray | None = None      # (S, N, C) camera samples, or (1, N, C)
     prior_lights: np.ndarray | None = None             # (S, N) light samples, or (1, N)
     band_scale: np.ndarray | None = None               # (N,) calibration of the band, or None
+    usable: np.ndarray | None = None                   # (H, W) the pixels the analysis used (analyze), or None
     _band_calibrate: bool = field(default=True, repr=False)
     _prior_spectrum: np.ndarray | None = field(default=None, repr=False)
     _prior_pixels: np.ndarray | None = field(default=None, repr=False)
@@ -1420,14 +1431,19 @@ class AnalysisResult:
     def surface_estimates(self, points):
         """Estimates with bands at ``[(row, col), ...]``: a
         :class:`recovery.surface_prior.SurfaceEstimates` (``mean``, ``std``
-        ``(P, N)``, ``expected_rmse`` ``(P,)``). With ``surface_estimator =
-        "pinv"`` the mean is eq. 36's and the band is not defined (``None``)."""
+        ``(P, N)``, ``expected_rmse`` ``(P,)``; ``excluded``: True where the
+        pixel was left out of the analysis, :attr:`usable`). With
+        ``surface_estimator = "pinv"`` the mean is eq. 36's and the band is not
+        defined (``None``)."""
         from .surface_prior import SurfaceEstimates
 
-        if self.surface_estimator == "pinv":
-            return SurfaceEstimates(self.reflectance(points), None, None, self.reflectance_scale, 1)
         pts, rho = self._points(points)
-        return self.estimates_from_responses(rho, pts[:, 0], pts[:, 1])
+        excluded = None if self.usable is None else ~self.usable[pts[:, 0], pts[:, 1]]
+        if self.surface_estimator == "pinv":
+            return SurfaceEstimates(self.reflectance(points), None, None, self.reflectance_scale, 1, None, excluded)
+        pe = self.estimates_from_responses(rho, pts[:, 0], pts[:, 1])
+        pe.excluded = excluded
+        return pe
 
     def metamers_from_responses(self, rho, rows, cols, model=None):
         """:class:`recovery.metamers.MetamerRange` of camera responses ``rho``
@@ -1611,7 +1627,12 @@ def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str 
     (1, 31)
     """
     est = estimate_illuminant(image, camera, method, spatial=spatial, **kwargs)
-    return surfaces_from_estimate(image, camera, est, surface_dim_render, synthesis_basis, surface_estimator)
+    res = surfaces_from_estimate(image, camera, est, surface_dim_render, synthesis_basis, surface_estimator)
+    # the pixels the estimate used (the mask given, not saturated, not dark), for the surfaces read later
+    res.usable = _prepare(image, camera, kwargs.get("mask"), kwargs.get("white_level"),
+                          kwargs.get("saturation_fraction", SATURATION_FRACTION),
+                          kwargs.get("dark_fraction", DARK_FRACTION))[1]
+    return res
 
 
 def _light_radius(est: IlluminantEstimate) -> float:

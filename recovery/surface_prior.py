@@ -598,6 +598,11 @@ class SurfaceEstimates:
     typicality : (P,) or None
         How unlike the prior's surfaces the response is: :func:`typicality`
         under the nominal light and camera (``None`` where not computed).
+    excluded : (P,) bool or None
+        True where the point's pixel was left out of the analysis (outside
+        the mask given, saturated or dark: ``AnalysisResult.usable``): its
+        response is clipped or noise, so its estimate cannot be trusted
+        (``None`` where not known: responses without pixels).
     """
 
     mean: np.ndarray
@@ -606,6 +611,7 @@ class SurfaceEstimates:
     exposure: float
     samples: int
     typicality: np.ndarray | None = None
+    excluded: np.ndarray | None = None
 
 
 def _mixture_moments(prior: SurfacePrior, A, y, noise) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

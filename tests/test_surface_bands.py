@@ -214,3 +214,32 @@ def test_typicality_under_a_light_map_is_the_one_light_typicality():
     one = sp.surface_estimates(prior, rho, sens, np.ones(WL.size), dl, exposure=1.3)
     per = sp.surface_estimates_per_point(prior, rho, sens, np.ones((len(rho), WL.size)), dl, 1.3)
     np.testing.assert_allclose(per.typicality, one.typicality, rtol=1e-9, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- points the analysis left out
+def test_a_surface_read_on_a_saturated_or_masked_pixel_says_so():
+    """Probe round 9b left it: in Python a point on a clipped pixel got an estimate and no word (the service
+    warns). ``analyze`` keeps the pixels its estimate used (``usable``: the mask given, not saturated at
+    ``white_level``, not dark) and ``surface_estimates(points).excluded`` marks the points outside them, for
+    the prior and the literal method; responses without pixels have no such mark."""
+    import models
+    from recovery import Camera, analyze
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    wl = cam.wavelengths
+    R = models.reflectance_set("colorchecker", wl)
+    rho = R @ (cam.sensitivities.T * (models.illuminant("D65", wl) * cam.dlambda)).T
+    img = np.repeat(np.repeat(rho.reshape(4, 6, 3), 10, 0), 10, 1)
+    img = img / img.max() * 0.8
+    img[0:10, 0:10] = 1.0                                   # a clipped patch
+    mask = np.ones(img.shape[:2], bool)
+    mask[30:40, 50:60] = False                              # a patch the user masked out
+    pts = [(5, 5), (35, 55), (15, 25)]
+    for estimator in ("prior", "pinv"):
+        res = analyze(img, cam, spatial=False, mask=mask, white_level=1.0, surface_estimator=estimator)
+        assert res.usable.shape == img.shape[:2]
+        assert res.usable.sum() == img.shape[0] * img.shape[1] - 200
+        assert res.surface_estimates(pts).excluded.tolist() == [True, True, False]
+    res = analyze(img, cam, spatial=False)                  # no white level, no mask: only dark pixels are out
+    assert res.surface_estimates(pts).excluded.tolist() == [False, False, False]
+    assert res.estimates_from_responses(rho[:2], [0, 0], [0, 0]).excluded is None
