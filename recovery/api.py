@@ -448,6 +448,26 @@ SATURATION_FRACTION = 0.98
 DARK_FRACTION = 1e-3
 
 
+def used_pixels(image, mask=None, white_level=None, saturation_fraction: float = SATURATION_FRACTION,
+                dark_fraction: float = DARK_FRACTION) -> np.ndarray:
+    """``(H, W)`` True where an estimate uses the pixel: finite, inside ``mask``, no channel at or above
+    ``saturation_fraction * white_level`` (when given) and none at or below ``dark_fraction`` of the
+    image's largest finite value: :func:`_prepare`'s rule, on the image's own values (no float copy of a
+    large image)."""
+    img = np.asarray(image)
+    finite = np.all(np.isfinite(img), axis=2)
+    m = finite.copy()
+    if mask is not None:
+        m &= _usable_mask(mask, img.shape[:2])
+    low = np.iinfo(img.dtype).min if np.issubdtype(img.dtype, np.integer) else -np.inf
+    top = float(np.max(img, where=finite[..., None], initial=low))
+    with np.errstate(invalid="ignore"):
+        if white_level is not None:
+            m &= ~np.any(img >= saturation_fraction * float(white_level), axis=2)
+        m &= ~np.any(img <= dark_fraction * top, axis=2)
+    return m
+
+
 def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark_fraction, full_scale=None):
     img = np.asarray(image)
     if img.ndim != 3:
@@ -1629,9 +1649,9 @@ def analyze(image, camera: Camera, method: str = "auto", *, spatial: bool | str 
     est = estimate_illuminant(image, camera, method, spatial=spatial, **kwargs)
     res = surfaces_from_estimate(image, camera, est, surface_dim_render, synthesis_basis, surface_estimator)
     # the pixels the estimate used (the mask given, not saturated, not dark), for the surfaces read later
-    res.usable = _prepare(image, camera, kwargs.get("mask"), kwargs.get("white_level"),
-                          kwargs.get("saturation_fraction", SATURATION_FRACTION),
-                          kwargs.get("dark_fraction", DARK_FRACTION))[1]
+    res.usable = used_pixels(image, kwargs.get("mask"), kwargs.get("white_level"),
+                             kwargs.get("saturation_fraction", SATURATION_FRACTION),
+                             kwargs.get("dark_fraction", DARK_FRACTION))
     return res
 
 

@@ -243,3 +243,29 @@ def test_a_surface_read_on_a_saturated_or_masked_pixel_says_so():
     res = analyze(img, cam, spatial=False)                  # no white level, no mask: only dark pixels are out
     assert res.surface_estimates(pts).excluded.tolist() == [False, False, False]
     assert res.estimates_from_responses(rho[:2], [0, 0], [0, 0]).excluded is None
+
+
+def test_the_pixels_marked_usable_are_those_the_estimate_uses():
+    """``recovery.api.used_pixels`` (what ``analyze`` keeps) is the rule of the estimate's own preparation
+    (``_prepare``): the same mask on images with NaN, infinities, saturated and dark pixels, integer and
+    float, with and without a mask and a white level."""
+    from recovery import Camera
+    from recovery.api import _prepare, used_pixels
+
+    cam = Camera.named("Nikon 5100 (NPL)")
+    rng = np.random.default_rng(4)
+    for dtype in (np.float64, np.float32, np.uint16):
+        img = rng.uniform(0, 1, (40, 50, 3))
+        img[rng.uniform(size=img.shape[:2]) < 0.05] = 0.0
+        if dtype is np.uint16:
+            img = (img * 65535).astype(np.uint16)
+            wl = 65000.0
+        else:
+            img = img.astype(dtype)
+            img[0, 0, 1], img[1, 1, 0], img[2, 2] = np.nan, np.inf, -np.inf
+            wl = 0.99
+        mask = rng.uniform(size=img.shape[:2]) < 0.8
+        for m, w in ((None, None), (mask, None), (mask, wl), (None, wl)):
+            expect = _prepare(img, cam, m, w, 0.98, 1e-3)[1]
+            got = used_pixels(img, m, w, 0.98, 1e-3)
+            assert np.array_equal(got, expect), (dtype, m is None, w)
