@@ -15,21 +15,33 @@ from .schemas.fields import ESTIMATION, REGIONS
 __all__ = ["cmd_analyze", "cmd_surfaces"]
 
 
+def _analysed(args, opts, settings, then=None):
+    """The file of ``args`` decoded and its light estimated (``then(decoded, run)`` after, if given), or
+    ``None`` with ``error: CODE: DETAIL`` on stderr when the file or an option is bad (exit status 1)."""
+    from . import pipeline
+
+    try:
+        decoded, run = pipeline.analyze_file(args.file, settings, camera=opts.camera, method=opts.method,
+                                             options=opts.estimate_kwargs())
+        return then(decoded, run) if then else (decoded, run)
+    except Exception as e:  # noqa: BLE001 - a bad file or option: say what, exit 1
+        err = service_error(e)
+        if err is None:
+            raise
+        print(f"error: {err.code}: {term_safe(err.detail)}", file=sys.stderr)
+        return None
+
+
 def cmd_analyze(args) -> int:
     from . import pipeline
     from .jsonsafe import clean
 
     input_file(args.file)
     opts = _options(args)
-    try:
-        decoded, run = pipeline.analyze_file(args.file, _settings(), camera=opts.camera, method=opts.method,
-                                             options=opts.estimate_kwargs())
-    except Exception as e:  # noqa: BLE001 - a bad file or option: say what, exit 1
-        err = service_error(e)
-        if err is None:
-            raise
-        print(f"error: {err.code}: {term_safe(err.detail)}", file=sys.stderr)
+    got = _analysed(args, opts, _settings())
+    if got is None:
         return 1
+    decoded, run = got
     print(json.dumps(clean(pipeline.analysis_json(run, decoded)), indent=1))
     return 0
 
@@ -38,7 +50,6 @@ def cmd_surfaces(args) -> int:
     """Reflectances at points, rectangles or a grid of one file, as ``POST
     /v1/surfaces`` answers them (the same answer, limits and errors), JSON or
     CSV on stdout."""
-    from . import pipeline
     from .jsonsafe import clean
     from .schemas.options import Regions
     from .surfaces import regions_of, surfaces_answer, surfaces_csv
@@ -48,15 +59,9 @@ def cmd_surfaces(args) -> int:
     regions = Regions(**{n: getattr(args, n) for n in REGIONS if getattr(args, n, None) is not None})
     settings = _settings()
     regions_of(regions, settings.max_surface_regions)        # a usage error before the file is decoded
-    try:
-        decoded, run = pipeline.analyze_file(args.file, settings, camera=opts.camera, method=opts.method,
-                                             options=opts.estimate_kwargs())
-        res = surfaces_answer(decoded, run, regions, opts.estimate_kwargs(), settings.max_surface_regions)
-    except Exception as e:  # noqa: BLE001 - a bad file or option: say what, exit 1
-        err = service_error(e)
-        if err is None:
-            raise
-        print(f"error: {err.code}: {term_safe(err.detail)}", file=sys.stderr)
+    res = _analysed(args, opts, settings, lambda decoded, run: surfaces_answer(
+        decoded, run, regions, opts.estimate_kwargs(), settings.max_surface_regions))
+    if res is None:
         return 1
     if regions.format == "csv":
         sys.stdout.write(surfaces_csv(res))

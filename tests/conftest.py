@@ -174,6 +174,25 @@ def scene_dng_bytes(height: int, width: int, camera: str = "Nikon 5100 (NPL)", l
     return buf.getvalue()
 
 
+def mondrian_u16(h=48, w=64) -> np.ndarray:
+    """A linear 16-bit camera-RGB picture of 16 x 16 patches, no two rows alike."""
+    rng = np.random.default_rng(9)
+    cols = rng.uniform(0.05, 0.9, (h // 16 + 1, w // 16 + 1, 3)) * np.array([0.5, 1.0, 0.7])
+    img = np.kron(cols, np.ones((16, 16, 1)))[:h, :w]
+    img *= np.linspace(0.8, 1.0, h)[:, None, None]          # nothing symmetric: a turn shows
+    return (img * 60000).astype(np.uint16)
+
+
+def tiff_bytes(arr: np.ndarray, **kw) -> bytes:
+    import tifffile
+
+    import io
+
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, arr, **kw)
+    return buf.getvalue()
+
+
 def strict_json(text: str):
     """JSON with NaN/Infinity refused (what a strict client parses)."""
     def no(c):

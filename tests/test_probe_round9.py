@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from .conftest import isolated_app_client, strict_json
+from .conftest import isolated_app_client, mondrian_u16, strict_json, tiff_bytes
 
 
 @pytest.fixture(scope="module")
@@ -21,21 +21,7 @@ def client(tmp_path_factory):
 _strict = strict_json
 
 
-def _mondrian(h=48, w=64) -> np.ndarray:
-    """A linear 16-bit camera-RGB picture of 16 x 16 patches, no two rows alike."""
-    rng = np.random.default_rng(9)
-    cols = rng.uniform(0.05, 0.9, (h // 16 + 1, w // 16 + 1, 3)) * np.array([0.5, 1.0, 0.7])
-    img = np.kron(cols, np.ones((16, 16, 1)))[:h, :w]
-    img *= np.linspace(0.8, 1.0, h)[:, None, None]          # nothing symmetric: a turn shows
-    return (img * 60000).astype(np.uint16)
-
-
-def _tiff(arr: np.ndarray, **kw) -> bytes:
-    import tifffile
-
-    buf = io.BytesIO()
-    tifffile.imwrite(buf, arr, **kw)
-    return buf.getvalue()
+_mondrian, _tiff = mondrian_u16, tiff_bytes
 
 
 # --- 1. CMYK and CIELab TIFFs read as RGB ----------------------------------------------------------

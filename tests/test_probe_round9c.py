@@ -12,7 +12,7 @@ import zlib
 import numpy as np
 import pytest
 
-from .conftest import isolated_app_client
+from .conftest import isolated_app_client, mondrian_u16, tiff_bytes
 
 
 @pytest.fixture(scope="module")
@@ -20,21 +20,7 @@ def client(tmp_path_factory):
     yield from isolated_app_client(tmp_path_factory.mktemp("store"), base_url="http://127.0.0.1")
 
 
-def _mondrian(h=48, w=64) -> np.ndarray:
-    """A linear 16-bit camera-RGB picture of 16 x 16 patches, no two rows alike."""
-    rng = np.random.default_rng(9)
-    cols = rng.uniform(0.05, 0.9, (h // 16 + 1, w // 16 + 1, 3)) * np.array([0.5, 1.0, 0.7])
-    img = np.kron(cols, np.ones((16, 16, 1)))[:h, :w]
-    img *= np.linspace(0.8, 1.0, h)[:, None, None]          # nothing symmetric: a turn shows
-    return (img * 60000).astype(np.uint16)
-
-
-def _tiff(arr: np.ndarray, **kw) -> bytes:
-    import tifffile
-
-    buf = io.BytesIO()
-    tifffile.imwrite(buf, arr, **kw)
-    return buf.getvalue()
+_mondrian, _tiff = mondrian_u16, tiff_bytes
 
 
 # --- 1. a 16-bit PNG's eXIf orientation --------------------------------------------------------------
