@@ -193,6 +193,40 @@ def tiff_bytes(arr: np.ndarray, **kw) -> bytes:
     return buf.getvalue()
 
 
+@pytest.fixture()
+def app_with(tmp_path):
+    """``make(**settings)``: a TestClient of the real app on a fresh data directory with the given
+    ``WANDELL_*`` settings (one batch worker; the batch runner stopped before and after), and that
+    directory: ``client, data = app_with(batch_result_retention=0.5)``."""
+    from fastapi.testclient import TestClient
+
+    from service.app import app
+    from service.routers import batches
+    from service.settings import get_settings
+
+    mp = pytest.MonkeyPatch()
+    clients = []
+
+    def make(**settings):
+        mp.setenv("WANDELL_DATA_DIR", str(tmp_path / "data"))
+        mp.setenv("WANDELL_BATCH_WORKERS", "1")
+        for k, v in settings.items():
+            mp.setenv(f"WANDELL_{k.upper()}", str(v))
+        get_settings.cache_clear()
+        batches.stop_runner()
+        c = TestClient(app)
+        c.__enter__()
+        clients.append(c)
+        return c, tmp_path / "data"
+
+    yield make
+    for c in clients:
+        c.__exit__(None, None, None)
+    batches.stop_runner()
+    mp.undo()
+    get_settings.cache_clear()
+
+
 def strict_json(text: str):
     """JSON with NaN/Infinity refused (what a strict client parses)."""
     def no(c):

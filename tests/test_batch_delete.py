@@ -12,9 +12,6 @@ import io
 import os
 import time
 
-import pytest
-from fastapi.testclient import TestClient
-
 from testing.dngwriter import scene_dng
 
 
@@ -22,36 +19,6 @@ def _dng(seed=1) -> bytes:
     buf = io.BytesIO()
     scene_dng(buf, "Nikon 5100 (NPL)", "D65", 96, 128, seed=seed)
     return buf.getvalue()
-
-
-@pytest.fixture()
-def app_with(tmp_path):
-    """A TestClient on a fresh data directory with the given settings."""
-    from service.app import app
-    from service.routers import batches
-    from service.settings import get_settings
-
-    mp = pytest.MonkeyPatch()
-    clients = []
-
-    def make(**settings):
-        mp.setenv("WANDELL_DATA_DIR", str(tmp_path / "data"))
-        mp.setenv("WANDELL_BATCH_WORKERS", "1")
-        for k, v in settings.items():
-            mp.setenv(f"WANDELL_{k.upper()}", str(v))
-        get_settings.cache_clear()
-        batches.stop_runner()
-        c = TestClient(app)
-        c.__enter__()
-        clients.append(c)
-        return c, tmp_path / "data"
-
-    yield make
-    for c in clients:
-        c.__exit__(None, None, None)
-    batches.stop_runner()
-    mp.undo()
-    get_settings.cache_clear()
 
 
 def _settle(client, bid, timeout=120):

@@ -142,39 +142,6 @@ def _dng(seed=1) -> bytes:
     return buf.getvalue()
 
 
-@pytest.fixture()
-def app_with(tmp_path):
-    """A TestClient of the real app on a fresh data directory with the given
-    ``WANDELL_*`` settings (the batch runner stopped before and after)."""
-    from fastapi.testclient import TestClient
-
-    from service.app import app
-    from service.routers import batches
-    from service.settings import get_settings
-
-    mp = pytest.MonkeyPatch()
-    clients = []
-
-    def make(**settings):
-        mp.setenv("WANDELL_DATA_DIR", str(tmp_path / "data"))
-        mp.setenv("WANDELL_BATCH_WORKERS", "1")
-        for k, v in settings.items():
-            mp.setenv(f"WANDELL_{k.upper()}", str(v))
-        get_settings.cache_clear()
-        batches.stop_runner()
-        c = TestClient(app)
-        c.__enter__()
-        clients.append(c)
-        return c
-
-    yield make
-    for c in clients:
-        c.__exit__(None, None, None)
-    batches.stop_runner()
-    mp.undo()
-    get_settings.cache_clear()
-
-
 def test_both_batch_endpoints_count_pending_alike_with_an_item_running(app_with, tmp_path):
     """``counts.pending`` was "pending or running" in ``GET /v1/batches/{id}``
     and "pending" alone in ``GET /v1/batches``, so the same batch had two
@@ -186,7 +153,7 @@ def test_both_batch_endpoints_count_pending_alike_with_an_item_running(app_with,
     from service.routers import batches
     from service.schemas.options import BatchOptions
 
-    client = app_with()
+    client, _ = app_with()
     runner = batches.get_runner()
     runner.stop()                                  # nothing moves while the counts are read
     src = tmp_path / "a.dng"
@@ -264,7 +231,7 @@ def test_a_batch_past_its_retention_says_it_was_removed_when_and_by_which_settin
     from service.batch import store as store_mod
 
     monkeypatch.setattr(store_mod, "TOMBSTONES_KEPT", 2, raising=False)   # (absent before the fix)
-    client = app_with(batch_result_retention=0.5)
+    client, _ = app_with(batch_result_retention=0.5)
     t0 = time.time()
     ids = []
     for seed in (1, 2, 3):       # one after the other: the oldest tombstone is the first batch's
