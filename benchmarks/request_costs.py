@@ -12,10 +12,19 @@ Time: the literal light map (``method=maloney-wandell``, ``spatial=true``)
 estimated in-process on random 16-bit images whose default regions number
 about 1,000 to 25,000 (``max_regions`` lifted): seconds per 1,000 regions.
 
+Memory after many requests (``--arenas``): the server's anonymous memory
+(``RssAnon``) once N requests of a 10 MP uncompressed linear 16-bit TIFF to
+``/v1/white-balance`` have been answered, made one after another and sent all
+at once (served through ``WANDELL_MAX_CONCURRENT_WORK`` slots), with glibc's
+default malloc arenas (``MALLOC_ARENA_MAX`` set to glibc's own default, 8 per
+CPU) and with the service's cap (``service.workers.MALLOC_ARENAS``), side by
+side; each figure on a fresh server, the median of ``--repeat`` runs.
+
 Usage (from the checkout root)::
 
     .venv/bin/python -m benchmarks.request_costs [--port 8660] [--mp 10] [--skip-memory] [--skip-map]
         [--only TEXT] [--endpoint PATH] [--wb-format tiff|png|png16|jpeg]
+    .venv/bin/python -m benchmarks.request_costs --arenas [--requests 16] [--slots 1,2] [--repeat 3]
 
 ``--only`` keeps the input kinds whose name contains TEXT (e.g. ``LinearRaw``),
 ``--endpoint`` one endpoint (e.g. ``/v1/white-balance``), ``--wb-format`` the
@@ -79,11 +88,11 @@ def _post(port, path, fields, name, data, timeout=600):
 
 
 class _Server:
-    def __init__(self, port: int):
+    def __init__(self, port: int, env: dict | None = None):
         self.port = port
         self.work = tempfile.mkdtemp(prefix="wandell-bench-")
         env = dict(os.environ, WANDELL_HOST="127.0.0.1", WANDELL_PORT=str(port),
-                   WANDELL_DATA_DIR=os.path.join(self.work, "data"), TMPDIR=self.work)
+                   WANDELL_DATA_DIR=os.path.join(self.work, "data"), TMPDIR=self.work, **(env or {}))
         self.p = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
                                   stderr=subprocess.DEVNULL, start_new_session=True)
         t0 = time.time()
@@ -129,7 +138,7 @@ class _Server:
         return res, peak[0] - base
 
 
-def _linear_tiff(mp: float) -> tuple[bytes, float]:
+def _linear_tiff(mp: float, compress: bool = True) -> tuple[bytes, float]:
     import tifffile
 
     h = int(round((mp * 1e6 * 3 / 4) ** 0.5))
@@ -138,7 +147,10 @@ def _linear_tiff(mp: float) -> tuple[bytes, float]:
     blocks = rng.integers(2000, 40000, (h // 64 + 1, w // 64 + 1, 3)).astype(np.uint16)
     img = np.kron(blocks, np.ones((64, 64, 1), np.uint16))[:h, :w]
     buf = io.BytesIO()
-    tifffile.imwrite(buf, img, photometric="rgb", compression="zlib", predictor=True)
+    if compress:
+        tifffile.imwrite(buf, img, photometric="rgb", compression="zlib", predictor=True)
+    else:
+        tifffile.imwrite(buf, img, photometric="rgb")
     return buf.getvalue(), h * w / 1e6
 
 
@@ -206,6 +218,80 @@ def memory(port: int, mp: float, only: str | None = None, endpoint: str | None =
                   f"RSS +{rise:5d} MiB = {rise / mpx:5.1f} MiB/MP, {took:5.1f} s", flush=True)
 
 
+def glibc_default_arenas() -> int:
+    """glibc's own arena limit (8 per CPU on 64-bit): as ``MALLOC_ARENA_MAX`` it gives a
+    server glibc's default behaviour, which the service's cap (``service.workers``) then leaves alone."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    return 8 * max(1, cpus)
+
+
+def anon_after_requests(port: int, data: bytes, n: int, slots: int, env: dict, at_once: bool) -> dict:
+    """On a fresh server (``WANDELL_MAX_CONCURRENT_WORK=slots`` and ``env``): its ``RssAnon`` (MiB)
+    at start, after the first request and after ``n`` requests to ``/v1/white-balance`` (TIFF),
+    made one after another (``at_once`` false; also the median seconds a request took) or all sent
+    at once; ``statuses`` the answers' HTTP statuses."""
+    import concurrent.futures
+
+    srv = _Server(port, dict(env, WANDELL_MAX_CONCURRENT_WORK=str(slots)))
+    pid = srv.p.pid
+    out = {"start": _status(pid, "RssAnon"), "statuses": set()}
+    try:
+        def one():
+            t0 = time.perf_counter()
+            st, _ = _post(port, "/v1/white-balance", {"format": "tiff"}, "a.tif", data)
+            out["statuses"].add(st)
+            return time.perf_counter() - t0
+        if at_once:
+            with concurrent.futures.ThreadPoolExecutor(n) as ex:
+                list(ex.map(lambda _: one(), range(n)))
+        else:
+            took = []
+            for i in range(n):
+                took.append(one())
+                if i == 0:
+                    time.sleep(0.2)
+                    out["first"] = _status(pid, "RssAnon")
+            out["seconds"] = float(np.median(took))
+        time.sleep(0.5)
+        out["after"] = _status(pid, "RssAnon")
+        out["peak"] = _status(pid, "VmHWM")
+    finally:
+        srv.stop()
+    return out
+
+
+def arenas(port: int, mp: float, n: int, slots: list[int], repeat: int) -> None:
+    """Print the ``--arenas`` table: RssAnon after ``n`` requests, glibc's default arenas
+    against the service's cap, medians of ``repeat`` fresh servers per figure."""
+    from service.workers import MALLOC_ARENAS
+
+    data, mpx = _linear_tiff(mp, compress=False)
+    default = {"MALLOC_ARENA_MAX": str(glibc_default_arenas())}
+    print(f"{mpx:.1f} MP uncompressed 16-bit TIFF ({len(data) / 1e6:.0f} MB) to /v1/white-balance (TIFF); "
+          f"RssAnon in MiB, medians of {repeat} fresh servers; glibc default = MALLOC_ARENA_MAX="
+          f"{default['MALLOC_ARENA_MAX']} (8 per CPU), capped = the service's {MALLOC_ARENAS}", flush=True)
+    for k in slots:
+        for at_once in (False, True):
+            how = f"{n} sent at once" if at_once else f"{n} one after another"
+            figs = {"glibc default": [], "capped": []}
+            for _ in range(repeat):       # the two in turn, so a drift of the shared machine falls on both
+                for name, env in (("glibc default", default), ("capped", {})):
+                    figs[name].append(anon_after_requests(port, data, n, k, env, at_once))
+            for name, runs in figs.items():
+                after = np.median([r["after"] for r in runs])
+                first = np.median([r["first"] for r in runs]) if not at_once else None
+                start = np.median([r["start"] for r in runs])
+                sts = set().union(*(r["statuses"] for r in runs))
+                extra = (f", after the 1st {first:4.0f} (+{after - first:4.0f} since), {np.median([r['seconds'] for r in runs]):.2f} s a request"
+                         if first is not None else "")
+                print(f"slots {k}, {how:20s} {name:13s}: start {start:4.0f}, after all {after:4.0f} "
+                      f"(each run {', '.join(str(r['after']) for r in runs)}){extra}, peak RSS "
+                      f"{np.median([r['peak'] for r in runs]):4.0f}; HTTP {sorted(sts)}", flush=True)
+
+
 def light_map() -> None:
     from recovery import estimate_illuminant
     from recovery.cameras import generic_camera
@@ -234,7 +320,15 @@ def main(argv=None) -> None:
     ap.add_argument("--only", help="only the input kinds whose name contains this (e.g. LinearRaw)")
     ap.add_argument("--endpoint", help="only this endpoint (e.g. /v1/white-balance)")
     ap.add_argument("--wb-format", default="tiff", help="/v1/white-balance's format (default tiff)")
+    ap.add_argument("--arenas", action="store_true",
+                    help="only the memory after many requests, glibc's default malloc arenas against the cap")
+    ap.add_argument("--requests", type=int, default=16, help="--arenas: requests per server (default 16)")
+    ap.add_argument("--slots", default="1,2", help="--arenas: WANDELL_MAX_CONCURRENT_WORK values (default 1,2)")
+    ap.add_argument("--repeat", type=int, default=3, help="--arenas: fresh servers per figure (default 3)")
     a = ap.parse_args(argv)
+    if a.arenas:
+        arenas(a.port, a.mp, a.requests, [int(x) for x in a.slots.split(",")], a.repeat)
+        return
     if not a.skip_map:
         light_map()
     if not a.skip_memory:

@@ -159,6 +159,12 @@ def _parser():
 def main(argv=None) -> None:
     args = _parser().parse_args(argv)       # --help prints the usage and exits 0: no server
 
+    # before anything starts a thread (the app's imports, uvicorn): glibc gives each new thread an
+    # arena of its own, and what they keep scattered a trim does not give back (service.workers)
+    from .workers import limit_malloc_arenas
+
+    limit_malloc_arenas()
+
     import uvicorn
 
     from .settings import settings_or_exit

@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
+
 from fastapi import Depends, FastAPI
 
 from .errors import install_error_handlers
@@ -28,8 +31,21 @@ given: it takes its default. Every error is JSON
 unknown option (named in the detail). The limits are in `GET /health`.
 """
 
+
+
+@contextlib.asynccontextmanager
+async def lifespan(app):
+    """Cap the malloc arenas before the first worker thread (``python -m service`` has done it
+    already; this is for ``uvicorn service.app:app``), then run the batch runner's lifespan."""
+    from .workers import MALLOC_ARENAS, limit_malloc_arenas
+
+    logging.getLogger("service").debug("malloc arenas at most %d: %s", MALLOC_ARENAS, limit_malloc_arenas())
+    async with batches.lifespan(app):
+        yield
+
+
 app = FastAPI(title="Wandell colour recovery service", version="0.1.0", description=DESCRIPTION,
-              lifespan=batches.lifespan, docs_url=None, redoc_url=None,
+              lifespan=lifespan, docs_url=None, redoc_url=None,
               dependencies=[Depends(reject_unknown_fields)])
 install_error_handlers(app)
 # /docs offline: Swagger UI's assets from a package, served here; the OpenAPI completed

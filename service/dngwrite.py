@@ -310,12 +310,10 @@ _ORIENTATION = {0: 1, 3: 3, 5: 8, 6: 6}
 def _tiff_make_model(data: bytes) -> tuple[str | None, str | None]:
     """Make and Model of a TIFF-based RAW's first IFD (NEF, CR2, ARW, PEF,
     ... are TIFF files), or ``(None, None)``."""
-    import io
-
-    import tifffile
+    from .decode.tiffbytes import tiff_file
 
     try:
-        with tifffile.TiffFile(io.BytesIO(data)) as tf:
+        with tiff_file(data) as tf:
             tags = tf.pages[0].tags
             get = (lambda code: str(tags[code].value).strip("\x00 ") if code in tags else None)
             return get(_TAG_MAKE) or None, get(_TAG_MODEL) or None

@@ -10,11 +10,12 @@ References: Adobe, *Digital Negative (DNG) Specification* 1.4.0.0 (tags
 
 from __future__ import annotations
 
-import io
 
 import numpy as np
 
 from recovery.dng_color import ColorProfile
+
+from .decode.tiffbytes import tiff_file
 
 __all__ = ["color_profile", "source_exif", "read_dng_profile", "profile_problem"]
 
@@ -134,9 +135,8 @@ def _tiff_pages(decoded):
     data = getattr(decoded, "_source", None)
     if not data or bytes(data[:2]) not in (b"II", b"MM"):
         return None
-    import tifffile
 
-    return tifffile.TiffFile(io.BytesIO(data))
+    return tiff_file(data)
 
 
 def _meta(decoded) -> dict:

@@ -20,6 +20,20 @@ After each job the C heap is trimmed (glibc ``malloc_trim``): a 24 MP
 request allocates a few GB in many mid-sized blocks across the worker
 threads' malloc arenas, and without a trim the freed memory stays with the
 process instead of going back to the system.
+
+The server also caps glibc's malloc arenas at :data:`MALLOC_ARENAS` (2) when
+it starts (:func:`limit_malloc_arenas`, ``mallopt(M_ARENA_MAX)``, before the
+first pool thread). By default glibc gives each new thread an arena of its
+own, up to 8 per CPU; the pool's threads (the jobs, the uploads spooled to
+disk, the batch runner) each kept one, and a trim does not give back what
+stays scattered among them: with the decoders' uploads no longer kept by
+reference cycles (``service.decode.tiffbytes``), 16 requests of a 10 MP TIFF
+sent at once still left the process some 80 MiB (165-200) above what one
+request leaves with glibc's default, about 5 with the cap (two work slots,
+``python -m benchmarks.request_costs --arenas``; ``docs/limits.md``). A
+``MALLOC_ARENA_MAX`` (or ``GLIBC_TUNABLES`` naming ``glibc.malloc.arena_max``)
+set in the environment is left as glibc applied it; without glibc's
+``mallopt`` (musl, macOS, Windows) nothing is done.
 """
 
 from __future__ import annotations
@@ -38,7 +52,8 @@ import anyio.to_thread
 from .errors import ServiceError
 from .settings import get_settings
 
-__all__ = ["run_heavy", "default_concurrency", "work_slots", "trim_memory"]
+__all__ = ["run_heavy", "default_concurrency", "work_slots", "trim_memory", "limit_malloc_arenas",
+           "MALLOC_ARENAS"]
 
 log = logging.getLogger("service")
 
@@ -70,15 +85,44 @@ def _limiter() -> anyio.CapacityLimiter:
     return lim
 
 
-def _libc_trim():
+def _libc():
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return libc.malloc_trim
-    except (OSError, AttributeError):  # not glibc: nothing to trim
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:  # no C library ctypes can open (Windows): nothing to tune
         return None
 
 
-_MALLOC_TRIM = _libc_trim()
+_LIBC = _libc()
+_MALLOC_TRIM = getattr(_LIBC, "malloc_trim", None)   # not glibc: nothing to trim
+
+#: malloc arenas the server allows (the event loop's and one the worker threads share; more
+#: arenas only spread the same freed memory over more places)
+MALLOC_ARENAS = 2
+_M_ARENA_MAX = -8     # glibc's malloc.h
+
+
+def _arena_max_from_environment(environ) -> bool:
+    return bool(environ.get("MALLOC_ARENA_MAX")) or "glibc.malloc.arena_max" in environ.get("GLIBC_TUNABLES", "")
+
+
+def limit_malloc_arenas(n: int = MALLOC_ARENAS, *, libc=None, environ=None) -> str:
+    """Cap glibc's malloc arenas at ``n`` for this process (``mallopt(M_ARENA_MAX, n)``), to be
+    called before the worker threads start: a thread that already has an arena keeps it. Returns
+    what was done: ``"applied"``; ``"environment"`` when ``MALLOC_ARENA_MAX`` or
+    ``GLIBC_TUNABLES`` sets it (glibc applied that at start; left alone); ``"unavailable"`` when the
+    C library has no ``mallopt`` (not glibc); ``"refused"`` when ``mallopt`` said no (musl's
+    does nothing). Never raises."""
+    environ = os.environ if environ is None else environ
+    if _arena_max_from_environment(environ):
+        return "environment"
+    mallopt = getattr(_LIBC if libc is None else libc, "mallopt", None)
+    if mallopt is None:
+        return "unavailable"
+    try:
+        ok = mallopt(ctypes.c_int(_M_ARENA_MAX), ctypes.c_int(int(n)))
+    except (OSError, TypeError, ValueError, ctypes.ArgumentError):
+        return "unavailable"
+    return "applied" if ok == 1 else "refused"
 
 
 def trim_memory() -> None:

@@ -7,7 +7,6 @@ own tone curve, or refused, by the ``display_referred`` policy (:mod:`service.de
 
 from __future__ import annotations
 
-import io
 import struct
 import zlib
 
@@ -17,6 +16,7 @@ from ..errors import ServiceError
 from .icc import Encoding, display_referred_policy, linearise, png_encoding, tiff_encoding
 from .image import FLIP_OPS, DecodedImage
 from .tags import _ascii_tag, _tag
+from .tiffbytes import tiff_file
 
 
 _LINEAR_NOTE = ("linear camera RGB assumed (black level 0, no camera metadata); gamma-encoded images "
@@ -59,11 +59,10 @@ def _check_linear_compression(page, label: str) -> None:
 
 def _decode_tiff(data: bytes, filename: str | None, max_pixels: int,
                  display_referred: str = "linearise") -> DecodedImage:
-    import tifffile
 
     label = f"{filename!r}" if filename else "the upload"
     try:
-        tf = tifffile.TiffFile(io.BytesIO(data))
+        tf = tiff_file(data)
     except Exception as exc:
         raise ServiceError(422, "corrupt_file",
                           f"{label} has a TIFF header but its structure cannot be read "

@@ -45,10 +45,11 @@ guess.
 
 from __future__ import annotations
 
-import io
 import math
 
 import numpy as np
+
+from .tiffbytes import tiff_file
 
 __all__ = ["linear_dng_estimation", "linear_dng_full", "LinearRawRows", "SATURATION_FRACTION"]
 
@@ -236,10 +237,8 @@ def linear_dng_estimation(data: bytes, height: int, width: int, estimation_pixel
         422 ``corrupt_file`` naming the strip or tile of a plain-layout
         file that cannot be decoded (``label``: the upload's name).
     """
-    import tifffile
-
     try:
-        tf = tifffile.TiffFile(io.BytesIO(data))
+        tf = tiff_file(data)
     except Exception:  # noqa: BLE001 - LibRaw read it; it decides
         return None
     with tf:
@@ -367,12 +366,10 @@ def linear_dng_full(data: bytes, height: int, width: int, flip: int, label: str 
     ("Linearization", "Black Subtraction", "Rescaling"); LibRaw's
     ``scale_colors`` does the same scaling for these files.
     """
-    import tifffile
-
     from .image import FLIP_OPS
 
     try:
-        tf = tifffile.TiffFile(io.BytesIO(data))
+        tf = tiff_file(data)
     except Exception as exc:  # noqa: BLE001
         raise _corrupt(label, f"the DNG cannot be read again ({type(exc).__name__})") from None
     with tf:
@@ -439,12 +436,10 @@ class LinearRawRows:
         """The rows of the DNG ``data`` (``height x width`` as LibRaw reports
         it, LibRaw's ``flip``), cropped to ``bounds_of((height, width))``,
         or ``None`` (rotated, segments too tall, not the plain layout)."""
-        import tifffile
-
         if flip:
             return None
         try:
-            tf = tifffile.TiffFile(io.BytesIO(data))
+            tf = tiff_file(data)
         except Exception:  # noqa: BLE001 - the whole-image path reports it
             return None
         lay = _layout(tf, height, width, need_neutral=False)

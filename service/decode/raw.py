@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import ServiceError
 from .formats import camera_label
+from .tiffbytes import tiff_file
 from .image import DecodedImage, FLIP_OPS, SATURATION_FRACTION, _uint16_to_unit_float, as_shot_problem
 
 
@@ -385,15 +386,13 @@ def decode_linear_dng_without_libraw(data: bytes, filename: str | None, max_pixe
     """
     import types
 
-    import tifffile
-
     from .linear_dng import _raw_page, linear_dng_estimation
     from .structure import _check_tiff_structure, _tiff_structured
     from .tags import _tiff_info
 
     label = f"{filename!r}" if filename else "the upload"
     try:
-        with tifffile.TiffFile(io.BytesIO(data)) as tf:
+        with tiff_file(data) as tf:
             page = _raw_page(tf)
             if page is None:
                 return None

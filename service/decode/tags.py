@@ -4,10 +4,11 @@ the crop (:func:`_tiff_info`), file strings bounded and cleaned (:func:`file_str
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 
 import numpy as np
+
+from .tiffbytes import tiff_file
 
 
 @dataclass
@@ -163,11 +164,9 @@ def _white_xy_neutral(p0) -> tuple[np.ndarray | None, str | None]:
 def _tiff_info(data: bytes) -> _TiffInfo:
     """Make, Model, the XYZ -> camera matrix and the strip/tile check of a
     TIFF-structured file (IFD0 and SubIFDs of every page)."""
-    import tifffile
-
     info = _TiffInfo()
     size = len(data)
-    with tifffile.TiffFile(io.BytesIO(data)) as tf:
+    with tiff_file(data) as tf:
         p0 = tf.pages.first if hasattr(tf.pages, "first") else tf.pages[0]
         info.make = _ascii_tag(p0, 271)
         info.model = _ascii_tag(p0, 272)
