@@ -246,3 +246,29 @@ def test_memory_after_eight_requests_at_once_stays_near_what_one_request_leaves(
         import shutil
 
         shutil.rmtree(work, ignore_errors=True)
+
+
+def test_linear_dng_rows_let_go_of_the_upload_once_dropped():
+    """The rows a LinearRaw DNG is encoded from strip by strip (``LinearRawRows``) keep their TiffFile open
+    while they are used; once dropped they close it, so the upload is not kept by tifffile's cycle until
+    the collector runs (the arena helper's report left it)."""
+    import io
+    import sys
+
+    from service.decode.linear_dng import LinearRawRows
+    from testing.dngwriter import write_linear_dng
+
+    buf = io.BytesIO()
+    write_linear_dng(buf, np.random.default_rng(0).uniform(0, 1, (64, 80, 3)).astype(np.float32), rows_per_strip=8)
+    data = buf.getvalue()
+    gc.collect()
+    gc.disable()            # tifffile's cycle is then not collected: only closing lets go of the bytes
+    try:
+        before = sys.getrefcount(data)
+        rows = LinearRawRows.of(data, 64, 80, 0, lambda shape: None)
+        assert rows(0, 10).shape == (10, 80, 3)
+        assert sys.getrefcount(data) > before
+        del rows
+        assert sys.getrefcount(data) == before
+    finally:
+        gc.enable()

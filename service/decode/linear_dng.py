@@ -46,6 +46,7 @@ guess.
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 
@@ -416,6 +417,9 @@ class LinearRawRows:
     def __init__(self, tf, lay: _Layout, data: bytes, bounds, label):
         page = lay.page
         self._tf, self._data, self._label = tf, data, label       # the TiffFile kept open for page.decode
+        # closed when these rows are dropped: tifffile's pages and the file form a cycle that would keep
+        # the stream, and through it the upload, until the cyclic collector ran (docs/limits.md)
+        weakref.finalize(self, tf.close)
         self._decode = page.decode
         self._offsets = [int(v) for v in page.dataoffsets]
         self._counts = [int(v) for v in page.databytecounts]
