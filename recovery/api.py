@@ -448,24 +448,31 @@ SATURATION_FRACTION = 0.98
 DARK_FRACTION = 1e-3
 
 
-def used_pixels(image, mask=None, white_level=None, saturation_fraction: float = SATURATION_FRACTION,
-                dark_fraction: float = DARK_FRACTION) -> np.ndarray:
-    """``(H, W)`` True where an estimate uses the pixel: finite, inside ``mask``, no channel at or above
-    ``saturation_fraction * white_level`` (when given) and none at or below ``dark_fraction`` of the
-    image's largest finite value: :func:`_prepare`'s rule, on the image's own values (no float copy of a
-    large image)."""
-    img = np.asarray(image)
-    finite = np.all(np.isfinite(img), axis=2)
+def _pixel_rule(img, finite, mask, saturated_at, dark_at):
+    """The pixels an estimate uses and why the others are out: ``(used, saturated, dark)``, each ``(H, W)``:
+    finite, inside ``mask``, no channel at or above ``saturated_at`` (None: no white level) and none at or
+    below ``dark_at``, thresholds on ``img``'s own scale."""
     m = finite.copy()
     if mask is not None:
         m &= _usable_mask(mask, img.shape[:2])
+    with np.errstate(invalid="ignore"):
+        sat = (np.any(img >= saturated_at, axis=2) & finite) if saturated_at is not None else np.zeros_like(m)
+        dark = np.any(img <= dark_at, axis=2) & finite
+    m &= ~sat & ~dark
+    return m, sat, dark
+
+
+def used_pixels(image, mask=None, white_level=None, saturation_fraction: float = SATURATION_FRACTION,
+                dark_fraction: float = DARK_FRACTION) -> np.ndarray:
+    """``(H, W)`` True where an estimate uses the pixel: :func:`_prepare`'s rule (:func:`_pixel_rule`: finite,
+    inside ``mask``, below ``saturation_fraction * white_level``, above ``dark_fraction`` of the image's
+    largest finite value), on the image's own values (no float copy of a large image)."""
+    img = np.asarray(image)
+    finite = np.all(np.isfinite(img), axis=2)
     low = np.iinfo(img.dtype).min if np.issubdtype(img.dtype, np.integer) else -np.inf
     top = float(np.max(img, where=finite[..., None], initial=low))
-    with np.errstate(invalid="ignore"):
-        if white_level is not None:
-            m &= ~np.any(img >= saturation_fraction * float(white_level), axis=2)
-        m &= ~np.any(img <= dark_fraction * top, axis=2)
-    return m
+    sat_at = None if white_level is None else saturation_fraction * float(white_level)
+    return _pixel_rule(img, finite, mask, sat_at, dark_fraction * top)[0]
 
 
 def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark_fraction, full_scale=None):
@@ -480,21 +487,15 @@ def _prepare(image, camera: Camera, mask, white_level, saturation_fraction, dark
         raise InputError(f"image dtype {img.dtype} is not real-valued (integers or floats)")
     img = img.astype(np.float64, copy=False)
     finite = np.all(np.isfinite(img), axis=2)
-    m = finite.copy()
-    if mask is not None:
-        m &= _usable_mask(mask, img.shape[:2])
+    mask = None if mask is None else _usable_mask(mask, img.shape[:2])    # a bad mask is named first
     vals = img[finite]
     scale = float(np.max(vals)) if vals.size else 0.0
     if not scale > 0:
         raise InsufficientSurfaceVariation("the image has no positive finite values (black or invalid)")
     img = np.where(finite[..., None], img, 0.0) / scale
     info = {"pixels_total": int(finite.size), "pixels_nonfinite": int((~finite).sum()), "input_scale": scale}
-    sat = np.zeros_like(m)
-    if white_level is not None:
-        sat = np.any(img >= saturation_fraction * float(white_level) / scale, axis=2) & finite
-        m &= ~sat
-    dark = np.any(img <= dark_fraction, axis=2) & finite
-    m &= ~dark
+    m, sat, dark = _pixel_rule(img, finite, mask, None if white_level is None else
+                               saturation_fraction * float(white_level) / scale, dark_fraction)
     info.update(pixels_saturated=int(sat.sum()), pixels_dark=int((dark & ~sat).sum()),
                 pixels_used=int(m.sum()))
     level = _signal_level(img, finite, sat, scale, white_level if full_scale is None else full_scale)

@@ -58,9 +58,9 @@ def cmd_surfaces(args) -> int:
     opts = jobs.batch_options(**{n: getattr(args, n, None) for n in ESTIMATION})   # --format is the answer's
     regions = Regions(**{n: getattr(args, n) for n in REGIONS if getattr(args, n, None) is not None})
     settings = _settings()
-    regions_of(regions, settings.max_surface_regions)        # a usage error before the file is decoded
-    res = _analysed(args, opts, settings, lambda decoded, run: surfaces_answer(
-        decoded, run, regions, opts.estimate_kwargs(), settings.max_surface_regions))
+    where = regions_of(regions, settings.max_surface_regions)        # a usage error before the file is decoded
+    res = _analysed(args, opts, settings,
+                    lambda decoded, run: surfaces_answer(decoded, run, regions, where, opts.estimate_kwargs()))
     if res is None:
         return 1
     if regions.format == "csv":

@@ -254,13 +254,15 @@ def regions_of(regions, max_regions: int) -> tuple[list, list, tuple | None]:
     return pts, rcs, grd
 
 
-def surfaces_answer(decoded, run: EstimateRun, regions, options: dict, max_regions: int) -> dict:
+def surfaces_answer(decoded, run: EstimateRun, regions, where, options: dict) -> dict:
     """The whole answer of ``POST /v1/surfaces`` and ``wandell surfaces``:
-    :func:`surfaces_at` at ``regions`` (checked by :func:`regions_of`), the
-    light, method, camera, warnings, the lights found and the light map."""
+    :func:`surfaces_at` at ``where`` (the points, rectangles and grid
+    :func:`regions_of` gave for ``regions``, checked before the file was
+    read), the light, method, camera, warnings, the lights found and the
+    light map."""
     from .report import camera_json, illuminant_json, light_map_json, lights_json, profile_of
 
-    pts, rcs, grd = regions_of(regions, max_regions)
+    pts, rcs, grd = where
     res = surfaces_at(decoded, run, pts, rcs, grd, options, metamers=regions.metamers,
                       metamer_model=regions.metamer_model)
     res["illuminant"] = illuminant_json(run.estimate, profile_of(decoded), run.camera)

@@ -342,14 +342,14 @@ async def surfaces(request: Request, file: UploadFile = _FILE, sensitivities: Up
     ``metamers=true`` adds each surface's metamer set (at most 64 surfaces,
     about 90 ms each)."""
     camera, method, format = est.camera, est.method, regions.format
-    regions_of(regions, settings.max_surface_regions)      # the limits before the upload is read
+    where = regions_of(regions, settings.max_surface_regions)      # the limits before the upload is read
     opts = est.estimate_kwargs()
     data, sens = await _inputs(file, sensitivities, settings)
 
     def work(data):
         decoded, run = analyze_upload(data, file.filename, sens, camera, method, opts, settings,
                                       display_referred=inp.display_referred)
-        res = surfaces_answer(decoded, run, regions, opts, settings.max_surface_regions)
+        res = surfaces_answer(decoded, run, regions, where, opts)
         # the body is rendered here too, not on the event loop (10,000 entries are ~1 MB)
         if format == "csv":
             return Response(surfaces_csv(res), media_type="text/csv")
